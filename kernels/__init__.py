@@ -1,0 +1,5 @@
+"""Device code of warpcontact (`@wp.func` / `@wp.kernel`), installed as ``warpcontact.kernels``.
+
+Modules by stage: ``linalg`` (small dense solves), ``geometry`` (closest features),
+``leaf`` (separating-plane leaf potential), ``blend`` (centred potential, quintic blend).
+"""

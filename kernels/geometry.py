@@ -1,0 +1,101 @@
+"""Closest features between triangles (float64 device functions).
+
+Used to start the leaf solve from a true separating plane: for two disjoint triangles the
+closest pair is attained between a vertex and the other triangle or between two edges, so
+the 9 edge-edge pairs plus the 6 vertex-face projections cover every case. Degenerate
+(zero-area) triangles skip the face projections; their hull is the union of their edges,
+which the edge-edge pairs already cover.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+__all__ = ["segment_closest_points", "triangle_closest_points"]
+
+
+@wp.func
+def segment_closest_points(p1: wp.vec3d, q1: wp.vec3d, p2: wp.vec3d, q2: wp.vec3d):
+    """Closest points of segments [p1,q1] and [p2,q2]; robust to zero-length and parallel segments."""
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    d1 = q1 - p1
+    d2 = q2 - p2
+    r = p1 - p2
+    a = wp.dot(d1, d1)
+    e = wp.dot(d2, d2)
+    f = wp.dot(d2, r)
+    s = zero
+    t = zero
+    if a <= zero and e <= zero:
+        return p1, p2
+    if a <= zero:
+        t = wp.clamp(f / e, zero, one)
+    else:
+        c = wp.dot(d1, r)
+        if e <= zero:
+            s = wp.clamp(-c / a, zero, one)
+        else:
+            b = wp.dot(d1, d2)
+            denom = a * e - b * b
+            # Parallel segments: any s gives a closest pair once t is clamped below.
+            if denom > wp.float64(1.0e-14) * a * e:
+                s = wp.clamp((b * f - c * e) / denom, zero, one)
+            t = (b * s + f) / e
+            if t < zero:
+                t = zero
+                s = wp.clamp(-c / a, zero, one)
+            elif t > one:
+                t = one
+                s = wp.clamp((b - c) / a, zero, one)
+    return p1 + s * d1, p2 + t * d2
+
+
+@wp.func
+def _face_projection(p: wp.vec3d, b0: wp.vec3d, b1: wp.vec3d, b2: wp.vec3d):
+    """Projection of p onto the plane of (b0,b1,b2) and whether it lies inside the triangle."""
+    e1 = b1 - b0
+    e2 = b2 - b0
+    nrm = wp.cross(e1, e2)
+    nn = wp.dot(nrm, nrm)
+    scale = wp.max(wp.dot(e1, e1), wp.dot(e2, e2))
+    if nn <= wp.float64(1.0e-24) * scale * scale:
+        return p, False
+    q = p - (wp.dot(p - b0, nrm) / nn) * nrm
+    u = wp.dot(wp.cross(b1 - q, b2 - q), nrm)
+    v = wp.dot(wp.cross(b2 - q, b0 - q), nrm)
+    w = wp.dot(wp.cross(b0 - q, b1 - q), nrm)
+    zero = wp.float64(0.0)
+    return q, (u >= zero and v >= zero and w >= zero)
+
+
+@wp.func
+def triangle_closest_points(ta: wp.mat33d, tb: wp.mat33d):
+    """Closest points (on A, on B) of two triangles given as rows of 3x3 matrices."""
+    best = wp.float64(1.0e308)
+    ca = ta[0]
+    cb = tb[0]
+    for i in range(3):
+        for j in range(3):
+            pa, pb = segment_closest_points(ta[i], ta[(i + 1) % 3], tb[j], tb[(j + 1) % 3])
+            dd = wp.length_sq(pa - pb)
+            if dd < best:
+                best = dd
+                ca = pa
+                cb = pb
+    for k in range(3):
+        qb, inside_b = _face_projection(ta[k], tb[0], tb[1], tb[2])
+        if inside_b:
+            dd = wp.length_sq(ta[k] - qb)
+            if dd < best:
+                best = dd
+                ca = ta[k]
+                cb = qb
+        qa, inside_a = _face_projection(tb[k], ta[0], ta[1], ta[2])
+        if inside_a:
+            dd = wp.length_sq(tb[k] - qa)
+            if dd < best:
+                best = dd
+                ca = qa
+                cb = tb[k]
+    return ca, cb

@@ -1,0 +1,29 @@
+"""Input checks shared by the host API: every error names the argument and the problem."""
+
+import numpy as np
+
+__all__ = ["as_float64_array"]
+
+
+def as_float64_array(value, name: str, *, trailing_shape: tuple[int, ...] = (), allow_empty: bool = True) -> np.ndarray:
+    """Return ``value`` as a C-contiguous float64 array of shape (N, *trailing_shape).
+
+    Raises ValueError naming ``name`` for non-numeric data, a wrong shape, or NaN/inf entries.
+    """
+    try:
+        arr = np.asarray(value)
+    except Exception as exc:  # ragged lists and the like
+        raise ValueError(f"{name}: cannot be read as a numeric array ({exc})") from None
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise ValueError(f"{name}: expected a real numeric array, got dtype {arr.dtype}")
+    expected = ("N",) + tuple(trailing_shape)
+    if arr.ndim != len(expected) or tuple(arr.shape[1:]) != tuple(trailing_shape):
+        raise ValueError(f"{name}: expected shape {expected}, got {arr.shape}")
+    if not allow_empty and arr.shape[0] == 0:
+        raise ValueError(f"{name}: must not be empty")
+    arr = np.ascontiguousarray(arr, dtype=np.float64)
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        first = np.argwhere(bad)[0]
+        raise ValueError(f"{name}: non-finite value {arr[tuple(first)]} at index {tuple(int(i) for i in first)}")
+    return arr

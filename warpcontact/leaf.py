@@ -1,0 +1,152 @@
+"""Host API of the leaf contact potential and its closed-form building blocks (numpy in, numpy out)."""
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .kernels import blend as blend_kernels
+from .kernels import leaf as leaf_kernels
+from ._runtime import resolve_device
+from ._validate import as_float64_array
+
+__all__ = [
+    "LeafStatus",
+    "TrianglePairPotential",
+    "triangle_pair_potential",
+    "centered_potential",
+    "quintic_blend",
+]
+
+DEFAULT_MAX_ITERATIONS = 100
+
+
+class LeafStatus:
+    """Per-pair status codes of the leaf solve (``TrianglePairPotential.status``)."""
+
+    OK = 0
+    CONTACT = 1  # touching or intersecting: value = +inf, zero derivatives
+    NOT_CONVERGED = 2  # Newton hit the iteration cap or the line search stalled
+    NONFINITE = 3  # non-finite coordinates (the host API rejects these before launch)
+
+
+@dataclass(frozen=True)
+class TrianglePairPotential:
+    """Leaf potentials of N triangle pairs.
+
+    Attributes:
+        value: (N,) potential P; +inf where the triangles touch or intersect.
+        grad: (N, 2, 3, 3) dP/dx; [:, 0] for A's vertices, [:, 1] for B's (1/m).
+        hessian: (N, 18, 18) d2P/dx2 in the order of ``grad.reshape(N, 18)``.
+        plane: (N, 4) optimal plane (n, d) in world coordinates; |n| < 1, not normalised.
+        ok: (N,) True where the solve converged to a finite value.
+        status: (N,) ``LeafStatus`` code.
+        iterations: (N,) Newton iterations taken.
+    """
+
+    value: np.ndarray
+    grad: np.ndarray
+    hessian: np.ndarray
+    plane: np.ndarray
+    ok: np.ndarray
+    status: np.ndarray
+    iterations: np.ndarray
+
+
+def triangle_pair_potential(
+    A, B, *, device="cpu", derivatives: bool = True, max_iterations: int = DEFAULT_MAX_ITERATIONS
+) -> TrianglePairPotential:
+    """Separating-plane potential of triangle pairs, with exact first and second derivatives.
+
+    Args:
+        A, B: (N, 3, 3) triangles (pair i, vertex k, xyz) in metres; float32 input is
+            accepted and computed in float64.
+        device: Warp device to run on.
+        derivatives: compute ``grad`` and ``hessian`` (zeros otherwise).
+        max_iterations: Newton iteration cap per pair; pairs hitting it get ``ok = False``.
+
+    Zero-area triangles are valid: the potential is defined on convex hulls, so a collapsed
+    triangle acts as the segment or point it is.
+    """
+    a = as_float64_array(A, "A", trailing_shape=(3, 3))
+    b = as_float64_array(B, "B", trailing_shape=(3, 3))
+    if a.shape[0] != b.shape[0]:
+        raise ValueError(f"A and B: pair counts differ ({a.shape[0]} vs {b.shape[0]})")
+    if int(max_iterations) < 1:
+        raise ValueError(f"max_iterations: must be >= 1, got {max_iterations}")
+    n = a.shape[0]
+    dev = resolve_device(device)
+    ncols = 6 if derivatives else 0
+    with wp.ScopedDevice(dev):
+        tri_a = wp.array(a, dtype=wp.mat33d)
+        tri_b = wp.array(b, dtype=wp.mat33d)
+        value = wp.empty(n, dtype=wp.float64)
+        plane = wp.empty(n, dtype=wp.vec4d)
+        status = wp.empty(n, dtype=wp.int32)
+        iterations = wp.empty(n, dtype=wp.int32)
+        grad = wp.zeros((n, ncols), dtype=wp.vec3d)
+        hess = wp.zeros((n, ncols, ncols), dtype=wp.mat33d)
+        if n:
+            wp.launch(
+                leaf_kernels.leaf_potential_kernel,
+                dim=n,
+                inputs=[tri_a, tri_b, int(max_iterations), bool(derivatives)],
+                outputs=[value, plane, status, iterations, grad, hess],
+            )
+    status_np = status.numpy()
+    if derivatives:
+        grad_np = grad.numpy().reshape(n, 2, 3, 3)
+        hess_np = hess.numpy().transpose(0, 1, 3, 2, 4).reshape(n, 18, 18)
+    else:
+        grad_np = np.zeros((n, 2, 3, 3))
+        hess_np = np.zeros((n, 18, 18))
+    return TrianglePairPotential(
+        value=value.numpy(),
+        grad=grad_np,
+        hessian=hess_np,
+        plane=plane.numpy(),
+        ok=status_np == LeafStatus.OK,
+        status=status_np,
+        iterations=iterations.numpy(),
+    )
+
+
+def _evaluate_scalar_kernel(kernel, x: np.ndarray, device):
+    flat = x.reshape(-1)
+    dev = resolve_device(device)
+    with wp.ScopedDevice(dev):
+        x_in = wp.array(flat, dtype=wp.float64)
+        outs = [wp.empty(flat.shape[0], dtype=wp.float64) for _ in range(3)]
+        if flat.shape[0]:
+            wp.launch(kernel, dim=flat.shape[0], inputs=[x_in], outputs=outs)
+    return tuple(o.numpy().reshape(x.shape) for o in outs)
+
+
+def _scalar_input(x, name: str) -> np.ndarray:
+    arr = np.asarray(x, dtype=np.float64) if not isinstance(x, np.ndarray) else x.astype(np.float64, copy=False)
+    if np.isnan(arr).any():
+        raise ValueError(f"{name}: contains NaN")
+    return arr
+
+
+def centered_potential(r, *, derivatives: bool = False, device="cpu"):
+    """Centred potential P_c(r) = 12 (1 + r^-1/2)^2 of two cluster centres at distance r (m).
+
+    Returns the values (same shape as ``r``), or ``(P_c, dP_c/dr, d2P_c/dr2)`` when
+    ``derivatives`` is set. r = 0 gives +inf; negative distances raise ValueError.
+    """
+    arr = _scalar_input(r, "r")
+    if (arr < 0).any():
+        raise ValueError(f"r: distances must be >= 0, got {arr[arr < 0].flat[0]}")
+    out = _evaluate_scalar_kernel(blend_kernels.centered_potential_kernel, arr, device)
+    return out if derivatives else out[0]
+
+
+def quintic_blend(s, *, derivatives: bool = False, device="cpu"):
+    """Quintic blend Phi(s) = 6 s^5 - 15 s^4 + 10 s^3, clamped to [0, 1] outside [0, 1].
+
+    Returns the values, or ``(Phi, Phi', Phi'')`` when ``derivatives`` is set.
+    """
+    arr = _scalar_input(s, "s")
+    out = _evaluate_scalar_kernel(blend_kernels.quintic_blend_kernel, arr, device)
+    return out if derivatives else out[0]
