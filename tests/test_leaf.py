@@ -1,0 +1,354 @@
+"""Leaf separating-plane potential: derivatives, the paper's properties, hard cases, bad input."""
+
+import numpy as np
+import pytest
+from helpers import edge_edge, leaf_fd_errors, parallel_faces, random_separated_pair, vertex_face
+
+import warpcontact as wc
+
+
+def evaluate(A, B, **kw):
+    return wc.triangle_pair_potential(np.asarray(A)[None], np.asarray(B)[None], **kw)
+
+
+# --- derivatives against finite differences -------------------------------------------
+
+
+@pytest.mark.parametrize("offset", [0.5, 1.0, 2.5, 10.0])
+def test_random_pairs_match_finite_differences(offset):
+    rng = np.random.default_rng(int(offset * 10))
+    for _ in range(4):
+        A, B = random_separated_pair(rng, offset=offset)
+        grad_err, hess_err = leaf_fd_errors(A, B, h=1e-6)
+        assert grad_err < 1e-6
+        assert hess_err < 1e-6
+
+
+@pytest.mark.parametrize(
+    "make, gap",
+    [(parallel_faces, 1e-2), (vertex_face, 1e-2), (edge_edge, 1e-2), (parallel_faces, 1e-4), (edge_edge, 1e-4)],
+)
+def test_near_contact_matches_finite_differences(make, gap):
+    A, B = make(gap)
+    grad_err, hess_err = leaf_fd_errors(A, B, h=gap * 1e-4)
+    assert grad_err < 1e-5
+    assert hess_err < 1e-5
+
+
+@pytest.mark.parametrize("size", [1e-4, 1e3])
+def test_tiny_and_huge_triangles_match_finite_differences(size):
+    A, B = vertex_face(0.05 * size, size=size)
+    grad_err, hess_err = leaf_fd_errors(A, B, h=size * 1e-6)
+    assert grad_err < 1e-5
+    assert hess_err < 1e-5
+
+
+def test_sliver_matches_finite_differences():
+    A = np.array([[0.0, 0.0, 0.1], [1.0, 0.0, 0.1], [0.5, 1e-3, 0.1]])
+    B = np.array([[0.2, -0.5, 0.0], [0.4, 0.5, 0.0], [0.3, 0.0, -0.7]])
+    grad_err, hess_err = leaf_fd_errors(A, B, h=1e-7)
+    assert grad_err < 1e-5
+    assert hess_err < 1e-5
+
+
+def test_hessian_is_symmetric_and_translation_invariant():
+    A, B = vertex_face(0.1)
+    res = evaluate(A, B)
+    H = res.hessian[0]
+    assert np.abs(H - H.T).max() <= 1e-12 * np.abs(H).max()
+    # Moving both triangles together changes nothing: grad sums to zero, H kills translations.
+    g = res.grad[0].reshape(6, 3)
+    assert np.abs(g.sum(axis=0)).max() <= 1e-12 * np.abs(g).max()
+    shift = np.tile(np.eye(3), (6, 1))
+    assert np.abs(H @ shift).max() <= 1e-9 * np.abs(H).max()
+
+
+def test_far_from_origin_equals_near_origin():
+    A, B = edge_edge(1e-3)
+    near = evaluate(A, B)
+    offset = np.array([1e5, -2e5, 3e5])
+    far = evaluate(A + offset, B + offset)
+    assert far.ok[0]
+    # Adding the offset rounds the input by ~eps * 3e5 = 7e-11, i.e. ~1e-7 of the 1e-3 gap;
+    # the comparison can be no tighter than that.
+    np.testing.assert_allclose(far.value, near.value, rtol=1e-6)
+    np.testing.assert_allclose(far.grad, near.grad, rtol=1e-5, atol=1e-6 * np.abs(near.grad).max())
+
+
+# --- centred limit -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("distance", [1e-6, 1e-3, 0.1, 1.0, 10.0, 1e3, 1e6])
+def test_collapsed_triangles_reproduce_centred_potential(distance):
+    rng = np.random.default_rng(7)
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    ca = rng.normal(size=3)
+    A = np.repeat(ca[None], 3, axis=0)
+    B = np.repeat((ca - distance * direction)[None], 3, axis=0)
+    res = evaluate(A, B)
+    distance = np.linalg.norm(A[0] - B[0])  # as represented after rounding
+    direction = (A[0] - B[0]) / distance
+    value, first, _ = wc.centered_potential(np.array([distance]), derivatives=True)
+    assert res.ok[0]
+    np.testing.assert_allclose(res.value[0], value[0], rtol=1e-12)
+    # Each of the three collapsed vertices carries a third of dP_c/dr along the centre line.
+    g = res.grad[0]
+    np.testing.assert_allclose(g[0].sum(axis=0), first[0] * direction, rtol=1e-9)
+    np.testing.assert_allclose(g[1].sum(axis=0), -first[0] * direction, rtol=1e-9)
+
+
+def test_centred_potential_and_blend_derivatives():
+    r = np.geomspace(1e-6, 1e6, 41)
+    v, d1, d2 = wc.centered_potential(r, derivatives=True)
+    np.testing.assert_allclose(v, 12 * (1 + r**-0.5) ** 2, rtol=1e-14)
+    h = r * 1e-6
+    vp, d1p, _ = wc.centered_potential(r + h, derivatives=True)
+    vm, d1m, _ = wc.centered_potential(r - h, derivatives=True)
+    np.testing.assert_allclose(d1, (vp - vm) / (2 * h), rtol=1e-7)
+    np.testing.assert_allclose(d2, (d1p - d1m) / (2 * h), rtol=1e-7)
+    assert np.isinf(wc.centered_potential(np.array([0.0]))[0])
+    assert np.all(d1 < 0) and np.all(d2 > 0)
+
+    s = np.linspace(-0.5, 1.5, 201)
+    p, p1, p2 = wc.quintic_blend(s, derivatives=True)
+    assert p.min() == 0.0 and p.max() == 1.0 and np.all(np.diff(p) >= 0)
+    inner = (s > 0.01) & (s < 0.99)
+    hs = 1e-6
+    pp, p1p, _ = wc.quintic_blend(s + hs, derivatives=True)
+    pm, p1m, _ = wc.quintic_blend(s - hs, derivatives=True)
+    np.testing.assert_allclose(p1[inner], ((pp - pm) / (2 * hs))[inner], atol=1e-8)
+    np.testing.assert_allclose(p2[inner], ((p1p - p1m) / (2 * hs))[inner], atol=1e-7)
+    # C2 at both ends: value, slope and curvature meet the constant pieces.
+    ends = wc.quintic_blend(np.array([1e-9, 1 - 1e-9]), derivatives=True)
+    assert np.abs(ends[1]).max() < 1e-15 and np.abs(ends[2]).max() < 1e-6
+
+
+def test_centred_potential_rejects_negative_and_nan():
+    with pytest.raises(ValueError, match="r"):
+        wc.centered_potential(np.array([-1.0]))
+    with pytest.raises(ValueError, match="NaN"):
+        wc.centered_potential(np.array([np.nan]))
+
+
+# --- Property A: barrier ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("make", [parallel_faces, vertex_face, edge_edge])
+def test_value_grows_without_bound_as_gap_closes(make):
+    gaps = np.geomspace(1e-1, 1e-9, 9)
+    values = []
+    for gap in gaps:
+        res = evaluate(*make(gap))
+        assert res.ok[0], f"gap {gap}: status {res.status[0]}"
+        assert np.isfinite(res.grad).all() and np.isfinite(res.hessian).all()
+        values.append(res.value[0])
+    values = np.array(values)
+    assert np.all(np.diff(values) > 0)
+    # Barrier rate: at least ~1/gap (the closest vertex alone contributes 1/(|n| gap)).
+    assert np.all(values * gaps > 0.9)
+
+
+def test_contact_configurations_are_infinite():
+    tri = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    cases = {
+        "shared vertex": (tri, np.array([[0.0, 0.0, 0.0], [-1.0, 0.0, 0.3], [0.0, -1.0, 0.5]])),
+        "vertex on face": (tri, np.array([[0.2, 0.2, 0.0], [0.5, 0.5, 1.0], [0.1, 0.6, 1.0]])),
+        "edge on edge": (tri, np.array([[0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [0.5, 0.0, -1.0]])),
+        "edge through face": (tri, np.array([[0.2, 0.2, -0.5], [0.3, 0.2, 0.5], [2.0, 2.0, 0.7]])),
+        "coplanar overlap": (tri, tri * 0.8 + np.array([0.1, 0.1, 0.0])),
+        "identical": (tri, tri.copy()),
+    }
+    for name, (A, B) in cases.items():
+        res = evaluate(A, B)
+        assert np.isposinf(res.value[0]), name
+        assert res.status[0] == wc.LeafStatus.CONTACT, name
+        assert not res.ok[0], name
+        assert np.isfinite(res.grad).all() and np.isfinite(res.hessian).all(), name
+
+
+def test_coplanar_disjoint_triangles_are_finite():
+    tri = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    res = evaluate(tri, tri + np.array([1.5, 1.5, 0.0]))
+    assert res.ok[0] and np.isfinite(res.value[0])
+    assert abs(res.plane[0, 2]) < 1e-12  # the separating plane is vertical
+
+
+# --- Property B: smoothness where closest features switch ---------------------------------
+
+
+def test_hessian_continuous_where_closest_feature_switches():
+    """A point sliding past B's edge: the closest feature switches vertex-face -> vertex-edge.
+
+    The squared point-triangle distance (IPC's building block) has a Hessian that jumps
+    there; the leaf potential's Hessian must not.
+    """
+    B = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [0.0, 1.0, 0.0]])
+    base = np.array([[0.0, 0.0, 0.2], [0.3, 0.1, 1.2], [-0.2, 0.4, 1.1]])
+
+    def hessians(ts):
+        A = np.repeat(base[None], len(ts), axis=0)
+        A[:, 0, 1] += ts  # slide the lowest vertex across the edge y = -1
+        res = wc.triangle_pair_potential(A, np.repeat(B[None], len(ts), axis=0))
+        assert res.ok.all()
+        return res.hessian
+
+    switch = -1.0  # the vertex crosses y = -1 at t = -1
+    for step in (1e-3, 1e-4):
+        H = hessians(np.array([switch - step, switch + step]))
+        jump = np.abs(H[1] - H[0]).max() / np.abs(H[0]).max()
+        assert jump < 50 * step, f"Hessian jumps by {jump} across the switch at step {step}"
+
+    def point_triangle_distance_sq(p):
+        # Distance to the triangle B (in the plane z = 0) from p, by projection and edge clamping.
+        q = p[:2]
+        inside = q[1] >= -1 and (q[1] + 1) <= 2 * (1 - abs(q[0])) + 1e-300
+        if inside:
+            return p[2] ** 2
+        a, b = B[0, :2], B[1, :2]
+        t = np.clip(np.dot(q - a, b - a) / np.dot(b - a, b - a), 0, 1)
+        return np.sum((q - (a + t * (b - a))) ** 2) + p[2] ** 2
+
+    def distance_hessian_yy(y, h=1e-5):
+        p = np.array([0.0, y, 0.2])
+        f = lambda dy: point_triangle_distance_sq(p + np.array([0.0, dy, 0.0]))  # noqa: E731
+        return (f(h) - 2 * f(0.0) + f(-h)) / h**2
+
+    ipc_jump = abs(distance_hessian_yy(switch - 1e-3) - distance_hessian_yy(switch + 1e-3))
+    assert ipc_jump > 1.0  # 2 outside the face, 0 inside: a jump the leaf potential lacks
+
+
+# --- Property C: non-prehensile and non-vanishing ---------------------------------------------
+
+
+def _assert_forces_in_cone(A, B, res):
+    n = res.plane[0, :3]
+    forces = -res.grad[0]
+    gaps_a = A @ n + res.plane[0, 3]
+    gaps_b = -(B @ n + res.plane[0, 3])
+    assert np.all(gaps_a > 0) and np.all(gaps_b > 0)
+    # The paper's witness points: weighted averages of each triangle's vertices.
+    wa, wb = 1 / gaps_a**2, 1 / gaps_b**2
+    a = (wa[:, None] * A).sum(0) / wa.sum()
+    b = (wb[:, None] * B).sum(0) / wb.sum()
+    ab = a - b
+    assert np.linalg.norm(np.cross(n, ab)) <= 1e-8 * np.linalg.norm(n) * np.linalg.norm(ab)
+    assert np.dot(n, ab) > 0
+    for f in forces[0]:
+        assert np.linalg.norm(f) > 0
+        assert np.linalg.norm(np.cross(f, ab)) <= 1e-8 * np.linalg.norm(f) * np.linalg.norm(ab)
+        assert np.dot(f, ab) > 0
+    for f in forces[1]:
+        assert np.linalg.norm(f) > 0
+        assert np.dot(f, -ab) > 0
+
+
+def test_forces_lie_in_separation_cone():
+    rng = np.random.default_rng(3)
+    configs = [random_separated_pair(rng, offset=o) for o in (0.5, 1.0, 3.0, 10.0)]
+    configs += [parallel_faces(1e-6), vertex_face(1e-3), edge_edge(1e-5)]
+    for A, B in configs:
+        res = evaluate(A, B)
+        assert res.ok[0]
+        _assert_forces_in_cone(A, B, res)
+
+
+@pytest.mark.parametrize("distance", [1e3, 1e6, 1e9])
+def test_force_does_not_vanish_at_huge_distance(distance):
+    A, B = vertex_face(distance)
+    res = evaluate(A, B)
+    assert res.ok[0]
+    assert res.value[0] > 12.0
+    # Net force on A pushes it away from B (+z) and is non-zero, ~ 6 r^-3/2 for the centres.
+    net = -res.grad[0, 0].sum(axis=0)
+    assert net[2] > 0
+    assert net[2] > 0.5 * 6 * distance**-1.5
+    _assert_forces_in_cone(A, B, res)
+
+
+# --- hard cases ------------------------------------------------------------------------------
+
+
+def test_parallel_faces_at_tiny_gap():
+    A, B = parallel_faces(1e-8)
+    res = evaluate(A, B)
+    assert res.ok[0]
+    assert np.isfinite(res.grad).all() and np.isfinite(res.hessian).all()
+    n = res.plane[0, :3]
+    assert abs(n[0]) + abs(n[1]) < 1e-6 * abs(n[2])  # plane parallel to the faces
+    assert res.iterations[0] < 50
+
+
+@pytest.mark.parametrize("aspect", [1e3, 1e6])
+def test_sliver_triangles(aspect):
+    A = np.array([[0.0, 0.0, 0.01], [1.0, 0.0, 0.01], [0.5, 1.0 / aspect, 0.01]])
+    B = np.array([[0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [0.5 + 1.0 / aspect, 0.0, 0.0]])
+    res = evaluate(A, B)
+    assert res.ok[0]
+    assert np.isfinite(res.hessian).all()
+    _assert_forces_in_cone(A, B, res)
+
+
+def test_zero_area_triangles_act_as_segments_and_points():
+    segment = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    point = np.array([[0.5, 0.0, 1.0]] * 3)
+    res = evaluate(point, segment)
+    assert res.ok[0] and np.isfinite(res.value[0])
+    grad_err, hess_err = leaf_fd_errors(point, segment, h=1e-6)
+    assert grad_err < 1e-6 and hess_err < 1e-6
+    # A segment touching a point, or two crossing segments, is contact.
+    assert np.isposinf(evaluate(np.array([[0.5, 0.0, 0.0]] * 3), segment).value[0])
+    crossing = np.array([[0.5, -1.0, 0.0], [0.5, 1.0, 0.0], [0.5, 0.0, 0.0]])
+    assert evaluate(crossing, segment).status[0] == wc.LeafStatus.CONTACT
+
+
+def test_iteration_cap_flags_pair_without_nan():
+    A, B = vertex_face(1e-8)  # the closest-point start is far from this optimum
+    res = evaluate(A, B, max_iterations=1)
+    assert res.status[0] == wc.LeafStatus.NOT_CONVERGED
+    assert not res.ok[0]
+    assert np.isfinite(res.value[0])
+    assert np.isfinite(res.grad).all() and np.isfinite(res.hessian).all()
+
+
+def test_batch_of_mixed_pairs_and_float32_input():
+    rng = np.random.default_rng(11)
+    pairs = [random_separated_pair(rng) for _ in range(5)] + [parallel_faces(0.0)]
+    A = np.array([p[0] for p in pairs])
+    B = np.array([p[1] for p in pairs])
+    res = wc.triangle_pair_potential(A, B)
+    assert res.value.shape == (6,) and res.grad.shape == (6, 2, 3, 3) and res.hessian.shape == (6, 18, 18)
+    assert res.plane.shape == (6, 4) and res.ok.dtype == bool
+    assert res.ok[:5].all() and not res.ok[5]
+    single = evaluate(A[2], B[2])
+    np.testing.assert_array_equal(res.value[2], single.value[0])
+    res32 = wc.triangle_pair_potential(A[:5].astype(np.float32), B[:5].astype(np.float32))
+    np.testing.assert_allclose(res32.value, res.value[:5], rtol=1e-5)
+    empty = wc.triangle_pair_potential(np.zeros((0, 3, 3)), np.zeros((0, 3, 3)))
+    assert empty.value.shape == (0,)
+
+
+# --- bad input -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "A, B, match",
+    [
+        (np.zeros((2, 3)), np.zeros((2, 3)), "shape"),
+        (np.zeros((2, 3, 3)), np.zeros((3, 3, 3)), "pair counts differ"),
+        (np.full((1, 3, 3), np.nan), np.zeros((1, 3, 3)), "non-finite"),
+        (np.zeros((1, 3, 3)), np.full((1, 3, 3), np.inf), "non-finite"),
+        ([["a", "b", "c"]] * 3, np.zeros((1, 3, 3)), "numeric"),
+        ([[[0, 0, 0], [1, 0]]], np.zeros((1, 3, 3)), "A"),
+    ],
+)
+def test_bad_input_raises_clear_error(A, B, match):
+    with pytest.raises(ValueError, match=match):
+        wc.triangle_pair_potential(A, B)
+
+
+def test_bad_options_raise_clear_error():
+    with pytest.raises(ValueError, match="max_iterations"):
+        wc.triangle_pair_potential(np.zeros((1, 3, 3)), np.ones((1, 3, 3)), max_iterations=0)
+    with pytest.raises(ValueError, match="device"):
+        wc.triangle_pair_potential(np.zeros((1, 3, 3)), np.ones((1, 3, 3)), device="tpu:7")
