@@ -1,0 +1,261 @@
+"""Layered bounding-sphere hierarchy (BSH) of a rigid-body mesh (Definition def:BSH).
+
+The tree is built once, in the body frame, and moves rigidly with the body; it is never
+rebuilt. It is a binary tree with one triangle per leaf. A node's centre is the mean of the
+unique vertices under it, a leaf's radius reaches its triangle's farthest vertex, and an
+internal node's radius is the smallest one about its centre that encloses both children's
+spheres ("layered": spheres enclose spheres, not just the geometry).
+
+Construction is top-down and breadth-first: at every level, all nodes that still hold more
+than one triangle split at the median triangle centroid along the longest axis of their
+centroid bounding box, in one vectorised sort over the whole level. The tree is therefore
+balanced (leaves differ in depth by at most one) and the build costs O(T log^2 T) for T
+triangles: ceil(log2 T) levels, each an O(T log T) sort plus an O(T log T) unique-vertex pass.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["SphereTree", "build_sphere_tree"]
+
+
+@dataclass(frozen=True)
+class SphereTree:
+    """Layered bounding-sphere hierarchy of one mesh, in the body frame (float64, metres).
+
+    Arrays have one row per node, M = 2 T - 1 nodes for T triangles, pre-order (root 0,
+    parent index < child index; a left subtree is stored whole before its right sibling).
+
+    Attributes:
+        centers: (M, 3) float64 node centre, the mean of the unique vertices under the node (m).
+        radii: (M,) float64 node radius (m).
+        left: (M,) int32 left child, -1 at leaves.
+        right: (M,) int32 right child, -1 at leaves.
+        parent: (M,) int32 parent, -1 at the root.
+        triangle: (M,) int32 face index at leaves, -1 at internal nodes.
+        depth: (M,) int32 depth, root 0.
+        vertex_count: (M,) int32 number of unique vertex indices under the node.
+    """
+
+    centers: np.ndarray
+    radii: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+    parent: np.ndarray
+    triangle: np.ndarray
+    depth: np.ndarray
+    vertex_count: np.ndarray
+
+    @property
+    def num_nodes(self) -> int:
+        """Number of nodes M = 2 T - 1."""
+        return int(self.radii.shape[0])
+
+    @property
+    def num_triangles(self) -> int:
+        """Number of triangles T (= number of leaves)."""
+        return (self.num_nodes + 1) // 2
+
+    @property
+    def max_depth(self) -> int:
+        """Depth of the deepest leaf (0 for a single-triangle mesh)."""
+        return int(self.depth.max())
+
+
+def build_sphere_tree(vertices, faces, *, name: str = "mesh") -> SphereTree:
+    """Build the layered bounding-sphere hierarchy of a triangle mesh.
+
+    Args:
+        vertices: (nv, 3) vertex positions in the body frame (m); any real dtype, computed in
+            float64. Vertices no face uses are allowed and ignored.
+        faces: (nf, 3) vertex indices per triangle, nf >= 1; integer-valued (a float array of
+            whole numbers is accepted). Zero-area faces, including ones that repeat a vertex
+            index, are allowed: they act as the segment or point they are.
+        name: mesh name used in error messages.
+
+    Returns:
+        The tree, with ``2 nf - 1`` nodes in pre-order. Deterministic: the same input gives
+        bit-identical arrays.
+
+    Raises:
+        ValueError: naming the mesh and the problem, for non-numeric input, wrong shapes,
+            non-finite vertices, non-integer or out-of-range face indices, or no faces.
+    """
+    positions, face_indices = _validated_mesh(vertices, faces, name)
+    num_triangles = face_indices.shape[0]
+    num_nodes = 2 * num_triangles - 1
+
+    every_face = np.arange(num_triangles)
+    # Leaf centres double as the split keys, so both follow the unique-vertex definition.
+    triangle_centroids, triangle_vertex_counts = _unique_vertex_means(
+        positions, face_indices, every_face, every_face, num_triangles
+    )
+
+    centers = np.empty((num_nodes, 3), dtype=np.float64)
+    radii = np.empty(num_nodes, dtype=np.float64)
+    left = np.full(num_nodes, -1, dtype=np.int32)
+    right = np.full(num_nodes, -1, dtype=np.int32)
+    parent = np.full(num_nodes, -1, dtype=np.int32)
+    triangle = np.full(num_nodes, -1, dtype=np.int32)
+    depth = np.empty(num_nodes, dtype=np.int32)
+    vertex_count = np.empty(num_nodes, dtype=np.int32)
+
+    # Each node owns a contiguous run of `triangle_order`; splitting only reorders inside runs.
+    triangle_order = np.arange(num_triangles)
+    level_node = np.zeros(1, dtype=np.int64)
+    level_start = np.zeros(1, dtype=np.int64)
+    level_size = np.full(1, num_triangles, dtype=np.int64)
+    internal_nodes_by_level = []
+    level_depth = 0
+    while level_node.size:
+        depth[level_node] = level_depth
+        is_leaf = level_size == 1
+
+        leaf_nodes = level_node[is_leaf]
+        leaf_triangles = triangle_order[level_start[is_leaf]]
+        triangle[leaf_nodes] = leaf_triangles
+        centers[leaf_nodes] = triangle_centroids[leaf_triangles]
+        vertex_count[leaf_nodes] = triangle_vertex_counts[leaf_triangles]
+        radii[leaf_nodes] = _farthest_vertex_distance(
+            positions[face_indices[leaf_triangles]], centers[leaf_nodes]
+        )
+
+        split_node = level_node[~is_leaf]
+        split_start = level_start[~is_leaf]
+        split_size = level_size[~is_leaf]
+        if split_node.size == 0:
+            break
+        internal_nodes_by_level.append(split_node)
+
+        segment_of_slot = np.repeat(np.arange(split_node.size), split_size)
+        segment_offset = np.cumsum(split_size) - split_size
+        slot = split_start[segment_of_slot] + (np.arange(segment_of_slot.size) - segment_offset[segment_of_slot])
+        slot_triangle = triangle_order[slot]
+
+        centers[split_node], counts = _unique_vertex_means(
+            positions, face_indices, slot_triangle, segment_of_slot, split_node.size
+        )
+        vertex_count[split_node] = counts
+
+        slot_centroid = triangle_centroids[slot_triangle]
+        box_extent = np.maximum.reduceat(slot_centroid, segment_offset) - np.minimum.reduceat(
+            slot_centroid, segment_offset
+        )
+        split_axis = np.argmax(box_extent, axis=1)
+        split_key = slot_centroid[np.arange(slot.size), split_axis[segment_of_slot]]
+        # The segment is the primary key, so every run stays in place; the triangle index
+        # breaks coordinate ties so the order never depends on the sort's internals.
+        within_segment_order = np.lexsort((slot_triangle, split_key, segment_of_slot))
+        triangle_order[slot] = slot_triangle[within_segment_order]
+
+        left_size = (split_size + 1) // 2
+        left_node = split_node + 1
+        # Pre-order: the left subtree's 2 * left_size - 1 nodes come before the right child.
+        right_node = split_node + 2 * left_size
+        left[split_node] = left_node
+        right[split_node] = right_node
+        parent[left_node] = split_node
+        parent[right_node] = split_node
+
+        # Interleaving keeps the next level in storage order of the runs, which the
+        # segment-major sort above relies on.
+        level_node = np.stack((left_node, right_node), axis=1).ravel()
+        level_start = np.stack((split_start, split_start + left_size), axis=1).ravel()
+        level_size = np.stack((left_size, split_size - left_size), axis=1).ravel()
+        level_depth += 1
+
+    # Children's spheres must be final before their parent's, so radii go bottom-up.
+    for nodes in reversed(internal_nodes_by_level):
+        reach_left = _distance(centers[nodes], centers[left[nodes]]) + radii[left[nodes]]
+        reach_right = _distance(centers[nodes], centers[right[nodes]]) + radii[right[nodes]]
+        radii[nodes] = np.maximum(reach_left, reach_right)
+
+    return SphereTree(
+        centers=centers,
+        radii=radii,
+        left=left,
+        right=right,
+        parent=parent,
+        triangle=triangle,
+        depth=depth,
+        vertex_count=vertex_count,
+    )
+
+
+def _distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Euclidean distance between rows of (..., 3) arrays, summed x, y, z in that order."""
+    d = a - b
+    return np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2])
+
+
+def _farthest_vertex_distance(triangle_vertices: np.ndarray, centers: np.ndarray) -> np.ndarray:
+    """(N,) largest distance from centers (N, 3) to the vertices of triangles (N, 3, 3)."""
+    return _distance(triangle_vertices, centers[:, None, :]).max(axis=1)
+
+
+def _unique_vertex_means(
+    positions: np.ndarray,
+    face_indices: np.ndarray,
+    member_faces: np.ndarray,
+    member_group: np.ndarray,
+    num_groups: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean position and count of the unique vertices of each group of faces.
+
+    ``member_faces[k]`` belongs to group ``member_group[k]``; every group must be non-empty.
+    Vertices are summed in increasing index order, so the result does not depend on the
+    order of the members. Returns ((num_groups, 3) means, (num_groups,) counts).
+    """
+    num_vertices = positions.shape[0]
+    group_vertex_key = np.repeat(member_group.astype(np.int64), 3) * num_vertices + face_indices[member_faces].ravel()
+    group_vertex_key = np.unique(group_vertex_key)
+    group, vertex = np.divmod(group_vertex_key, num_vertices)
+    counts = np.bincount(group, minlength=num_groups)
+    sums = np.stack(
+        [np.bincount(group, weights=positions[vertex, axis], minlength=num_groups) for axis in range(3)], axis=1
+    )
+    return sums / counts[:, None], counts
+
+
+def _validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """Return (float64 (nv, 3) positions, int64 (nf, 3) face indices) or raise ValueError."""
+    positions = _real_array(vertices, name, "vertices")
+    if positions.ndim != 2 or positions.shape[1] != 3:
+        raise ValueError(f"mesh {name!r}: vertices must have shape (nv, 3), got {positions.shape}")
+    positions = np.ascontiguousarray(positions, dtype=np.float64)
+    finite_vertex = np.isfinite(positions).all(axis=1)
+    if not finite_vertex.all():
+        bad = int(np.flatnonzero(~finite_vertex)[0])
+        raise ValueError(f"mesh {name!r}: vertex {bad} is not finite: {positions[bad].tolist()}")
+
+    raw_faces = _real_array(faces, name, "faces")
+    if raw_faces.ndim != 2 or raw_faces.shape[1] != 3:
+        raise ValueError(f"mesh {name!r}: faces must have shape (nf, 3), got {raw_faces.shape}")
+    if raw_faces.shape[0] == 0:
+        raise ValueError(f"mesh {name!r}: has no faces")
+    if not np.issubdtype(raw_faces.dtype, np.integer):
+        whole = np.isfinite(raw_faces) & (raw_faces == np.round(raw_faces))
+        if not whole.all():
+            bad = int(np.flatnonzero(~whole.all(axis=1))[0])
+            raise ValueError(f"mesh {name!r}: face {bad} has non-integer vertex indices {raw_faces[bad].tolist()}")
+    out_of_range = (raw_faces < 0) | (raw_faces >= positions.shape[0])
+    if out_of_range.any():
+        bad = int(np.flatnonzero(out_of_range.any(axis=1))[0])
+        raise ValueError(
+            f"mesh {name!r}: face {bad} has vertex indices {raw_faces[bad].tolist()} "
+            f"outside [0, {positions.shape[0]}) (the mesh has {positions.shape[0]} vertices)"
+        )
+    return positions, np.ascontiguousarray(raw_faces, dtype=np.int64)
+
+
+def _real_array(value, name: str, what: str) -> np.ndarray:
+    """``value`` as a numpy array of a real, non-boolean dtype, or ValueError naming the mesh."""
+    try:
+        array = np.asarray(value)
+    except Exception as exc:  # ragged nesting and the like
+        raise ValueError(f"mesh {name!r}: {what} cannot be read as a numeric array ({exc})") from None
+    # Booleans are not integers here: np.issubdtype(bool, np.integer) is False.
+    if not (np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating)):
+        raise ValueError(f"mesh {name!r}: {what} must be real numbers, got dtype {array.dtype}")
+    return array
