@@ -5,6 +5,7 @@ centred limit and quintic blending (Ye, Wu, Komura, Pan: "Efficient Differentiab
 Model with Long-range Influence"). See docs/architecture.md for the pipeline.
 """
 
+from .contact import CONTACT_MODES, ContactEvaluation, ContactModel, TermLists
 from .leaf import (
     LeafStatus,
     TrianglePairPotential,
@@ -12,6 +13,8 @@ from .leaf import (
     quintic_blend,
     triangle_pair_potential,
 )
+
+from .sphere_tree import SphereTree, build_sphere_tree
 
 __version__ = "0.1.0"
 
@@ -21,4 +24,10 @@ __all__ = [
     "centered_potential",
     "quintic_blend",
     "triangle_pair_potential",
+    "CONTACT_MODES",
+    "ContactEvaluation",
+    "ContactModel",
+    "TermLists",
+    "SphereTree",
+    "build_sphere_tree",
 ]

@@ -1,0 +1,291 @@
+"""Term evaluation and the bottom-up blend reduction of P_BSH, in rigid-body coordinates.
+
+Every term of a body pair (a, b) is differentiated with respect to the 12 coordinates
+(dp_a, dtheta_a, dp_b, dtheta_b) and added to its target: the accumulator of its enclosing
+blend record, or, at top level, the scene totals (value, (nbodies, 6) gradient and dense
+(6 nbodies)^2 Hessian; static bodies receive nothing). Blend records are then resolved from
+the deepest nesting level up, each applying
+
+    B       = (1 - phi) S + phi P_c
+    grad B  = (1 - phi) grad S + phi grad P_c + (P_c - S) grad phi
+    hess B  = (1 - phi) hess S + phi hess P_c + grad phi (grad P_c - grad S)^T
+              + (grad P_c - grad S) grad phi^T + (P_c - S) hess phi
+
+to the exact sum S of its children, and adding B to its own target.
+"""
+
+import warp as wp
+
+from .blend import centered_potential, quintic_blend
+from .leaf import LEAF_OK, leaf_hessian_block, leaf_solve, leaf_vertex_gradient
+from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d
+
+wp.set_module_options({"enable_backward": False})
+
+__all__ = ["far_term_kernel", "leaf_term_kernel", "blend_level_kernel"]
+
+
+@wp.struct
+class Targets:
+    """Where terms land: blend accumulators (by record) or scene totals (by body)."""
+
+    blend_value: wp.array(dtype=wp.float64)
+    blend_grad: wp.array2d(dtype=wp.float64)
+    blend_hess: wp.array3d(dtype=wp.float64)
+    total_value: wp.array(dtype=wp.float64)
+    total_grad: wp.array2d(dtype=wp.float64)
+    total_hess: wp.array2d(dtype=wp.float64)
+    body_dynamic: wp.array(dtype=wp.int32)
+
+
+@wp.func
+def _add_value(t: Targets, parent: int, value: wp.float64):
+    if parent >= 0:
+        wp.atomic_add(t.blend_value, parent, value)
+    else:
+        wp.atomic_add(t.total_value, 0, value)
+
+
+@wp.func
+def _add_gradient(t: Targets, parent: int, pair: wp.vec2i, side: int, g: vec6d):
+    if parent >= 0:
+        for i in range(6):
+            wp.atomic_add(t.blend_grad, parent, 6 * side + i, g[i])
+    elif t.body_dynamic[pair[side]] != 0:
+        for i in range(6):
+            wp.atomic_add(t.total_grad, pair[side], i, g[i])
+
+
+@wp.func
+def _add_hessian_block(t: Targets, parent: int, pair: wp.vec2i, side_r: int, side_c: int, h: mat66d):
+    if parent >= 0:
+        for i in range(6):
+            for j in range(6):
+                wp.atomic_add(t.blend_hess, parent, 6 * side_r + i, 6 * side_c + j, h[i, j])
+    elif t.body_dynamic[pair[side_r]] != 0 and t.body_dynamic[pair[side_c]] != 0:
+        row = 6 * pair[side_r]
+        col = 6 * pair[side_c]
+        for i in range(6):
+            for j in range(6):
+                wp.atomic_add(t.total_hess, row + i, col + j, h[i, j])
+
+
+@wp.func
+def _centre_distance_derivatives(ci: wp.vec3d, cj: wp.vec3d, pos_a: wp.vec3d, pos_b: wp.vec3d):
+    """Distance r = |ci - cj| of two body points, its rigid gradient (per side) and Hessian blocks."""
+    delta = ci - cj
+    dist = wp.length(delta)
+    u = delta / dist
+    ri = ci - pos_a
+    rj = cj - pos_b
+    h = (wp.identity(n=3, dtype=wp.float64) - wp.outer(u, u)) / dist
+    grad_a = rigid_point_gradient(u, ri)
+    grad_b = rigid_point_gradient(-u, rj)
+    hess_aa = rigid_point_pair_block(h, ri, ri)
+    hess_ab = rigid_point_pair_block(-h, ri, rj)
+    hess_bb = rigid_point_pair_block(h, rj, rj)
+    curv_a = rigid_point_curvature(u, ri)
+    curv_b = rigid_point_curvature(-u, rj)
+    for i in range(3):
+        for j in range(3):
+            hess_aa[3 + i, 3 + j] = hess_aa[3 + i, 3 + j] + curv_a[i, j]
+            hess_bb[3 + i, 3 + j] = hess_bb[3 + i, 3 + j] + curv_b[i, j]
+    return dist, grad_a, grad_b, hess_aa, hess_ab, hess_bb
+
+
+@wp.func
+def _pick12(va: vec6d, vb: vec6d, i: int):
+    if i < 6:
+        return va[i]
+    return vb[i - 6]
+
+
+@wp.func
+def _pick1212(haa: mat66d, hab: mat66d, hbb: mat66d, i: int, j: int):
+    if i < 6:
+        if j < 6:
+            return haa[i, j]
+        return hab[i, j - 6]
+    if j < 6:
+        return hab[j, i - 6]
+    return hbb[i - 6, j - 6]
+
+
+@wp.func
+def _world_centres(
+    node_center: wp.array(dtype=wp.vec3d),
+    ni: int,
+    nj: int,
+    pair: wp.vec2i,
+    body_rotation: wp.array(dtype=wp.mat33d),
+    body_position: wp.array(dtype=wp.vec3d),
+):
+    ci = body_rotation[pair[0]] * node_center[ni] + body_position[pair[0]]
+    cj = body_rotation[pair[1]] * node_center[nj] + body_position[pair[1]]
+    return ci, cj
+
+
+@wp.kernel
+def far_term_kernel(
+    # Model:
+    node_center: wp.array(dtype=wp.vec3d),
+    # Data in:
+    body_rotation: wp.array(dtype=wp.mat33d),
+    body_position: wp.array(dtype=wp.vec3d),
+    seed_body_pair: wp.array(dtype=wp.vec2i),
+    far_items: wp.array(dtype=wp.vec4i),
+    # Data out:
+    targets: Targets,
+):
+    item = far_items[wp.tid()]
+    pair = seed_body_pair[item[3]]
+    ci, cj = _world_centres(node_center, item[0], item[1], pair, body_rotation, body_position)
+    dist, ga, gb, haa, hab, hbb = _centre_distance_derivatives(ci, cj, body_position[pair[0]], body_position[pair[1]])
+    value, first, second = centered_potential(dist)
+    parent = item[2]
+    _add_value(targets, parent, value)
+    _add_gradient(targets, parent, pair, 0, first * ga)
+    _add_gradient(targets, parent, pair, 1, first * gb)
+    _add_hessian_block(targets, parent, pair, 0, 0, second * wp.outer(ga, ga) + first * haa)
+    _add_hessian_block(targets, parent, pair, 0, 1, second * wp.outer(ga, gb) + first * hab)
+    _add_hessian_block(targets, parent, pair, 1, 0, second * wp.outer(gb, ga) + first * wp.transpose(hab))
+    _add_hessian_block(targets, parent, pair, 1, 1, second * wp.outer(gb, gb) + first * hbb)
+
+
+@wp.kernel
+def leaf_term_kernel(
+    # Model:
+    triangle_vertices: wp.array(dtype=wp.mat33d),
+    max_iterations: int,
+    # Data in:
+    body_rotation: wp.array(dtype=wp.mat33d),
+    body_position: wp.array(dtype=wp.vec3d),
+    seed_body_pair: wp.array(dtype=wp.vec2i),
+    leaf_items: wp.array(dtype=wp.vec4i),
+    # Data out:
+    targets: Targets,
+    seed_status_out: wp.array(dtype=wp.int32),
+    leaf_iterations_out: wp.array(dtype=wp.int32),
+):
+    tid = wp.tid()
+    item = leaf_items[tid]
+    seed = item[3]
+    pair = seed_body_pair[seed]
+    rot_a = body_rotation[pair[0]]
+    rot_b = body_rotation[pair[1]]
+    pos_a = body_position[pair[0]]
+    pos_b = body_position[pair[1]]
+    local_a = triangle_vertices[item[0]]
+    local_b = triangle_vertices[item[1]]
+    ta = wp.mat33d()
+    tb = wp.mat33d()
+    for k in range(3):
+        ta[k] = rot_a * local_a[k] + pos_a
+        tb[k] = rot_b * local_b[k] + pos_b
+    sol = leaf_solve(ta, tb, max_iterations)
+    leaf_iterations_out[tid] = sol.iterations
+    parent = item[2]
+    if sol.status != LEAF_OK:
+        wp.atomic_max(seed_status_out, seed, sol.status)
+        _add_value(targets, parent, wp.float64(wp.inf))
+        return
+    _add_value(targets, parent, sol.value)
+    # Vertex offsets from their body origins, r = x - p (world axes).
+    offsets_a = wp.mat33d()
+    offsets_b = wp.mat33d()
+    for m in range(3):
+        offsets_a[m] = ta[m] - pos_a
+        offsets_b[m] = tb[m] - pos_b
+    for side in range(2):
+        offsets = offsets_a
+        if side == 1:
+            offsets = offsets_b
+        g = vec6d()
+        curvature = wp.mat33d()
+        for m in range(3):
+            gk = leaf_vertex_gradient(sol, 3 * side + m)
+            g += rigid_point_gradient(gk, offsets[m])
+            curvature += rigid_point_curvature(gk, offsets[m])
+        _add_gradient(targets, parent, pair, side, g)
+        for side_c in range(2):
+            offsets_c = offsets_a
+            if side_c == 1:
+                offsets_c = offsets_b
+            block = mat66d()
+            for m in range(3):
+                for mm in range(3):
+                    h = leaf_hessian_block(sol, 3 * side + m, 3 * side_c + mm)
+                    block += rigid_point_pair_block(h, offsets[m], offsets_c[mm])
+            if side == side_c:
+                for i in range(3):
+                    for j in range(3):
+                        block[3 + i, 3 + j] = block[3 + i, 3 + j] + curvature[i, j]
+            _add_hessian_block(targets, parent, pair, side, side_c, block)
+
+
+@wp.kernel
+def blend_level_kernel(
+    # Model:
+    node_center: wp.array(dtype=wp.vec3d),
+    node_radius: wp.array(dtype=wp.float64),
+    eps: wp.float64,
+    level: int,
+    # Data in:
+    body_rotation: wp.array(dtype=wp.mat33d),
+    body_position: wp.array(dtype=wp.vec3d),
+    seed_body_pair: wp.array(dtype=wp.vec2i),
+    blend_items: wp.array(dtype=wp.vec4i),
+    blend_level: wp.array(dtype=wp.int32),
+    # Data out:
+    targets: Targets,
+):
+    record = wp.tid()
+    if blend_level[record] != level:
+        return
+    item = blend_items[record]
+    pair = seed_body_pair[item[3]]
+    ci, cj = _world_centres(node_center, item[0], item[1], pair, body_rotation, body_position)
+    dist, ga, gb, haa, hab, hbb = _centre_distance_derivatives(ci, cj, body_position[pair[0]], body_position[pair[1]])
+    d1 = node_radius[item[0]] + node_radius[item[1]]
+    width = eps * d1
+    pc, pc1, pc2 = centered_potential(dist)
+    phi, dphi, ddphi = quintic_blend((dist - d1) / width)
+    phi1 = dphi / width
+    phi2 = ddphi / (width * width)
+    s = targets.blend_value[record]
+    parent = item[2]
+    one = wp.float64(1.0)
+    _add_value(targets, parent, (one - phi) * s + phi * pc)
+    if not wp.isfinite(s):
+        return
+    ga_out = vec6d()
+    gb_out = vec6d()
+    for i in range(12):
+        gd = _pick12(ga, gb, i)
+        gs = targets.blend_grad[record, i]
+        gi = (one - phi) * gs + phi * pc1 * gd + (pc - s) * phi1 * gd
+        if i < 6:
+            ga_out[i] = gi
+        else:
+            gb_out[i - 6] = gi
+    _add_gradient(targets, parent, pair, 0, ga_out)
+    _add_gradient(targets, parent, pair, 1, gb_out)
+    for side_r in range(2):
+        for side_c in range(2):
+            block = mat66d()
+            for ii in range(6):
+                i = 6 * side_r + ii
+                gdi = _pick12(ga, gb, i)
+                dgi = pc1 * gdi - targets.blend_grad[record, i]
+                for jj in range(6):
+                    j = 6 * side_c + jj
+                    gdj = _pick12(ga, gb, j)
+                    dgj = pc1 * gdj - targets.blend_grad[record, j]
+                    hd = _pick1212(haa, hab, hbb, i, j)
+                    block[ii, jj] = (
+                        (one - phi) * targets.blend_hess[record, i, j]
+                        + phi * (pc2 * gdi * gdj + pc1 * hd)
+                        + phi1 * (gdi * dgj + dgi * gdj)
+                        + (pc - s) * (phi2 * gdi * gdj + phi1 * hd)
+                    )
+            _add_hessian_block(targets, parent, pair, side_r, side_c, block)

@@ -1,0 +1,335 @@
+"""Body-level contact model: BSH vs brute force, coverage, smoothness, properties, bad input."""
+
+import numpy as np
+import pytest
+import trimesh
+
+import warpcontact as wc
+
+
+def icosphere(subdivisions=0, radius=0.5):
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return np.asarray(s.vertices, dtype=np.float64), np.asarray(s.faces)
+
+
+def box(extents=(1.0, 0.6, 0.4)):
+    b = trimesh.creation.box(extents=extents)
+    return np.asarray(b.vertices, dtype=np.float64), np.asarray(b.faces)
+
+
+def quat(axis, angle):
+    axis = np.asarray(axis, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    return np.concatenate([np.sin(angle / 2) * axis, [np.cos(angle / 2)]])
+
+
+def quat_mul(q, r):
+    x1, y1, z1, w1 = q
+    x2, y2, z2, w2 = r
+    return np.array(
+        [
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        ]
+    )
+
+
+def perturbed(poses, body, coordinate, h):
+    """Poses moved by h along one rigid coordinate (dp, then dtheta about world axes)."""
+    out = poses.copy()
+    if coordinate < 3:
+        out[body, coordinate] += h
+    else:
+        axis = np.zeros(3)
+        axis[coordinate - 3] = 1.0
+        out[body, 3:] = quat_mul(quat(axis, h), poses[body, 3:])
+    return out
+
+
+def skew(v):
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def fd_check(model, poses, h=1e-6):
+    """Relative errors of grad vs FD of the value, and of the Hessian vs FD of the gradient.
+
+    The gradient at a rotated pose is taken about that pose, so FD of it differs from the
+    Hessian by the exponential map's bracket: J = H - 1/2 [g_theta]x on each body's
+    (theta, theta) block; the comparison adds that back.
+    """
+    base = model.evaluate(poses)
+    assert base.ok
+    n = model.num_bodies
+    fd_grad = np.zeros(6 * n)
+    fd_jac = np.zeros((6 * n, 6 * n))
+    for b in range(n):
+        if model.static[b]:
+            continue
+        for c in range(6):
+            plus = model.evaluate(perturbed(poses, b, c, h))
+            minus = model.evaluate(perturbed(poses, b, c, -h))
+            fd_grad[6 * b + c] = (plus.value - minus.value) / (2 * h)
+            fd_jac[:, 6 * b + c] = (plus.grad - minus.grad).reshape(-1) / (2 * h)
+    for b in range(n):
+        rot = slice(6 * b + 3, 6 * b + 6)
+        fd_jac[rot, rot] += 0.5 * skew(base.grad[b, 3:])
+    grad = base.grad.reshape(-1)
+    grad_err = np.abs(fd_grad - grad).max() / np.abs(grad).max()
+    hess_err = np.abs(fd_jac - base.hessian).max() / np.abs(base.hessian).max()
+    return base, grad_err, hess_err
+
+
+def identity_poses(positions):
+    poses = np.zeros((len(positions), 7))
+    poses[:, :3] = positions
+    poses[:, 6] = 1.0
+    return poses
+
+
+# --- eps -> infinity limit is the brute-force sum ---------------------------------------------
+
+
+def test_large_eps_equals_brute_force():
+    meshes = [icosphere(0), box(), icosphere(0, radius=0.3)]
+    poses = identity_poses([[0, 0, 0], [1.2, 0.3, 0.1], [-0.2, 1.1, 0.4]])
+    poses[1, 3:] = quat([1, 2, 3], 0.7)
+    poses[2, 3:] = quat([0, 1, -1], 1.9)
+    brute = wc.ContactModel(meshes, mode="brute").evaluate(poses)
+    limit = wc.ContactModel(meshes, mode="bsh", eps=1e8).evaluate(poses)
+    assert brute.ok and limit.ok
+    assert brute.num_leaf == limit.num_leaf == 20 * 12 + 20 * 20 + 12 * 20
+    assert limit.num_far == 0
+    np.testing.assert_allclose(limit.value, brute.value, rtol=1e-8)
+    np.testing.assert_allclose(limit.grad, brute.grad, rtol=1e-8, atol=1e-8 * np.abs(brute.grad).max())
+    np.testing.assert_allclose(limit.hessian, brute.hessian, rtol=1e-8, atol=1e-8 * np.abs(brute.hessian).max())
+
+
+def test_brute_force_is_sum_of_leaf_potentials():
+    meshes = [icosphere(0), box()]
+    poses = identity_poses([[0, 0, 0], [0.2, 1.1, 0.0]])
+    poses[1, 3:] = quat([1, 0, 1], 0.4)
+    res = wc.ContactModel(meshes, mode="brute").evaluate(poses)
+    (va, fa), (vb, fb) = meshes
+    rot = trimesh.transformations.quaternion_matrix(np.roll(poses[1, 3:], 1))[:3, :3]
+    ta = va[fa]
+    tb = (vb @ rot.T + poses[1, :3])[fb]
+    A = np.repeat(ta, len(tb), axis=0)
+    B = np.tile(tb, (len(ta), 1, 1))
+    leaf = wc.triangle_pair_potential(A, B)
+    np.testing.assert_allclose(res.value, leaf.value.sum(), rtol=1e-12)
+    # Translational gradient of body A is the sum of its vertex gradients.
+    np.testing.assert_allclose(res.grad[0, :3], leaf.grad[:, 0].sum(axis=(0, 1)), rtol=1e-10)
+
+
+# --- coverage (Property C) -------------------------------------------------------------------
+
+
+def _leaves_under(tree):
+    out = [None] * tree.num_nodes
+    for node in range(tree.num_nodes - 1, -1, -1):
+        if tree.left[node] < 0:
+            out[node] = [int(tree.triangle[node])]
+        else:
+            out[node] = out[tree.left[node]] + out[tree.right[node]]
+    return out
+
+
+@pytest.mark.parametrize("eps", [0.05, 0.5, 2.0])
+def test_every_triangle_pair_is_covered_exactly_once(eps):
+    meshes = [icosphere(1), box(), icosphere(0, radius=0.2)]
+    poses = identity_poses([[0, 0, 0], [1.0, 0.1, 0.0], [0.0, 0.2, 0.75]])
+    poses[1, 3:] = quat([0, 0, 1], 0.3)
+    model = wc.ContactModel(meshes, eps=eps)
+    lists = model.term_lists(poses)
+    leaves = [_leaves_under(t) for t in model.trees]
+    assert len(lists.far) and len(lists.blend) and len(lists.leaf)
+
+    def local(node, body):
+        return node - model.node_offset[body]
+
+    def covered(kind, row):
+        a, b = model.body_pairs[row[3]]
+        if kind == "leaf":
+            return a, b, [row[0] - model.triangle_offset[a]], [row[1] - model.triangle_offset[b]]
+        return a, b, leaves[a][local(row[0], a)], leaves[b][local(row[1], b)]
+
+    # Children of each blend record, and top-level items of each body pair, must partition
+    # the triangle pairs of the record's node pair (resp. of the two whole bodies).
+    groups = {}
+    for kind, rows in (("far", lists.far), ("blend", lists.blend), ("leaf", lists.leaf)):
+        for row in rows:
+            key = ("record", int(row[2])) if row[2] >= 0 else ("pair", int(row[3]))
+            groups.setdefault(key, []).append(covered(kind, row))
+    assert {k for k in groups if k[0] == "pair"} == {("pair", s) for s in range(len(model.body_pairs))}
+    for key, items in groups.items():
+        if key[0] == "pair":
+            a, b = model.body_pairs[key[1]]
+            want_a, want_b = range(model.trees[a].num_triangles), range(model.trees[b].num_triangles)
+        else:
+            _, _, want_a, want_b = covered("blend", lists.blend[key[1]])
+        counts = {}
+        for _, _, ta, tb in items:
+            for i in ta:
+                for j in tb:
+                    counts[(i, j)] = counts.get((i, j), 0) + 1
+        assert set(counts) == {(i, j) for i in want_a for j in want_b}, key
+        assert max(counts.values()) == 1, key
+
+
+# --- smoothness across blend shells (Property B) -----------------------------------------------
+
+
+def test_derivatives_match_finite_differences_along_paths_crossing_shells():
+    meshes = [icosphere(1), box((0.8, 0.5, 0.3))]
+    model = wc.ContactModel(meshes, eps=0.5)
+    rng = np.random.default_rng(5)
+    seen_counts = set()
+    for t in np.linspace(0.0, 1.0, 9):
+        poses = identity_poses([[0, 0, 0], [1.0 + 1.5 * t, 0.3 * t, 0.2 - 0.1 * t]])
+        poses[0, 3:] = quat([1, 1, 0], 0.5 + t)
+        poses[1, 3:] = quat(rng.normal(size=3), 2.0 * t)
+        base, grad_err, hess_err = fd_check(model, poses)
+        seen_counts.add((base.num_far, base.num_blend, base.num_leaf))
+        assert grad_err < 1e-6, f"t={t}: gradient error {grad_err}"
+        assert hess_err < 1e-5, f"t={t}: Hessian error {hess_err}"
+    # The path crossed shells: the term lists changed along it.
+    assert len(seen_counts) >= 5
+
+
+def test_potential_continuous_across_a_single_shell():
+    """Sweep one body through the d1 and d2 shells of the root pair in fine steps."""
+    meshes = [icosphere(0), icosphere(0)]
+    model = wc.ContactModel(meshes, eps=0.5)
+    d1 = model.trees[0].radii[0] + model.trees[1].radii[0]
+    xs = np.linspace(0.95 * d1, 1.55 * d1, 241)
+    values, grads = [], []
+    for x in xs:
+        res = model.evaluate(identity_poses([[0, 0, 0], [x, 0.05, 0.02]]))
+        values.append(res.value)
+        grads.append(res.grad[1, 0])
+    values, grads = np.array(values), np.array(grads)
+    dx = xs[1] - xs[0]
+    # Smooth: second differences of the value and first differences of the force stay
+    # bounded by the same local scale on both sides of the shells (no jumps).
+    fd_slope = np.diff(values) / dx
+    np.testing.assert_allclose(fd_slope, 0.5 * (grads[1:] + grads[:-1]), rtol=2e-3, atol=1e-3 * np.abs(grads).max())
+    jumps = np.abs(np.diff(grads))
+    assert jumps.max() < 20 * np.median(jumps)
+
+
+# --- Property A, non-vanishing and non-prehensile at body level ---------------------------------
+
+
+def test_contact_is_infinite_and_names_bodies():
+    meshes = [icosphere(0), box(), icosphere(0)]
+    model = wc.ContactModel(meshes, names=["ball", "crate", "far ball"])
+    ok = model.evaluate(identity_poses([[0, 0, 0], [1.2, 0, 0], [0, 5, 0]]))
+    assert ok.ok and np.isfinite(ok.value)
+    hit = model.evaluate(identity_poses([[0, 0, 0], [0.7, 0, 0], [0, 5, 0]]))
+    assert np.isposinf(hit.value)
+    assert hit.contact_pairs == [("ball", "crate")]
+    assert not hit.ok
+    assert np.isfinite(hit.grad).all() and np.isfinite(hit.hessian).all()
+
+
+@pytest.mark.parametrize("distance", [1e3, 1e6])
+def test_forces_do_not_vanish_far_away(distance):
+    meshes = [icosphere(1), box()]
+    model = wc.ContactModel(meshes)
+    res = model.evaluate(identity_poses([[0, 0, 0], [distance, 0, 0]]))
+    assert res.ok and res.value > 12
+    force_on_b = -res.grad[1, :3]
+    assert force_on_b[0] > 0  # pushed away from A
+    assert force_on_b[0] > 1e-3 * distance**-1.5
+    np.testing.assert_allclose(res.grad[0, :3], -res.grad[1, :3], rtol=1e-9)  # internal force
+
+
+def test_net_forces_push_bodies_apart():
+    meshes = [icosphere(1), icosphere(1, radius=0.3)]
+    model = wc.ContactModel(meshes, eps=0.5)
+    rng = np.random.default_rng(9)
+    for _ in range(20):
+        direction = rng.normal(size=3)
+        direction /= np.linalg.norm(direction)
+        gap = 10 ** rng.uniform(-3, 1)
+        poses = identity_poses([[0, 0, 0], (0.8 + gap) * direction])
+        poses[1, 3:] = quat(rng.normal(size=3), rng.uniform(0, np.pi))
+        res = model.evaluate(poses)
+        assert res.ok
+        assert np.dot(-res.grad[1, :3], direction) > 0
+        assert np.dot(-res.grad[0, :3], -direction) > 0
+
+
+# --- static bodies ----------------------------------------------------------------------------
+
+
+def test_static_bodies_have_no_degrees_of_freedom():
+    meshes = [box((4.0, 4.0, 0.2)), icosphere(0), box((3.0, 3.0, 0.2))]
+    poses = identity_poses([[0, 0, 0], [0.1, 0.0, 0.8], [0, 0, -2.0]])
+    dynamic = wc.ContactModel(meshes).evaluate(poses)
+    model = wc.ContactModel(meshes, static=[True, False, True])
+    assert [tuple(p) for p in model.body_pairs] == [(0, 1), (1, 2)]  # static-static skipped
+    res = model.evaluate(poses)
+    assert np.all(res.grad[[0, 2]] == 0)
+    H = res.hessian.reshape(3, 6, 3, 6)
+    assert np.all(H[[0, 2]] == 0) and np.all(H[:, :, [0, 2]] == 0)
+    # The dynamic body's own gradient and Hessian block are unchanged.
+    np.testing.assert_allclose(res.grad[1], dynamic.grad[1], rtol=1e-12)
+    np.testing.assert_allclose(H[1, :, 1], dynamic.hessian.reshape(3, 6, 3, 6)[1, :, 1], rtol=1e-12)
+    _, grad_err, hess_err = fd_check(model, poses)
+    assert grad_err < 1e-6 and hess_err < 1e-5
+
+
+# --- buffers ----------------------------------------------------------------------------------
+
+
+def test_undersized_buffers_are_grown_and_give_the_same_result():
+    meshes = [icosphere(1), icosphere(1)]
+    poses = identity_poses([[0, 0, 0], [1.05, 0.1, 0.0]])
+    reference = wc.ContactModel(meshes).evaluate(poses)
+    model = wc.ContactModel(meshes)
+    model._stack_capacity = 4
+    model._far = model._blend = model._leaf = model._stack = None
+    model._reserve_lists(far=1, blend=1, leaf=1)
+    res = model.evaluate(poses)
+    assert model._stack.shape[1] > 4 and model._leaf.shape[0] >= res.num_leaf
+    assert res.value == pytest.approx(reference.value, rel=1e-12)
+    np.testing.assert_allclose(res.hessian, reference.hessian, rtol=1e-10, atol=1e-12 * np.abs(reference.hessian).max())
+
+
+# --- bad input --------------------------------------------------------------------------------
+
+
+def test_bad_poses_raise_clear_errors():
+    model = wc.ContactModel([icosphere(0), box()], names=["ball", "crate"])
+    poses = identity_poses([[0, 0, 0], [2, 0, 0]])
+    with pytest.raises(ValueError, match="expected 2 rows"):
+        model.evaluate(poses[:1])
+    with pytest.raises(ValueError, match="shape"):
+        model.evaluate(poses[:, :6])
+    bad = poses.copy()
+    bad[1, 0] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        model.evaluate(bad)
+    bad = poses.copy()
+    bad[1, 3:] = [0, 0, 0, 2.0]
+    with pytest.raises(ValueError, match=r"body 1 \(crate\).*quaternion norm 2"):
+        model.evaluate(bad)
+    nearly = poses.copy()
+    nearly[1, 6] = 1.0 + 5e-7  # within tolerance: normalised
+    np.testing.assert_allclose(model.evaluate(nearly).value, model.evaluate(poses).value, rtol=1e-12)
+
+
+def test_bad_model_input_raises_clear_errors():
+    with pytest.raises(ValueError, match="crate"):
+        wc.ContactModel([icosphere(0), (np.zeros((3, 3)), np.zeros((0, 3), dtype=int))], names=["ball", "crate"])
+    with pytest.raises(ValueError, match="eps"):
+        wc.ContactModel([icosphere(0)], eps=0.0)
+    with pytest.raises(ValueError, match="mode"):
+        wc.ContactModel([icosphere(0)], mode="ipc-typo")
+    with pytest.raises(ValueError, match="static"):
+        wc.ContactModel([icosphere(0), box()], static=[True])
+    with pytest.raises(ValueError, match=r"meshes\[1\]"):
+        wc.ContactModel([icosphere(0), "not a mesh"])

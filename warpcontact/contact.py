@@ -1,0 +1,370 @@
+"""Body-level contact potential: sphere trees, pair lists, leaf solves and blend reduction.
+
+``ContactModel`` evaluates the scene potential sum over body pairs of P(a, b) with its
+exact gradient and Hessian in rigid-body coordinates, in one of these modes:
+
+- ``"bsh"``: the paper's hierarchical potential P_BSH (eq. BSH-potential), evaluated from
+  far / blend / leaf term lists that a stack-based traversal kernel emits.
+- ``"brute"``: the O(T^2) reference sum of exact leaf potentials (eq. potential-slow).
+
+Each mode is a pair-list builder feeding the same term kernels, so further contact models
+(baselines) slot in as further builders and term kernels.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .kernels import reduction as reduction_kernels
+from .kernels import rigid as rigid_kernels
+from .kernels import traversal as traversal_kernels
+from ._runtime import resolve_device
+from ._validate import as_float64_array
+from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus
+from .sphere_tree import SphereTree, build_sphere_tree
+
+__all__ = ["ContactEvaluation", "ContactModel", "CONTACT_MODES", "QUATERNION_TOLERANCE", "TermLists"]
+
+CONTACT_MODES = ("bsh", "brute")
+
+# Quaternions within this distance of unit norm are normalised; others are rejected as
+# almost certainly not rotations (e.g. an unnormalised optimiser step or a wrong layout).
+QUATERNION_TOLERANCE = 1e-6
+
+_MAX_TRAVERSAL_ATTEMPTS = 8
+
+
+@dataclass(frozen=True)
+class ContactEvaluation:
+    """Scene contact potential at one configuration.
+
+    Attributes:
+        value: total potential (dimensionless; scaled by the contact stiffness in the step);
+            +inf when any two bodies touch or intersect.
+        grad: (nbodies, 6) dP/d(dp, dtheta) per body; zero rows for static bodies.
+        hessian: (6 nbodies, 6 nbodies) second derivatives in the same coordinates;
+            zero rows and columns for static bodies.
+        num_far, num_blend, num_leaf: term counts (centred-only, blend records, leaf solves).
+        contact_pairs: (name_a, name_b) of body pairs with a touching or intersecting
+            triangle pair.
+        unsolved_pairs: (name_a, name_b) of body pairs where a leaf solve did not converge.
+        mean_leaf_iterations: mean Newton iterations per leaf solve.
+    """
+
+    value: float
+    grad: np.ndarray
+    hessian: np.ndarray
+    num_far: int
+    num_blend: int
+    num_leaf: int
+    contact_pairs: list
+    unsolved_pairs: list
+    mean_leaf_iterations: float
+
+    @property
+    def ok(self) -> bool:
+        """True when the potential is finite and every leaf solve converged."""
+        return not self.contact_pairs and not self.unsolved_pairs
+
+
+@dataclass(frozen=True)
+class TermLists:
+    """Term lists of one configuration (numpy copies, for inspection and tests).
+
+    far: (F, 4) rows (node_a, node_b, parent blend record, body pair); blend: (Bl, 4) same
+    layout with blend_level (Bl,); leaf: (L, 4) rows (triangle_a, triangle_b, parent, body
+    pair). Node and triangle indices are global (``ContactModel.node_offset`` /
+    ``triangle_offset`` per body); body pairs index ``ContactModel.body_pairs``.
+    """
+
+    far: np.ndarray
+    blend: np.ndarray
+    blend_level: np.ndarray
+    leaf: np.ndarray
+
+
+class ContactModel:
+    """Contact potential between rigid bodies given as triangle meshes in their body frames.
+
+    Args:
+        meshes: list of (V, F) per body: V (nv, 3) vertices in the body frame (m), F (nf, 3)
+            triangle vertex indices.
+        eps: blend margin epsilon > 0 of P_BSH (d2 = (1 + eps) d1); larger is closer to the
+            brute-force sum and costlier.
+        mode: ``"bsh"`` or ``"brute"``.
+        static: optional (nbodies,) booleans; static bodies have no degrees of freedom and
+            pairs of two static bodies are skipped.
+        names: optional body names used in messages (default ``body<i>``).
+        device: Warp device.
+        max_leaf_iterations: Newton iteration cap of each leaf solve.
+    """
+
+    def __init__(
+        self,
+        meshes,
+        *,
+        eps: float = 0.5,
+        mode: str = "bsh",
+        static=None,
+        names=None,
+        device="cpu",
+        max_leaf_iterations: int = DEFAULT_MAX_ITERATIONS,
+    ):
+        if mode not in CONTACT_MODES:
+            raise ValueError(f"mode: {mode!r} is not one of {CONTACT_MODES}")
+        if not np.isfinite(eps) or eps <= 0:
+            raise ValueError(f"eps: must be a positive finite number, got {eps}")
+        if int(max_leaf_iterations) < 1:
+            raise ValueError(f"max_leaf_iterations: must be >= 1, got {max_leaf_iterations}")
+        meshes = list(meshes)
+        if len(meshes) < 1:
+            raise ValueError("meshes: need at least one body")
+        num_bodies = len(meshes)
+        self.names = [f"body{i}" for i in range(num_bodies)] if names is None else [str(n) for n in names]
+        if len(self.names) != num_bodies:
+            raise ValueError(f"names: {len(self.names)} names for {num_bodies} bodies")
+        static_flags = np.zeros(num_bodies, dtype=bool) if static is None else np.asarray(static, dtype=bool)
+        if static_flags.shape != (num_bodies,):
+            raise ValueError(f"static: expected {num_bodies} flags, got shape {static_flags.shape}")
+
+        self.mode = mode
+        self.eps = float(eps)
+        self.max_leaf_iterations = int(max_leaf_iterations)
+        self.num_bodies = num_bodies
+        self.static = static_flags
+        self.device = resolve_device(device)
+
+        trees, triangles = [], []
+        for i, mesh in enumerate(meshes):
+            try:
+                vertices, faces = mesh
+            except (TypeError, ValueError):
+                raise ValueError(f"meshes[{i}] ({self.names[i]}): expected a (vertices, faces) pair") from None
+            tree = build_sphere_tree(vertices, faces, name=self.names[i])
+            trees.append(tree)
+            triangles.append(np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)])
+        self.trees: list[SphereTree] = trees
+        self.node_offset = np.cumsum([0] + [t.num_nodes for t in trees])[:-1].astype(np.int32)
+        self.triangle_offset = np.cumsum([0] + [t.num_triangles for t in trees])[:-1].astype(np.int32)
+        self.body_pairs = np.array(
+            [(a, b) for a in range(num_bodies) for b in range(a + 1, num_bodies) if not (static_flags[a] and static_flags[b])],
+            dtype=np.int32,
+        ).reshape(-1, 2)
+        self._upload_model(trees, triangles)
+
+    # --- set-up ---------------------------------------------------------------------------
+
+    def _upload_model(self, trees, triangles):
+        def shifted(index, offset):
+            return np.where(index >= 0, index + offset, -1).astype(np.int32)
+
+        left = np.concatenate([shifted(t.left, o) for t, o in zip(trees, self.node_offset)])
+        right = np.concatenate([shifted(t.right, o) for t, o in zip(trees, self.node_offset)])
+        tri = np.concatenate([shifted(t.triangle, o) for t, o in zip(trees, self.triangle_offset)])
+        max_depth = max(t.max_depth for t in trees)
+        with wp.ScopedDevice(self.device):
+            self._node_center = wp.array(np.concatenate([t.centers for t in trees]), dtype=wp.vec3d)
+            self._node_radius = wp.array(np.concatenate([t.radii for t in trees]), dtype=wp.float64)
+            self._node_left = wp.array(left, dtype=wp.int32)
+            self._node_right = wp.array(right, dtype=wp.int32)
+            self._node_triangle = wp.array(tri, dtype=wp.int32)
+            self._body_root = wp.array(self.node_offset, dtype=wp.int32)
+            self._triangle_vertices = wp.array(np.concatenate(triangles), dtype=wp.mat33d)
+            self._body_dynamic = wp.array((~self.static).astype(np.int32), dtype=wp.int32)
+            self._seed_body_pair = wp.array(self.body_pairs, dtype=wp.vec2i)
+            self._rotation = wp.empty(self.num_bodies, dtype=wp.mat33d)
+            self._position = wp.empty(self.num_bodies, dtype=wp.vec3d)
+            self._counters = wp.zeros(traversal_kernels.NUM_COUNTERS, dtype=wp.int32)
+            self._seed_status = wp.zeros(len(self.body_pairs), dtype=wp.int32)
+            self._total_value = wp.zeros(1, dtype=wp.float64)
+            self._total_grad = wp.zeros((self.num_bodies, 6), dtype=wp.float64)
+            self._total_hess = wp.zeros((6 * self.num_bodies, 6 * self.num_bodies), dtype=wp.float64)
+        # A depth-first walk holds at most 3 pending pairs per level of both trees plus one
+        # expansion; the kernel still guards the bound and the host grows it on overflow.
+        self._stack_capacity = 3 * (2 * max_depth + 2) + 4
+        self._far = self._blend = self._leaf = self._blend_level = self._stack = None
+        self._leaf_iterations = None
+        self._blend_value = self._blend_grad = self._blend_hess = None
+        if self.mode == "brute":
+            self._set_brute_leaf_list()
+        else:
+            per_pair = 8 * max(t.num_triangles for t in trees)
+            self._reserve_lists(far=per_pair * max(1, len(self.body_pairs)), blend=per_pair, leaf=per_pair)
+
+    def _set_brute_leaf_list(self):
+        rows = []
+        for seed, (a, b) in enumerate(self.body_pairs):
+            ta = np.arange(self.trees[a].num_triangles) + self.triangle_offset[a]
+            tb = np.arange(self.trees[b].num_triangles) + self.triangle_offset[b]
+            grid_a, grid_b = np.meshgrid(ta, tb, indexing="ij")
+            block = np.empty((grid_a.size, 4), dtype=np.int32)
+            block[:, 0] = grid_a.ravel()
+            block[:, 1] = grid_b.ravel()
+            block[:, 2] = -1
+            block[:, 3] = seed
+            rows.append(block)
+        leaf = np.concatenate(rows) if rows else np.zeros((0, 4), dtype=np.int32)
+        with wp.ScopedDevice(self.device):
+            self._leaf = wp.array(leaf, dtype=wp.vec4i)
+            self._far = wp.zeros(0, dtype=wp.vec4i)
+            self._blend = wp.zeros(0, dtype=wp.vec4i)
+            self._blend_level = wp.zeros(0, dtype=wp.int32)
+            self._leaf_iterations = wp.zeros(len(leaf), dtype=wp.int32)
+        self._counts = (0, 0, len(leaf), -1)
+        self._reserve_blend_accumulators(0)
+
+    def _reserve_lists(self, *, far: int, blend: int, leaf: int):
+        with wp.ScopedDevice(self.device):
+            if self._far is None or self._far.shape[0] < far:
+                self._far = wp.zeros(far, dtype=wp.vec4i)
+            if self._blend is None or self._blend.shape[0] < blend:
+                self._blend = wp.zeros(blend, dtype=wp.vec4i)
+                self._blend_level = wp.zeros(blend, dtype=wp.int32)
+                self._reserve_blend_accumulators(blend)
+            if self._leaf is None or self._leaf.shape[0] < leaf:
+                self._leaf = wp.zeros(leaf, dtype=wp.vec4i)
+                self._leaf_iterations = wp.zeros(leaf, dtype=wp.int32)
+            if self._stack is None or self._stack.shape[1] < self._stack_capacity:
+                self._stack = wp.zeros((max(1, len(self.body_pairs)), self._stack_capacity), dtype=wp.vec4i)
+
+    def _reserve_blend_accumulators(self, count: int):
+        with wp.ScopedDevice(self.device):
+            self._blend_value = wp.zeros(count, dtype=wp.float64)
+            self._blend_grad = wp.zeros((count, 12), dtype=wp.float64)
+            self._blend_hess = wp.zeros((count, 12, 12), dtype=wp.float64)
+
+    # --- evaluation -------------------------------------------------------------------------
+
+    def _validated_poses(self, poses) -> np.ndarray:
+        poses = as_float64_array(poses, "poses", trailing_shape=(7,))
+        if poses.shape[0] != self.num_bodies:
+            raise ValueError(f"poses: expected {self.num_bodies} rows (one per body), got {poses.shape[0]}")
+        norms = np.linalg.norm(poses[:, 3:], axis=1)
+        bad = np.flatnonzero(np.abs(norms - 1.0) > QUATERNION_TOLERANCE)
+        if bad.size:
+            i = int(bad[0])
+            raise ValueError(
+                f"poses: body {i} ({self.names[i]}) has quaternion norm {norms[i]:.9g}; "
+                f"expected unit norm within {QUATERNION_TOLERANCE} (layout px, py, pz, qx, qy, qz, qw)"
+            )
+        poses = poses.copy()
+        poses[:, 3:] /= norms[:, None]
+        return poses
+
+    def _set_poses(self, poses: np.ndarray):
+        with wp.ScopedDevice(self.device):
+            pose = wp.array(poses, dtype=wp.transformd)
+            wp.launch(rigid_kernels.body_transforms_kernel, dim=self.num_bodies, inputs=[pose], outputs=[self._rotation, self._position])
+
+    def _traverse(self):
+        """Fill the BSH term lists for the current poses, growing buffers until they fit."""
+        for _ in range(_MAX_TRAVERSAL_ATTEMPTS):
+            self._counters.zero_()
+            if len(self.body_pairs):
+                wp.launch(
+                    traversal_kernels.traverse_kernel,
+                    dim=len(self.body_pairs),
+                    inputs=[
+                        self._node_center,
+                        self._node_radius,
+                        self._node_left,
+                        self._node_right,
+                        self._node_triangle,
+                        self._body_root,
+                        self.eps,
+                        self._rotation,
+                        self._position,
+                        self._seed_body_pair,
+                        self._stack,
+                    ],
+                    outputs=[self._counters, self._far, self._blend, self._blend_level, self._leaf],
+                    device=self.device,
+                )
+            far, blend, leaf, max_level, overflow = (int(c) for c in self._counters.numpy())
+            fits = far <= self._far.shape[0] and blend <= self._blend.shape[0] and leaf <= self._leaf.shape[0]
+            if fits and overflow == 0:
+                self._counts = (far, blend, leaf, max_level if blend else -1)
+                return
+            if overflow:
+                self._stack_capacity *= 2
+            self._reserve_lists(far=int(far * 1.25) + 16, blend=int(blend * 1.25) + 16, leaf=int(leaf * 1.25) + 16)
+        raise RuntimeError(f"sphere-tree traversal did not fit its buffers after {_MAX_TRAVERSAL_ATTEMPTS} attempts")
+
+    def _targets(self):
+        t = reduction_kernels.Targets()
+        t.blend_value = self._blend_value
+        t.blend_grad = self._blend_grad
+        t.blend_hess = self._blend_hess
+        t.total_value = self._total_value
+        t.total_grad = self._total_grad
+        t.total_hess = self._total_hess
+        t.body_dynamic = self._body_dynamic
+        return t
+
+    def _reduce(self):
+        num_far, num_blend, num_leaf, max_level = self._counts
+        for arr in (self._blend_value, self._blend_grad, self._blend_hess, self._total_value, self._total_grad, self._total_hess, self._seed_status):
+            arr.zero_()
+        targets = self._targets()
+        common = [self._rotation, self._position, self._seed_body_pair]
+        with wp.ScopedDevice(self.device):
+            if num_far:
+                wp.launch(reduction_kernels.far_term_kernel, dim=num_far, inputs=[self._node_center, *common, self._far], outputs=[targets])
+            if num_leaf:
+                wp.launch(
+                    reduction_kernels.leaf_term_kernel,
+                    dim=num_leaf,
+                    inputs=[self._triangle_vertices, self.max_leaf_iterations, *common, self._leaf],
+                    outputs=[targets, self._seed_status, self._leaf_iterations],
+                )
+            for level in range(max_level, -1, -1):
+                wp.launch(
+                    reduction_kernels.blend_level_kernel,
+                    dim=num_blend,
+                    inputs=[self._node_center, self._node_radius, self.eps, level, *common, self._blend, self._blend_level],
+                    outputs=[targets],
+                )
+
+    def evaluate(self, poses) -> ContactEvaluation:
+        """Potential, gradient and Hessian at ``poses`` (nbodies, 7) = (px, py, pz, qx, qy, qz, qw).
+
+        Quaternions within ``QUATERNION_TOLERANCE`` of unit norm are normalised; others raise
+        ValueError naming the body.
+        """
+        self._set_poses(self._validated_poses(poses))
+        if self.mode == "bsh":
+            self._traverse()
+        self._reduce()
+        num_far, num_blend, num_leaf, _ = self._counts
+        status = self._seed_status.numpy()
+        contact = [tuple(self.names[i] for i in self.body_pairs[s]) for s in np.flatnonzero(status == LeafStatus.CONTACT)]
+        unsolved = [tuple(self.names[i] for i in self.body_pairs[s]) for s in np.flatnonzero(status > LeafStatus.CONTACT)]
+        value = float(self._total_value.numpy()[0])
+        if contact or unsolved:
+            value = float("inf")
+        iterations = self._leaf_iterations.numpy()[:num_leaf]
+        return ContactEvaluation(
+            value=value,
+            grad=self._total_grad.numpy().copy(),
+            hessian=self._total_hess.numpy().copy(),
+            num_far=num_far,
+            num_blend=num_blend,
+            num_leaf=num_leaf,
+            contact_pairs=contact,
+            unsolved_pairs=unsolved,
+            mean_leaf_iterations=float(iterations.mean()) if num_leaf else 0.0,
+        )
+
+    def term_lists(self, poses) -> TermLists:
+        """The far / blend / leaf term lists at ``poses`` (for inspection and tests)."""
+        self._set_poses(self._validated_poses(poses))
+        if self.mode == "bsh":
+            self._traverse()
+        num_far, num_blend, num_leaf, _ = self._counts
+        return TermLists(
+            far=self._far.numpy()[:num_far].view(np.int32).reshape(-1, 4).copy(),
+            blend=self._blend.numpy()[:num_blend].view(np.int32).reshape(-1, 4).copy(),
+            blend_level=self._blend_level.numpy()[:num_blend].copy(),
+            leaf=self._leaf.numpy()[:num_leaf].view(np.int32).reshape(-1, 4).copy(),
+        )
