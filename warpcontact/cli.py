@@ -64,6 +64,28 @@ def _bench_leaf(args) -> int:
     return 0
 
 
+def _bench_contact(args) -> int:
+    from .bench import run_contact_benchmark
+
+    rows = run_contact_benchmark(
+        eps_values=args.eps,
+        gaps=args.gaps,
+        subdivisions=args.subdivisions,
+        repeats=args.repeats,
+        device=args.device,
+        out_dir=Path(args.out),
+    )
+    print(f"{'scene':>15} {'gap':>8} {'mode':>6} {'eps':>6} {'seconds':>9} {'far':>7} {'blend':>7} {'leaf':>7} {'F err med':>10} {'F err max':>10} {'F cos min':>10} {'T err max':>10}")
+    for r in rows:
+        eps = "-" if r["eps"] is None else f"{r['eps']:g}"
+        print(
+            f"{r['scene']:>15} {r['gap']:8.0e} {r['mode']:>6} {eps:>6} {r['median_seconds']:9.4f} {r['num_far']:7d} {r['num_blend']:7d} "
+            f"{r['num_leaf']:7d} {r['force_error_median']:10.2e} {r['force_error_max']:10.2e} {r['force_cosine_min']:10.6f} {r['torque_error_max']:10.2e}"
+        )
+    print(f"wrote {Path(args.out) / 'contact.json'}")
+    return 0
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
@@ -97,6 +119,14 @@ def build_parser() -> argparse.ArgumentParser:
     leaf.add_argument("--device", default="cpu")
     leaf.add_argument("--out", default="outputs/bench")
     leaf.set_defaults(func=_bench_leaf)
+    contact = bench_sub.add_parser("contact", help="BSH speed vs force error against brute force (eps sweep)")
+    contact.add_argument("--eps", type=_positive_float, nargs="+", default=[0.01, 0.1, 0.5, 1.0, 2.0, 10.0])
+    contact.add_argument("--gaps", type=_positive_float, nargs="+", default=[1e-3, 1e-2, 1e-1])
+    contact.add_argument("--subdivisions", type=int, default=1, choices=range(0, 4))
+    contact.add_argument("--repeats", type=_positive_int, default=3)
+    contact.add_argument("--device", default="cpu")
+    contact.add_argument("--out", default="outputs/bench")
+    contact.set_defaults(func=_bench_contact)
     return parser
 
 
