@@ -129,6 +129,7 @@ def _world_centres(
 def far_term_kernel(
     # Model:
     node_center: wp.array(dtype=wp.vec3d),
+    node_radius: wp.array(dtype=wp.float64),
     # Data in:
     body_rotation: wp.array(dtype=wp.mat33d),
     body_position: wp.array(dtype=wp.vec3d),
@@ -136,11 +137,14 @@ def far_term_kernel(
     far_items: wp.array(dtype=wp.vec4i),
     # Data out:
     targets: Targets,
+    seed_separation_out: wp.array(dtype=wp.float64),
 ):
     item = far_items[wp.tid()]
     pair = seed_body_pair[item[3]]
     ci, cj = _world_centres(node_center, item[0], item[1], pair, body_rotation, body_position)
     dist, ga, gb, haa, hab, hbb = _centre_distance_derivatives(ci, cj, body_position[pair[0]], body_position[pair[1]])
+    # The clusters lie inside their spheres, which are this far apart at least.
+    wp.atomic_min(seed_separation_out, item[3], dist - node_radius[item[0]] - node_radius[item[1]])
     value, first, second = centered_potential(dist)
     parent = item[2]
     _add_value(targets, parent, value)
@@ -165,6 +169,7 @@ def leaf_term_kernel(
     # Data out:
     targets: Targets,
     seed_status_out: wp.array(dtype=wp.int32),
+    seed_separation_out: wp.array(dtype=wp.float64),
     leaf_iterations_out: wp.array(dtype=wp.int32),
 ):
     tid = wp.tid()
@@ -187,9 +192,14 @@ def leaf_term_kernel(
     parent = item[2]
     if sol.status != LEAF_OK:
         wp.atomic_max(seed_status_out, seed, sol.status)
+        wp.atomic_min(seed_separation_out, seed, wp.float64(0.0))
         _add_value(targets, parent, wp.float64(wp.inf))
         return
     _add_value(targets, parent, sol.value)
+    # The optimal plane separates the triangles; each lies at least min gap / |n| from it.
+    gap_a = wp.min(wp.min(sol.gap_a[0], sol.gap_a[1]), sol.gap_a[2])
+    gap_b = wp.min(wp.min(sol.gap_b[0], sol.gap_b[1]), sol.gap_b[2])
+    wp.atomic_min(seed_separation_out, seed, (gap_a + gap_b) / wp.length(sol.n))
     # Vertex offsets from their body origins, r = x - p (world axes).
     offsets_a = wp.mat33d()
     offsets_b = wp.mat33d()

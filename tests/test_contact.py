@@ -333,3 +333,22 @@ def test_bad_model_input_raises_clear_errors():
         wc.ContactModel([icosphere(0), box()], static=[True])
     with pytest.raises(ValueError, match=r"meshes\[1\]"):
         wc.ContactModel([icosphere(0), "not a mesh"])
+
+
+def test_pair_separation_is_a_lower_bound_on_surface_distance():
+    meshes = [icosphere(1), icosphere(1), box()]
+    model = wc.ContactModel(meshes)
+    for gap in (1e-3, 0.1, 2.0):
+        poses = identity_poses([[0, 0, 0], [1.0 + gap, 0, 0], [0, 0, 10.0]])
+        res = model.evaluate(poses)
+        V = meshes[0][0]
+        # True surface distances of the mesh pairs, from their vertex sets (upper bounds on the
+        # triangle distance), must exceed the reported lower bounds; the bound is not vacuous.
+        for row, (a, b) in enumerate(model.body_pairs):
+            va = meshes[a][0] + poses[a, :3]
+            vb = meshes[b][0] + poses[b, :3]
+            vertex_distance = np.min(np.linalg.norm(va[:, None] - vb[None], axis=2))
+            assert 0 < res.pair_separation[row] <= vertex_distance + 1e-12
+        assert res.pair_separation[0] > 0.3 * gap
+    hit = model.evaluate(identity_poses([[0, 0, 0], [0.5, 0, 0], [0, 0, 10.0]]))
+    assert hit.pair_separation[0] == 0.0

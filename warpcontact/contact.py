@@ -50,6 +50,9 @@ class ContactEvaluation:
             triangle pair.
         unsolved_pairs: (name_a, name_b) of body pairs where a leaf solve did not converge.
         mean_leaf_iterations: mean Newton iterations per leaf solve.
+        pair_separation: (npairs,) lower bound on the surface distance of each body pair in
+            ``ContactModel.body_pairs`` (m); 0 on contact. Bounds how far bodies may move
+            before they could touch (conservative advancement).
     """
 
     value: float
@@ -61,6 +64,7 @@ class ContactEvaluation:
     contact_pairs: list
     unsolved_pairs: list
     mean_leaf_iterations: float
+    pair_separation: np.ndarray
 
     @property
     def ok(self) -> bool:
@@ -177,6 +181,7 @@ class ContactModel:
             self._position = wp.empty(self.num_bodies, dtype=wp.vec3d)
             self._counters = wp.zeros(traversal_kernels.NUM_COUNTERS, dtype=wp.int32)
             self._seed_status = wp.zeros(len(self.body_pairs), dtype=wp.int32)
+            self._seed_separation = wp.zeros(len(self.body_pairs), dtype=wp.float64)
             self._total_value = wp.zeros(1, dtype=wp.float64)
             self._total_grad = wp.zeros((self.num_bodies, 6), dtype=wp.float64)
             self._total_hess = wp.zeros((6 * self.num_bodies, 6 * self.num_bodies), dtype=wp.float64)
@@ -306,17 +311,23 @@ class ContactModel:
         num_far, num_blend, num_leaf, max_level = self._counts
         for arr in (self._blend_value, self._blend_grad, self._blend_hess, self._total_value, self._total_grad, self._total_hess, self._seed_status):
             arr.zero_()
+        self._seed_separation.fill_(np.inf)
         targets = self._targets()
         common = [self._rotation, self._position, self._seed_body_pair]
         with wp.ScopedDevice(self.device):
             if num_far:
-                wp.launch(reduction_kernels.far_term_kernel, dim=num_far, inputs=[self._node_center, *common, self._far], outputs=[targets])
+                wp.launch(
+                    reduction_kernels.far_term_kernel,
+                    dim=num_far,
+                    inputs=[self._node_center, self._node_radius, *common, self._far],
+                    outputs=[targets, self._seed_separation],
+                )
             if num_leaf:
                 wp.launch(
                     reduction_kernels.leaf_term_kernel,
                     dim=num_leaf,
                     inputs=[self._triangle_vertices, self.max_leaf_iterations, *common, self._leaf],
-                    outputs=[targets, self._seed_status, self._leaf_iterations],
+                    outputs=[targets, self._seed_status, self._seed_separation, self._leaf_iterations],
                 )
             for level in range(max_level, -1, -1):
                 wp.launch(
@@ -354,6 +365,7 @@ class ContactModel:
             contact_pairs=contact,
             unsolved_pairs=unsolved,
             mean_leaf_iterations=float(iterations.mean()) if num_leaf else 0.0,
+            pair_separation=self._seed_separation.numpy().copy(),
         )
 
     def term_lists(self, poses) -> TermLists:
