@@ -22,7 +22,7 @@ from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_po
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["far_term_kernel", "leaf_term_kernel", "blend_level_kernel"]
+__all__ = ["far_term_kernel", "leaf_term_kernel", "blend_level_kernel", "advancement_kernel"]
 
 
 @wp.struct
@@ -171,6 +171,7 @@ def leaf_term_kernel(
     seed_status_out: wp.array(dtype=wp.int32),
     seed_separation_out: wp.array(dtype=wp.float64),
     leaf_iterations_out: wp.array(dtype=wp.int32),
+    leaf_plane_out: wp.array(dtype=wp.vec4d),
 ):
     tid = wp.tid()
     item = leaf_items[tid]
@@ -189,6 +190,7 @@ def leaf_term_kernel(
         tb[k] = rot_b * local_b[k] + pos_b
     sol = leaf_solve(ta, tb, max_iterations)
     leaf_iterations_out[tid] = sol.iterations
+    leaf_plane_out[tid] = wp.vec4d(sol.n[0], sol.n[1], sol.n[2], sol.d - wp.dot(sol.n, sol.origin))
     parent = item[2]
     if sol.status != LEAF_OK:
         wp.atomic_max(seed_status_out, seed, sol.status)
@@ -299,3 +301,122 @@ def blend_level_kernel(
                         + (pc - s) * (phi2 * gdi * gdj + phi1 * hd)
                     )
             _add_hessian_block(targets, parent, pair, side_r, side_c, block)
+
+
+_ADVANCEMENT_BISECTIONS = wp.constant(40)
+
+
+@wp.func
+def _toward_plane_bound(
+    tri: wp.mat33d, pos: wp.vec3d, direction: wp.vec3d, step: vec6d, alpha: wp.float64
+):
+    """Upper bound on how far a triangle's points move along ``direction`` under any alpha' <= alpha.
+
+    A vertex at offset r moves along d by alpha dp.d + sin(phi) (k x r).d
+    + (1 - cos(phi)) ((k.r)(k.d) - r.d) with phi = alpha |dtheta|, k = dtheta / |dtheta|.
+    Bounding sin(phi) by phi (or phi - phi^3/6 where its factor is negative) and 1 - cos(phi)
+    by phi^2/2 gives a bound convex and non-decreasing in phi beyond its linear part, so the
+    admissible alphas form an interval. A rigid motion moves a triangle's points affinely,
+    so the worst point is a vertex.
+    """
+    dp = wp.vec3d(step[0], step[1], step[2])
+    dtheta = wp.vec3d(step[3], step[4], step[5])
+    spin = wp.length(dtheta)
+    phi = alpha * spin
+    zero = wp.float64(0.0)
+    k = wp.vec3d()
+    if spin > zero:
+        k = dtheta / spin
+    worst = wp.float64(-1.0e308)
+    for v in range(3):
+        r = tri[v] - pos
+        b = wp.dot(wp.cross(k, r), direction)
+        c = wp.dot(k, r) * wp.dot(k, direction) - wp.dot(r, direction)
+        bound = alpha * wp.dot(dp, direction) + phi * b + wp.float64(0.5) * phi * phi * wp.max(c, zero)
+        if b < zero:
+            bound += phi * phi * phi * (-b) / wp.float64(6.0)
+        worst = wp.max(worst, bound)
+    return worst
+
+
+@wp.kernel
+def advancement_kernel(
+    # Model:
+    node_center: wp.array(dtype=wp.vec3d),
+    node_radius: wp.array(dtype=wp.float64),
+    triangle_vertices: wp.array(dtype=wp.mat33d),
+    fraction: wp.float64,
+    # Data in:
+    body_rotation: wp.array(dtype=wp.mat33d),
+    body_position: wp.array(dtype=wp.vec3d),
+    seed_body_pair: wp.array(dtype=wp.vec2i),
+    far_items: wp.array(dtype=wp.vec4i),
+    num_far: int,
+    leaf_items: wp.array(dtype=wp.vec4i),
+    leaf_plane: wp.array(dtype=wp.vec4d),
+    body_step: wp.array(dtype=vec6d),
+    # Data out:
+    alpha_out: wp.array(dtype=wp.float64),
+):
+    """Largest alpha in (0, 1] keeping every term's geometry apart along alpha * step (atomic min).
+
+    Far terms: the clusters stay inside their spheres, so their points approach by at most
+    alpha (|dp_a - dp_b| + |dtheta_a| rho_a + |dtheta_b| rho_b), rho = |c - p| + R.
+    Leaf terms: each triangle may close at most ``fraction`` of its distance to the (fixed)
+    separating plane, so the pair stays disjoint along the whole path.
+    """
+    tid = wp.tid()
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    if tid < num_far:
+        item = far_items[tid]
+        pair = seed_body_pair[item[3]]
+        pos_a = body_position[pair[0]]
+        pos_b = body_position[pair[1]]
+        ci = body_rotation[pair[0]] * node_center[item[0]] + pos_a
+        cj = body_rotation[pair[1]] * node_center[item[1]] + pos_b
+        separation = wp.length(ci - cj) - node_radius[item[0]] - node_radius[item[1]]
+        sa = body_step[pair[0]]
+        sb = body_step[pair[1]]
+        relative = wp.vec3d(sa[0] - sb[0], sa[1] - sb[1], sa[2] - sb[2])
+        spin_a = wp.length(wp.vec3d(sa[3], sa[4], sa[5])) * (wp.length(ci - pos_a) + node_radius[item[0]])
+        spin_b = wp.length(wp.vec3d(sb[3], sb[4], sb[5])) * (wp.length(cj - pos_b) + node_radius[item[1]])
+        approach = wp.length(relative) + spin_a + spin_b
+        if approach > zero:
+            wp.atomic_min(alpha_out, 0, wp.min(one, fraction * separation / approach))
+        return
+    item = leaf_items[tid - num_far]
+    pair = seed_body_pair[item[3]]
+    plane = leaf_plane[tid - num_far]
+    n = wp.vec3d(plane[0], plane[1], plane[2])
+    inv_norm = one / wp.length(n)
+    normal = n * inv_norm
+    rot_a = body_rotation[pair[0]]
+    rot_b = body_rotation[pair[1]]
+    pos_a = body_position[pair[0]]
+    pos_b = body_position[pair[1]]
+    local_a = triangle_vertices[item[0]]
+    local_b = triangle_vertices[item[1]]
+    ta = wp.mat33d()
+    tb = wp.mat33d()
+    dist_a = wp.float64(1.0e308)
+    dist_b = wp.float64(1.0e308)
+    for k in range(3):
+        ta[k] = rot_a * local_a[k] + pos_a
+        tb[k] = rot_b * local_b[k] + pos_b
+        dist_a = wp.min(dist_a, (wp.dot(ta[k], n) + plane[3]) * inv_norm)
+        dist_b = wp.min(dist_b, -(wp.dot(tb[k], n) + plane[3]) * inv_norm)
+    step_a = body_step[pair[0]]
+    step_b = body_step[pair[1]]
+    if _toward_plane_bound(ta, pos_a, -normal, step_a, one) <= fraction * dist_a and _toward_plane_bound(tb, pos_b, normal, step_b, one) <= fraction * dist_b:
+        return
+    # The admissible set of alpha is an interval [0, alpha*] (the bounds are convex in alpha).
+    lo = zero
+    hi = one
+    for _it in range(_ADVANCEMENT_BISECTIONS):
+        mid = wp.float64(0.5) * (lo + hi)
+        if _toward_plane_bound(ta, pos_a, -normal, step_a, mid) <= fraction * dist_a and _toward_plane_bound(tb, pos_b, normal, step_b, mid) <= fraction * dist_b:
+            lo = mid
+        else:
+            hi = mid
+    wp.atomic_min(alpha_out, 0, lo)

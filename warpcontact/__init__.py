@@ -5,6 +5,7 @@ centred limit and quintic blending (Ye, Wu, Komura, Pan: "Efficient Differentiab
 Model with Long-range Influence"). See docs/architecture.md for the pipeline.
 """
 
+from .builder import ModelBuilder
 from .contact import CONTACT_MODES, ContactEvaluation, ContactModel, TermLists
 from .leaf import (
     LeafStatus,
@@ -14,7 +15,9 @@ from .leaf import (
     triangle_pair_potential,
 )
 
+from .solver import ImplicitSolver, SolverError, StepInfo
 from .sphere_tree import SphereTree, build_sphere_tree
+from .types import Control, Model, State, set_body_velocity
 
 __version__ = "0.1.0"
 
@@ -30,4 +33,12 @@ __all__ = [
     "TermLists",
     "SphereTree",
     "build_sphere_tree",
+    "Control",
+    "ImplicitSolver",
+    "Model",
+    "ModelBuilder",
+    "SolverError",
+    "State",
+    "StepInfo",
+    "set_body_velocity",
 ]

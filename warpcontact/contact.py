@@ -189,7 +189,8 @@ class ContactModel:
         # expansion; the kernel still guards the bound and the host grows it on overflow.
         self._stack_capacity = 3 * (2 * max_depth + 2) + 4
         self._far = self._blend = self._leaf = self._blend_level = self._stack = None
-        self._leaf_iterations = None
+        self._leaf_iterations = self._leaf_plane = None
+        self._alpha = wp.zeros(1, dtype=wp.float64, device=self.device)
         self._blend_value = self._blend_grad = self._blend_hess = None
         if self.mode == "brute":
             self._set_brute_leaf_list()
@@ -216,6 +217,7 @@ class ContactModel:
             self._blend = wp.zeros(0, dtype=wp.vec4i)
             self._blend_level = wp.zeros(0, dtype=wp.int32)
             self._leaf_iterations = wp.zeros(len(leaf), dtype=wp.int32)
+            self._leaf_plane = wp.zeros(len(leaf), dtype=wp.vec4d)
         self._counts = (0, 0, len(leaf), -1)
         self._reserve_blend_accumulators(0)
 
@@ -230,6 +232,7 @@ class ContactModel:
             if self._leaf is None or self._leaf.shape[0] < leaf:
                 self._leaf = wp.zeros(leaf, dtype=wp.vec4i)
                 self._leaf_iterations = wp.zeros(leaf, dtype=wp.int32)
+                self._leaf_plane = wp.zeros(leaf, dtype=wp.vec4d)
             if self._stack is None or self._stack.shape[1] < self._stack_capacity:
                 self._stack = wp.zeros((max(1, len(self.body_pairs)), self._stack_capacity), dtype=wp.vec4i)
 
@@ -327,7 +330,7 @@ class ContactModel:
                     reduction_kernels.leaf_term_kernel,
                     dim=num_leaf,
                     inputs=[self._triangle_vertices, self.max_leaf_iterations, *common, self._leaf],
-                    outputs=[targets, self._seed_status, self._seed_separation, self._leaf_iterations],
+                    outputs=[targets, self._seed_status, self._seed_separation, self._leaf_iterations, self._leaf_plane],
                 )
             for level in range(max_level, -1, -1):
                 wp.launch(
@@ -367,6 +370,46 @@ class ContactModel:
             mean_leaf_iterations=float(iterations.mean()) if num_leaf else 0.0,
             pair_separation=self._seed_separation.numpy().copy(),
         )
+
+    def advancement_limit(self, step, *, fraction: float = 0.9) -> float:
+        """Largest alpha in (0, 1] such that moving the bodies by alpha * step, along the whole
+        path p + alpha dp, exp(alpha [dtheta]x) R, keeps every pair apart.
+
+        Uses the term lists and separating planes of the last ``evaluate`` (call it at the
+        configuration the step starts from). No triangle pair may close more than ``fraction``
+        of its distance to its separating plane, no far cluster pair more than ``fraction`` of
+        its sphere separation, so no contact can be skipped between line-search samples.
+
+        Args:
+            step: (nbodies, 6) rigid-coordinate step (dp, dtheta); zero rows for static bodies.
+        """
+        step = as_float64_array(step, "step", trailing_shape=(6,))
+        if step.shape[0] != self.num_bodies:
+            raise ValueError(f"step: expected {self.num_bodies} rows, got {step.shape[0]}")
+        num_far, _, num_leaf, _ = self._counts
+        self._alpha.fill_(1.0)
+        if num_far + num_leaf:
+            wp.launch(
+                reduction_kernels.advancement_kernel,
+                dim=num_far + num_leaf,
+                inputs=[
+                    self._node_center,
+                    self._node_radius,
+                    self._triangle_vertices,
+                    float(fraction),
+                    self._rotation,
+                    self._position,
+                    self._seed_body_pair,
+                    self._far,
+                    num_far,
+                    self._leaf,
+                    self._leaf_plane,
+                    wp.array(step, dtype=rigid_kernels.vec6d, device=self.device),
+                ],
+                outputs=[self._alpha],
+                device=self.device,
+            )
+        return float(self._alpha.numpy()[0])
 
     def term_lists(self, poses) -> TermLists:
         """The far / blend / leaf term lists at ``poses`` (for inspection and tests)."""

@@ -1,0 +1,334 @@
+"""Differentiable implicit time step (paper eq. opt): q^{t+1} = argmin L(q; q^t, q^{t-1}).
+
+    L = inertia + gravity + PD control + mu * P_contact     (kernels/dynamics.py, contact.py)
+
+solved by Newton's method over the dynamic bodies' rigid coordinates, with a line search
+that never leaves the intersection-free set: each trial step is first bounded by
+conservative advancement (no point of a body may travel farther than the current
+separation lower bound to any other body allows, so no contact can be skipped between
+samples), then backtracked until L decreases (Armijo); a trial whose contact evaluation
+reports contact or an unsolved leaf is rejected.
+
+Differentiation: inside ``with wp.Tape()``, each step records its backward with
+``tape.record_func``. By the implicit function theorem, with H = d2L/dq2 at the solution
+and lambda solving H lambda = -(adjoint of q^{t+1}), the adjoint of any input y is
+lambda^T d(grad_q L)/dy; it is pushed into q^t, q^{t-1}, the PD targets, the masses and mu.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .kernels import dynamics as dynamics_kernels
+from .kernels.rigid import vec6d
+from ._runtime import paused_tape
+from .types import Control, Model, State
+
+__all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
+
+
+class SolverError(RuntimeError):
+    """The implicit step did not converge; the message carries the diagnostics."""
+
+
+@dataclass(frozen=True)
+class StepInfo:
+    """Diagnostics of the last step: Newton iterations, final step length (m) and L."""
+
+    iterations: int
+    step_length: float
+    objective: float
+    min_separation: float
+
+
+def _quat_mul(q, r):
+    x1, y1, z1, w1 = np.moveaxis(q, -1, 0)
+    x2, y2, z2, w2 = np.moveaxis(r, -1, 0)
+    return np.stack(
+        [
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        ],
+        axis=-1,
+    )
+
+
+def _quat_exp(w):
+    angle = np.linalg.norm(w, axis=-1, keepdims=True)
+    half = 0.5 * angle
+    # sin(a/2)/a with its series near zero
+    scale = np.where(angle > 1e-8, np.sin(half) / np.where(angle > 1e-8, angle, 1.0), 0.5 - angle**2 / 48.0)
+    return np.concatenate([scale * w, np.cos(half)], axis=-1)
+
+
+def retract(poses: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """Poses moved by rigid coordinates: p + dp, exp([dtheta]x) R (world axes)."""
+    out = poses.copy()
+    out[:, :3] += step[:, :3]
+    q = _quat_mul(_quat_exp(step[:, 3:]), poses[:, 3:])
+    out[:, 3:] = q / np.linalg.norm(q, axis=1, keepdims=True)
+    return out
+
+
+class ImplicitSolver:
+    """Implicit Newton time stepper of a ``Model``.
+
+    Args:
+        model: the model.
+        tolerance: converged when the Newton step moves no body point farther than
+            ``tolerance`` times the largest body radius.
+        max_iterations: Newton iteration cap; exceeding it raises ``SolverError``. Most steps
+            take 2-10 iterations; a step in which a faceted body must roll or slide on a
+            contact (an unstable equilibrium of the step objective) can take hundreds, each
+            bounded by conservative advancement.
+        advancement_fraction: fraction of its distance to a separating plane (or of a far
+            cluster pair's sphere separation) that one line-search step may close.
+    """
+
+    def __init__(self, model: Model, *, tolerance: float = 1e-10, max_iterations: int = 500, advancement_fraction: float = 0.9):
+        if not (0 < tolerance < 1):
+            raise ValueError(f"tolerance: must be in (0, 1), got {tolerance}")
+        if int(max_iterations) < 1:
+            raise ValueError(f"max_iterations: must be >= 1, got {max_iterations}")
+        if not (0 < advancement_fraction < 1):
+            raise ValueError(f"advancement_fraction: must be in (0, 1), got {advancement_fraction}")
+        self.model = model
+        self.tolerance = float(tolerance)
+        self.max_iterations = int(max_iterations)
+        self.advancement_fraction = float(advancement_fraction)
+        self.last_step: StepInfo | None = None
+        n = model.num_bodies
+        self._dynamic = ~model.static
+        self._dofs = np.flatnonzero(np.repeat(self._dynamic, 6))
+        self._length_scale = float(model.body_radius.max())
+        with wp.ScopedDevice(model.device):
+            self._predicted_position = wp.zeros(n, dtype=wp.vec3d)
+            self._predicted_rotation = wp.zeros(n, dtype=wp.mat33d)
+            self._prediction_sensitivity = wp.zeros(n, dtype=wp.mat33d)
+            self._predict_status = wp.zeros(n, dtype=wp.int32)
+            self._trial_q = wp.zeros(n, dtype=wp.transformd)
+            self._energy = wp.zeros(n, dtype=wp.float64)
+            self._energy_grad = wp.zeros(n, dtype=vec6d)
+            self._energy_hess = wp.zeros(n, dtype=dynamics_kernels.mat66d)
+
+    # --- forward ------------------------------------------------------------------------------
+
+    def _body_model_inputs(self, dt: float):
+        m = self.model
+        return [
+            m.body_mass,
+            m.body_unit_second_moment,
+            m.body_dynamic,
+            m.body_kp_linear,
+            m.body_kd_linear,
+            m.body_kp_angular,
+            m.body_kd_angular,
+            wp.vec3d(*m.gravity),
+            float(dt),
+        ]
+
+    def _evaluate(self, poses: np.ndarray, current_q: wp.array, target: wp.array, dt: float, mu: float):
+        """L, its gradient and Hessian over the dynamic coordinates, and the contact evaluation."""
+        contact = self.model.contact.evaluate(poses)
+        if not contact.ok:
+            return np.inf, None, None, contact
+        self._trial_q.assign(poses)
+        wp.launch(
+            dynamics_kernels.body_energy_kernel,
+            dim=self.model.num_bodies,
+            inputs=[*self._body_model_inputs(dt), self._trial_q, current_q, self._predicted_position, self._predicted_rotation, target],
+            outputs=[self._energy, self._energy_grad, self._energy_hess],
+            device=self.model.device,
+        )
+        value = float(self._energy.numpy().sum()) + mu * contact.value
+        grad = self._energy_grad.numpy().reshape(-1) + mu * contact.grad.reshape(-1)
+        hess = mu * contact.hessian
+        blocks = self._energy_hess.numpy()
+        for b in np.flatnonzero(self._dynamic):
+            hess[6 * b : 6 * b + 6, 6 * b : 6 * b + 6] += blocks[b]
+        d = self._dofs
+        return value, grad[d], hess[np.ix_(d, d)], contact
+
+    def _newton_direction(self, hess: np.ndarray, grad: np.ndarray) -> np.ndarray:
+        """Descent direction from H d = -g.
+
+        The contact potential is not convex, so H can be indefinite away from the minimum;
+        then its negative eigenvalues are replaced by their magnitudes (floored at 1e-10 of
+        the largest), which keeps the curvature of every other direction, unlike a uniform
+        diagonal shift that degrades Newton to gradient descent.
+        """
+        try:
+            chol = np.linalg.cholesky(hess)
+            return -np.linalg.solve(chol.T, np.linalg.solve(chol, grad))
+        except np.linalg.LinAlgError:
+            values, vectors = np.linalg.eigh(hess)
+            floor = 1e-10 * np.abs(values).max()
+            if not np.isfinite(floor) or floor == 0.0:
+                raise SolverError(f"Newton system is singular or not finite (eigenvalues {values.min():.3e} .. {values.max():.3e})") from None
+            return -vectors @ ((vectors.T @ grad) / np.maximum(np.abs(values), floor))
+
+    def _body_travel(self, step: np.ndarray) -> np.ndarray:
+        """Upper bound on how far any point of each body moves under ``step`` (nbodies, 6)."""
+        return np.linalg.norm(step[:, :3], axis=1) + np.linalg.norm(step[:, 3:], axis=1) * self.model.body_radius
+
+    def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> StepInfo:
+        """Advance one time step of ``dt`` seconds from ``state_in`` into ``state_out``.
+
+        Raises ValueError before writing anything if dt is not positive or bodies intersect
+        in ``state_in``; raises SolverError with diagnostics if Newton does not converge.
+        Inside ``with wp.Tape()``, records the step's implicit-function-theorem backward.
+        """
+        with paused_tape() as tape:
+            info, record = self._solve(state_in, state_out, control, dt)
+        if tape is not None:
+            tape.record_func(*record())
+        return info
+
+    def _solve(self, state_in: State, state_out: State, control: Control | None, dt: float):
+        if not np.isfinite(dt) or dt <= 0:
+            raise ValueError(f"dt: must be a positive finite number of seconds, got {dt}")
+        model = self.model
+        if state_out is state_in:
+            raise ValueError("state_out: must be a different State from state_in (one buffer per time step)")
+        q_now = state_in.body_q.numpy()
+        q_prev = state_in.body_q_prev.numpy()
+        for label, arr in (("state_in.body_q", q_now), ("state_in.body_q_prev", q_prev)):
+            if not np.isfinite(arr).all():
+                raise ValueError(f"{label}: contains non-finite values")
+        target = control.body_target if control is not None else state_in.body_q
+        mu = float(model.contact_stiffness.numpy()[0])
+        dynamic = self._dynamic
+
+        start = model.contact.evaluate(q_now)
+        if start.contact_pairs:
+            names = ", ".join(f"{a} and {b}" for a, b in start.contact_pairs)
+            raise ValueError(f"state_in: bodies intersect or touch at the start of the step: {names}")
+
+        wp.launch(
+            dynamics_kernels.predict_kernel,
+            dim=model.num_bodies,
+            inputs=[model.body_unit_second_moment, model.body_dynamic, state_in.body_q, state_in.body_q_prev],
+            outputs=[self._predicted_position, self._predicted_rotation, self._prediction_sensitivity, self._predict_status],
+            device=model.device,
+        )
+        failed = np.flatnonzero(self._predict_status.numpy())
+        if failed.size:
+            raise SolverError(f"rotation prediction failed for {[model.body_names[i] for i in failed]}: rotation per step too large for dt={dt}")
+
+        q = q_now.copy()
+        q[:, 3:] /= np.linalg.norm(q[:, 3:], axis=1, keepdims=True)
+        value, grad, hess, contact = self._evaluate(q, state_in.body_q, target, dt, mu)
+        if not np.isfinite(value):
+            raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs})")
+        full = np.zeros((model.num_bodies, 6))
+        tol = self.tolerance * self._length_scale
+        converged = False
+        iterations = 0
+        step_length = np.inf
+        for iterations in range(1, self.max_iterations + 1):
+            direction = self._newton_direction(hess, grad)
+            full[:] = 0.0
+            full.reshape(-1)[self._dofs] = direction
+            travel = self._body_travel(full)
+            step_length = float(travel.max())
+            if step_length <= tol:
+                converged = True
+                break
+            decrement = -float(grad @ direction)
+            # The contact model still holds the term lists of q: trials come after this.
+            alpha = model.contact.advancement_limit(full, fraction=self.advancement_fraction)
+            quadratic_regime = decrement <= 1e-10 * max(abs(value), 1e-300) and alpha == 1.0
+            accepted = False
+            for _ in range(60):
+                trial = retract(q, alpha * full)
+                t_value, t_grad, t_hess, t_contact = self._evaluate(trial, state_in.body_q, target, dt, mu)
+                # Below the rounding of L an Armijo test is noise; full steps are safe there.
+                if np.isfinite(t_value) and (quadratic_regime or t_value <= value - 1e-4 * alpha * decrement):
+                    accepted = True
+                    break
+                alpha *= 0.5
+            if not accepted:
+                if step_length <= 1e3 * tol:
+                    converged = True  # stalled at the rounding floor of L, within 1e3 tol
+                    break
+                raise SolverError(self._diagnostics("line search failed", iterations, step_length, value, travel))
+            q, value, grad, hess, contact = trial, t_value, t_grad, t_hess, t_contact
+        if not converged:
+            raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel))
+
+        q[~dynamic] = q_now[~dynamic]
+        state_out.body_q.assign(q)
+        state_out.body_q_prev.assign(q_now)
+        self.last_step = StepInfo(iterations, step_length, value, float(contact.pair_separation.min()) if len(contact.pair_separation) else np.inf)
+        return self.last_step, lambda: self._backward_function(state_in, state_out, control, dt, hess, contact.grad, q, q_now, q_prev)
+
+    def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray) -> str:
+        worst = np.argsort(-travel)[:3]
+        bodies = ", ".join(f"{self.model.body_names[i]} ({travel[i]:.3e} m)" for i in worst if travel[i] > 0)
+        return (
+            f"implicit step: {what} after {iterations} Newton iterations; last Newton step moves points "
+            f"up to {step_length:.3e} m (tolerance {self.tolerance * self._length_scale:.3e} m), L = {value:.9e}; "
+            f"largest moves: {bodies}"
+        )
+
+    # --- backward -----------------------------------------------------------------------------
+
+    def _backward_function(self, state_in, state_out, control, dt, hess, contact_grad, q_next, q_now, q_prev):
+        """The step's backward and the arrays it touches, for ``tape.record_func``."""
+        model = self.model
+        dev = model.device
+        n = model.num_bodies
+        dynamic = self._dynamic
+        dofs = self._dofs
+        hess = hess.copy()
+        contact_grad = contact_grad.copy()
+        with wp.ScopedDevice(dev):
+            # Snapshots: the backward must see this step's values, not later contents.
+            q_next_arr = wp.array(q_next, dtype=wp.transformd)
+            q_now_arr = wp.array(q_now, dtype=wp.transformd)
+            q_prev_arr = wp.array(q_prev, dtype=wp.transformd)
+            target_arr = wp.array((control.body_target if control is not None else state_in.body_q).numpy(), dtype=wp.transformd)
+            predicted_position = wp.clone(self._predicted_position)
+            predicted_rotation = wp.clone(self._predicted_rotation)
+            sensitivity = wp.clone(self._prediction_sensitivity)
+        body_inputs = self._body_model_inputs(dt)
+        arrays = [state_out.body_q, state_out.body_q_prev, state_in.body_q, state_in.body_q_prev, model.body_mass, model.contact_stiffness]
+        if control is not None and control.body_target.requires_grad:
+            arrays.append(control.body_target)
+
+        def backward():
+            with wp.ScopedDevice(dev):
+                out_adj = state_out.body_q.grad
+                rigid_out = wp.zeros(n, dtype=vec6d)
+                wp.launch(dynamics_kernels.pose_adjoint_to_rigid_kernel, dim=n, inputs=[q_next_arr, out_adj], outputs=[rigid_out])
+                adj = rigid_out.numpy().reshape(-1)
+                lam_full = np.zeros(6 * n)
+                lam_full[dofs] = np.linalg.solve(hess, -adj[dofs])
+                lam = wp.array(lam_full.reshape(n, 6), dtype=vec6d)
+                adj_now = wp.zeros(n, dtype=vec6d)
+                adj_prev = wp.zeros(n, dtype=vec6d)
+                adj_target = wp.zeros(n, dtype=vec6d)
+                adj_mass = wp.zeros(n, dtype=wp.float64)
+                wp.launch(
+                    dynamics_kernels.body_adjoint_kernel,
+                    dim=n,
+                    inputs=[*body_inputs, q_next_arr, q_now_arr, predicted_position, predicted_rotation, sensitivity, target_arr, lam],
+                    outputs=[adj_now, adj_prev, adj_target, adj_mass],
+                )
+                wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[q_now_arr, adj_now], outputs=[state_in.body_q.grad])
+                wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[q_prev_arr, adj_prev], outputs=[state_in.body_q_prev.grad])
+                if control is not None and control.body_target.requires_grad:
+                    wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[target_arr, adj_target], outputs=[control.body_target.grad])
+                model.body_mass.grad.assign(model.body_mass.grad.numpy() + adj_mass.numpy())
+                mu_adj = float(lam_full @ contact_grad.reshape(-1))
+                model.contact_stiffness.grad.assign(model.contact_stiffness.grad.numpy() + mu_adj)
+                # state_out.body_q_prev is a copy of state_in.body_q; static bodies stay put.
+                passthrough = state_out.body_q_prev.grad.numpy()
+                static_adj = out_adj.numpy()
+                passthrough[~dynamic] += static_adj[~dynamic]
+                state_in.body_q.grad.assign(state_in.body_q.grad.numpy() + passthrough)
+
+        return backward, arrays

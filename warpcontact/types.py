@@ -1,0 +1,122 @@
+"""Model / State / Control of the rigid-body simulator (in the manner of NVIDIA Newton).
+
+- ``Model``: what does not change during a simulation: bodies (meshes in the body frame,
+  whose origin is the centre of mass), masses, second moments, static flags, PD gains,
+  gravity, contact stiffness, friction, and the contact model.
+- ``State``: body poses at the current and the previous time step (the paper's
+  (x^t, x^{t-1})); velocities are (pose - previous pose) / dt.
+- ``Control``: PD target poses of actuated bodies.
+
+Poses are Warp transforms (px, py, pz, qx, qy, qz, qw) of each body's centre-of-mass frame,
+in metres. Arrays that users optimise are allocated with ``requires_grad=True``.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .contact import ContactModel
+from .kernels import state as state_kernels
+
+__all__ = ["Model", "State", "Control", "set_body_velocity"]
+
+
+@dataclass
+class State:
+    """Body poses now and one step earlier, (nbodies,) ``wp.transformd`` each."""
+
+    body_q: wp.array
+    body_q_prev: wp.array
+
+
+@dataclass
+class Control:
+    """PD target poses, (nbodies,) ``wp.transformd``; used for bodies with non-zero gains."""
+
+    body_target: wp.array
+
+
+@dataclass
+class Model:
+    """Simulation model; build it with ``ModelBuilder``.
+
+    Attributes (device arrays, one entry per body unless stated):
+        body_names: list of names.
+        body_mass: (nbodies,) float64 mass (kg), requires_grad.
+        body_unit_second_moment: (nbodies,) mat33d second moment per unit mass,
+            sum m_v X X^T / m about the centre of mass (m^2), so changing a mass scales
+            the whole mass distribution.
+        body_dynamic: (nbodies,) int32, 0 for static bodies.
+        body_kp_linear / body_kd_linear: (nbodies,) vec3d per-axis PD gains (N/m, N s/m).
+        body_kp_angular / body_kd_angular: (nbodies,) float64 orientation PD gains
+            (N m/rad, N m s/rad).
+        body_radius: numpy (nbodies,) farthest vertex from the centre of mass (m).
+        body_meshes: list of (V, F) in the body frame.
+        gravity: (3,) m/s^2.
+        contact_stiffness: (1,) float64 mu, requires_grad.
+        friction: friction coefficient (0 disables friction).
+        contact: the ``ContactModel`` over all bodies.
+        initial_q: numpy (nbodies, 7) initial poses.
+    """
+
+    body_names: list
+    body_mass: wp.array
+    body_unit_second_moment: wp.array
+    body_dynamic: wp.array
+    body_kp_linear: wp.array
+    body_kd_linear: wp.array
+    body_kp_angular: wp.array
+    body_kd_angular: wp.array
+    body_radius: np.ndarray
+    body_meshes: list
+    gravity: np.ndarray
+    contact_stiffness: wp.array
+    friction: float
+    contact: ContactModel
+    initial_q: np.ndarray
+    device: object = field(default=None)
+
+    @property
+    def num_bodies(self) -> int:
+        return len(self.body_names)
+
+    @property
+    def static(self) -> np.ndarray:
+        return self.body_dynamic.numpy() == 0
+
+    def state(self, *, requires_grad: bool = True) -> State:
+        """A state at the initial poses, at rest."""
+        return State(
+            body_q=wp.array(self.initial_q, dtype=wp.transformd, device=self.device, requires_grad=requires_grad),
+            body_q_prev=wp.array(self.initial_q, dtype=wp.transformd, device=self.device, requires_grad=requires_grad),
+        )
+
+    def control(self, *, requires_grad: bool = True) -> Control:
+        """A control whose PD targets are the initial poses."""
+        return Control(body_target=wp.array(self.initial_q, dtype=wp.transformd, device=self.device, requires_grad=requires_grad))
+
+
+def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity: wp.array, dt: float):
+    """Set ``state.body_q_prev`` so that the state moves with the given velocities.
+
+    Args:
+        linear_velocity: (nbodies,) vec3d centre-of-mass velocities (m/s).
+        angular_velocity: (nbodies,) vec3d angular velocities about world axes (rad/s).
+        dt: the time step the state will be advanced with (s).
+
+    Recorded on an active ``wp.Tape``, so gradients reach the velocity arrays.
+    """
+    n = state.body_q.shape[0]
+    for label, arr in (("linear_velocity", linear_velocity), ("angular_velocity", angular_velocity)):
+        if not isinstance(arr, wp.array) or arr.shape != (n,) or arr.dtype != wp.vec3d:
+            raise ValueError(f"{label}: expected a wp.array of {n} vec3d")
+    if not np.isfinite(dt) or dt <= 0:
+        raise ValueError(f"dt: must be a positive finite number of seconds, got {dt}")
+    wp.launch(
+        state_kernels.previous_pose_from_velocity_kernel,
+        dim=n,
+        inputs=[state.body_q, linear_velocity, angular_velocity, float(dt)],
+        outputs=[state.body_q_prev],
+        device=state.body_q.device,
+    )
