@@ -33,6 +33,7 @@ __all__ = [
     "leaf_vertex",
     "leaf_vertex_gradient",
     "leaf_hessian_block",
+    "leaf_plane_sensitivity",
     "leaf_potential_kernel",
 ]
 
@@ -309,6 +310,15 @@ def leaf_hessian_block(sol: LeafSolution, k: int, l: int):
         x, sigma, g = leaf_vertex(sol, k)
         block = block + (wp.float64(2.0) / (g * g * g)) * wp.outer(sol.n, sol.n)
     return block
+
+
+mat43d = wp.types.matrix(shape=(4, 3), dtype=wp.float64)
+
+
+@wp.func
+def leaf_plane_sensitivity(sol: LeafSolution, k: int):
+    """d p* / d x_k (4x3) of the optimal local plane p* = (n, d): -L_pp^-1 B_k^T."""
+    return -(sol.lpp_inv * wp.transpose(_mixed_block(sol, k)))
 
 
 @wp.kernel

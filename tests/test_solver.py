@@ -126,6 +126,56 @@ def test_stack_of_three_boxes_keeps_order_without_penetration():
         assert model.contact.evaluate(q[t]).ok
 
 
+def incline_model(angle, friction):
+    half = 0.5 * angle
+    q = (0.0, np.sin(half), 0.0, np.cos(half))  # tilt about y
+    R = quat_matrix(np.array(q))
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-6, friction=friction)
+    b.add_body(grid_ground(4.0, 0.5), static=True, name="ramp", pose=(0.0, 0.0, 0.0, *q))
+    b.add_box((0.4, 0.4, 0.4), density=500.0, name="box", pose=(*(R @ [0.0, 0.0, 0.2501]), *q))
+    return b.finalize(), R
+
+
+@pytest.mark.parametrize("angle, friction", [(0.3, 0.5), (0.4, 0.2)])
+def test_box_on_incline_sticks_or_slides_with_coulomb_acceleration(angle, friction):
+    model, R = incline_model(angle, friction)
+    dt = 0.02
+    q, solver = rollout(model, 60, dt)
+    assert solver.last_step.friction_pairs > 0
+    along = (q[1:, 1, :3] @ R)[:, 0]  # position along the ramp's slope axis
+    t = np.arange(1, 61) * dt
+    late = t > 0.3
+    acceleration = abs(2 * np.polyfit(t[late], along[late], 2)[0])
+    if np.tan(angle) < friction:
+        assert acceleration < 1e-3
+        assert np.ptp(along[late]) < 1e-3  # stuck
+    else:
+        expected = 9.81 * (np.sin(angle) - friction * np.cos(angle))
+        assert acceleration == pytest.approx(expected, rel=0.02)
+
+
+def test_friction_holds_a_stack_in_place():
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-6, friction=0.5)
+    b.add_body(grid_ground(), static=True, name="ground")
+    for k in range(3):
+        b.add_box((0.5, 0.5, 0.5), density=500.0, name=f"box{k}", pose=(0.1, -0.2, 0.2501 + 0.5002 * k, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    q, _ = rollout(model, 100, 0.04)
+    # Documented bound: smoothed (creeping) static friction moves each box < 0.2 mm in 4 s.
+    assert np.abs(q[-1, 1:, :2] - q[0, 1:, :2]).max() < 2e-4
+    assert np.abs(q[-1, 1:, 2] - q[30, 1:, 2]).max() < 1e-4  # no jitter
+    assert np.all(np.diff(q[:, 1:, 2], axis=1) > 0.5)
+
+
+def test_without_friction_no_friction_work_is_done():
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-6)
+    b.add_body(grid_ground(), static=True, name="ground")
+    b.add_box((0.5, 0.5, 0.5), density=500.0, pose=(0.0, 0.0, 0.2501, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    _, solver = rollout(model, 2, 0.04)
+    assert solver.last_step.friction_pairs == 0
+
+
 def test_fast_impact_on_thin_wall_never_tunnels():
     b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e-6)
     b.add_box((0.05, 3.0, 3.0), static=True, name="wall", pose=(2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
@@ -159,8 +209,8 @@ class Collision:
     def __init__(self, *, gap=0.3, steps=24, dt=0.04, tolerance=1e-10):
         self.gap, self.steps, self.dt, self.tolerance = gap, steps, dt, tolerance
 
-    def run(self, *, velocity, mu, target_shift=(0.0, 0.0, 0.0), target_quat=(0.0, 0.0, 0.0, 1.0), mass_scale=1.0, start_x=0.0, tape=None):
-        b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=mu)
+    def run(self, *, velocity, mu, friction=0.0, target_shift=(0.0, 0.0, 0.0), target_quat=(0.0, 0.0, 0.0, 1.0), mass_scale=1.0, start_x=0.0, tape=None):
+        b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=mu, friction=friction, friction_smoothing=0.05)
         b.add_sphere(0.5, subdivisions=1, density=100.0 * mass_scale, name="a", pose=(start_x, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
         b.add_sphere(0.5, subdivisions=1, density=100.0, name="b", pose=(1.0 + self.gap, 0.2, 0.0, 0.0, 0.0, 0.0, 1.0))
         b.add_box((0.3, 0.3, 0.3), mass=5.0, name="pusher", pose=(1.2, -1.2, 0.0, 0.0, 0.0, 0.0, 1.0), kp_linear=200.0, kd_linear=20.0, kp_angular=50.0, kd_angular=5.0)
@@ -231,6 +281,27 @@ def test_tape_gradients_match_finite_differences():
     # Mass: density scales the mass; d loss / d mass = d loss / d scale / m.
     m0 = out["model"].body_mass.numpy()[0]
     assert_close(out["model"].body_mass.grad.numpy()[0], central(lambda h: loss(mass_scale=1.0 + h), 0.0, 1e-6) / m0)
+
+
+def test_tape_gradients_with_friction_match_finite_differences():
+    """Friction's lagged normal force and normal depend on q^t: their derivatives must be exact."""
+    sim = Collision(steps=20, tolerance=1e-13)
+    v0 = np.array([2.0, 0.4, 0.0])
+    mu, lam = 1e-3, 0.5
+    tape = wp.Tape()
+    out = sim.run(velocity=v0, mu=mu, friction=lam, tape=tape)
+    tape.backward(out["loss"])
+    loss = lambda **kw: sim.run(**{"velocity": v0, "mu": mu, "friction": lam, **kw})["loss"].numpy()[0]  # noqa: E731
+    # Friction acts: ball b picks up spin in the glancing collision.
+    assert abs(out["states"][-1].body_q.numpy()[1, 5]) > 1e-3
+    g_v = out["vel"].grad.numpy()[0]
+    for i in range(2):
+        e = np.zeros(3)
+        e[i] = 1.0
+        assert_close(g_v[i], central(lambda h: loss(velocity=v0 + h * e), 0.0, 1e-5))
+    assert_close(out["model"].friction.grad.numpy()[0], central(lambda h: loss(friction=lam + h), 0.0, 1e-5))
+    assert_close(out["model"].contact_stiffness.grad.numpy()[0], central(lambda h: loss(mu=mu + h), 0.0, mu * 1e-5))
+    assert_close(out["states"][0].body_q.grad.numpy()[0, 0], central(lambda h: loss(start_x=h), 0.0, 1e-5))
 
 
 def test_gradient_is_non_zero_when_balls_start_far_apart():

@@ -45,12 +45,13 @@ class ModelBuilder:
     Args:
         gravity: (3,) gravitational acceleration (m/s^2).
         contact_stiffness: potential coefficient mu (the paper uses 1e-6 .. 5e-9).
-        friction: friction coefficient; 0 disables friction.
+        friction: friction coefficient; 0 disables friction (and all its work).
+        friction_smoothing: slip speed (m/s) below which the friction law is smoothed.
         eps: blend margin of the hierarchical contact potential.
         contact_mode: ``"bsh"`` or ``"brute"``.
     """
 
-    def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, eps: float = 0.5, contact_mode: str = "bsh"):
+    def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, friction_smoothing: float = 1e-4, eps: float = 0.5, contact_mode: str = "bsh"):
         gravity = np.asarray(gravity, dtype=np.float64)
         if gravity.shape != (3,) or not np.isfinite(gravity).all():
             raise ValueError(f"gravity: expected 3 finite numbers, got {gravity}")
@@ -60,7 +61,10 @@ class ModelBuilder:
             raise ValueError(f"friction: must be >= 0 and finite, got {friction}")
         self.gravity = gravity
         self.contact_stiffness = float(contact_stiffness)
+        if not np.isfinite(friction_smoothing) or friction_smoothing <= 0:
+            raise ValueError(f"friction_smoothing: must be positive and finite, got {friction_smoothing}")
         self.friction = float(friction)
+        self.friction_smoothing = float(friction_smoothing)
         self.eps = eps
         self.contact_mode = contact_mode
         self._bodies: list[_Body] = []
@@ -209,7 +213,8 @@ class ModelBuilder:
                 body_meshes=[(b.vertices, b.faces) for b in bodies],
                 gravity=self.gravity.copy(),
                 contact_stiffness=wp.array([self.contact_stiffness], dtype=wp.float64, requires_grad=True),
-                friction=self.friction,
+                friction=wp.array([self.friction], dtype=wp.float64, requires_grad=True),
+                friction_smoothing=self.friction_smoothing,
                 contact=contact,
                 initial_q=np.array([b.pose for b in bodies]),
                 device=dev,

@@ -411,6 +411,31 @@ class ContactModel:
             )
         return float(self._alpha.numpy()[0])
 
+    @property
+    def body_rotation(self) -> wp.array:
+        """(nbodies,) mat33d rotations of the last evaluated poses (device array, do not modify)."""
+        return self._rotation
+
+    @property
+    def body_position(self) -> wp.array:
+        """(nbodies,) vec3d positions of the last evaluated poses (device array, do not modify)."""
+        return self._position
+
+    @property
+    def seed_body_pair(self) -> wp.array:
+        """(npairs,) vec2i body pairs on the device, indexed by the last column of term lists."""
+        return self._seed_body_pair
+
+    @property
+    def triangle_vertices(self) -> wp.array:
+        """(ntriangles,) mat33d triangle vertices in their body frames (device array)."""
+        return self._triangle_vertices
+
+    def leaf_items(self) -> wp.array:
+        """A device copy of the leaf term list of the last evaluation, (L,) vec4i rows
+        (triangle_a, triangle_b, parent blend record, body pair)."""
+        return wp.clone(self._leaf[: self._counts[2]])
+
     def term_lists(self, poses) -> TermLists:
         """The far / blend / leaf term lists at ``poses`` (for inspection and tests)."""
         self._set_poses(self._validated_poses(poses))

@@ -1,6 +1,7 @@
 """Differentiable implicit time step (paper eq. opt): q^{t+1} = argmin L(q; q^t, q^{t-1}).
 
-    L = inertia + gravity + PD control + mu * P_contact     (kernels/dynamics.py, contact.py)
+    L = inertia + gravity + PD control + mu * P_contact + friction
+        (kernels/dynamics.py, contact.py, kernels/friction.py)
 
 solved by Newton's method over the dynamic bodies' rigid coordinates, with a line search
 that never leaves the intersection-free set: each trial step is first bounded by
@@ -12,7 +13,8 @@ reports contact or an unsolved leaf is rejected.
 Differentiation: inside ``with wp.Tape()``, each step records its backward with
 ``tape.record_func``. By the implicit function theorem, with H = d2L/dq2 at the solution
 and lambda solving H lambda = -(adjoint of q^{t+1}), the adjoint of any input y is
-lambda^T d(grad_q L)/dy; it is pushed into q^t, q^{t-1}, the PD targets, the masses and mu.
+lambda^T d(grad_q L)/dy; it is pushed into q^t, q^{t-1}, the PD targets, the masses, mu and
+the friction coefficient.
 """
 
 from dataclasses import dataclass
@@ -21,6 +23,8 @@ import numpy as np
 import warp as wp
 
 from .kernels import dynamics as dynamics_kernels
+from .kernels import friction as friction_kernels
+from .kernels import rigid as rigid_kernels
 from .kernels.rigid import vec6d
 from ._runtime import paused_tape
 from .types import Control, Model, State
@@ -34,12 +38,15 @@ class SolverError(RuntimeError):
 
 @dataclass(frozen=True)
 class StepInfo:
-    """Diagnostics of the last step: Newton iterations, final step length (m) and L."""
+    """Diagnostics of a step: Newton iterations, final Newton step length (m), L at the
+    solution, the smallest body-pair separation bound (m) and the number of friction pairs
+    (0 when friction is off: no friction work is done)."""
 
     iterations: int
     step_length: float
     objective: float
     min_separation: float
+    friction_pairs: int
 
 
 def _quat_mul(q, r):
@@ -71,6 +78,22 @@ def retract(poses: np.ndarray, step: np.ndarray) -> np.ndarray:
     q = _quat_mul(_quat_exp(step[:, 3:]), poses[:, 3:])
     out[:, 3:] = q / np.linalg.norm(q, axis=1, keepdims=True)
     return out
+
+
+@dataclass
+class _FrictionFrame:
+    """Lagged friction data of one step: the leaf pairs at q^t and their N, n^, points."""
+
+    leaf_items: wp.array
+    normal_force: wp.array
+    normal: wp.array
+    point_a: wp.array
+    point_b: wp.array
+    offset: wp.array
+
+    @property
+    def count(self) -> int:
+        return self.leaf_items.shape[0]
 
 
 class ImplicitSolver:
@@ -113,6 +136,9 @@ class ImplicitSolver:
             self._energy = wp.zeros(n, dtype=wp.float64)
             self._energy_grad = wp.zeros(n, dtype=vec6d)
             self._energy_hess = wp.zeros(n, dtype=dynamics_kernels.mat66d)
+            self._friction_value = wp.zeros(1, dtype=wp.float64)
+            self._friction_grad = wp.zeros((n, 6), dtype=wp.float64)
+            self._friction_hess = wp.zeros((6 * n, 6 * n), dtype=wp.float64)
 
     # --- forward ------------------------------------------------------------------------------
 
@@ -130,7 +156,62 @@ class ImplicitSolver:
             float(dt),
         ]
 
-    def _evaluate(self, poses: np.ndarray, current_q: wp.array, target: wp.array, dt: float, mu: float):
+    def _friction_frame(self, mu: float) -> "_FrictionFrame | None":
+        """Lagged friction data at the configuration the contact model evaluated last (q^t)."""
+        model = self.model
+        if float(model.friction.numpy()[0]) == 0.0:
+            return None
+        contact = model.contact
+        with wp.ScopedDevice(model.device):
+            leaf = contact.leaf_items()
+            count = leaf.shape[0]
+            frame = _FrictionFrame(
+                leaf,
+                wp.zeros(count, dtype=wp.float64),
+                wp.zeros(count, dtype=wp.vec3d),
+                wp.zeros(count, dtype=wp.vec3d),
+                wp.zeros(count, dtype=wp.vec3d),
+                wp.zeros(count, dtype=wp.vec3d),
+            )
+            if count:
+                wp.launch(
+                    friction_kernels.friction_setup_kernel,
+                    dim=count,
+                    inputs=[contact.triangle_vertices, contact.eps, mu, contact.max_leaf_iterations, contact.body_rotation, contact.body_position, contact.seed_body_pair, leaf],
+                    outputs=[frame.normal_force, frame.normal, frame.point_a, frame.point_b, frame.offset],
+                )
+        return frame
+
+    def _friction_terms(self, frame: "_FrictionFrame", dt: float):
+        """Friction value, (nbodies, 6) gradient and dense Hessian at the contact model's last poses."""
+        model = self.model
+        contact = model.contact
+        for arr in (self._friction_value, self._friction_grad, self._friction_hess):
+            arr.zero_()
+        if frame.count:
+            wp.launch(
+                friction_kernels.friction_energy_kernel,
+                dim=frame.count,
+                inputs=[
+                    model.friction,
+                    model.friction_smoothing * dt,
+                    contact.body_rotation,
+                    contact.body_position,
+                    model.body_dynamic,
+                    contact.seed_body_pair,
+                    frame.leaf_items,
+                    frame.normal_force,
+                    frame.normal,
+                    frame.point_a,
+                    frame.point_b,
+                    frame.offset,
+                ],
+                outputs=[self._friction_value, self._friction_grad, self._friction_hess],
+                device=model.device,
+            )
+        return float(self._friction_value.numpy()[0]), self._friction_grad.numpy().reshape(-1), self._friction_hess.numpy()
+
+    def _evaluate(self, poses: np.ndarray, current_q: wp.array, target: wp.array, dt: float, mu: float, friction):
         """L, its gradient and Hessian over the dynamic coordinates, and the contact evaluation."""
         contact = self.model.contact.evaluate(poses)
         if not contact.ok:
@@ -146,6 +227,11 @@ class ImplicitSolver:
         value = float(self._energy.numpy().sum()) + mu * contact.value
         grad = self._energy_grad.numpy().reshape(-1) + mu * contact.grad.reshape(-1)
         hess = mu * contact.hessian
+        if friction is not None:
+            f_value, f_grad, f_hess = self._friction_terms(friction, dt)
+            value += f_value
+            grad += f_grad
+            hess += f_hess
         blocks = self._energy_hess.numpy()
         for b in np.flatnonzero(self._dynamic):
             hess[6 * b : 6 * b + 6, 6 * b : 6 * b + 6] += blocks[b]
@@ -206,6 +292,7 @@ class ImplicitSolver:
         if start.contact_pairs:
             names = ", ".join(f"{a} and {b}" for a, b in start.contact_pairs)
             raise ValueError(f"state_in: bodies intersect or touch at the start of the step: {names}")
+        friction = self._friction_frame(mu)
 
         wp.launch(
             dynamics_kernels.predict_kernel,
@@ -220,7 +307,7 @@ class ImplicitSolver:
 
         q = q_now.copy()
         q[:, 3:] /= np.linalg.norm(q[:, 3:], axis=1, keepdims=True)
-        value, grad, hess, contact = self._evaluate(q, state_in.body_q, target, dt, mu)
+        value, grad, hess, contact = self._evaluate(q, state_in.body_q, target, dt, mu, friction)
         if not np.isfinite(value):
             raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs})")
         full = np.zeros((model.num_bodies, 6))
@@ -244,7 +331,7 @@ class ImplicitSolver:
             accepted = False
             for _ in range(60):
                 trial = retract(q, alpha * full)
-                t_value, t_grad, t_hess, t_contact = self._evaluate(trial, state_in.body_q, target, dt, mu)
+                t_value, t_grad, t_hess, t_contact = self._evaluate(trial, state_in.body_q, target, dt, mu, friction)
                 # Below the rounding of L an Armijo test is noise; full steps are safe there.
                 if np.isfinite(t_value) and (quadratic_regime or t_value <= value - 1e-4 * alpha * decrement):
                     accepted = True
@@ -262,8 +349,14 @@ class ImplicitSolver:
         q[~dynamic] = q_now[~dynamic]
         state_out.body_q.assign(q)
         state_out.body_q_prev.assign(q_now)
-        self.last_step = StepInfo(iterations, step_length, value, float(contact.pair_separation.min()) if len(contact.pair_separation) else np.inf)
-        return self.last_step, lambda: self._backward_function(state_in, state_out, control, dt, hess, contact.grad, q, q_now, q_prev)
+        self.last_step = StepInfo(
+            iterations,
+            step_length,
+            value,
+            float(contact.pair_separation.min()) if len(contact.pair_separation) else np.inf,
+            friction.count if friction is not None else 0,
+        )
+        return self.last_step, lambda: self._backward_function(state_in, state_out, control, dt, hess, contact.grad, q, q_now, q_prev, friction, mu)
 
     def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray) -> str:
         worst = np.argsort(-travel)[:3]
@@ -276,7 +369,7 @@ class ImplicitSolver:
 
     # --- backward -----------------------------------------------------------------------------
 
-    def _backward_function(self, state_in, state_out, control, dt, hess, contact_grad, q_next, q_now, q_prev):
+    def _backward_function(self, state_in, state_out, control, dt, hess, contact_grad, q_next, q_now, q_prev, friction, mu):
         """The step's backward and the arrays it touches, for ``tape.record_func``."""
         model = self.model
         dev = model.device
@@ -295,7 +388,7 @@ class ImplicitSolver:
             predicted_rotation = wp.clone(self._predicted_rotation)
             sensitivity = wp.clone(self._prediction_sensitivity)
         body_inputs = self._body_model_inputs(dt)
-        arrays = [state_out.body_q, state_out.body_q_prev, state_in.body_q, state_in.body_q_prev, model.body_mass, model.contact_stiffness]
+        arrays = [state_out.body_q, state_out.body_q_prev, state_in.body_q, state_in.body_q_prev, model.body_mass, model.contact_stiffness, model.friction]
         if control is not None and control.body_target.requires_grad:
             arrays.append(control.body_target)
 
@@ -318,12 +411,14 @@ class ImplicitSolver:
                     inputs=[*body_inputs, q_next_arr, q_now_arr, predicted_position, predicted_rotation, sensitivity, target_arr, lam],
                     outputs=[adj_now, adj_prev, adj_target, adj_mass],
                 )
+                mu_adj = float(lam_full @ contact_grad.reshape(-1))
+                if friction is not None and friction.count:
+                    mu_adj += self._friction_adjoint(friction, dt, mu, q_next_arr, q_now_arr, lam, adj_now)
                 wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[q_now_arr, adj_now], outputs=[state_in.body_q.grad])
                 wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[q_prev_arr, adj_prev], outputs=[state_in.body_q_prev.grad])
                 if control is not None and control.body_target.requires_grad:
                     wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[target_arr, adj_target], outputs=[control.body_target.grad])
                 model.body_mass.grad.assign(model.body_mass.grad.numpy() + adj_mass.numpy())
-                mu_adj = float(lam_full @ contact_grad.reshape(-1))
                 model.contact_stiffness.grad.assign(model.contact_stiffness.grad.numpy() + mu_adj)
                 # state_out.body_q_prev is a copy of state_in.body_q; static bodies stay put.
                 passthrough = state_out.body_q_prev.grad.numpy()
@@ -332,3 +427,47 @@ class ImplicitSolver:
                 state_in.body_q.grad.assign(state_in.body_q.grad.numpy() + passthrough)
 
         return backward, arrays
+
+    def _friction_adjoint(self, frame, dt, mu, q_next_arr, q_now_arr, lam, adj_now) -> float:
+        """Add friction's lambda^T d(grad D)/d(q^t) to adj_now and its lambda_f adjoint; return mu's."""
+        model = self.model
+        contact = model.contact
+        n = model.num_bodies
+        rot_next = wp.zeros(n, dtype=wp.mat33d)
+        pos_next = wp.zeros(n, dtype=wp.vec3d)
+        rot_now = wp.zeros(n, dtype=wp.mat33d)
+        pos_now = wp.zeros(n, dtype=wp.vec3d)
+        wp.launch(rigid_kernels.body_transforms_kernel, dim=n, inputs=[q_next_arr], outputs=[rot_next, pos_next])
+        wp.launch(rigid_kernels.body_transforms_kernel, dim=n, inputs=[q_now_arr], outputs=[rot_now, pos_now])
+        adj_q = wp.zeros((n, 6), dtype=wp.float64)
+        adj_friction = wp.zeros(1, dtype=wp.float64)
+        adj_mu = wp.zeros(1, dtype=wp.float64)
+        wp.launch(
+            friction_kernels.friction_adjoint_kernel,
+            dim=frame.count,
+            inputs=[
+                contact.triangle_vertices,
+                contact.eps,
+                mu,
+                model.friction,
+                model.friction_smoothing * dt,
+                contact.max_leaf_iterations,
+                rot_next,
+                pos_next,
+                rot_now,
+                pos_now,
+                model.body_dynamic,
+                contact.seed_body_pair,
+                frame.leaf_items,
+                frame.normal_force,
+                frame.normal,
+                frame.point_a,
+                frame.point_b,
+                frame.offset,
+                lam,
+            ],
+            outputs=[adj_q, adj_friction, adj_mu],
+        )
+        adj_now.assign(adj_now.numpy() + adj_q.numpy())
+        model.friction.grad.assign(model.friction.grad.numpy() + adj_friction.numpy())
+        return float(adj_mu.numpy()[0])

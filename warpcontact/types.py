@@ -55,7 +55,9 @@ class Model:
         body_meshes: list of (V, F) in the body frame.
         gravity: (3,) m/s^2.
         contact_stiffness: (1,) float64 mu, requires_grad.
-        friction: friction coefficient (0 disables friction).
+        friction: (1,) float64 friction coefficient lambda, requires_grad (0 disables friction).
+        friction_smoothing: slip speed v_eps (m/s) below which friction is smoothed; the
+            friction force reaches lambda N once slip speeds exceed a few v_eps.
         contact: the ``ContactModel`` over all bodies.
         initial_q: numpy (nbodies, 7) initial poses.
     """
@@ -72,7 +74,8 @@ class Model:
     body_meshes: list
     gravity: np.ndarray
     contact_stiffness: wp.array
-    friction: float
+    friction: wp.array
+    friction_smoothing: float
     contact: ContactModel
     initial_q: np.ndarray
     device: object = field(default=None)

@@ -1,0 +1,308 @@
+"""Frictional damping (paper appendix "Frictional Contact Modeling"), lagged and smoothed.
+
+For every leaf pair (triangles A on body a, B on body b) listed at the step's start q^t:
+
+    N   = mu W |n| sum_{k in A} 1/g_k^2      normal force magnitude of the pair's leaf
+                                             potential (net force on A), times the local
+                                             support weight W = 1 - Phi((rho - d1)/(d2 - d1))
+                                             of P_local (rho = centroid distance, d1 = R_A + R_B)
+    n^  = n / |n|,   T = I - n^ n^^T          lagged contact normal of the separating plane
+    u   = T (x_a(X_A; q) - x_b(X_B; q) - (c_A^t - c_B^t))
+                                             tangential slip over the step of the two
+                                             triangles' centroids (body-fixed points X_A, X_B)
+    D   = lambda N (sqrt(|u|^2 + e^2) - e),  e = v_eps dt
+
+D is C-infinity in q (a smoothed Coulomb law: the friction force lambda N u / sqrt(|u|^2 + e^2)
+saturates at lambda N once slip speeds exceed v_eps). N and n^ depend on q^t; the adjoint
+kernel differentiates them exactly through the leaf plane's sensitivity dp*/dx.
+"""
+
+import warp as wp
+
+from .blend import quintic_blend
+from .leaf import LEAF_OK, leaf_plane_sensitivity, leaf_solve
+from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d
+
+wp.set_module_options({"enable_backward": False})
+
+__all__ = ["friction_setup_kernel", "friction_energy_kernel", "friction_adjoint_kernel"]
+
+
+@wp.func
+def _centroid(t: wp.mat33d):
+    return (t[0] + t[1] + t[2]) / wp.float64(3.0)
+
+
+@wp.func
+def _leaf_radius(t: wp.mat33d):
+    c = _centroid(t)
+    return wp.max(wp.max(wp.length(t[0] - c), wp.length(t[1] - c)), wp.length(t[2] - c))
+
+
+@wp.func
+def _world_triangle(local: wp.mat33d, rot: wp.mat33d, pos: wp.vec3d):
+    out = wp.mat33d()
+    for k in range(3):
+        out[k] = rot * local[k] + pos
+    return out
+
+
+@wp.func
+def _support_weight(ca: wp.vec3d, cb: wp.vec3d, d1: wp.float64, eps: wp.float64):
+    """W = 1 - Phi(s) and dW/drho."""
+    width = eps * d1
+    phi, dphi, _ = quintic_blend((wp.length(ca - cb) - d1) / width)
+    return wp.float64(1.0) - phi, -dphi / width
+
+
+@wp.kernel
+def friction_setup_kernel(
+    # Model:
+    triangle_vertices: wp.array(dtype=wp.mat33d),
+    eps: wp.float64,
+    mu: wp.float64,
+    max_iterations: int,
+    # Data in:
+    body_rotation: wp.array(dtype=wp.mat33d),
+    body_position: wp.array(dtype=wp.vec3d),
+    seed_body_pair: wp.array(dtype=wp.vec2i),
+    leaf_items: wp.array(dtype=wp.vec4i),
+    # Data out:
+    normal_force_out: wp.array(dtype=wp.float64),
+    normal_out: wp.array(dtype=wp.vec3d),
+    point_a_out: wp.array(dtype=wp.vec3d),
+    point_b_out: wp.array(dtype=wp.vec3d),
+    offset_out: wp.array(dtype=wp.vec3d),
+):
+    tid = wp.tid()
+    item = leaf_items[tid]
+    pair = seed_body_pair[item[3]]
+    local_a = triangle_vertices[item[0]]
+    local_b = triangle_vertices[item[1]]
+    rot_a = body_rotation[pair[0]]
+    rot_b = body_rotation[pair[1]]
+    ta = _world_triangle(local_a, rot_a, body_position[pair[0]])
+    tb = _world_triangle(local_b, rot_b, body_position[pair[1]])
+    point_a_out[tid] = _centroid(local_a)
+    point_b_out[tid] = _centroid(local_b)
+    ca = _centroid(ta)
+    cb = _centroid(tb)
+    offset_out[tid] = ca - cb
+    sol = leaf_solve(ta, tb, max_iterations)
+    normal_force_out[tid] = wp.float64(0.0)
+    normal_out[tid] = wp.vec3d()
+    if sol.status != LEAF_OK:
+        return
+    weight, _ = _support_weight(ca, cb, _leaf_radius(ta) + _leaf_radius(tb), eps)
+    q = wp.float64(0.0)
+    for k in range(3):
+        q += wp.float64(1.0) / (sol.gap_a[k] * sol.gap_a[k])
+    norm = wp.length(sol.n)
+    normal_force_out[tid] = mu * weight * norm * q
+    normal_out[tid] = sol.n / norm
+
+
+@wp.func
+def _slip(
+    normal: wp.vec3d,
+    point_a: wp.vec3d,
+    point_b: wp.vec3d,
+    offset: wp.vec3d,
+    rot_a: wp.mat33d,
+    pos_a: wp.vec3d,
+    rot_b: wp.mat33d,
+    pos_b: wp.vec3d,
+):
+    """(r_a, r_b, w, u): world offsets of the material points, their separation change, slip."""
+    ra = rot_a * point_a
+    rb = rot_b * point_b
+    w = (ra + pos_a) - (rb + pos_b) - offset
+    u = w - wp.dot(w, normal) * normal
+    return ra, rb, w, u
+
+
+@wp.kernel
+def friction_energy_kernel(
+    # Model:
+    friction: wp.array(dtype=wp.float64),
+    smoothing: wp.float64,
+    # Data in:
+    body_rotation: wp.array(dtype=wp.mat33d),
+    body_position: wp.array(dtype=wp.vec3d),
+    body_dynamic: wp.array(dtype=wp.int32),
+    seed_body_pair: wp.array(dtype=wp.vec2i),
+    leaf_items: wp.array(dtype=wp.vec4i),
+    normal_force: wp.array(dtype=wp.float64),
+    normal: wp.array(dtype=wp.vec3d),
+    point_a: wp.array(dtype=wp.vec3d),
+    point_b: wp.array(dtype=wp.vec3d),
+    offset: wp.array(dtype=wp.vec3d),
+    # Data out:
+    value_out: wp.array(dtype=wp.float64),
+    grad_out: wp.array2d(dtype=wp.float64),
+    hess_out: wp.array2d(dtype=wp.float64),
+):
+    tid = wp.tid()
+    coeff = friction[0] * normal_force[tid]
+    if coeff == wp.float64(0.0):
+        return
+    pair = seed_body_pair[leaf_items[tid][3]]
+    nrm = normal[tid]
+    ra, rb, w, u = _slip(nrm, point_a[tid], point_b[tid], offset[tid], body_rotation[pair[0]], body_position[pair[0]], body_rotation[pair[1]], body_position[pair[1]])
+    root = wp.sqrt(wp.dot(u, u) + smoothing * smoothing)
+    wp.atomic_add(value_out, 0, coeff * (root - smoothing))
+    tangent = wp.identity(n=3, dtype=wp.float64) - wp.outer(nrm, nrm)
+    g = (coeff / root) * u  # dD/dx_a at the material point (u is tangent)
+    f2 = (wp.identity(n=3, dtype=wp.float64) - wp.outer(u, u) / (root * root)) / root
+    h = coeff * (tangent * f2 * tangent)
+    grads = wp.mat33d()
+    for side in range(2):
+        body = pair[side]
+        if body_dynamic[body] == 0:
+            continue
+        sign = wp.float64(1.0)
+        r = ra
+        if side == 1:
+            sign = wp.float64(-1.0)
+            r = rb
+        gs = rigid_point_gradient(sign * g, r)
+        for i in range(6):
+            wp.atomic_add(grad_out, body, i, gs[i])
+        for side_c in range(2):
+            body_c = pair[side_c]
+            if body_dynamic[body_c] == 0:
+                continue
+            sign_c = wp.float64(1.0)
+            rc = ra
+            if side_c == 1:
+                sign_c = wp.float64(-1.0)
+                rc = rb
+            block = rigid_point_pair_block(sign * sign_c * h, r, rc)
+            if side == side_c:
+                curv = rigid_point_curvature(sign * g, r)
+                for i in range(3):
+                    for j in range(3):
+                        block[3 + i, 3 + j] = block[3 + i, 3 + j] + curv[i, j]
+            for i in range(6):
+                for j in range(6):
+                    wp.atomic_add(hess_out, 6 * body + i, 6 * body_c + j, block[i, j])
+
+
+@wp.kernel
+def friction_adjoint_kernel(
+    # Model:
+    triangle_vertices: wp.array(dtype=wp.mat33d),
+    eps: wp.float64,
+    mu: wp.float64,
+    friction: wp.array(dtype=wp.float64),
+    smoothing: wp.float64,
+    max_iterations: int,
+    # Data in:
+    rotation_next: wp.array(dtype=wp.mat33d),
+    position_next: wp.array(dtype=wp.vec3d),
+    rotation_now: wp.array(dtype=wp.mat33d),
+    position_now: wp.array(dtype=wp.vec3d),
+    body_dynamic: wp.array(dtype=wp.int32),
+    seed_body_pair: wp.array(dtype=wp.vec2i),
+    leaf_items: wp.array(dtype=wp.vec4i),
+    normal_force: wp.array(dtype=wp.float64),
+    normal: wp.array(dtype=wp.vec3d),
+    point_a: wp.array(dtype=wp.vec3d),
+    point_b: wp.array(dtype=wp.vec3d),
+    offset: wp.array(dtype=wp.vec3d),
+    multiplier: wp.array(dtype=vec6d),
+    # Data out:
+    adj_now_out: wp.array2d(dtype=wp.float64),
+    adj_friction_out: wp.array(dtype=wp.float64),
+    adj_mu_out: wp.array(dtype=wp.float64),
+):
+    """lambda^T d(grad_q D)/dy for y = q^t (through N, n^ and the centroids), lambda_f and mu."""
+    tid = wp.tid()
+    big_n = normal_force[tid]
+    lam_f = friction[0]
+    if big_n == wp.float64(0.0) or lam_f == wp.float64(0.0):
+        return
+    item = leaf_items[tid]
+    pair = seed_body_pair[item[3]]
+    nrm = normal[tid]
+    ra, rb, w, u = _slip(nrm, point_a[tid], point_b[tid], offset[tid], rotation_next[pair[0]], position_next[pair[0]], rotation_next[pair[1]], position_next[pair[1]])
+    la = multiplier[pair[0]]
+    lb = multiplier[pair[1]]
+    ell = wp.vec3d()
+    if body_dynamic[pair[0]] != 0:
+        ell += wp.vec3d(la[0], la[1], la[2]) + wp.cross(wp.vec3d(la[3], la[4], la[5]), ra)
+    if body_dynamic[pair[1]] != 0:
+        ell -= wp.vec3d(lb[0], lb[1], lb[2]) + wp.cross(wp.vec3d(lb[3], lb[4], lb[5]), rb)
+    root = wp.sqrt(wp.dot(u, u) + smoothing * smoothing)
+    s = u / root
+    # C = ell . dD/dx_a = lambda N ell.s; its differential (derivation in the module docstring):
+    # dC = lambda [ (ell.s) dN - N ((ell.n^) s + (n^.w) m) . dn^ + N m . dw ],  m = F2 T ell.
+    contraction = lam_f * big_n * wp.dot(ell, s)
+    wp.atomic_add(adj_friction_out, 0, contraction / lam_f)
+    wp.atomic_add(adj_mu_out, 0, contraction / mu)
+    t_ell = ell - wp.dot(ell, nrm) * nrm
+    m = (t_ell - wp.dot(u, t_ell) / (root * root) * u) / root
+    coeff_n = lam_f * wp.dot(ell, s)
+    v_n = -(lam_f * big_n) * (wp.dot(ell, nrm) * s + wp.dot(nrm, w) * m)
+
+    # Time-t geometry and the leaf solution's sensitivities.
+    rot_a = rotation_now[pair[0]]
+    rot_b = rotation_now[pair[1]]
+    pos_a = position_now[pair[0]]
+    pos_b = position_now[pair[1]]
+    ta = _world_triangle(triangle_vertices[item[0]], rot_a, pos_a)
+    tb = _world_triangle(triangle_vertices[item[1]], rot_b, pos_b)
+    sol = leaf_solve(ta, tb, max_iterations)
+    if sol.status != LEAF_OK:
+        return
+    ca = _centroid(ta)
+    cb = _centroid(tb)
+    rho_vec = ca - cb
+    rho_hat = rho_vec / wp.length(rho_vec)
+    weight, dweight = _support_weight(ca, cb, _leaf_radius(ta) + _leaf_radius(tb), eps)
+    norm = wp.length(sol.n)
+    nhat = sol.n / norm
+    q = wp.float64(0.0)
+    for k in range(3):
+        q += wp.float64(1.0) / (sol.gap_a[k] * sol.gap_a[k])
+    third = wp.float64(1.0) / wp.float64(3.0)
+    for j in range(6):
+        dp = leaf_plane_sensitivity(sol, j)  # 4x3
+        dn = wp.mat33d()
+        for i in range(3):
+            for c in range(3):
+                dn[i, c] = dp[i, c]
+        dd = wp.vec3d(dp[3, 0], dp[3, 1], dp[3, 2])
+        # dQ/dx_j with Q = sum_{k in A} 1/g_k^2, g_k = <x_k, n> + d (local frame).
+        dq = wp.vec3d()
+        for k in range(3):
+            gk = sol.gap_a[k]
+            dg = wp.transpose(dn) * sol.ta[k] + dd
+            if k == j:
+                dg += sol.n
+            dq += (wp.float64(-2.0) / (gk * gk * gk)) * dg
+        sign = wp.float64(1.0)
+        if j >= 3:
+            sign = wp.float64(-1.0)
+        drho = (sign * third) * rho_hat
+        dnorm = wp.transpose(dn) * nhat
+        dbig_n = mu * (dweight * norm * q * drho + weight * q * dnorm + weight * norm * dq)
+        dnhat_t_v = wp.transpose((wp.identity(n=3, dtype=wp.float64) - wp.outer(nhat, nhat)) * dn / norm) * v_n
+        # w = ... - (c_A^t - c_B^t): each vertex moves its centroid by a third.
+        cot = coeff_n * dbig_n + dnhat_t_v - (sign * third * lam_f * big_n) * m
+        side = 0
+        x = ta[0]
+        if j < 3:
+            x = ta[j]
+        else:
+            side = 1
+            x = tb[j - 3]
+        body = pair[side]
+        if body_dynamic[body] == 0:
+            continue
+        pos = pos_a
+        if side == 1:
+            pos = pos_b
+        g6 = rigid_point_gradient(cot, x - pos)
+        for i in range(6):
+            wp.atomic_add(adj_now_out, body, i, g6[i])
