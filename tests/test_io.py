@@ -1,0 +1,173 @@
+"""USD import / export: hand-written UsdPhysics scenes, round trips, trajectories, errors."""
+
+import numpy as np
+import pytest
+import warp as wp
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics
+
+import warpcontact as wc
+from warpcontact import io
+
+
+def write_physics_scene(path, *, meters=1.0, mass=None, joint=None, face_counts=None, points=None, drop_height=0.6):
+    """A scene written with UsdPhysics schemas only: a cube body above a static mesh ground."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, meters)
+    scene = UsdPhysics.Scene.Define(stage, "/World/physicsScene")
+    scene.CreateGravityDirectionAttr(Gf.Vec3f(0, 0, -1))
+    scene.CreateGravityMagnitudeAttr(9.81 / meters)
+    ground = UsdGeom.Mesh.Define(stage, "/World/ground")
+    n = 4
+    xs = np.linspace(-2, 2, n + 1) / meters
+    pts = [(float(x), float(y), 0.0) for x in xs for y in xs]
+    quads = [(i * (n + 1) + j, (i + 1) * (n + 1) + j, (i + 1) * (n + 1) + j + 1, i * (n + 1) + j + 1) for i in range(n) for j in range(n)]
+    ground.CreatePointsAttr(points if points is not None else pts)
+    counts = face_counts if face_counts is not None else [4] * len(quads)
+    ground.CreateFaceVertexCountsAttr(counts)
+    ground.CreateFaceVertexIndicesAttr([int(i) for q, c in zip(quads, counts) for i in q[:c]])
+    UsdPhysics.CollisionAPI.Apply(ground.GetPrim())
+    box = UsdGeom.Xform.Define(stage, "/World/box")
+    box.AddTranslateOp().Set(Gf.Vec3d(0.1 / meters, 0.0, drop_height / meters))
+    UsdPhysics.RigidBodyAPI.Apply(box.GetPrim())
+    if mass is not None:
+        UsdPhysics.MassAPI.Apply(box.GetPrim()).CreateMassAttr(mass)
+    cube = UsdGeom.Cube.Define(stage, "/World/box/shape")
+    cube.CreateSizeAttr(0.5 / meters)
+    UsdPhysics.CollisionAPI.Apply(cube.GetPrim())
+    if joint:
+        getattr(UsdPhysics, joint).Define(stage, "/World/joint").CreateBody0Rel().SetTargets(["/World/box"])
+    stage.GetRootLayer().Save()
+    return path
+
+
+def simulate(scene, frames):
+    model = scene.build_model()
+    solver = wc.ImplicitSolver(model)
+    dt = scene.settings.time_step
+    states = [model.state(requires_grad=False)]
+    lin, ang = scene.initial_velocities()
+    wc.set_body_velocity(states[0], wp.array(lin, dtype=wp.vec3d), wp.array(ang, dtype=wp.vec3d), dt)
+    for _ in range(frames):
+        nxt = model.state(requires_grad=False)
+        solver.step(states[-1], nxt, None, dt)
+        states.append(nxt)
+    q = np.array([s.body_q.numpy() for s in states])
+    for frame in q:
+        assert model.contact.evaluate(frame).ok
+    return model, q
+
+
+def test_physics_only_scene_loads_with_defaults_and_simulates(tmp_path):
+    scene = io.load_scene(write_physics_scene(tmp_path / "plain.usda"))
+    assert [b.name for b in scene.bodies] == ["box", "ground"]
+    box, ground = scene.bodies
+    assert not box.static and ground.static
+    assert len(box.faces) == 12 and len(ground.faces) == 32  # quads fan-triangulated
+    np.testing.assert_allclose(scene.gravity, [0, 0, -9.81])
+    assert scene.settings == io.SimulationSettings()  # documented defaults
+    model, q = simulate(scene, 10)
+    # Default density 1000 kg/m^3 for a 0.5 m cube.
+    assert model.body_mass.numpy()[0] == pytest.approx(125.0)
+    assert q[-1, 0, 2] < q[0, 0, 2]  # falls under gravity
+
+
+def test_stage_units_are_converted_to_metres(tmp_path):
+    scene = io.load_scene(write_physics_scene(tmp_path / "cm.usda", meters=0.01))
+    box = scene.body("box")
+    np.testing.assert_allclose(np.ptp(box.vertices, axis=0), [0.5, 0.5, 0.5])
+    np.testing.assert_allclose(box.pose[:3], [0.1, 0.0, 0.6])
+    np.testing.assert_allclose(scene.gravity, [0, 0, -9.81])
+
+
+def test_round_trip_preserves_bodies_masses_meshes_and_poses(tmp_path):
+    scene = io.load_scene(write_physics_scene(tmp_path / "a.usda", mass=3.0))
+    box = scene.body("box")
+    box.inertia = np.array([[0.2, 0.01, 0.0], [0.01, 0.15, 0.0], [0.0, 0.0, 0.1]])
+    box.linear_velocity = np.array([1.0, 0.0, 0.5])
+    box.angular_velocity = np.array([0.0, 2.0, 0.0])
+    box.target_position = np.array([1.0, 2.0, 0.25])
+    box.target_tolerance = 0.1
+    box.kp_linear = np.array([10.0, 10.0, 0.0])
+    box.control_dofs = ("x", "y")
+    box.group = 1
+    scene.settings = io.SimulationSettings(time_step=0.02, frames=30, contact_stiffness=3e-8, eps=0.7, friction=0.4)
+    scene.task = io.TaskSpec(name="gather", control="pd_targets", horizon=30, receding_horizon=8, learning_rate=0.01, iterations=5)
+    io.save_scene(scene, tmp_path / "b.usda")
+    again = io.load_scene(tmp_path / "b.usda")
+    assert [b.name for b in again.bodies] == [b.name for b in scene.bodies]
+    for b0, b1 in zip(scene.bodies, again.bodies):
+        assert b0.static == b1.static
+        np.testing.assert_allclose(b1.vertices, b0.vertices, atol=1e-6)  # float32 points
+        np.testing.assert_array_equal(b1.faces, b0.faces)
+        np.testing.assert_allclose(b1.pose, b0.pose, atol=1e-12)
+    b1 = again.body("box")
+    assert b1.mass == 3.0
+    np.testing.assert_allclose(b1.inertia, box.inertia, atol=1e-7)
+    np.testing.assert_allclose(b1.linear_velocity, box.linear_velocity, atol=1e-7)
+    np.testing.assert_allclose(b1.angular_velocity, box.angular_velocity, atol=1e-6)
+    np.testing.assert_allclose(b1.target_position, box.target_position)
+    assert b1.target_tolerance == 0.1 and b1.control_dofs == ("x", "y") and b1.group == 1
+    np.testing.assert_allclose(b1.kp_linear, box.kp_linear)
+    assert again.settings == scene.settings and again.task == scene.task
+    m0, m1 = scene.build_model(), again.build_model()
+    np.testing.assert_allclose(m1.body_mass.numpy(), m0.body_mass.numpy())
+    np.testing.assert_allclose(m1.initial_q, m0.initial_q, atol=1e-12)
+
+
+def test_trajectory_export_opens_with_time_samples(tmp_path):
+    scene = io.load_scene(write_physics_scene(tmp_path / "a.usda"))
+    scene.body("box").target_position = np.array([1.0, 0.0, 0.25])
+    model, q = simulate(scene, 5)
+    poses = io.model_to_scene_poses(scene, model, q)
+    np.testing.assert_allclose(poses[0, 0], scene.body("box").pose, atol=1e-12)
+    out = tmp_path / "traj.usda"
+    io.export_trajectory(scene, poses, out)
+    stage = Usd.Stage.Open(str(out))
+    assert stage.GetTimeCodesPerSecond() == 25.0 and stage.GetFramesPerSecond() == 25.0
+    assert stage.GetEndTimeCode() == 5
+    xf = UsdGeom.Xformable(stage.GetPrimAtPath("/World/box"))
+    translate = xf.GetOrderedXformOps()[0]
+    assert len(translate.GetTimeSamples()) == 6
+    np.testing.assert_allclose(translate.Get(5), poses[5, 0, :3])
+    assert stage.GetPrimAtPath("/World/box/mesh").IsA(UsdGeom.Mesh)
+    assert stage.GetPrimAtPath("/World/targets/box").IsA(UsdGeom.Sphere)
+    with pytest.raises(FileExistsError, match="traj.usda"):
+        io.export_trajectory(scene, poses, out)
+    io.export_trajectory(scene, poses[:2], out, overwrite=True)
+    Sdf.Layer.FindOrOpen(str(out)).Reload()  # USD caches the layer opened above
+    assert Usd.Stage.Open(str(out)).GetEndTimeCode() == 1
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".tmp")] == []
+    with pytest.raises(ValueError, match="does not exist"):
+        io.export_trajectory(scene, poses, tmp_path / "missing" / "x.usda")
+    with pytest.raises(ValueError, match="poses"):
+        io.export_trajectory(scene, poses[..., :6], tmp_path / "y.usda")
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(mass=0.0), r"/World/box: mass must be positive"),
+        (dict(mass=-2.0), r"/World/box: mass must be positive"),
+        (dict(joint="RevoluteJoint"), r"/World/joint: RevoluteJoint is not supported"),
+        (dict(face_counts=[2] * 16), r"/World/ground: .*face 0 has 2 vertices"),
+        (dict(drop_height=0.2), r"intersect in the initial pose: /World/box and /World/ground"),
+    ],
+)
+def test_bad_scenes_name_the_prim_and_problem(tmp_path, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        io.load_scene(write_physics_scene(tmp_path / "bad.usda", **kwargs)).build_model()
+
+
+def test_non_finite_points_missing_files_and_empty_stages(tmp_path):
+    pts = [(float(x), float(y), 0.0) for x in np.linspace(-2, 2, 5) for y in np.linspace(-2, 2, 5)]
+    pts[3] = (float("nan"), 0.0, 0.0)
+    with pytest.raises(ValueError, match=r"/World/ground: point 3 is not finite"):
+        io.load_scene(write_physics_scene(tmp_path / "nan.usda", points=pts))
+    with pytest.raises(ValueError, match="file not found"):
+        io.load_scene(tmp_path / "nope.usda")
+    stage = Usd.Stage.CreateNew(str(tmp_path / "empty.usda"))
+    UsdGeom.Xform.Define(stage, "/World")
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match="no dynamic rigid bodies"):
+        io.load_scene(tmp_path / "empty.usda")

@@ -1,0 +1,673 @@
+"""USD scenes in and out (usd-core, imported lazily so the contact core works without it).
+
+Import reads the UsdPhysics schemas through ``UsdPhysics.LoadUsdPhysicsFromRange`` (or its
+newer name) plus warpcontact's own attributes; export writes a scene (round-trippable) or a
+simulated trajectory (time-sampled transforms, meshes authored once).
+
+warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``BodySpec``):
+
+    on the PhysicsScene prim
+        warpcontact:timeStep (double, s)          warpcontact:frames (int)
+        warpcontact:contactStiffness (double)     warpcontact:eps (double)
+        warpcontact:friction (double)             warpcontact:frictionSmoothing (double, m/s)
+        warpcontact:contactMode (token: bsh | brute)
+        warpcontact:task:name (string)            warpcontact:task:control (token)
+        warpcontact:task:horizon (int)            warpcontact:task:recedingHorizon (int)
+        warpcontact:task:learningRate (double)    warpcontact:task:iterations (int)
+    on a rigid-body prim
+        warpcontact:target:position (double3, m)  warpcontact:target:tolerance (double, m)
+        warpcontact:pd:kpLinear (double3)         warpcontact:pd:kdLinear (double3)
+        warpcontact:pd:kpAngular (double)         warpcontact:pd:kdAngular (double)
+        warpcontact:control:dofs (string[]: any of x y z rx ry rz yaw, the optimised DOFs)
+        warpcontact:group (int, e.g. the label of a Sort cube)
+
+Primitive colliders are triangulated: Cube exactly (12 triangles), Sphere as an icosphere
+with ``SPHERE_SUBDIVISIONS`` = 2 (320 triangles), Capsule and Cylinder with 32 segments; use
+Mesh prims to control resolution. Polygons are fan-triangulated (exact for convex ones).
+Kinematic or disabled rigid bodies load as static bodies. Rigid-body prims are assumed
+unscaled (scale the collider prims instead); stage metersPerUnit is applied to lengths,
+and the stage up axis only sets the default gravity when no PhysicsScene gives one.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from .builder import ModelBuilder
+
+__all__ = [
+    "BodySpec",
+    "Scene",
+    "SimulationSettings",
+    "TaskSpec",
+    "load_scene",
+    "save_scene",
+    "export_trajectory",
+    "model_to_scene_poses",
+    "SPHERE_SUBDIVISIONS",
+    "ROUND_SEGMENTS",
+]
+
+SPHERE_SUBDIVISIONS = 2
+ROUND_SEGMENTS = 32
+_NS = "warpcontact:"
+
+
+@dataclass
+class SimulationSettings:
+    """Simulation settings of a scene (SI units)."""
+
+    time_step: float = 0.04
+    frames: int = 100
+    contact_stiffness: float = 1e-6
+    eps: float = 0.5
+    friction: float = 0.0
+    friction_smoothing: float = 1e-4
+    contact_mode: str = "bsh"
+
+
+@dataclass
+class TaskSpec:
+    """Optimisation task metadata (used by the task runner)."""
+
+    name: str = ""
+    control: str = ""
+    horizon: int = 0
+    receding_horizon: int = 0
+    learning_rate: float = 0.0
+    iterations: int = 0
+
+
+@dataclass
+class BodySpec:
+    """One rigid body: triangle mesh in the body's prim frame and its physical data."""
+
+    name: str
+    path: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    pose: np.ndarray  # (7,) prim frame in world: px py pz qx qy qz qw
+    static: bool = False
+    mass: float | None = None
+    density: float | None = None
+    inertia: np.ndarray | None = None  # about the centre of mass, prim axes
+    center_of_mass: np.ndarray | None = None  # prim frame
+    linear_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    angular_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))  # rad/s
+    kp_linear: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    kd_linear: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    kp_angular: float = 0.0
+    kd_angular: float = 0.0
+    target_position: np.ndarray | None = None
+    target_tolerance: float = 0.0
+    control_dofs: tuple = ()
+    group: int = -1
+
+
+@dataclass
+class Scene:
+    """A complete task scene: bodies, gravity, settings and task metadata."""
+
+    bodies: list
+    gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
+    settings: SimulationSettings = field(default_factory=SimulationSettings)
+    task: TaskSpec = field(default_factory=TaskSpec)
+    source: str = ""
+
+    def body(self, name: str) -> BodySpec:
+        for b in self.bodies:
+            if b.name == name:
+                return b
+        raise KeyError(f"scene {self.source or '<memory>'}: no body named {name!r}")
+
+    def build_model(self, *, device="cpu"):
+        """The simulation ``Model`` of this scene.
+
+        Raises ValueError naming the prim for bad bodies, and naming both prims when bodies
+        touch or intersect in their initial poses.
+        """
+        s = self.settings
+        builder = ModelBuilder(
+            gravity=self.gravity,
+            contact_stiffness=s.contact_stiffness,
+            friction=s.friction,
+            friction_smoothing=s.friction_smoothing,
+            eps=s.eps,
+            contact_mode=s.contact_mode,
+        )
+        for b in self.bodies:
+            kwargs = dict(name=b.name, pose=b.pose, static=b.static)
+            if not b.static:
+                kwargs.update(kp_linear=b.kp_linear, kd_linear=b.kd_linear, kp_angular=b.kp_angular, kd_angular=b.kd_angular)
+                if b.mass is not None:
+                    kwargs.update(mass=b.mass, inertia=b.inertia, center_of_mass=b.center_of_mass)
+                else:
+                    kwargs.update(density=b.density if b.density is not None else 1000.0)
+            try:
+                builder.add_body((b.vertices, b.faces), **kwargs)
+            except ValueError as exc:
+                raise ValueError(f"{self.source or '<scene>'}: prim {b.path}: {exc}") from None
+        model = builder.finalize(device=device)
+        start = model.contact.evaluate(model.initial_q)
+        if start.contact_pairs:
+            paths = {b.name: b.path for b in self.bodies}
+            pairs = ", ".join(f"{paths[a]} and {paths[b]}" for a, b in start.contact_pairs)
+            raise ValueError(f"{self.source or '<scene>'}: bodies intersect in the initial pose: {pairs}")
+        return model
+
+    def initial_velocities(self) -> tuple[np.ndarray, np.ndarray]:
+        """(nbodies, 3) linear velocities of the centres of mass and (nbodies, 3) angular velocities."""
+        lin = np.array([b.linear_velocity for b in self.bodies], dtype=np.float64)
+        ang = np.array([b.angular_velocity for b in self.bodies], dtype=np.float64)
+        return lin, ang
+
+
+# --- import ---------------------------------------------------------------------------------
+
+
+def _pxr():
+    try:
+        from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt
+    except ImportError as exc:  # pragma: no cover - usd-core is a declared dependency
+        raise ImportError("USD support needs usd-core (pip install usd-core)") from exc
+    return Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt
+
+
+def _load_physics(stage, UsdPhysics):
+    loader = getattr(UsdPhysics, "LoadUsdPhysicsFromRange", None)
+    newer = getattr(UsdPhysics, "UsdPhysicsLoadStageFromPrimRange", None)
+    return (newer or loader)(stage, ["/"])
+
+
+def _quat_xyzw(q) -> np.ndarray:
+    """Gf quaternion -> (x, y, z, w)."""
+    im = q.GetImaginary()
+    return np.array([im[0], im[1], im[2], q.GetReal()], dtype=np.float64)
+
+
+def _quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    u, w = q[:3], q[3]
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    x1, y1, z1, w1 = a
+    x2, y2, z2, w2 = b
+    return np.array(
+        [w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2, w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2, w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2]
+    )
+
+
+def _attr(prim, name, default=None):
+    attr = prim.GetAttribute(name)
+    if attr and attr.HasAuthoredValue():
+        return attr.Get()
+    return default
+
+
+def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
+    mesh = UsdGeom.Mesh(prim)
+    points = np.asarray(mesh.GetPointsAttr().Get() or [], dtype=np.float64).reshape(-1, 3)
+    counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
+    indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
+    where = f"{source}: prim {prim.GetPath()}"
+    if len(points) == 0 or len(counts) == 0:
+        raise ValueError(f"{where}: mesh has no points or faces")
+    if not np.isfinite(points).all():
+        bad = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
+        raise ValueError(f"{where}: point {bad} is not finite")
+    if counts.sum() != len(indices) or (indices < 0).any() or (indices >= len(points)).any():
+        raise ValueError(f"{where}: faceVertexIndices do not match faceVertexCounts and points")
+    faces = []
+    start = 0
+    for f, n in enumerate(counts):
+        if n < 3:
+            raise ValueError(f"{where}: face {f} has {n} vertices; cannot be triangulated")
+        poly = indices[start : start + n]
+        start += n
+        # Fan triangulation: exact for convex polygons, the common case for authored meshes.
+        for k in range(1, n - 1):
+            faces.append((poly[0], poly[k], poly[k + 1]))
+    faces = np.asarray(faces, dtype=np.int64)
+    tri = points[faces]
+    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not (area2 > 0).any():
+        raise ValueError(f"{where}: mesh is degenerate (every triangle has zero area)")
+    return points, faces
+
+
+def _shape_triangles(desc, kind, prim, UsdGeom, source):
+    if kind == "MeshShape":
+        points, faces = _mesh_triangles(prim, UsdGeom, source)
+        return points * np.asarray(desc.meshScale, dtype=np.float64), faces
+    if kind == "CubeShape":
+        m = trimesh.creation.box(extents=2.0 * np.asarray(desc.halfExtents, dtype=np.float64))
+    elif kind == "SphereShape":
+        m = trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=float(desc.radius))
+    elif kind in ("CapsuleShape", "Capsule1ShapeDesc", "Capsule1Shape"):
+        m = trimesh.creation.capsule(height=2.0 * float(desc.halfHeight), radius=float(desc.radius), count=[ROUND_SEGMENTS, ROUND_SEGMENTS])
+        m = _align_axis(m, str(desc.axis))
+    elif kind in ("CylinderShape", "Cylinder1Shape"):
+        m = trimesh.creation.cylinder(radius=float(desc.radius), height=2.0 * float(desc.halfHeight), sections=ROUND_SEGMENTS)
+        m = _align_axis(m, str(desc.axis))
+    else:
+        raise ValueError(f"{source}: prim {prim.GetPath()}: collider type {kind} is not supported (use a Mesh, Cube, Sphere, Capsule or Cylinder)")
+    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
+
+
+def _align_axis(mesh, axis: str):
+    """trimesh round shapes run along z; UsdPhysics gives the axis as a token."""
+    axis = axis.split(".")[-1].upper()
+    if axis.endswith("X"):
+        mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+    elif axis.endswith("Y"):
+        mesh.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
+    return mesh
+
+
+def _world_pose(prim, UsdGeom, Usd) -> np.ndarray:
+    m = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    t = m.ExtractTranslation()
+    rot = m.ExtractRotationQuat()
+    q = _quat_xyzw(rot)
+    return np.array([t[0], t[1], t[2], *(q / np.linalg.norm(q))])
+
+
+def load_scene(path) -> Scene:
+    """Read a USD stage into a ``Scene``.
+
+    Raises ValueError naming the file or prim and the problem (missing file, no rigid body,
+    bad meshes, non-positive mass, unsupported joints or colliders).
+    """
+    Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
+    path = Path(path)
+    source = str(path)
+    if not path.is_file():
+        raise ValueError(f"{source}: file not found")
+    stage = Usd.Stage.Open(str(path))
+    if stage is None:
+        raise ValueError(f"{source}: not a readable USD stage")
+    meters = float(UsdGeom.GetStageMetersPerUnit(stage) or 1.0)
+    up = UsdGeom.GetStageUpAxis(stage)
+    parsed = _load_physics(stage, UsdPhysics)
+    descs = {str(k): list(zip(v[0], v[1])) for k, v in parsed.items()}
+    for kind in ("RevoluteJoint", "SphericalJoint", "PrismaticJoint", "FixedJoint", "DistanceJoint", "D6Joint", "CustomJoint"):
+        for prim_path, _ in descs.get(kind, []):
+            raise ValueError(
+                f"{source}: prim {prim_path}: {kind} is not supported yet (articulated bodies are "
+                "the articulations issue); only free and static rigid bodies load today"
+            )
+
+    # Gravity: the first PhysicsScene, else standard gravity along -up.
+    gravity = np.array([0.0, 0.0, -9.81]) if up == UsdGeom.Tokens.z else np.array([0.0, -9.81, 0.0])
+    scene_prim = None
+    for prim_path, desc in descs.get("Scene", []):
+        scene_prim = stage.GetPrimAtPath(prim_path)
+        direction = np.asarray(desc.gravityDirection, dtype=np.float64)
+        magnitude = float(desc.gravityMagnitude)
+        if np.linalg.norm(direction) > 0 and np.isfinite(magnitude):
+            # UsdPhysics reports an unauthored magnitude as -inf: use standard gravity.
+            magnitude = 9.81 if magnitude < 0 else magnitude * meters
+            gravity = direction / np.linalg.norm(direction) * magnitude
+        break
+
+    bodies: dict[str, BodySpec] = {}
+    for prim_path, desc in descs.get("RigidBody", []):
+        prim = stage.GetPrimAtPath(prim_path)
+        pose = _world_pose(prim, UsdGeom, Usd)
+        pose[:3] *= meters
+        body = BodySpec(
+            name=prim.GetName(),
+            path=str(prim_path),
+            vertices=np.zeros((0, 3)),
+            faces=np.zeros((0, 3), dtype=np.int64),
+            pose=pose,
+            static=bool(desc.kinematicBody) or not bool(desc.rigidBodyEnabled),
+            linear_velocity=np.asarray(desc.linearVelocity, dtype=np.float64) * meters,
+            angular_velocity=np.radians(np.asarray(desc.angularVelocity, dtype=np.float64)),
+        )
+        _read_mass(prim, body, UsdPhysics, meters, source)
+        _read_warpcontact_body(prim, body, meters)
+        bodies[str(prim_path)] = body
+
+    static_bodies: dict[str, BodySpec] = {}
+    shape_kinds = [k for k in descs if k.endswith("Shape")]
+    for kind in shape_kinds:
+        for prim_path, desc in descs[kind]:
+            prim = stage.GetPrimAtPath(prim_path)
+            if not desc.collisionEnabled:
+                continue
+            vertices, faces = _shape_triangles(desc, kind, prim, UsdGeom, source)
+            # localPos / localRot place the collider in its rigid body's frame, or in the world
+            # for a collider without a rigid body (a static body of its own). Scale is already
+            # in the shape's dimensions (meshScale, radius, halfExtents).
+            local_pose = np.array([*desc.localPos, *_quat_xyzw(desc.localRot)], dtype=np.float64)
+            local_pose[3:] /= np.linalg.norm(local_pose[3:])
+            local_pose[:3] *= meters
+            vertices = vertices * meters
+            owner = str(desc.rigidBody) if desc.rigidBody and str(desc.rigidBody) in bodies else ""
+            if owner:
+                target = bodies[owner]
+                vertices = np.array([_quat_rotate(local_pose[3:], v) for v in vertices]) + local_pose[:3]
+            else:
+                target = static_bodies.setdefault(
+                    str(prim_path),
+                    BodySpec(name=prim.GetName(), path=str(prim_path), vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), dtype=np.int64), pose=local_pose, static=True),
+                )
+            offset = len(target.vertices)
+            target.vertices = np.concatenate([target.vertices, vertices])
+            target.faces = np.concatenate([target.faces, faces + offset])
+
+    all_bodies = list(bodies.values()) + list(static_bodies.values())
+    for b in all_bodies:
+        if len(b.faces) == 0:
+            raise ValueError(f"{source}: prim {b.path}: rigid body has no collider (apply PhysicsCollisionAPI to a Mesh or primitive under it)")
+    if not any(not b.static for b in all_bodies):
+        raise ValueError(f"{source}: no dynamic rigid bodies (apply PhysicsRigidBodyAPI to at least one prim)")
+    names = [b.name for b in all_bodies]
+    for i, b in enumerate(all_bodies):
+        if names.count(b.name) > 1:
+            b.name = b.path.strip("/").replace("/", "_")
+
+    settings = SimulationSettings()
+    task = TaskSpec()
+    if scene_prim is not None:
+        _read_settings(scene_prim, settings, task, source)
+    return Scene(bodies=all_bodies, gravity=gravity, settings=settings, task=task, source=source)
+
+
+def _read_mass(prim, body: BodySpec, UsdPhysics, meters: float, source: str):
+    if not prim.HasAPI(UsdPhysics.MassAPI):
+        return
+    api = UsdPhysics.MassAPI(prim)
+    where = f"{source}: prim {prim.GetPath()}"
+    mass_attr = api.GetMassAttr()
+    if mass_attr and mass_attr.HasAuthoredValue():
+        mass = float(mass_attr.Get())
+        if not np.isfinite(mass) or mass <= 0:
+            raise ValueError(f"{where}: mass must be positive, got {mass}")
+        body.mass = mass
+    density_attr = api.GetDensityAttr()
+    if density_attr and density_attr.HasAuthoredValue():
+        density = float(density_attr.Get())
+        if not np.isfinite(density) or density <= 0:
+            raise ValueError(f"{where}: density must be positive, got {density}")
+        body.density = density / meters**3
+    com_attr = api.GetCenterOfMassAttr()
+    if com_attr and com_attr.HasAuthoredValue():
+        body.center_of_mass = np.asarray(com_attr.Get(), dtype=np.float64) * meters
+    diag_attr = api.GetDiagonalInertiaAttr()
+    if diag_attr and diag_attr.HasAuthoredValue():
+        diag = np.asarray(diag_attr.Get(), dtype=np.float64) * meters**2
+        axes_attr = api.GetPrincipalAxesAttr()
+        q = _quat_xyzw(axes_attr.Get()) if axes_attr and axes_attr.HasAuthoredValue() else np.array([0.0, 0.0, 0.0, 1.0])
+        R = np.column_stack([_quat_rotate(q, e) for e in np.eye(3)])
+        if (diag <= 0).any():
+            raise ValueError(f"{where}: diagonalInertia must be positive, got {diag}")
+        body.inertia = R @ np.diag(diag) @ R.T
+
+
+def _read_warpcontact_body(prim, body: BodySpec, meters: float):
+    target = _attr(prim, _NS + "target:position")
+    if target is not None:
+        body.target_position = np.asarray(target, dtype=np.float64) * meters
+        body.target_tolerance = float(_attr(prim, _NS + "target:tolerance", 0.0)) * meters
+    for field_name, attr_name in (("kp_linear", "pd:kpLinear"), ("kd_linear", "pd:kdLinear")):
+        value = _attr(prim, _NS + attr_name)
+        if value is not None:
+            setattr(body, field_name, np.asarray(value, dtype=np.float64))
+    body.kp_angular = float(_attr(prim, _NS + "pd:kpAngular", 0.0))
+    body.kd_angular = float(_attr(prim, _NS + "pd:kdAngular", 0.0))
+    dofs = _attr(prim, _NS + "control:dofs")
+    if dofs is not None:
+        body.control_dofs = tuple(str(d) for d in dofs)
+    body.group = int(_attr(prim, _NS + "group", -1))
+
+
+def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: str):
+    casts = {
+        "timeStep": ("time_step", float),
+        "frames": ("frames", int),
+        "contactStiffness": ("contact_stiffness", float),
+        "eps": ("eps", float),
+        "friction": ("friction", float),
+        "frictionSmoothing": ("friction_smoothing", float),
+        "contactMode": ("contact_mode", str),
+    }
+    for attr_name, (field_name, cast) in casts.items():
+        value = _attr(prim, _NS + attr_name)
+        if value is not None:
+            setattr(settings, field_name, cast(value))
+    if settings.time_step <= 0 or not np.isfinite(settings.time_step):
+        raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:timeStep must be positive, got {settings.time_step}")
+    if settings.frames < 1:
+        raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:frames must be >= 1, got {settings.frames}")
+    task_casts = {
+        "task:name": ("name", str),
+        "task:control": ("control", str),
+        "task:horizon": ("horizon", int),
+        "task:recedingHorizon": ("receding_horizon", int),
+        "task:learningRate": ("learning_rate", float),
+        "task:iterations": ("iterations", int),
+    }
+    for attr_name, (field_name, cast) in task_casts.items():
+        value = _attr(prim, _NS + attr_name)
+        if value is not None:
+            setattr(task, field_name, cast(value))
+
+
+# --- export ---------------------------------------------------------------------------------
+
+
+def _new_stage(Usd, UsdGeom, path: Path):
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/World").GetPrim())
+    return stage
+
+
+def _author_mesh(stage, UsdGeom, Vt, Gf, path: str, vertices, faces):
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, v)) for v in vertices]))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(faces)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray([int(i) for i in np.asarray(faces).reshape(-1)]))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    return mesh
+
+
+def _set_pose_ops(xformable, Gf, UsdGeom, pose, time=None):
+    ops = xformable.GetOrderedXformOps()
+    if not ops:
+        precision = UsdGeom.XformOp.PrecisionDouble
+        ops = [xformable.AddTranslateOp(precision=precision), xformable.AddOrientOp(precision=precision)]
+    translate, orient = ops[0], ops[1]
+    t = Gf.Vec3d(*map(float, pose[:3]))
+    q = Gf.Quatd(float(pose[6]), Gf.Vec3d(*map(float, pose[3:6])))
+    if time is None:
+        translate.Set(t)
+        orient.Set(q)
+    else:
+        translate.Set(t, time)
+        orient.Set(q, time)
+
+
+def _atomic_save(stage_writer, path, overwrite: bool):
+    """Write via a temporary file in the same folder, then rename: no partial files, no lost data."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path}: exists; pass overwrite=True to replace it")
+    if not path.parent.is_dir():
+        raise ValueError(f"{path.parent}: output folder does not exist")
+    if not os.access(path.parent, os.W_OK):
+        raise ValueError(f"{path.parent}: output folder is not writable")
+    fd, tmp = tempfile.mkstemp(suffix=path.suffix or ".usda", prefix=".tmp-", dir=path.parent)
+    os.close(fd)
+    os.unlink(tmp)  # Usd.Stage.CreateNew refuses an existing file
+    try:
+        stage_writer(Path(tmp))
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def save_scene(scene: Scene, path, *, overwrite: bool = False):
+    """Write a scene as a .usda with UsdPhysics schemas and warpcontact attributes (round-trippable)."""
+    Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
+
+    def write(tmp: Path):
+        stage = _new_stage(Usd, UsdGeom, tmp)
+        physics = UsdPhysics.Scene.Define(stage, "/World/physicsScene")
+        g = np.asarray(scene.gravity, dtype=np.float64)
+        magnitude = float(np.linalg.norm(g))
+        physics.CreateGravityDirectionAttr(Gf.Vec3f(*map(float, g / magnitude)) if magnitude > 0 else Gf.Vec3f(0, 0, -1))
+        physics.CreateGravityMagnitudeAttr(magnitude)
+        prim = physics.GetPrim()
+        s, t = scene.settings, scene.task
+        for name, value, kind in (
+            ("timeStep", s.time_step, Sdf.ValueTypeNames.Double),
+            ("frames", s.frames, Sdf.ValueTypeNames.Int),
+            ("contactStiffness", s.contact_stiffness, Sdf.ValueTypeNames.Double),
+            ("eps", s.eps, Sdf.ValueTypeNames.Double),
+            ("friction", s.friction, Sdf.ValueTypeNames.Double),
+            ("frictionSmoothing", s.friction_smoothing, Sdf.ValueTypeNames.Double),
+            ("contactMode", s.contact_mode, Sdf.ValueTypeNames.Token),
+        ):
+            prim.CreateAttribute(_NS + name, kind).Set(value)
+        if t.name:
+            for name, value, kind in (
+                ("task:name", t.name, Sdf.ValueTypeNames.String),
+                ("task:control", t.control, Sdf.ValueTypeNames.Token),
+                ("task:horizon", t.horizon, Sdf.ValueTypeNames.Int),
+                ("task:recedingHorizon", t.receding_horizon, Sdf.ValueTypeNames.Int),
+                ("task:learningRate", t.learning_rate, Sdf.ValueTypeNames.Double),
+                ("task:iterations", t.iterations, Sdf.ValueTypeNames.Int),
+            ):
+                prim.CreateAttribute(_NS + name, kind).Set(value)
+        for b in scene.bodies:
+            path_ = f"/World/{b.name}"
+            if b.static:
+                # A static collider is one Mesh prim: the name and pose load back unchanged.
+                mesh = _author_mesh(stage, UsdGeom, Vt, Gf, path_, b.vertices, b.faces)
+                _set_pose_ops(mesh, Gf, UsdGeom, b.pose)
+                UsdPhysics.CollisionAPI.Apply(mesh.GetPrim())
+                continue
+            xform = UsdGeom.Xform.Define(stage, path_)
+            _set_pose_ops(xform, Gf, UsdGeom, b.pose)
+            mesh = _author_mesh(stage, UsdGeom, Vt, Gf, path_ + "/collider", b.vertices, b.faces)
+            UsdPhysics.CollisionAPI.Apply(mesh.GetPrim())
+            body_prim = xform.GetPrim()
+            rb = UsdPhysics.RigidBodyAPI.Apply(body_prim)
+            rb.CreateVelocityAttr(Gf.Vec3f(*map(float, b.linear_velocity)))
+            rb.CreateAngularVelocityAttr(Gf.Vec3f(*map(float, np.degrees(b.angular_velocity))))
+            mass = UsdPhysics.MassAPI.Apply(body_prim)
+            if b.mass is not None:
+                mass.CreateMassAttr(float(b.mass))
+            if b.density is not None:
+                mass.CreateDensityAttr(float(b.density))
+            if b.center_of_mass is not None:
+                mass.CreateCenterOfMassAttr(Gf.Vec3f(*map(float, b.center_of_mass)))
+            if b.inertia is not None:
+                values, vectors = np.linalg.eigh(b.inertia)
+                if np.linalg.det(vectors) < 0:
+                    vectors[:, 0] = -vectors[:, 0]
+                q = trimesh.transformations.quaternion_from_matrix(np.block([[vectors, np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]]))
+                mass.CreateDiagonalInertiaAttr(Gf.Vec3f(*map(float, values)))
+                mass.CreatePrincipalAxesAttr(Gf.Quatf(float(q[0]), Gf.Vec3f(*map(float, q[1:]))))
+            _write_warpcontact_body(body_prim, b, Sdf, Vt)
+        stage.GetRootLayer().Save()
+
+    _atomic_save(write, path, overwrite)
+
+
+def _write_warpcontact_body(prim, b: BodySpec, Sdf, Vt):
+    if b.target_position is not None:
+        prim.CreateAttribute(_NS + "target:position", Sdf.ValueTypeNames.Double3).Set(tuple(map(float, b.target_position)))
+        prim.CreateAttribute(_NS + "target:tolerance", Sdf.ValueTypeNames.Double).Set(float(b.target_tolerance))
+    if np.any(b.kp_linear) or np.any(b.kd_linear) or b.kp_angular or b.kd_angular:
+        prim.CreateAttribute(_NS + "pd:kpLinear", Sdf.ValueTypeNames.Double3).Set(tuple(map(float, b.kp_linear)))
+        prim.CreateAttribute(_NS + "pd:kdLinear", Sdf.ValueTypeNames.Double3).Set(tuple(map(float, b.kd_linear)))
+        prim.CreateAttribute(_NS + "pd:kpAngular", Sdf.ValueTypeNames.Double).Set(float(b.kp_angular))
+        prim.CreateAttribute(_NS + "pd:kdAngular", Sdf.ValueTypeNames.Double).Set(float(b.kd_angular))
+    if b.control_dofs:
+        prim.CreateAttribute(_NS + "control:dofs", Sdf.ValueTypeNames.StringArray).Set(Vt.StringArray(list(b.control_dofs)))
+    if b.group >= 0:
+        prim.CreateAttribute(_NS + "group", Sdf.ValueTypeNames.Int).Set(int(b.group))
+
+
+def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, overwrite: bool = False):
+    """Write a simulated trajectory as a .usda for usdview.
+
+    Args:
+        scene: the scene that was simulated (meshes, names, targets).
+        poses: (frames, nbodies, 7) prim-frame poses per frame (``model_to_scene_poses``).
+        fps: frames per second; default 1 / time step.
+        overwrite: replace an existing file.
+
+    Meshes are authored once per body; each body has one time-sampled translate and orient
+    per frame; timeCodesPerSecond and framesPerSecond are both set; target positions are drawn
+    as small green spheres.
+    """
+    Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (len(scene.bodies), 7) or not np.isfinite(poses).all():
+        raise ValueError(f"poses: expected finite (frames, {len(scene.bodies)}, 7), got {poses.shape}")
+    fps = float(fps or 1.0 / scene.settings.time_step)
+
+    def write(tmp: Path):
+        stage = _new_stage(Usd, UsdGeom, tmp)
+        stage.SetTimeCodesPerSecond(fps)
+        stage.SetFramesPerSecond(fps)
+        stage.SetStartTimeCode(0)
+        stage.SetEndTimeCode(len(poses) - 1)
+        for i, b in enumerate(scene.bodies):
+            xform = UsdGeom.Xform.Define(stage, f"/World/{b.name}")
+            _author_mesh(stage, UsdGeom, Vt, Gf, f"/World/{b.name}/mesh", b.vertices, b.faces)
+            if b.static:
+                _set_pose_ops(xform, Gf, UsdGeom, poses[0, i])
+            else:
+                for frame in range(len(poses)):
+                    _set_pose_ops(xform, Gf, UsdGeom, poses[frame, i], time=frame)
+            if b.target_position is not None:
+                marker = UsdGeom.Sphere.Define(stage, f"/World/targets/{b.name}")
+                marker.CreateRadiusAttr(max(float(b.target_tolerance), 0.05))
+                marker.CreateDisplayColorAttr([Gf.Vec3f(0.1, 0.8, 0.2)])
+                marker.CreateDisplayOpacityAttr([0.4])
+                UsdGeom.Xformable(marker).AddTranslateOp().Set(Gf.Vec3d(*map(float, b.target_position)))
+        stage.GetRootLayer().Save()
+
+    _atomic_save(write, path, overwrite)
+
+
+def model_to_scene_poses(scene: Scene, model, body_q) -> np.ndarray:
+    """Convert centre-of-mass poses of a ``Model`` back to the scene's prim-frame poses.
+
+    The builder moves each body frame to its centre of mass; the prim frame sits at
+    -R c from it (c: centre of mass in the prim frame).
+    """
+    body_q = np.asarray(body_q, dtype=np.float64)
+    out = body_q.copy()
+    for i, b in enumerate(scene.bodies):
+        com = _scene_body_com(b)
+        q = body_q[..., i, 3:]
+        rotated = np.apply_along_axis(lambda qq: _quat_rotate(qq, com), -1, q) if q.ndim > 1 else _quat_rotate(q, com)
+        out[..., i, :3] = body_q[..., i, :3] - rotated
+    return out
+
+
+def _scene_body_com(b: BodySpec) -> np.ndarray:
+    if b.static:
+        return np.asarray(b.vertices, dtype=np.float64).mean(axis=0)
+    if b.center_of_mass is not None:
+        return np.asarray(b.center_of_mass, dtype=np.float64)
+    if b.mass is not None and b.inertia is not None:
+        return np.asarray(b.vertices, dtype=np.float64).mean(axis=0)
+    mesh = trimesh.Trimesh(b.vertices, b.faces, process=False)
+    return np.asarray(mesh.mass_properties["center_mass"], dtype=np.float64)
