@@ -60,16 +60,16 @@ def simulate(scene, frames):
 
 def test_physics_only_scene_loads_with_defaults_and_simulates(tmp_path):
     scene = io.load_scene(write_physics_scene(tmp_path / "plain.usda"))
-    assert [b.name for b in scene.bodies] == ["box", "ground"]
-    box, ground = scene.bodies
+    assert [b.name for b in scene.bodies] == ["ground", "box"]  # stage order
+    ground, box = scene.bodies
     assert not box.static and ground.static
     assert len(box.faces) == 12 and len(ground.faces) == 32  # quads fan-triangulated
     np.testing.assert_allclose(scene.gravity, [0, 0, -9.81])
     assert scene.settings == io.SimulationSettings()  # documented defaults
     model, q = simulate(scene, 10)
     # Default density 1000 kg/m^3 for a 0.5 m cube.
-    assert model.body_mass.numpy()[0] == pytest.approx(125.0)
-    assert q[-1, 0, 2] < q[0, 0, 2]  # falls under gravity
+    assert model.body_mass.numpy()[1] == pytest.approx(125.0)
+    assert q[-1, 1, 2] < q[0, 1, 2]  # falls under gravity
 
 
 def test_stage_units_are_converted_to_metres(tmp_path):
@@ -120,7 +120,7 @@ def test_trajectory_export_opens_with_time_samples(tmp_path):
     scene.body("box").target_position = np.array([1.0, 0.0, 0.25])
     model, q = simulate(scene, 5)
     poses = io.model_to_scene_poses(scene, model, q)
-    np.testing.assert_allclose(poses[0, 0], scene.body("box").pose, atol=1e-12)
+    np.testing.assert_allclose(poses[0, 1], scene.body("box").pose, atol=1e-12)
     out = tmp_path / "traj.usda"
     io.export_trajectory(scene, poses, out)
     stage = Usd.Stage.Open(str(out))
@@ -129,7 +129,7 @@ def test_trajectory_export_opens_with_time_samples(tmp_path):
     xf = UsdGeom.Xformable(stage.GetPrimAtPath("/World/box"))
     translate = xf.GetOrderedXformOps()[0]
     assert len(translate.GetTimeSamples()) == 6
-    np.testing.assert_allclose(translate.Get(5), poses[5, 0, :3])
+    np.testing.assert_allclose(translate.Get(5), poses[5, 1, :3])
     assert stage.GetPrimAtPath("/World/box/mesh").IsA(UsdGeom.Mesh)
     assert stage.GetPrimAtPath("/World/targets/box").IsA(UsdGeom.Sphere)
     with pytest.raises(FileExistsError, match="traj.usda"):
@@ -151,7 +151,7 @@ def test_trajectory_export_opens_with_time_samples(tmp_path):
         (dict(mass=-2.0), r"/World/box: mass must be positive"),
         (dict(joint="RevoluteJoint"), r"/World/joint: RevoluteJoint is not supported"),
         (dict(face_counts=[2] * 16), r"/World/ground: .*face 0 has 2 vertices"),
-        (dict(drop_height=0.2), r"intersect in the initial pose: /World/box and /World/ground"),
+        (dict(drop_height=0.2), r"intersect in the initial pose: /World/ground and /World/box"),
     ],
 )
 def test_bad_scenes_name_the_prim_and_problem(tmp_path, kwargs, match):

@@ -364,7 +364,9 @@ def load_scene(path) -> Scene:
             target.vertices = np.concatenate([target.vertices, vertices])
             target.faces = np.concatenate([target.faces, faces + offset])
 
-    all_bodies = list(bodies.values()) + list(static_bodies.values())
+    # Keep the stage's prim order, so bodies come back in the order they were authored.
+    order = {str(prim.GetPath()): i for i, prim in enumerate(stage.Traverse())}
+    all_bodies = sorted(list(bodies.values()) + list(static_bodies.values()), key=lambda b: order.get(b.path, len(order)))
     for b in all_bodies:
         if len(b.faces) == 0:
             raise ValueError(f"{source}: prim {b.path}: rigid body has no collider (apply PhysicsCollisionAPI to a Mesh or primitive under it)")

@@ -1,0 +1,327 @@
+"""The paper's task scenes (appendix "Experimental Details", table "Parameter settings").
+
+``build_scene(name)`` returns a ``Scene``; ``write_scenes(folder)`` writes every scene as
+.usda (the files shipped in ``scenes/``). Run ``python -m warpcontact.scenes scenes`` to
+regenerate them. Shapes are made here, not downloaded:
+
+- balls: convex hulls of N Fibonacci points on a sphere of radius 0.5 m (2N - 4 faces),
+  the construction of the paper's "sphere meshes with uniformly distributed points":
+  N = 18, 42, 82, 196 give 32, 80, 160, 388 faces, i.e. 512, 1280, 2560, 6208 triangles for
+  16 balls; each ball rests on a face (``rest_on_face``), 1 mm above the ground;
+- the bunny: warp-lang's bundled ``bunny.usd`` (12,200 triangles), scaled to 0.3 m,
+  decimated by vertex clustering (``decimate``) to about 270 triangles; its mass
+  properties come from the original closed mesh;
+- grounds: static grids of 0.5 m squares (a coarse ground lets the plane potential push
+  bodies sideways; docs/architecture.md).
+
+Ant-Push needs articulated bodies (the articulations issue) and is not built yet.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from .io import BodySpec, Scene, SimulationSettings, TaskSpec, save_scene
+
+__all__ = ["SCENE_NAMES", "BILLIARDS_SERIES", "build_scene", "write_scenes", "fibonacci_ball", "rest_on_face", "decimate", "bunny_mesh"]
+
+# Ball point counts for the scaling series: faces per ball = 2 N - 4.
+BILLIARDS_SERIES = {"billiards_512": 18, "billiards_1280": 42, "billiards_2560": 82, "billiards_6208": 196}
+SCENE_NAMES = ("billiards", "push", "sort", "gather", "gather_bunny", *BILLIARDS_SERIES)
+
+_IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
+_REST_GAP = 1e-3  # bodies start 1 mm above their support (docs: initial gaps)
+
+
+def convex_hull_of_sphere_points(points: np.ndarray) -> np.ndarray:
+    """Outward-oriented triangles of the convex hull of points in convex position (incremental)."""
+    points = np.asarray(points, dtype=np.float64)
+    a, b, c, d = 0, 1, 2, 3
+    faces = [(a, b, c), (a, c, d), (a, d, b), (b, d, c)]
+    centre = points[:4].mean(axis=0)
+
+    def outward(f):
+        i, j, k = f
+        n = np.cross(points[j] - points[i], points[k] - points[i])
+        return f if np.dot(n, points[i] - centre) > 0 else (i, k, j)
+
+    faces = [outward(f) for f in faces]
+    for p in range(4, len(points)):
+        visible = []
+        for f in faces:
+            i, j, k = f
+            n = np.cross(points[j] - points[i], points[k] - points[i])
+            if np.dot(n, points[p] - points[i]) > 1e-12 * np.linalg.norm(n):
+                visible.append(f)
+        if not visible:
+            raise ValueError(f"point {p} is not in convex position")
+        edges = {(f[e], f[(e + 1) % 3]) for f in visible for e in range(3)}
+        horizon = [(u, v) for (u, v) in edges if (v, u) not in edges]
+        faces = [f for f in faces if f not in visible] + [(u, v, p) for (u, v) in horizon]
+    return np.array(faces, dtype=np.int64)
+
+
+def fibonacci_ball(num_points: int, radius: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """A ball mesh: hull of ``num_points`` Fibonacci points on a sphere (2 N - 4 faces)."""
+    k = np.arange(num_points) + 0.5
+    z = 1.0 - 2.0 * k / num_points
+    theta = np.pi * (1.0 + 5.0**0.5) * k
+    r = np.sqrt(1.0 - z * z)
+    points = radius * np.stack([r * np.cos(theta), r * np.sin(theta), z], axis=1)
+    return points, convex_hull_of_sphere_points(points)
+
+
+def rest_on_face(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float]:
+    """Rotate a convex mesh about its origin so the face most nearly facing down lies flat at
+    the bottom; returns the rotated vertices and the origin's height above that face.
+
+    A ball resting on a vertex must tip onto a face in its first steps, which costs the
+    implicit solver hundreds of Newton iterations; starting on a face avoids that transient.
+    """
+    tri = vertices[faces]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    n = normals[np.argmin(normals[:, 2])]
+    down = np.array([0.0, 0.0, -1.0])
+    axis = np.cross(n, down)
+    sin, cos = np.linalg.norm(axis), float(np.dot(n, down))
+    if sin < 1e-12:
+        rotation = np.eye(3) if cos > 0 else np.diag([1.0, -1.0, -1.0])
+    else:
+        k = axis / sin
+        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        rotation = np.eye(3) + sin * K + (1 - cos) * (K @ K)
+    rotated = vertices @ rotation.T
+    return rotated, float(-rotated[:, 2].min())
+
+
+def decimate(vertices: np.ndarray, faces: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex-clustering decimation: merge vertices per grid cell (mean position), drop
+    collapsed and duplicate triangles, keep unused vertices out."""
+    keys = np.floor(vertices / cell).astype(np.int64)
+    _, cluster = np.unique(keys, axis=0, return_inverse=True)
+    cluster = cluster.reshape(-1)
+    counts = np.bincount(cluster)
+    merged = np.zeros((counts.size, 3))
+    np.add.at(merged, cluster, vertices)
+    merged /= counts[:, None]
+    tri = cluster[faces]
+    keep = (tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])
+    tri = tri[keep]
+    _, unique_rows = np.unique(np.sort(tri, axis=1), axis=0, return_index=True)
+    tri = tri[np.sort(unique_rows)]
+    used, remap = np.unique(tri, return_inverse=True)
+    return merged[used], remap.reshape(-1, 3)
+
+
+def bunny_mesh(target_faces: int = 270, height: float = 0.3):
+    """warp-lang's bunny, z-up, scaled to ``height``, decimated to about ``target_faces``.
+
+    Returns (vertices, faces, mass properties per unit density of the original mesh:
+    volume, centre of mass, inertia), all in the decimated mesh's frame.
+    """
+    from pxr import Usd, UsdGeom
+
+    import warp
+
+    path = os.path.join(os.path.dirname(warp.__file__), "examples", "assets", "bunny.usd")
+    stage = Usd.Stage.Open(path)
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/root/bunny"))
+    points = np.asarray(mesh.GetPointsAttr().Get(), dtype=np.float64)
+    faces = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int64).reshape(-1, 3)
+    points = points[:, [0, 2, 1]] * np.array([1.0, -1.0, 1.0])  # y-up -> z-up: a proper rotation
+    points *= height / np.ptp(points[:, 2])
+    points -= [points[:, 0].mean(), points[:, 1].mean(), points[:, 2].min()]
+    original = trimesh.Trimesh(points, faces, process=True)
+    lo, hi = 1e-3, 0.3
+    for _ in range(40):  # bisect the cell size for the face count
+        cell = 0.5 * (lo + hi)
+        v, f = decimate(points, faces, cell)
+        if len(f) > target_faces:
+            lo = cell
+        else:
+            hi = cell
+    v, f = decimate(points, faces, hi)
+    props = original.mass_properties
+    return v, f, (float(props["volume"]), np.asarray(props["center_mass"]), np.asarray(props["inertia"]))
+
+
+def _grid_ground(size_x: float, size_y: float, cell: float = 0.5, centre=(0.0, 0.0)) -> BodySpec:
+    nx, ny = max(1, int(round(size_x / cell))), max(1, int(round(size_y / cell)))
+    xs = np.linspace(-size_x / 2, size_x / 2, nx + 1) + centre[0]
+    ys = np.linspace(-size_y / 2, size_y / 2, ny + 1) + centre[1]
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    V = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], axis=1)
+    F = []
+    for i in range(nx):
+        for j in range(ny):
+            a = i * (ny + 1) + j
+            F += [[a, a + ny + 1, a + 1], [a + 1, a + ny + 1, a + ny + 2]]
+    return BodySpec("ground", "/World/ground", V, np.array(F, dtype=np.int64), np.array([0, 0, 0, *_IDENTITY]), static=True)
+
+
+def _body(name, mesh, position, **kwargs) -> BodySpec:
+    V, F = mesh
+    return BodySpec(name, f"/World/{name}", np.asarray(V, dtype=np.float64), np.asarray(F, dtype=np.int64), np.array([*position, *_IDENTITY]), **kwargs)
+
+
+def _box_mesh(extents):
+    m = trimesh.creation.box(extents=extents)
+    return np.asarray(m.vertices), np.asarray(m.faces)
+
+
+def _rod(position, dofs, kp=400.0, kd=60.0):
+    """The pusher: a 0.1 x 0.1 x 0.6 m PD-actuated rod hovering just above the ground."""
+    kp_lin = np.array([kp if axis in dofs else 0.0 for axis in "xyz"])
+    # Non-optimised axes are held at their initial values by the same PD controller.
+    kp_lin = np.where(kp_lin == 0, kp, kp_lin)
+    return _body(
+        "rod",
+        _box_mesh((0.1, 0.1, 0.6)),
+        position,
+        density=500.0,
+        kp_linear=kp_lin,
+        kd_linear=np.full(3, kd),
+        kp_angular=kp,
+        kd_angular=kd,
+        control_dofs=tuple(dofs),
+    )
+
+
+def _billiards(points_per_ball: int, *, seed: int = 0) -> Scene:
+    rng = np.random.default_rng(seed)
+    vertices, faces = fibonacci_ball(points_per_ball)
+    vertices, height = rest_on_face(vertices, faces)
+    ball = (vertices, faces)
+    radius = np.linalg.norm(vertices, axis=1).max()
+    spacing = 2 * radius + 0.05
+    centres = [(row * spacing * np.sqrt(3) / 2 + 4.0, (k - row / 2) * spacing) for row in range(5) for k in range(row + 1)]
+    z = height + _REST_GAP
+    bodies = [_billiards_ground()]
+    cue = _body("cue", ball, (-2.0, 0.0, z), density=100.0, control_dofs=("x", "y", "vx", "vy"))
+    bodies.append(cue)
+    targets = rng.choice(15, size=2, replace=False)
+    for i, (x, y) in enumerate(centres):
+        b = _body(f"ball{i:02d}", ball, (x, y, z), density=100.0)
+        if i in targets:
+            b.target_position = np.array([x + rng.uniform(1.0, 2.5), y + rng.uniform(-2.0, 2.0), z])
+            b.target_tolerance = 0.2
+        bodies.append(b)
+    return Scene(
+        bodies=bodies,
+        settings=SimulationSettings(time_step=0.04, frames=100, contact_stiffness=1e-7, eps=0.5, friction=0.3),
+        task=TaskSpec(name="billiards", control="initial_state", horizon=100, receding_horizon=0, learning_rate=3e-2, iterations=400),
+    )
+
+
+def _billiards_ground() -> BodySpec:
+    return _grid_ground(16.0, 10.0, 0.5, centre=(3.0, 0.0))
+
+
+def _push() -> Scene:
+    box = _body("box", _box_mesh((0.5, 0.5, 0.5)), (0.0, 0.0, 0.25 + _REST_GAP), density=200.0, target_position=np.array([2.5, 0.0, 0.25]), target_tolerance=0.2)
+    rod = _rod((1.0, 0.0, 0.3 + 0.02), ("x", "y", "z", "rx", "ry", "rz"))
+    return Scene(
+        bodies=[_grid_ground(8.0, 6.0), box, rod],
+        settings=SimulationSettings(time_step=0.04, frames=200, contact_stiffness=1e-6, friction=0.5),
+        task=TaskSpec(name="push", control="pd_targets", horizon=200, receding_horizon=48, learning_rate=1e-2, iterations=50),
+    )
+
+
+def _scattered_cubes(rng, count, mesh_factory, *, labels=None, target_of=None, spread=2.0):
+    bodies = []
+    placed = []
+    while len(placed) < count:
+        xy = rng.uniform(-spread, spread, size=2)
+        if all(np.linalg.norm(xy - p) > 0.7 for p in placed) and np.linalg.norm(xy) > 0.6:
+            placed.append(xy)
+    for i, xy in enumerate(placed):
+        body = mesh_factory(i, xy)
+        if labels is not None:
+            body.group = int(labels[i])
+        body.target_position, body.target_tolerance = target_of(body)
+        bodies.append(body)
+    return bodies
+
+
+def _cube_factory(prefix):
+    def make(i, xy):
+        return _body(f"{prefix}{i}", _box_mesh((0.3, 0.3, 0.3)), (xy[0], xy[1], 0.15 + _REST_GAP), density=200.0)
+
+    return make
+
+
+def _sort(seed: int = 1) -> Scene:
+    rng = np.random.default_rng(seed)
+    labels = rng.permutation([0] * 5 + [1] * 5)
+    regions = {0: np.array([-3.0, 0.0, 0.15]), 1: np.array([3.0, 0.0, 0.15])}
+    cubes = _scattered_cubes(rng, 10, _cube_factory("cube"), labels=labels, target_of=lambda b: (regions[b.group], 0.6))
+    return Scene(
+        bodies=[_grid_ground(10.0, 7.0), *cubes, _rod((0.0, 0.0, 0.3 + 0.02), ("x", "y", "z"))],
+        settings=SimulationSettings(time_step=0.04, frames=700, contact_stiffness=3e-8, friction=0.5),
+        task=TaskSpec(name="sort", control="pd_targets", horizon=700, receding_horizon=16, learning_rate=1e-2, iterations=100),
+    )
+
+
+def _gather(seed: int = 2, *, bunny: bool = False) -> Scene:
+    rng = np.random.default_rng(seed)
+    goal = (np.array([0.0, 0.0, 0.15]), 0.8)
+    if bunny:
+        v, f, (volume, com, inertia) = bunny_mesh()
+        density = 200.0
+        mass = volume * density
+
+        def factory(i, xy):
+            return _body(
+                f"bunny{i}",
+                (v, f),
+                (xy[0], xy[1], _REST_GAP - v[:, 2].min()),
+                mass=mass,
+                inertia=inertia * density,
+                center_of_mass=com,
+            )
+
+    else:
+        factory = _cube_factory("cube")
+    objects = _scattered_cubes(rng, 10, factory, target_of=lambda b: goal, spread=2.5)
+    name = "gather_bunny" if bunny else "gather"
+    return Scene(
+        bodies=[_grid_ground(8.0, 8.0), *objects, _rod((3.2, 3.2, 0.3 + 0.02), ("x", "y", "z", "yaw"))],
+        settings=SimulationSettings(time_step=0.04, frames=550 if bunny else 300, contact_stiffness=5e-9 if bunny else 3e-8, friction=0.5),
+        task=TaskSpec(name=name, control="pd_targets", horizon=550 if bunny else 300, receding_horizon=32, learning_rate=1e-2, iterations=60),
+    )
+
+
+def build_scene(name: str) -> Scene:
+    """The named task scene (``SCENE_NAMES``)."""
+    if name == "billiards":
+        return _billiards(18)
+    if name in BILLIARDS_SERIES:
+        return _billiards(BILLIARDS_SERIES[name])
+    builders = {"push": _push, "sort": _sort, "gather": _gather, "gather_bunny": lambda: _gather(bunny=True)}
+    if name not in builders:
+        raise ValueError(f"scene: {name!r} is not one of {', '.join(SCENE_NAMES)}")
+    return builders[name]()
+
+
+def write_scenes(folder, *, overwrite: bool = False) -> list[Path]:
+    """Write every scene in ``SCENE_NAMES`` to ``folder``/NAME.usda."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name in SCENE_NAMES:
+        scene = build_scene(name)
+        path = folder / f"{name}.usda"
+        save_scene(scene, path, overwrite=overwrite)
+        paths.append(path)
+    return paths
+
+
+if __name__ == "__main__":
+    for p in write_scenes(sys.argv[1] if len(sys.argv) > 1 else "scenes", overwrite=True):
+        print(p)
