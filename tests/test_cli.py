@@ -1,8 +1,10 @@
 """CLI commands run end to end on tiny cases and write well-formed output."""
 
 import json
+from pathlib import Path
 
 import pytest
+from pxr import Usd
 
 from warpcontact.cli import main
 
@@ -50,3 +52,26 @@ def test_bad_arguments_exit_with_usage_error(argv):
 def test_bad_device_is_a_clear_error(tmp_path, capsys):
     assert main(["bench", "leaf", "--pairs", "10", "--device", "cuda:7", "--out", str(tmp_path)]) == 2
     assert "device" in capsys.readouterr().err
+
+
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+
+
+def test_simulate_writes_trajectory_and_summary(tmp_path, capsys):
+    if not SCENES.is_dir():
+        pytest.skip("scenes/ not found next to tests/")
+    args = ["simulate", str(SCENES / "push.usda"), "--frames", "3", "--out", str(tmp_path)]
+    assert main(args) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["frames"] == 3 and summary["newton_iterations_max"] >= 1
+    assert set(summary["targets"]) == {"box"}
+    stage = Usd.Stage.Open(str(tmp_path / "trajectory.usda"))
+    assert stage.GetEndTimeCode() == 3
+    assert main(args) == 2  # never overwrites without --overwrite
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(args + ["--overwrite"]) == 0
+
+
+def test_simulate_reports_bad_scene_paths(tmp_path, capsys):
+    assert main(["simulate", str(tmp_path / "missing.usda"), "--out", str(tmp_path)]) == 2
+    assert "file not found" in capsys.readouterr().err
