@@ -42,6 +42,14 @@ def test_bench_contact_writes_results_and_plot(tmp_path):
     assert (tmp_path / "contact.png").stat().st_size > 1000
 
 
+def test_bench_scaling_writes_results(tmp_path):
+    assert main(["bench", "scaling", "--points", "8", "12", "--repeats", "1", "--out", str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / "scaling.json").read_text())["rows"]
+    assert [(r["triangles"], r["mode"]) for r in rows] == [(192, "bsh"), (192, "brute"), (320, "bsh"), (320, "brute")]
+    assert all(r["median_seconds"] > 0 for r in rows)
+    assert (tmp_path / "scaling.png").stat().st_size > 1000
+
+
 @pytest.mark.parametrize("argv", [["demo", "--gaps", "-1"], ["bench", "leaf", "--pairs", "0"], ["bench", "contact", "--eps", "nan"]])
 def test_bad_arguments_exit_with_usage_error(argv):
     with pytest.raises(SystemExit) as exc:

@@ -13,7 +13,7 @@ from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
 from .leaf import DEFAULT_MAX_ITERATIONS
 
-__all__ = ["leaf_benchmark_pairs", "run_leaf_benchmark", "contact_benchmark_scenes", "run_contact_benchmark"]
+__all__ = ["leaf_benchmark_pairs", "run_leaf_benchmark", "contact_benchmark_scenes", "run_contact_benchmark", "run_scaling_benchmark"]
 
 
 def leaf_benchmark_pairs(num_pairs: int, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -226,6 +226,71 @@ def _plot_contact_benchmark(rows: list[dict], path: Path) -> bool:
         ax.set_title(f"{scene}: eps sweep (labels)")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return True
+
+
+def run_scaling_benchmark(*, points_per_ball, eps: float, brute_max_triangles: int, repeats: int, device, out_dir: Path) -> list[dict]:
+    """Time per contact evaluate (value + gradient + Hessian) of a 16-ball rack as the balls
+    get finer; writes scaling.json and, with matplotlib, scaling.png.
+
+    Balls are the scenes' Fibonacci hulls (2 N - 4 faces), racked 0.05 m apart.
+    """
+    from .scenes import fibonacci_ball
+
+    dev = resolve_device(device)
+    rows = []
+    for n in points_per_ball:
+        ball = fibonacci_ball(n)
+        poses = _identity_poses(rack_positions(radius=0.5, gap=0.05))
+        triangles = 16 * len(ball[1])
+        for mode in ("bsh", "brute"):
+            if mode == "brute" and triangles > brute_max_triangles:
+                continue
+            model = ContactModel([ball] * 16, mode=mode, eps=eps, device=dev)
+            result = model.evaluate(poses)
+            seconds = _median_seconds(lambda: model.evaluate(poses), repeats)
+            rows.append(
+                {
+                    "triangles": triangles,
+                    "mode": mode,
+                    "eps": eps,
+                    "median_seconds": seconds,
+                    "seconds_per_triangle": seconds / triangles,
+                    "num_far": result.num_far,
+                    "num_blend": result.num_blend,
+                    "num_leaf": result.num_leaf,
+                }
+            )
+    payload = {"benchmark": "scaling", "device": str(dev), "device_name": dev.name, "date": time.strftime("%Y-%m-%d"), "repeats": repeats, "rows": rows}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "scaling.json").write_text(json.dumps(payload, indent=2) + "\n")
+    _plot_scaling(rows, out_dir / "scaling.png")
+    return rows
+
+
+def _plot_scaling(rows: list[dict], path: Path) -> bool:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return False
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    for mode in ("bsh", "brute"):
+        sel = [r for r in rows if r["mode"] == mode]
+        if sel:
+            ax.loglog([r["triangles"] for r in sel], [r["median_seconds"] for r in sel], "o-", label=mode)
+    t = np.array(sorted({r["triangles"] for r in rows}), dtype=float)
+    first = next(r for r in rows if r["mode"] == "bsh")
+    ax.loglog(t, first["median_seconds"] * t / t[0], "k:", label="linear")
+    ax.set_xlabel("triangles (16 balls)")
+    ax.set_ylabel("seconds per evaluate (value, gradient, Hessian)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -142,6 +142,24 @@ def _bench_contact(args) -> int:
     return 0
 
 
+def _bench_scaling(args) -> int:
+    from .bench import run_scaling_benchmark
+
+    rows = run_scaling_benchmark(
+        points_per_ball=args.points,
+        eps=args.eps,
+        brute_max_triangles=args.brute_max_triangles,
+        repeats=args.repeats,
+        device=args.device,
+        out_dir=Path(args.out),
+    )
+    print(f"{'triangles':>9} {'mode':>6} {'seconds':>9} {'us/triangle':>11} {'far':>7} {'blend':>7} {'leaf':>8}")
+    for r in rows:
+        print(f"{r['triangles']:9d} {r['mode']:>6} {r['median_seconds']:9.4f} {1e6 * r['seconds_per_triangle']:11.2f} {r['num_far']:7d} {r['num_blend']:7d} {r['num_leaf']:8d}")
+    print(f"wrote {Path(args.out) / 'scaling.json'}")
+    return 0
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
@@ -191,6 +209,14 @@ def build_parser() -> argparse.ArgumentParser:
     contact.add_argument("--device", default="cpu")
     contact.add_argument("--out", default="outputs/bench")
     contact.set_defaults(func=_bench_contact)
+    scaling = bench_sub.add_parser("scaling", help="contact cost against triangle count (16-ball rack)")
+    scaling.add_argument("--points", type=_positive_int, nargs="+", default=[18, 42, 82, 196], help="points per ball (2N-4 faces)")
+    scaling.add_argument("--eps", type=_positive_float, default=0.5)
+    scaling.add_argument("--brute-max-triangles", type=int, default=2560)
+    scaling.add_argument("--repeats", type=_positive_int, default=3)
+    scaling.add_argument("--device", default="cpu")
+    scaling.add_argument("--out", default="outputs/bench")
+    scaling.set_defaults(func=_bench_scaling)
     return parser
 
 
