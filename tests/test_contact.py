@@ -352,3 +352,27 @@ def test_pair_separation_is_a_lower_bound_on_surface_distance():
         assert res.pair_separation[0] > 0.3 * gap
     hit = model.evaluate(identity_poses([[0, 0, 0], [0.5, 0, 0], [0, 0, 10.0]]))
     assert hit.pair_separation[0] == 0.0
+
+
+def test_blend_zone_terms_push_apart():
+    """Root pair inside its blend shell (d1 < r < d2): the single blended term still pushes apart.
+
+    Its force has the product-rule part (S - P_c) grad(phi) besides the blended ones; the paper's
+    Lemma (assumption P_c <= S) makes every part point from one cluster to the other.
+    """
+    meshes = [icosphere(1), icosphere(1, radius=0.3)]
+    model = wc.ContactModel(meshes, eps=2.0)
+    d1 = model.trees[0].radii[0] + model.trees[1].radii[0]
+    rng = np.random.default_rng(4)
+    for s in np.linspace(0.05, 0.95, 7):
+        direction = rng.normal(size=3)
+        direction /= np.linalg.norm(direction)
+        poses = identity_poses([[0, 0, 0], (d1 * (1 + 2.0 * s)) * direction])
+        lists = model.term_lists(poses)
+        top = [row for row in lists.blend if row[2] == -1]
+        assert len(top) == 1 and len(lists.far[lists.far[:, 2] == -1]) == 0  # one blended root term
+        res = model.evaluate(poses)
+        assert res.ok
+        assert np.dot(-res.grad[1, :3], direction) > 0
+        assert np.dot(-res.grad[0, :3], -direction) > 0
+        np.testing.assert_allclose(res.grad[0, :3], -res.grad[1, :3], rtol=1e-9)
