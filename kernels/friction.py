@@ -21,7 +21,7 @@ import warp as wp
 
 from .blend import quintic_blend
 from .leaf import LEAF_OK, leaf_plane_sensitivity, leaf_solve
-from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d
+from .rigid import rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d
 
 wp.set_module_options({"enable_backward": False})
 
@@ -155,7 +155,6 @@ def friction_energy_kernel(
     g = (coeff / root) * u  # dD/dx_a at the material point (u is tangent)
     f2 = (wp.identity(n=3, dtype=wp.float64) - wp.outer(u, u) / (root * root)) / root
     h = coeff * (tangent * f2 * tangent)
-    grads = wp.mat33d()
     for side in range(2):
         body = pair[side]
         if body_dynamic[body] == 0:

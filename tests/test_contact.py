@@ -341,7 +341,6 @@ def test_pair_separation_is_a_lower_bound_on_surface_distance():
     for gap in (1e-3, 0.1, 2.0):
         poses = identity_poses([[0, 0, 0], [1.0 + gap, 0, 0], [0, 0, 10.0]])
         res = model.evaluate(poses)
-        V = meshes[0][0]
         # True surface distances of the mesh pairs, from their vertex sets (upper bounds on the
         # triangle distance), must exceed the reported lower bounds; the bound is not vacuous.
         for row, (a, b) in enumerate(model.body_pairs):

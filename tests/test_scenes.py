@@ -4,7 +4,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import warp as wp
 import trimesh
 
 import warpcontact as wc

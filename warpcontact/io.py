@@ -373,7 +373,7 @@ def load_scene(path) -> Scene:
     if not any(not b.static for b in all_bodies):
         raise ValueError(f"{source}: no dynamic rigid bodies (apply PhysicsRigidBodyAPI to at least one prim)")
     names = [b.name for b in all_bodies]
-    for i, b in enumerate(all_bodies):
+    for b in all_bodies:
         if names.count(b.name) > 1:
             b.name = b.path.strip("/").replace("/", "_")
 
@@ -658,8 +658,8 @@ def model_to_scene_poses(scene: Scene, model, body_q) -> np.ndarray:
     out = body_q.copy()
     for i, b in enumerate(scene.bodies):
         com = _scene_body_com(b)
-        q = body_q[..., i, 3:]
-        rotated = np.apply_along_axis(lambda qq: _quat_rotate(qq, com), -1, q) if q.ndim > 1 else _quat_rotate(q, com)
+        u, w = body_q[..., i, 3:6], body_q[..., i, 6:7]
+        rotated = com + 2.0 * np.cross(u, np.cross(u, com) + w * com)
         out[..., i, :3] = body_q[..., i, :3] - rotated
     return out
 
