@@ -1,7 +1,8 @@
-"""Command-line entry point: ``warpcontact simulate | demo | bench leaf | bench contact``."""
+"""Command-line entry point: ``warpcontact run | list | simulate | demo | bench ...``."""
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -111,6 +112,112 @@ def _simulate(args) -> int:
     return 0
 
 
+def _resolve_scene_path(name: str) -> Path:
+    """A .usda path, or a task name looked up in ./scenes (the shipped scenes)."""
+    path = Path(name)
+    if path.suffix in (".usda", ".usd", ".usdc"):
+        return path
+    candidate = Path("scenes") / f"{name}.usda"
+    if candidate.is_file():
+        return candidate
+    from .scenes import SCENE_NAMES
+
+    raise ValueError(f"{name!r}: not a .usda file and not a scene in ./scenes (known: {', '.join(SCENE_NAMES)})")
+
+
+def _run(args) -> int:
+    from . import io
+    from .tasks import TaskProblem, TaskSettings
+
+    from ._runtime import resolve_device
+
+    if args.model != "ours":
+        raise ValueError(f"--model {args.model}: only 'ours' is available; the baselines ipc, sdrs and gb are not implemented yet")
+    resolve_device(args.device)  # fail before any work
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if not os.access(out, os.W_OK):
+        raise ValueError(f"{out}: output folder is not writable")
+    scene_path = _resolve_scene_path(args.task)
+    scene = io.load_scene(scene_path)
+    np.random.seed(args.seed)
+    t = scene.task
+    settings = TaskSettings(
+        horizon=t.horizon or scene.settings.frames,
+        receding_horizon=t.receding_horizon,
+        iterations=args.iters or t.iterations,
+        learning_rate=t.learning_rate,
+    )
+    if args.quick:
+        # A few minutes on a 2-core CPU: short horizons and windows, few iterations.
+        settings.horizon = min(settings.horizon, 24)
+        settings.receding_horizon = min(settings.receding_horizon, 8) if settings.receding_horizon else 0
+        settings.iterations = min(settings.iterations, args.iters or 8)
+    problem = TaskProblem(scene, device=args.device, settings=settings)
+    print(f"{scene_path}: task {t.name}, control {t.control} of {problem.dof_names}, horizon {settings.horizon}, "
+          f"window {settings.receding_horizon or settings.horizon}, {settings.iterations} iterations, lr {settings.learning_rate}")
+
+    def progress(i, n, loss):
+        bar = "#" * int(30 * i / n)
+        print(f"\r[{bar:<30}] {i}/{n} loss {loss:.6g}", end="", flush=True)
+
+    result = problem.optimize(progress=progress)
+    print()
+    metrics = {
+        "task": t.name,
+        "scene": str(scene_path),
+        "model": args.model,
+        "device": str(problem.model.device),
+        "seed": args.seed,
+        "quick": bool(args.quick),
+        "horizon": settings.horizon,
+        "receding_horizon": settings.receding_horizon,
+        "learning_rate": settings.learning_rate,
+        "loss_history": result.loss_history,
+        "initial_loss": result.initial_loss,
+        "final_loss": result.final_loss,
+        "success": result.success,
+        "seconds": result.seconds,
+        "iterations": result.iterations,
+    }
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    _plot_convergence(result.loss_history, out / "convergence.png", title=f"{t.name} ({args.model})")
+    io.export_trajectory(scene, io.model_to_scene_poses(scene, problem.model, result.trajectory), out / "trajectory.usda", overwrite=True)
+    print(f"loss {result.initial_loss:.6g} -> {result.final_loss:.6g}, success {result.success}, {result.seconds:.1f} s; wrote {out}/metrics.json, convergence.png, trajectory.usda")
+    return 0
+
+
+def _plot_convergence(history, path: Path, *, title: str) -> bool:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return False
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    ax.plot(np.arange(1, len(history) + 1), history)
+    ax.set_xlabel("optimiser iteration")
+    ax.set_ylabel("loss")
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return True
+
+
+def _list(args) -> int:
+    from .scenes import SCENE_NAMES
+
+    print("tasks and scenes (run with: warpcontact run NAME | PATH.usda):")
+    for name in SCENE_NAMES:
+        path = Path("scenes") / f"{name}.usda"
+        print(f"  {name:16s} {path if path.is_file() else '(not in ./scenes)'}")
+    print("models: ours (baselines ipc, sdrs, gb are not implemented yet)")
+    return 0
+
+
 def _bench_leaf(args) -> int:
     from .bench import run_leaf_benchmark
 
@@ -184,6 +291,19 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--device", default="cpu")
     demo.add_argument("--out", default="outputs/demo")
     demo.set_defaults(func=_demo)
+
+    run = sub.add_parser("run", help="optimise a task by gradient descent through the simulator")
+    run.add_argument("task", help="a task name (scenes/NAME.usda) or a .usda with task metadata")
+    run.add_argument("--model", default="ours", choices=["ours", "ipc", "sdrs", "gb"])
+    run.add_argument("--iters", type=_positive_int, default=None, help="optimiser iterations (per window)")
+    run.add_argument("--device", default="cpu")
+    run.add_argument("--quick", action="store_true", help="short horizons and few iterations (minutes on a CPU)")
+    run.add_argument("--seed", type=int, default=0)
+    run.add_argument("--out", default="outputs/run")
+    run.set_defaults(func=_run)
+
+    listing = sub.add_parser("list", help="list tasks and scenes")
+    listing.set_defaults(func=_list)
 
     simulate = sub.add_parser("simulate", help="simulate a USD scene and export its trajectory")
     simulate.add_argument("scene", help="a .usda scene (e.g. scenes/push.usda)")

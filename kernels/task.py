@@ -1,0 +1,97 @@
+"""Task kernels, differentiated by Warp's autodiff: control parameterisations and the loss.
+
+Degree-of-freedom codes of a controlled body: 0 x, 1 y, 2 z (translations, m),
+3 rx, 4 ry, 5 rz (rotation vector about world axes, rad), 6 yaw (= rz), 7 vx, 8 vy,
+9 vz (initial velocity, m/s).
+"""
+
+import warp as wp
+
+__all__ = ["DOF_CODES", "pd_target_kernel", "initial_state_kernel", "target_loss_kernel"]
+
+DOF_CODES = {"x": 0, "y": 1, "z": 2, "rx": 3, "ry": 4, "rz": 5, "yaw": 6, "vx": 7, "vy": 8, "vz": 9}
+
+
+@wp.func
+def _rotation_from_vector(w: wp.vec3d):
+    angle = wp.length(w)
+    if angle < wp.float64(1.0e-9):
+        # Series keeps the adjoint finite at zero rotation.
+        return wp.normalize(wp.quatd(wp.float64(0.5) * w[0], wp.float64(0.5) * w[1], wp.float64(0.5) * w[2], wp.float64(1.0)))
+    s = wp.sin(wp.float64(0.5) * angle) / angle
+    return wp.quatd(s * w[0], s * w[1], s * w[2], wp.cos(wp.float64(0.5) * angle))
+
+
+@wp.func
+def _offsets(values: wp.array2d(dtype=wp.float64), row: int, dof_codes: wp.array(dtype=wp.int32)):
+    """(translation, rotation vector, velocity) from one row of decision variables."""
+    dp = wp.vec3d()
+    rv = wp.vec3d()
+    dv = wp.vec3d()
+    for k in range(dof_codes.shape[0]):
+        code = dof_codes[k]
+        v = values[row, k]
+        if code < 3:
+            dp[code] = dp[code] + v
+        elif code < 6:
+            rv[code - 3] = rv[code - 3] + v
+        elif code == 6:
+            rv[2] = rv[2] + v
+        else:
+            dv[code - 7] = dv[code - 7] + v
+    return dp, rv, dv
+
+
+@wp.kernel
+def pd_target_kernel(
+    # Model:
+    body: int,
+    base_pose: wp.transformd,
+    dof_codes: wp.array(dtype=wp.int32),
+    # Data in:
+    values: wp.array2d(dtype=wp.float64),
+    row: int,
+    # Data out:
+    target_out: wp.array(dtype=wp.transformd),
+):
+    """Target of ``body`` = base pose moved by the row's offsets (rotation about world axes)."""
+    dp, rv, dv = _offsets(values, row, dof_codes)
+    rot = _rotation_from_vector(rv) * wp.transform_get_rotation(base_pose)
+    target_out[body] = wp.transformd(wp.transform_get_translation(base_pose) + dp, rot)
+
+
+@wp.kernel
+def initial_state_kernel(
+    # Model:
+    body: int,
+    base_pose: wp.transformd,
+    dof_codes: wp.array(dtype=wp.int32),
+    # Data in:
+    values: wp.array2d(dtype=wp.float64),
+    # Data out:
+    body_q_out: wp.array(dtype=wp.transformd),
+    linear_velocity_out: wp.array(dtype=wp.vec3d),
+):
+    """Initial pose and velocity of ``body`` from the decision variables (row 0)."""
+    dp, rv, dv = _offsets(values, 0, dof_codes)
+    rot = _rotation_from_vector(rv) * wp.transform_get_rotation(base_pose)
+    body_q_out[body] = wp.transformd(wp.transform_get_translation(base_pose) + dp, rot)
+    linear_velocity_out[body] = dv
+
+
+@wp.kernel
+def target_loss_kernel(
+    # Model:
+    target_body: wp.array(dtype=wp.int32),
+    target_position: wp.array(dtype=wp.vec3d),
+    target_tolerance: wp.array(dtype=wp.float64),
+    # Data in:
+    body_q: wp.array(dtype=wp.transformd),
+    # Data out:
+    loss_out: wp.array(dtype=wp.float64),
+):
+    """sum over targets of ReLU(|x_com - x*|^2 - tolerance^2) (paper, "Benchmark Details")."""
+    i = wp.tid()
+    d = wp.transform_get_translation(body_q[target_body[i]]) - target_position[i]
+    tol = target_tolerance[i]
+    wp.atomic_add(loss_out, 0, wp.max(wp.dot(d, d) - tol * tol, wp.float64(0.0)))

@@ -1,0 +1,243 @@
+"""Task optimisation (paper, section "Evaluation"): gradient descent through the simulator.
+
+A task is a ``Scene`` with target bodies (``target_position``, ``target_tolerance``) and one
+controlled body whose ``control_dofs`` are the decision variables:
+
+- control ``"initial_state"`` (Billiards): one row of offsets to the controlled body's
+  initial pose and velocity (e.g. x, y, vx, vy);
+- control ``"pd_targets"`` (Push, Sort, Gather): one row per frame of offsets to the PD
+  target pose (translations, rotation vector or yaw), optimised over a receding horizon of
+  ``receding_horizon`` frames; the first action is applied and the window shifts.
+
+Loss: sum over targets of ReLU(|x_com - x*|^2 - tolerance^2) at the window's last frame.
+Gradients come from ``wp.Tape`` through the implicit steps; the optimiser is Adam with the
+paper's betas (0.3, 0.5). Trivial initial guess: all offsets zero.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .kernels import task as task_kernels
+from .solver import ImplicitSolver, SolverError
+from .types import State, set_body_velocity
+
+__all__ = ["CONTROL_KINDS", "TaskSettings", "TaskResult", "TaskProblem", "adam"]
+
+CONTROL_KINDS = ("initial_state", "pd_targets")
+
+
+@dataclass
+class TaskSettings:
+    """Optimisation settings (defaults from the scene's task metadata)."""
+
+    horizon: int
+    receding_horizon: int
+    iterations: int
+    learning_rate: float
+    betas: tuple = (0.3, 0.5)
+
+
+@dataclass
+class TaskResult:
+    loss_history: list
+    initial_loss: float
+    final_loss: float
+    success: bool
+    iterations: int
+    seconds: float
+    values: np.ndarray
+    trajectory: np.ndarray  # (frames + 1, nbodies, 7) centre-of-mass poses
+    extra: dict = field(default_factory=dict)
+
+
+# Long-range gradients can be ~1e-9 (far objects, small mu); a customary eps of 1e-8 would
+# then shrink Adam's steps by orders of magnitude. In float64 a tiny eps keeps steps
+# scale-free, and a zero gradient still gives a zero step.
+ADAM_EPS = 1e-30
+
+
+def adam(betas, learning_rate):
+    """Adam step function with state: update(x, g) -> x (in place); ``update.learning_rate``
+    may be changed between steps."""
+    b1, b2 = betas
+    state = {"m": None, "v": None, "t": 0}
+
+    def update(x, g):
+        if state["m"] is None:
+            state["m"], state["v"] = np.zeros_like(x), np.zeros_like(x)
+        state["t"] += 1
+        state["m"] = b1 * state["m"] + (1 - b1) * g
+        state["v"] = b2 * state["v"] + (1 - b2) * g * g
+        m_hat = state["m"] / (1 - b1 ** state["t"])
+        v_hat = state["v"] / (1 - b2 ** state["t"])
+        x -= update.learning_rate * m_hat / (np.sqrt(v_hat) + ADAM_EPS)
+        return x
+
+    update.learning_rate = learning_rate
+    return update
+
+
+def _descend(rollout, values, settings, history, progress=None, total=None):
+    """Adam iterations on ``values`` (in place); returns (best loss, best values, its trajectory).
+
+    An update that makes the rollout infeasible (bodies intersecting at the start, or a step
+    that fails) is undone and the learning rate halved: the loss is +inf there.
+    """
+    step = adam(settings.betas, settings.learning_rate)
+    best = (np.inf, values.copy(), None)
+    feasible = values.copy()
+    for it in range(settings.iterations):
+        try:
+            loss, grad, trajectory = rollout(values)
+        except (ValueError, SolverError):
+            if not np.isfinite(best[0]):
+                raise
+            values[:] = feasible
+            step.learning_rate *= 0.5
+            history.append(history[-1])
+            continue
+        feasible = values.copy()
+        history.append(loss)
+        if loss < best[0]:
+            best = (loss, values.copy(), trajectory)
+        if progress and total is None:
+            progress(it + 1, settings.iterations, loss)
+        step(values, grad)
+    return best
+
+
+class TaskProblem:
+    """A scene's optimisation problem: rollouts with loss and gradient, and the optimiser.
+
+    Raises ValueError when the scene has no task metadata, no target bodies, no or several
+    controlled bodies, or an unknown control kind.
+    """
+
+    def __init__(self, scene, *, device="cpu", settings: TaskSettings | None = None):
+        source = scene.source or "<scene>"
+        task = scene.task
+        if not task.name:
+            raise ValueError(f"{source}: no task metadata (warpcontact:task:name on the PhysicsScene prim)")
+        if task.control not in CONTROL_KINDS:
+            raise ValueError(f"{source}: task control {task.control!r} is not one of {CONTROL_KINDS}")
+        controlled = [i for i, b in enumerate(scene.bodies) if b.control_dofs]
+        if len(controlled) != 1:
+            raise ValueError(f"{source}: expected exactly one body with warpcontact:control:dofs, found {len(controlled)}")
+        targets = [i for i, b in enumerate(scene.bodies) if b.target_position is not None]
+        if not targets:
+            raise ValueError(f"{source}: no target bodies (warpcontact:target:position)")
+        self.scene = scene
+        self.kind = task.control
+        self.settings = settings or TaskSettings(
+            horizon=task.horizon or scene.settings.frames,
+            receding_horizon=task.receding_horizon,
+            iterations=task.iterations,
+            learning_rate=task.learning_rate,
+        )
+        self.model = scene.build_model(device=device)
+        self.solver = ImplicitSolver(self.model)
+        self.dt = scene.settings.time_step
+        self.body = controlled[0]
+        body = scene.bodies[self.body]
+        unknown = [d for d in body.control_dofs if d not in task_kernels.DOF_CODES]
+        if unknown:
+            raise ValueError(f"{source}: prim {body.path}: unknown control dofs {unknown}")
+        self.dof_names = tuple(body.control_dofs)
+        self.base_pose = self.model.initial_q[self.body].copy()
+        device = self.model.device
+        self._dof_codes = wp.array([task_kernels.DOF_CODES[d] for d in self.dof_names], dtype=wp.int32, device=device)
+        self._target_body = wp.array(targets, dtype=wp.int32, device=device)
+        self._target_position = wp.array([scene.bodies[i].target_position for i in targets], dtype=wp.vec3d, device=device)
+        self._target_tolerance = wp.array([scene.bodies[i].target_tolerance for i in targets], dtype=wp.float64, device=device)
+        self.targets = targets
+
+    # --- rollouts -------------------------------------------------------------------------
+
+    def _state(self, q, q_prev) -> State:
+        device = self.model.device
+        return State(
+            body_q=wp.array(q, dtype=wp.transformd, device=device, requires_grad=True),
+            body_q_prev=wp.array(q_prev, dtype=wp.transformd, device=device, requires_grad=True),
+        )
+
+    def rollout(self, values: np.ndarray, start: tuple, frames: int, *, gradient: bool = True):
+        """Simulate ``frames`` frames from ``start`` = (q, q_prev) under ``values``.
+
+        Returns (loss, d loss / d values or None, trajectory (frames + 1, nbodies, 7)).
+        """
+        device = self.model.device
+        values_arr = wp.array(np.atleast_2d(values), dtype=wp.float64, device=device, requires_grad=True)
+        base = wp.transformd(*map(float, self.base_pose))
+        states = [self._state(*start)] + [self._state(start[0], start[0]) for _ in range(frames)]
+        controls = [self.model.control() for _ in range(frames)] if self.kind == "pd_targets" else [None] * frames
+        loss = wp.zeros(1, dtype=wp.float64, device=device, requires_grad=True)
+        tape = wp.Tape()
+        with tape:
+            if self.kind == "initial_state":
+                velocity = wp.zeros(self.model.num_bodies, dtype=wp.vec3d, device=device, requires_grad=True)
+                wp.launch(task_kernels.initial_state_kernel, dim=1, inputs=[self.body, base, self._dof_codes, values_arr], outputs=[states[0].body_q, velocity], device=device)
+                set_body_velocity(states[0], velocity, wp.zeros(self.model.num_bodies, dtype=wp.vec3d, device=device, requires_grad=True), self.dt)
+            for f in range(frames):
+                if self.kind == "pd_targets":
+                    wp.launch(task_kernels.pd_target_kernel, dim=1, inputs=[self.body, base, self._dof_codes, values_arr, f], outputs=[controls[f].body_target], device=device)
+                self.solver.step(states[f], states[f + 1], controls[f], self.dt)
+            wp.launch(
+                task_kernels.target_loss_kernel,
+                dim=len(self.targets),
+                inputs=[self._target_body, self._target_position, self._target_tolerance, states[-1].body_q],
+                outputs=[loss],
+                device=device,
+            )
+        grad = None
+        if gradient:
+            tape.backward(loss)
+            grad = values_arr.grad.numpy().reshape(np.shape(values))
+        trajectory = np.array([s.body_q.numpy() for s in states])
+        return float(loss.numpy()[0]), grad, trajectory
+
+    # --- optimisation ---------------------------------------------------------------------
+
+    def optimize(self, *, progress=None) -> TaskResult:
+        """Gradient descent from the trivial guess (zero offsets); see the module docstring."""
+        start_time = time.perf_counter()
+        s = self.settings
+        q0 = self.model.initial_q.copy()
+        ndof = len(self.dof_names)
+        history = []
+        if self.kind == "initial_state" or not s.receding_horizon or s.receding_horizon >= s.horizon:
+            rows = 1 if self.kind == "initial_state" else s.horizon
+            values = np.zeros((rows, ndof))
+            best = _descend(lambda v: self.rollout(v, (q0, q0), s.horizon), values, s, history, progress)
+            final, _, traj = self.rollout(best[1], (q0, q0), s.horizon, gradient=False)
+            return TaskResult(history, history[0], final, final == 0.0, s.iterations, time.perf_counter() - start_time, best[1], traj)
+
+        # Receding horizon: optimise a window, apply its first action, shift.
+        window = s.receding_horizon
+        plan = np.zeros((s.horizon + window, ndof))
+        executed = [q0]
+        current = (q0, q0)
+        for t in range(s.horizon):
+            values = plan[t : t + window].copy()
+            best = _descend(lambda v, start=current: self.rollout(v, start, window), values, s, history, progress, total=s.horizon)
+            plan[t : t + window] = best[1]
+            values = best[1]
+            _, _, traj = self.rollout(values[:1], current, 1, gradient=False)
+            current = (traj[1], traj[0])
+            executed.append(traj[1])
+            if progress:
+                progress(t + 1, s.horizon, history[-1])
+        trajectory = np.array(executed)
+        final = self._loss_at(trajectory[-1])
+        return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, plan[: s.horizon], trajectory)
+
+    def _loss_at(self, q: np.ndarray) -> float:
+        total = 0.0
+        for i in self.targets:
+            b = self.scene.bodies[i]
+            total += max(float(np.sum((q[i, :3] - b.target_position) ** 2)) - b.target_tolerance**2, 0.0)
+        return total
