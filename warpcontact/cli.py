@@ -131,8 +131,8 @@ def _run(args) -> int:
 
     from ._runtime import resolve_device
 
-    if args.model != "ours":
-        raise ValueError(f"--model {args.model}: only 'ours' is available; the baselines ipc, sdrs and gb are not implemented yet")
+    if args.model in ("sdrs", "gb"):
+        raise ValueError(f"--model {args.model}: not implemented yet (available: ours, ipc)")
     resolve_device(args.device)  # fail before any work
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -140,6 +140,10 @@ def _run(args) -> int:
         raise ValueError(f"{out}: output folder is not writable")
     scene_path = _resolve_scene_path(args.task)
     scene = io.load_scene(scene_path)
+    if args.model == "ipc":
+        if scene.settings.friction > 0:
+            raise ValueError(f"{scene_path}: the ipc baseline has no friction model here, and this scene uses friction {scene.settings.friction}")
+        scene.settings.contact_mode = "ipc"
     np.random.seed(args.seed)
     t = scene.task
     settings = TaskSettings(
@@ -214,7 +218,7 @@ def _list(args) -> int:
     for name in SCENE_NAMES:
         path = Path("scenes") / f"{name}.usda"
         print(f"  {name:16s} {path if path.is_file() else '(not in ./scenes)'}")
-    print("models: ours (baselines ipc, sdrs, gb are not implemented yet)")
+    print("models: ours, ipc (frictionless scenes); sdrs and gb are not implemented yet")
     return 0
 
 

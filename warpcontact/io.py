@@ -10,7 +10,7 @@ warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``Body
         warpcontact:timeStep (double, s)          warpcontact:frames (int)
         warpcontact:contactStiffness (double)     warpcontact:eps (double)
         warpcontact:friction (double)             warpcontact:frictionSmoothing (double, m/s)
-        warpcontact:contactMode (token: bsh | brute)
+        warpcontact:contactMode (token: bsh | brute | ipc)
         warpcontact:task:name (string)            warpcontact:task:control (token)
         warpcontact:task:horizon (int)            warpcontact:task:recedingHorizon (int)
         warpcontact:task:learningRate (double)    warpcontact:task:iterations (int)

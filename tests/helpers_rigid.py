@@ -1,0 +1,85 @@
+"""Rigid-coordinate test utilities: meshes, poses and finite differences in (dp, dtheta)."""
+
+import numpy as np
+import trimesh
+
+
+def icosphere(subdivisions=0, radius=0.5):
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return np.asarray(s.vertices, dtype=np.float64), np.asarray(s.faces)
+
+
+def box(extents=(1.0, 0.6, 0.4)):
+    b = trimesh.creation.box(extents=extents)
+    return np.asarray(b.vertices, dtype=np.float64), np.asarray(b.faces)
+
+
+def quat(axis, angle):
+    axis = np.asarray(axis, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    return np.concatenate([np.sin(angle / 2) * axis, [np.cos(angle / 2)]])
+
+
+def quat_mul(q, r):
+    x1, y1, z1, w1 = q
+    x2, y2, z2, w2 = r
+    return np.array(
+        [
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        ]
+    )
+
+
+def perturbed(poses, body, coordinate, h):
+    """Poses moved by h along one rigid coordinate (dp, then dtheta about world axes)."""
+    out = poses.copy()
+    if coordinate < 3:
+        out[body, coordinate] += h
+    else:
+        axis = np.zeros(3)
+        axis[coordinate - 3] = 1.0
+        out[body, 3:] = quat_mul(quat(axis, h), poses[body, 3:])
+    return out
+
+
+def skew(v):
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def fd_check(model, poses, h=1e-6):
+    """Relative errors of grad vs FD of the value, and of the Hessian vs FD of the gradient.
+
+    The gradient at a rotated pose is taken about that pose, so FD of it differs from the
+    Hessian by the exponential map's bracket: J = H - 1/2 [g_theta]x on each body's
+    (theta, theta) block; the comparison adds that back.
+    """
+    base = model.evaluate(poses)
+    assert base.ok
+    n = model.num_bodies
+    fd_grad = np.zeros(6 * n)
+    fd_jac = np.zeros((6 * n, 6 * n))
+    for b in range(n):
+        if model.static[b]:
+            continue
+        for c in range(6):
+            plus = model.evaluate(perturbed(poses, b, c, h))
+            minus = model.evaluate(perturbed(poses, b, c, -h))
+            fd_grad[6 * b + c] = (plus.value - minus.value) / (2 * h)
+            fd_jac[:, 6 * b + c] = (plus.grad - minus.grad).reshape(-1) / (2 * h)
+    for b in range(n):
+        rot = slice(6 * b + 3, 6 * b + 6)
+        fd_jac[rot, rot] += 0.5 * skew(base.grad[b, 3:])
+    grad = base.grad.reshape(-1)
+    grad_err = np.abs(fd_grad - grad).max() / np.abs(grad).max()
+    hess_err = np.abs(fd_jac - base.hessian).max() / np.abs(base.hessian).max()
+    return base, grad_err, hess_err
+
+
+def identity_poses(positions):
+    poses = np.zeros((len(positions), 7))
+    poses[:, :3] = positions
+    poses[:, 6] = 1.0
+    return poses

@@ -1,0 +1,78 @@
+"""The IPC baseline (ipctk): derivatives, local support, non-penetration, and its vanishing gradient."""
+
+import numpy as np
+import pytest
+import warp as wp
+from helpers_rigid import fd_check, icosphere, identity_poses, quat
+from test_tasks import space_billiards
+
+import warpcontact as wc
+from warpcontact import io
+from warpcontact.cli import main
+from warpcontact.ipc import IpcContactModel
+from warpcontact.tasks import TaskProblem, TaskSettings
+
+
+def test_rigid_derivatives_match_finite_differences():
+    model = IpcContactModel([icosphere(1), icosphere(1)], dhat=0.1)
+    poses = identity_poses([[0, 0, 0], [1.03, 0.1, 0.05]])
+    poses[1, 3:] = quat([1, 2, 3], 0.4)
+    base, grad_err, hess_err = fd_check(model, poses, h=1e-7)
+    assert base.value > 0 and base.num_leaf > 0
+    assert grad_err < 1e-6 and hess_err < 1e-5
+
+
+def test_potential_vanishes_beyond_dhat_and_is_infinite_on_contact():
+    model = IpcContactModel([icosphere(1), icosphere(1)], dhat=0.1, names=["a", "b"])
+    far = model.evaluate(identity_poses([[0, 0, 0], [1.2, 0, 0]]))
+    assert far.value == 0.0 and np.all(far.grad == 0.0)  # the baseline's vanishing gradient
+    hit = model.evaluate(identity_poses([[0, 0, 0], [0.8, 0, 0]]))
+    assert np.isposinf(hit.value) and hit.contact_pairs == [("a", "b")]
+    with pytest.raises(ValueError, match="CPU only"):
+        IpcContactModel([icosphere(0)], device="cuda:0")
+
+
+def test_implicit_steps_with_ipc_do_not_penetrate():
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e2, contact_mode="ipc", ipc_dhat=0.02)
+    b.add_box((0.1, 2.0, 2.0), static=True, name="wall", pose=(0.65, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    b.add_sphere(0.5, subdivisions=1, density=100.0, name="ball", pose=(0.0, 0.1, 0.05, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    solver = wc.ImplicitSolver(model)
+    states = [model.state(requires_grad=False)]
+    wc.set_body_velocity(states[0], wp.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(2, dtype=wp.vec3d), 0.02)
+    for _ in range(15):
+        nxt = model.state(requires_grad=False)
+        solver.step(states[-1], nxt, None, 0.02)
+        states.append(nxt)
+        assert model.contact.evaluate(nxt.body_q.numpy()).ok
+    x = np.array([s.body_q.numpy()[1, 0] for s in states])
+    # The ball (radius <= 0.5) stops at the wall face (x = 0.6) and never passes it.
+    assert x.max() < 0.1 + 1e-9 and x[-1] < x.max()
+
+
+def test_from_rest_ipc_has_no_gradient_while_ours_finds_the_shot():
+    scene = space_billiards()
+    scene.bodies[0].control_dofs = ("vx", "vy")
+    settings = TaskSettings(horizon=15, receding_horizon=0, iterations=10, learning_rate=1.0)
+    ipc_scene = space_billiards()
+    ipc_scene.bodies[0].control_dofs = ("vx", "vy")
+    ipc_scene.settings.contact_mode = "ipc"
+    ipc = TaskProblem(ipc_scene, settings=settings)
+    q0 = ipc.model.initial_q
+    _, grad, _ = ipc.rollout(np.zeros((1, 2)), (q0, q0), 15)
+    assert np.all(grad == 0.0)  # 0.5 m apart, far beyond dhat: nothing to follow
+    ipc_result = ipc.optimize()
+    ours = TaskProblem(scene, settings=settings).optimize()
+    assert ipc_result.final_loss == pytest.approx(ipc_result.initial_loss)
+    assert ours.final_loss < 0.05 * ours.initial_loss
+
+
+def test_cli_run_with_ipc(tmp_path, capsys):
+    path = tmp_path / "space.usda"
+    io.save_scene(space_billiards(), path)
+    assert main(["run", str(path), "--model", "ipc", "--iters", "2", "--out", str(tmp_path / "out")]) == 0
+    scene = space_billiards()
+    scene.settings.friction = 0.5
+    io.save_scene(scene, tmp_path / "friction.usda")
+    assert main(["run", str(tmp_path / "friction.usda"), "--model", "ipc", "--out", str(tmp_path / "o")]) == 2
+    assert "no friction model" in capsys.readouterr().err
