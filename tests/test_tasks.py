@@ -149,7 +149,7 @@ def test_cli_run_errors_are_clear(tmp_path, capsys):
     io.save_scene(scene, plain)
     assert main(["run", str(plain), "--out", str(tmp_path / "o")]) == 2
     assert "no task metadata" in capsys.readouterr().err
-    assert main(["run", str(plain), "--model", "ipc", "--out", str(tmp_path / "o")]) == 2
+    assert main(["run", str(plain), "--model", "sdrs", "--out", str(tmp_path / "o")]) == 2
     assert "not implemented yet" in capsys.readouterr().err
     assert main(["run", str(plain), "--device", "cuda:9", "--out", str(tmp_path / "o")]) == 2
     assert "device" in capsys.readouterr().err
