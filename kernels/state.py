@@ -2,11 +2,12 @@
 
 import warp as wp
 
-__all__ = ["previous_pose_from_velocity_kernel"]
+__all__ = ["quat_from_rotation_vector", "previous_pose_from_velocity_kernel"]
 
 
 @wp.func
-def _quat_exp(w: wp.vec3d):
+def quat_from_rotation_vector(w: wp.vec3d):
+    """exp of a rotation vector (rad) as a quaternion; differentiable at zero."""
     angle = wp.length(w)
     if angle < wp.float64(1.0e-8):
         # Series keeps the adjoint finite at zero angular velocity.
@@ -28,5 +29,5 @@ def previous_pose_from_velocity_kernel(
     b = wp.tid()
     q = body_q[b]
     p_prev = wp.transform_get_translation(q) - dt * linear_velocity[b]
-    r_prev = _quat_exp(-dt * angular_velocity[b]) * wp.transform_get_rotation(q)
+    r_prev = quat_from_rotation_vector(-dt * angular_velocity[b]) * wp.transform_get_rotation(q)
     body_q_prev_out[b] = wp.transformd(p_prev, r_prev)

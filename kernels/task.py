@@ -7,19 +7,11 @@ Degree-of-freedom codes of a controlled body: 0 x, 1 y, 2 z (translations, m),
 
 import warp as wp
 
+from .state import quat_from_rotation_vector
+
 __all__ = ["DOF_CODES", "pd_target_kernel", "initial_state_kernel", "target_loss_kernel"]
 
 DOF_CODES = {"x": 0, "y": 1, "z": 2, "rx": 3, "ry": 4, "rz": 5, "yaw": 6, "vx": 7, "vy": 8, "vz": 9}
-
-
-@wp.func
-def _rotation_from_vector(w: wp.vec3d):
-    angle = wp.length(w)
-    if angle < wp.float64(1.0e-9):
-        # Series keeps the adjoint finite at zero rotation.
-        return wp.normalize(wp.quatd(wp.float64(0.5) * w[0], wp.float64(0.5) * w[1], wp.float64(0.5) * w[2], wp.float64(1.0)))
-    s = wp.sin(wp.float64(0.5) * angle) / angle
-    return wp.quatd(s * w[0], s * w[1], s * w[2], wp.cos(wp.float64(0.5) * angle))
 
 
 @wp.func
@@ -56,7 +48,7 @@ def pd_target_kernel(
 ):
     """Target of ``body`` = base pose moved by the row's offsets (rotation about world axes)."""
     dp, rv, dv = _offsets(values, row, dof_codes)
-    rot = _rotation_from_vector(rv) * wp.transform_get_rotation(base_pose)
+    rot = quat_from_rotation_vector(rv) * wp.transform_get_rotation(base_pose)
     target_out[body] = wp.transformd(wp.transform_get_translation(base_pose) + dp, rot)
 
 
@@ -74,7 +66,7 @@ def initial_state_kernel(
 ):
     """Initial pose and velocity of ``body`` from the decision variables (row 0)."""
     dp, rv, dv = _offsets(values, 0, dof_codes)
-    rot = _rotation_from_vector(rv) * wp.transform_get_rotation(base_pose)
+    rot = quat_from_rotation_vector(rv) * wp.transform_get_rotation(base_pose)
     body_q_out[body] = wp.transformd(wp.transform_get_translation(base_pose) + dp, rot)
     linear_velocity_out[body] = dv
 

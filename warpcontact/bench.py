@@ -32,6 +32,18 @@ def leaf_benchmark_pairs(num_pairs: int, *, seed: int = 0) -> tuple[np.ndarray, 
     return A, B
 
 
+def optional_pyplot():
+    """matplotlib.pyplot with a file backend, or None without matplotlib (plots are optional)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    return plt
+
+
 def _median_seconds(fn, repeats: int) -> float:
     samples = []
     for _ in range(repeats):
@@ -203,12 +215,8 @@ def run_contact_benchmark(
 
 
 def _plot_contact_benchmark(rows: list[dict], path: Path) -> bool:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    plt = optional_pyplot()
+    if plt is None:
         return False
     scenes = sorted({r["scene"] for r in rows})
     fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.5), squeeze=False)
@@ -272,12 +280,8 @@ def run_scaling_benchmark(*, points_per_ball, eps: float, brute_max_triangles: i
 
 
 def _plot_scaling(rows: list[dict], path: Path) -> bool:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    plt = optional_pyplot()
+    if plt is None:
         return False
     fig, ax = plt.subplots(figsize=(5.5, 4))
     for mode in ("bsh", "brute"):

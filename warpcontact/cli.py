@@ -192,12 +192,10 @@ def _run(args) -> int:
 
 
 def _plot_convergence(history, path: Path, *, title: str) -> bool:
-    try:
-        import matplotlib
+    from .bench import optional_pyplot
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+    plt = optional_pyplot()
+    if plt is None:
         return False
     fig, ax = plt.subplots(figsize=(5, 3.5))
     ax.plot(np.arange(1, len(history) + 1), history)
