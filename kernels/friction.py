@@ -21,7 +21,7 @@ import warp as wp
 
 from .blend import quintic_blend
 from .leaf import LEAF_OK, leaf_plane_sensitivity, leaf_solve
-from .rigid import rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d
+from .rigid import rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
 
 wp.set_module_options({"enable_backward": False})
 
@@ -37,14 +37,6 @@ def _centroid(t: wp.mat33d):
 def _leaf_radius(t: wp.mat33d):
     c = _centroid(t)
     return wp.max(wp.max(wp.length(t[0] - c), wp.length(t[1] - c)), wp.length(t[2] - c))
-
-
-@wp.func
-def _world_triangle(local: wp.mat33d, rot: wp.mat33d, pos: wp.vec3d):
-    out = wp.mat33d()
-    for k in range(3):
-        out[k] = rot * local[k] + pos
-    return out
 
 
 @wp.func
@@ -81,8 +73,8 @@ def friction_setup_kernel(
     local_b = triangle_vertices[item[1]]
     rot_a = body_rotation[pair[0]]
     rot_b = body_rotation[pair[1]]
-    ta = _world_triangle(local_a, rot_a, body_position[pair[0]])
-    tb = _world_triangle(local_b, rot_b, body_position[pair[1]])
+    ta = world_triangle(local_a, rot_a, body_position[pair[0]])
+    tb = world_triangle(local_b, rot_b, body_position[pair[1]])
     point_a_out[tid] = _centroid(local_a)
     point_b_out[tid] = _centroid(local_b)
     ca = _centroid(ta)
@@ -249,8 +241,8 @@ def friction_adjoint_kernel(
     rot_b = rotation_now[pair[1]]
     pos_a = position_now[pair[0]]
     pos_b = position_now[pair[1]]
-    ta = _world_triangle(triangle_vertices[item[0]], rot_a, pos_a)
-    tb = _world_triangle(triangle_vertices[item[1]], rot_b, pos_b)
+    ta = world_triangle(triangle_vertices[item[0]], rot_a, pos_a)
+    tb = world_triangle(triangle_vertices[item[1]], rot_b, pos_b)
     sol = leaf_solve(ta, tb, max_iterations)
     if sol.status != LEAF_OK:
         return

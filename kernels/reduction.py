@@ -18,7 +18,7 @@ import warp as wp
 
 from .blend import centered_potential, quintic_blend
 from .leaf import LEAF_OK, leaf_hessian_block, leaf_solve, leaf_vertex_gradient
-from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d
+from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
 
 wp.set_module_options({"enable_backward": False})
 
@@ -181,13 +181,8 @@ def leaf_term_kernel(
     rot_b = body_rotation[pair[1]]
     pos_a = body_position[pair[0]]
     pos_b = body_position[pair[1]]
-    local_a = triangle_vertices[item[0]]
-    local_b = triangle_vertices[item[1]]
-    ta = wp.mat33d()
-    tb = wp.mat33d()
-    for k in range(3):
-        ta[k] = rot_a * local_a[k] + pos_a
-        tb[k] = rot_b * local_b[k] + pos_b
+    ta = world_triangle(triangle_vertices[item[0]], rot_a, pos_a)
+    tb = world_triangle(triangle_vertices[item[1]], rot_b, pos_b)
     sol = leaf_solve(ta, tb, max_iterations)
     leaf_iterations_out[tid] = sol.iterations
     leaf_plane_out[tid] = wp.vec4d(sol.n[0], sol.n[1], sol.n[2], sol.d - wp.dot(sol.n, sol.origin))
@@ -395,15 +390,11 @@ def advancement_kernel(
     rot_b = body_rotation[pair[1]]
     pos_a = body_position[pair[0]]
     pos_b = body_position[pair[1]]
-    local_a = triangle_vertices[item[0]]
-    local_b = triangle_vertices[item[1]]
-    ta = wp.mat33d()
-    tb = wp.mat33d()
+    ta = world_triangle(triangle_vertices[item[0]], rot_a, pos_a)
+    tb = world_triangle(triangle_vertices[item[1]], rot_b, pos_b)
     dist_a = wp.float64(1.0e308)
     dist_b = wp.float64(1.0e308)
     for k in range(3):
-        ta[k] = rot_a * local_a[k] + pos_a
-        tb[k] = rot_b * local_b[k] + pos_b
         dist_a = wp.min(dist_a, (wp.dot(ta[k], n) + plane[3]) * inv_norm)
         dist_b = wp.min(dist_b, -(wp.dot(tb[k], n) + plane[3]) * inv_norm)
     step_a = body_step[pair[0]]

@@ -21,6 +21,7 @@ __all__ = [
     "rigid_point_gradient",
     "rigid_point_pair_block",
     "rigid_point_curvature",
+    "world_triangle",
 ]
 
 vec6d = wp.types.vector(length=6, dtype=wp.float64)
@@ -56,6 +57,15 @@ def rigid_point_curvature(g: wp.vec3d, r: wp.vec3d):
     """(dtheta, dtheta) block added by the curvature of the exponential map."""
     half = wp.float64(0.5)
     return half * (wp.outer(g, r) + wp.outer(r, g)) - wp.dot(g, r) * wp.identity(n=3, dtype=wp.float64)
+
+
+@wp.func
+def world_triangle(local: wp.mat33d, rotation: wp.mat33d, position: wp.vec3d):
+    """A triangle's vertices (rows) moved from its body frame to the world."""
+    out = wp.mat33d()
+    for k in range(3):
+        out[k] = rotation * local[k] + position
+    return out
 
 
 @wp.kernel
