@@ -44,6 +44,22 @@ def optional_pyplot():
     return plt
 
 
+def _write_results(out_dir: Path, name: str, device, repeats: int, fields: dict) -> dict:
+    """Write out_dir/NAME.json with the common header (benchmark, device, host, date, repeats)."""
+    payload = {
+        "benchmark": name,
+        "device": str(device),
+        "device_name": device.name,
+        "host": platform.processor() or platform.machine(),
+        "date": time.strftime("%Y-%m-%d"),
+        "repeats": repeats,
+        **fields,
+    }
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / f"{name}.json").write_text(json.dumps(payload, indent=2) + "\n")
+    return payload
+
+
 def _median_seconds(fn, repeats: int) -> float:
     samples = []
     for _ in range(repeats):
@@ -84,14 +100,8 @@ def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, s
         full = _median_seconds(lambda: launch(True), repeats)
     iters = iterations.numpy()
     ok = status.numpy() == 0
-    result = {
-        "benchmark": "leaf",
-        "device": str(dev),
-        "device_name": dev.name,
-        "host": platform.processor() or platform.machine(),
+    return _write_results(out_dir, "leaf", dev, repeats, {
         "num_pairs": num_pairs,
-        "repeats": repeats,
-        "date": time.strftime("%Y-%m-%d"),
         "module_load_seconds": compile_seconds,
         "median_seconds_value": value_only,
         "median_seconds_value_grad_hessian": full,
@@ -100,10 +110,7 @@ def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, s
         "mean_newton_iterations": float(iters.mean()),
         "max_newton_iterations": int(iters.max()),
         "fraction_ok": float(ok.mean()),
-    }
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "leaf.json").write_text(json.dumps(result, indent=2) + "\n")
-    return result
+    })
 
 
 def _icosphere(subdivisions: int, radius: float):
@@ -200,16 +207,7 @@ def run_contact_benchmark(
                     **_force_errors(result.grad, reference.grad, radius),
                 }
             )
-    payload = {
-        "benchmark": "contact",
-        "device": str(dev),
-        "device_name": dev.name,
-        "date": time.strftime("%Y-%m-%d"),
-        "repeats": repeats,
-        "rows": rows,
-    }
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "contact.json").write_text(json.dumps(payload, indent=2) + "\n")
+    _write_results(out_dir, "contact", dev, repeats, {"rows": rows})
     _plot_contact_benchmark(rows, out_dir / "contact.png")
     return rows
 
@@ -272,9 +270,7 @@ def run_scaling_benchmark(*, points_per_ball, eps: float, brute_max_triangles: i
                     "num_leaf": result.num_leaf,
                 }
             )
-    payload = {"benchmark": "scaling", "device": str(dev), "device_name": dev.name, "date": time.strftime("%Y-%m-%d"), "repeats": repeats, "rows": rows}
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "scaling.json").write_text(json.dumps(payload, indent=2) + "\n")
+    _write_results(out_dir, "scaling", dev, repeats, {"rows": rows})
     _plot_scaling(rows, out_dir / "scaling.png")
     return rows
 
