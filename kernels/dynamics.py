@@ -32,6 +32,7 @@ __all__ = [
     "PREDICT_FAILED",
     "axial",
     "exp_so3",
+    "BodyModel",
     "predict_kernel",
     "body_energy_kernel",
     "body_adjoint_kernel",
@@ -89,6 +90,21 @@ def _pose_rotation(q: wp.transformd):
 def _twist_matrix(m: wp.mat33d):
     """tr(M) I - M: maps zeta to d axial([zeta]x M)."""
     return _trace(m) * wp.identity(n=3, dtype=wp.float64) - m
+
+
+@wp.struct
+class BodyModel:
+    """Per-body model data of the step's inertia, gravity and PD terms (one entry per body)."""
+
+    mass: wp.array(dtype=wp.float64)
+    unit_second_moment: wp.array(dtype=wp.mat33d)
+    dynamic: wp.array(dtype=wp.int32)
+    kp_linear: wp.array(dtype=wp.vec3d)
+    kd_linear: wp.array(dtype=wp.vec3d)
+    kp_angular: wp.array(dtype=wp.float64)
+    kd_angular: wp.array(dtype=wp.float64)
+    gravity: wp.vec3d
+    dt: wp.float64
 
 
 @wp.kernel
@@ -151,15 +167,7 @@ def _alignment_terms(c: wp.mat33d, r: wp.mat33d, weight: wp.float64):
 @wp.kernel
 def body_energy_kernel(
     # Model:
-    body_mass: wp.array(dtype=wp.float64),
-    body_unit_second_moment: wp.array(dtype=wp.mat33d),
-    body_dynamic: wp.array(dtype=wp.int32),
-    body_kp_linear: wp.array(dtype=wp.vec3d),
-    body_kd_linear: wp.array(dtype=wp.vec3d),
-    body_kp_angular: wp.array(dtype=wp.float64),
-    body_kd_angular: wp.array(dtype=wp.float64),
-    gravity: wp.vec3d,
-    dt: wp.float64,
+    bodies: BodyModel,
     # Data in:
     body_q: wp.array(dtype=wp.transformd),
     body_q_current: wp.array(dtype=wp.transformd),
@@ -172,47 +180,47 @@ def body_energy_kernel(
     hess_out: wp.array(dtype=mat66d),
 ):
     b = wp.tid()
-    if body_dynamic[b] == 0:
+    if bodies.dynamic[b] == 0:
         energy_out[b] = wp.float64(0.0)
         grad_out[b] = vec6d()
         hess_out[b] = mat66d()
         return
-    m = body_mass[b]
-    s = m * body_unit_second_moment[b]
-    inv_dt2 = wp.float64(1.0) / (dt * dt)
+    m = bodies.mass[b]
+    s = m * bodies.unit_second_moment[b]
+    inv_dt2 = wp.float64(1.0) / (bodies.dt * bodies.dt)
     p = wp.transform_get_translation(body_q[b])
     r = _pose_rotation(body_q[b])
     p_now = wp.transform_get_translation(body_q_current[b])
     r_now = _pose_rotation(body_q_current[b])
     p_target = wp.transform_get_translation(body_target[b])
     r_target = _pose_rotation(body_target[b])
-    kp = body_kp_linear[b]
-    kd = body_kd_linear[b]
+    kp = bodies.kp_linear[b]
+    kd = bodies.kd_linear[b]
 
     dp = p - predicted_position[b]
-    energy = wp.float64(0.5) * m * inv_dt2 * wp.dot(dp, dp) - m * wp.dot(gravity, p)
-    g_lin = m * inv_dt2 * dp - m * gravity
+    energy = wp.float64(0.5) * m * inv_dt2 * wp.dot(dp, dp) - m * wp.dot(bodies.gravity, p)
+    g_lin = m * inv_dt2 * dp - m * bodies.gravity
     h_lin = wp.vec3d(m * inv_dt2, m * inv_dt2, m * inv_dt2)
     for i in range(3):
         e_p = p[i] - p_target[i]
         e_d = p[i] - p_now[i]
-        energy += wp.float64(0.5) * (kp[i] * e_p * e_p + kd[i] * e_d * e_d / dt)
-        g_lin[i] = g_lin[i] + kp[i] * e_p + kd[i] * e_d / dt
-        h_lin[i] = h_lin[i] + kp[i] + kd[i] / dt
+        energy += wp.float64(0.5) * (kp[i] * e_p * e_p + kd[i] * e_d * e_d / bodies.dt)
+        g_lin[i] = g_lin[i] + kp[i] * e_p + kd[i] * e_d / bodies.dt
+        h_lin[i] = h_lin[i] + kp[i] + kd[i] / bodies.dt
 
     e_rot, g_rot, h_rot = _alignment_terms(predicted_rotation[b] * s, r, inv_dt2)
     energy += e_rot + inv_dt2 * _trace(s)
     half = wp.float64(0.5)
-    kp_ang = body_kp_angular[b]
+    kp_ang = bodies.kp_angular[b]
     if kp_ang != wp.float64(0.0):
         e_a, g_a, h_a = _alignment_terms(r_target, r, half * kp_ang)
         energy += e_a + wp.float64(1.5) * kp_ang
         g_rot += g_a
         h_rot += h_a
-    kd_ang = body_kd_angular[b]
+    kd_ang = bodies.kd_angular[b]
     if kd_ang != wp.float64(0.0):
-        e_b, g_b, h_b = _alignment_terms(r_now, r, half * kd_ang / dt)
-        energy += e_b + wp.float64(1.5) * kd_ang / dt
+        e_b, g_b, h_b = _alignment_terms(r_now, r, half * kd_ang / bodies.dt)
+        energy += e_b + wp.float64(1.5) * kd_ang / bodies.dt
         g_rot += g_b
         h_rot += h_b
 
@@ -229,15 +237,7 @@ def body_energy_kernel(
 @wp.kernel
 def body_adjoint_kernel(
     # Model:
-    body_mass: wp.array(dtype=wp.float64),
-    body_unit_second_moment: wp.array(dtype=wp.mat33d),
-    body_dynamic: wp.array(dtype=wp.int32),
-    body_kp_linear: wp.array(dtype=wp.vec3d),
-    body_kd_linear: wp.array(dtype=wp.vec3d),
-    body_kp_angular: wp.array(dtype=wp.float64),
-    body_kd_angular: wp.array(dtype=wp.float64),
-    gravity: wp.vec3d,
-    dt: wp.float64,
+    bodies: BodyModel,
     # Data in:
     body_q: wp.array(dtype=wp.transformd),
     body_q_current: wp.array(dtype=wp.transformd),
@@ -258,27 +258,27 @@ def body_adjoint_kernel(
     adj_previous_out[b] = vec6d()
     adj_target_out[b] = vec6d()
     adj_mass_out[b] = wp.float64(0.0)
-    if body_dynamic[b] == 0:
+    if bodies.dynamic[b] == 0:
         return
     lam = multiplier[b]
     lam_p = wp.vec3d(lam[0], lam[1], lam[2])
     lam_r = wp.vec3d(lam[3], lam[4], lam[5])
-    m = body_mass[b]
-    s = m * body_unit_second_moment[b]
-    inv_dt2 = wp.float64(1.0) / (dt * dt)
+    m = bodies.mass[b]
+    s = m * bodies.unit_second_moment[b]
+    inv_dt2 = wp.float64(1.0) / (bodies.dt * bodies.dt)
     r = _pose_rotation(body_q[b])
     r_now = _pose_rotation(body_q_current[b])
     r_target = _pose_rotation(body_target[b])
     p = wp.transform_get_translation(body_q[b])
-    kp = body_kp_linear[b]
-    kd = body_kd_linear[b]
+    kp = bodies.kp_linear[b]
+    kd = bodies.kd_linear[b]
 
     # Translation: grad = m/dt^2 (p - 2 p^t + p^{t-1}) - m g + kp (p - p*) + kd/dt (p - p^t).
     a_now_p = wp.vec3d()
     a_prev_p = m * inv_dt2 * lam_p
     a_tgt_p = wp.vec3d()
     for i in range(3):
-        a_now_p[i] = -(wp.float64(2.0) * m * inv_dt2 + kd[i] / dt) * lam_p[i]
+        a_now_p[i] = -(wp.float64(2.0) * m * inv_dt2 + kd[i] / bodies.dt) * lam_p[i]
         a_tgt_p[i] = -kp[i] * lam_p[i]
 
     # Rotation, inertia: grad = -axial(R_hat S R^T) / dt^2, R_hat moved by zeta = (I+K) a - K c.
@@ -290,16 +290,16 @@ def body_adjoint_kernel(
     # PD target and rotational damping: grad = -(k/2) axial(C R^T) with C = R* or R^t.
     half = wp.float64(0.5)
     t_tgt = _twist_matrix(r_target * wp.transpose(r))
-    a_tgt_r = -(half * body_kp_angular[b]) * (wp.transpose(t_tgt) * lam_r)
+    a_tgt_r = -(half * bodies.kp_angular[b]) * (wp.transpose(t_tgt) * lam_r)
     t_now = _twist_matrix(r_now * wp.transpose(r))
-    a_now_r += -(half * body_kd_angular[b] / dt) * (wp.transpose(t_now) * lam_r)
+    a_now_r += -(half * bodies.kd_angular[b] / bodies.dt) * (wp.transpose(t_now) * lam_r)
 
     adj_current_out[b] = vec6d(a_now_p[0], a_now_p[1], a_now_p[2], a_now_r[0], a_now_r[1], a_now_r[2])
     adj_previous_out[b] = vec6d(a_prev_p[0], a_prev_p[1], a_prev_p[2], a_prev_r[0], a_prev_r[1], a_prev_r[2])
     adj_target_out[b] = vec6d(a_tgt_p[0], a_tgt_p[1], a_tgt_p[2], a_tgt_r[0], a_tgt_r[1], a_tgt_r[2])
     # Inertia scales with the mass (S = m S_unit, and R_hat does not depend on m); gravity is -m g.
     g_inertia_rot = -inv_dt2 * axial(predicted_rotation[b] * s * wp.transpose(r))
-    d_lin_dm = inv_dt2 * (p - predicted_position[b]) - gravity
+    d_lin_dm = inv_dt2 * (p - predicted_position[b]) - bodies.gravity
     adj_mass_out[b] = wp.dot(lam_p, d_lin_dm) + wp.dot(lam_r, g_inertia_rot) / m
 
 

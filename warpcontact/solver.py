@@ -142,19 +142,19 @@ class ImplicitSolver:
 
     # --- forward ------------------------------------------------------------------------------
 
-    def _body_model_inputs(self, dt: float):
+    def _body_model(self, dt: float) -> dynamics_kernels.BodyModel:
         m = self.model
-        return [
-            m.body_mass,
-            m.body_unit_second_moment,
-            m.body_dynamic,
-            m.body_kp_linear,
-            m.body_kd_linear,
-            m.body_kp_angular,
-            m.body_kd_angular,
-            wp.vec3d(*m.gravity),
-            float(dt),
-        ]
+        bodies = dynamics_kernels.BodyModel()
+        bodies.mass = m.body_mass
+        bodies.unit_second_moment = m.body_unit_second_moment
+        bodies.dynamic = m.body_dynamic
+        bodies.kp_linear = m.body_kp_linear
+        bodies.kd_linear = m.body_kd_linear
+        bodies.kp_angular = m.body_kp_angular
+        bodies.kd_angular = m.body_kd_angular
+        bodies.gravity = wp.vec3d(*m.gravity)
+        bodies.dt = float(dt)
+        return bodies
 
     def _friction_frame(self, mu: float) -> "_FrictionFrame | None":
         """Lagged friction data at the configuration the contact model evaluated last (q^t)."""
@@ -220,7 +220,7 @@ class ImplicitSolver:
         wp.launch(
             dynamics_kernels.body_energy_kernel,
             dim=self.model.num_bodies,
-            inputs=[*self._body_model_inputs(dt), self._trial_q, current_q, self._predicted_position, self._predicted_rotation, target],
+            inputs=[self._body_model(dt), self._trial_q, current_q, self._predicted_position, self._predicted_rotation, target],
             outputs=[self._energy, self._energy_grad, self._energy_hess],
             device=self.model.device,
         )
@@ -387,7 +387,7 @@ class ImplicitSolver:
             predicted_position = wp.clone(self._predicted_position)
             predicted_rotation = wp.clone(self._predicted_rotation)
             sensitivity = wp.clone(self._prediction_sensitivity)
-        body_inputs = self._body_model_inputs(dt)
+        bodies = self._body_model(dt)
         arrays = [state_out.body_q, state_out.body_q_prev, state_in.body_q, state_in.body_q_prev, model.body_mass, model.contact_stiffness, model.friction]
         if control is not None and control.body_target.requires_grad:
             arrays.append(control.body_target)
@@ -408,7 +408,7 @@ class ImplicitSolver:
                 wp.launch(
                     dynamics_kernels.body_adjoint_kernel,
                     dim=n,
-                    inputs=[*body_inputs, q_next_arr, q_now_arr, predicted_position, predicted_rotation, sensitivity, target_arr, lam],
+                    inputs=[bodies, q_next_arr, q_now_arr, predicted_position, predicted_rotation, sensitivity, target_arr, lam],
                     outputs=[adj_now, adj_prev, adj_target, adj_mass],
                 )
                 mu_adj = float(lam_full @ contact_grad.reshape(-1))
