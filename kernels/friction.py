@@ -25,7 +25,19 @@ from .rigid import rigid_point_curvature, rigid_point_gradient, rigid_point_pair
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["friction_setup_kernel", "friction_energy_kernel", "friction_adjoint_kernel"]
+__all__ = ["FrictionFrame", "friction_setup_kernel", "friction_energy_kernel", "friction_adjoint_kernel"]
+
+
+@wp.struct
+class FrictionFrame:
+    """Lagged friction data of one step, one entry per leaf pair listed at q^t."""
+
+    leaf_items: wp.array(dtype=wp.vec4i)  # (triangle_a, triangle_b, parent, body pair)
+    normal_force: wp.array(dtype=wp.float64)  # N (0: no friction from this pair)
+    normal: wp.array(dtype=wp.vec3d)  # n^
+    point_a: wp.array(dtype=wp.vec3d)  # X_A, body frame of a
+    point_b: wp.array(dtype=wp.vec3d)  # X_B, body frame of b
+    offset: wp.array(dtype=wp.vec3d)  # c_A^t - c_B^t
 
 
 @wp.func
@@ -58,16 +70,11 @@ def friction_setup_kernel(
     body_rotation: wp.array(dtype=wp.mat33d),
     body_position: wp.array(dtype=wp.vec3d),
     seed_body_pair: wp.array(dtype=wp.vec2i),
-    leaf_items: wp.array(dtype=wp.vec4i),
-    # Data out:
-    normal_force_out: wp.array(dtype=wp.float64),
-    normal_out: wp.array(dtype=wp.vec3d),
-    point_a_out: wp.array(dtype=wp.vec3d),
-    point_b_out: wp.array(dtype=wp.vec3d),
-    offset_out: wp.array(dtype=wp.vec3d),
+    # Data in (leaf_items) and out (the rest):
+    frame: FrictionFrame,
 ):
     tid = wp.tid()
-    item = leaf_items[tid]
+    item = frame.leaf_items[tid]
     pair = seed_body_pair[item[3]]
     local_a = triangle_vertices[item[0]]
     local_b = triangle_vertices[item[1]]
@@ -75,14 +82,14 @@ def friction_setup_kernel(
     rot_b = body_rotation[pair[1]]
     ta = world_triangle(local_a, rot_a, body_position[pair[0]])
     tb = world_triangle(local_b, rot_b, body_position[pair[1]])
-    point_a_out[tid] = _centroid(local_a)
-    point_b_out[tid] = _centroid(local_b)
+    frame.point_a[tid] = _centroid(local_a)
+    frame.point_b[tid] = _centroid(local_b)
     ca = _centroid(ta)
     cb = _centroid(tb)
-    offset_out[tid] = ca - cb
+    frame.offset[tid] = ca - cb
     sol = leaf_solve(ta, tb, max_iterations)
-    normal_force_out[tid] = wp.float64(0.0)
-    normal_out[tid] = wp.vec3d()
+    frame.normal_force[tid] = wp.float64(0.0)
+    frame.normal[tid] = wp.vec3d()
     if sol.status != LEAF_OK:
         return
     weight, _ = _support_weight(ca, cb, _leaf_radius(ta) + _leaf_radius(tb), eps)
@@ -90,8 +97,8 @@ def friction_setup_kernel(
     for k in range(3):
         q += wp.float64(1.0) / (sol.gap_a[k] * sol.gap_a[k])
     norm = wp.length(sol.n)
-    normal_force_out[tid] = mu * weight * norm * q
-    normal_out[tid] = sol.n / norm
+    frame.normal_force[tid] = mu * weight * norm * q
+    frame.normal[tid] = sol.n / norm
 
 
 @wp.func
@@ -123,24 +130,19 @@ def friction_energy_kernel(
     body_position: wp.array(dtype=wp.vec3d),
     body_dynamic: wp.array(dtype=wp.int32),
     seed_body_pair: wp.array(dtype=wp.vec2i),
-    leaf_items: wp.array(dtype=wp.vec4i),
-    normal_force: wp.array(dtype=wp.float64),
-    normal: wp.array(dtype=wp.vec3d),
-    point_a: wp.array(dtype=wp.vec3d),
-    point_b: wp.array(dtype=wp.vec3d),
-    offset: wp.array(dtype=wp.vec3d),
+    frame: FrictionFrame,
     # Data out:
     value_out: wp.array(dtype=wp.float64),
     grad_out: wp.array2d(dtype=wp.float64),
     hess_out: wp.array2d(dtype=wp.float64),
 ):
     tid = wp.tid()
-    coeff = friction[0] * normal_force[tid]
+    coeff = friction[0] * frame.normal_force[tid]
     if coeff == wp.float64(0.0):
         return
-    pair = seed_body_pair[leaf_items[tid][3]]
-    nrm = normal[tid]
-    ra, rb, w, u = _slip(nrm, point_a[tid], point_b[tid], offset[tid], body_rotation[pair[0]], body_position[pair[0]], body_rotation[pair[1]], body_position[pair[1]])
+    pair = seed_body_pair[frame.leaf_items[tid][3]]
+    nrm = frame.normal[tid]
+    ra, rb, w, u = _slip(nrm, frame.point_a[tid], frame.point_b[tid], frame.offset[tid], body_rotation[pair[0]], body_position[pair[0]], body_rotation[pair[1]], body_position[pair[1]])
     root = wp.sqrt(wp.dot(u, u) + smoothing * smoothing)
     wp.atomic_add(value_out, 0, coeff * (root - smoothing))
     tangent = wp.identity(n=3, dtype=wp.float64) - wp.outer(nrm, nrm)
@@ -195,12 +197,7 @@ def friction_adjoint_kernel(
     position_now: wp.array(dtype=wp.vec3d),
     body_dynamic: wp.array(dtype=wp.int32),
     seed_body_pair: wp.array(dtype=wp.vec2i),
-    leaf_items: wp.array(dtype=wp.vec4i),
-    normal_force: wp.array(dtype=wp.float64),
-    normal: wp.array(dtype=wp.vec3d),
-    point_a: wp.array(dtype=wp.vec3d),
-    point_b: wp.array(dtype=wp.vec3d),
-    offset: wp.array(dtype=wp.vec3d),
+    frame: FrictionFrame,
     multiplier: wp.array(dtype=vec6d),
     # Data out:
     adj_now_out: wp.array2d(dtype=wp.float64),
@@ -209,14 +206,14 @@ def friction_adjoint_kernel(
 ):
     """lambda^T d(grad_q D)/dy for y = q^t (through N, n^ and the centroids), lambda_f and mu."""
     tid = wp.tid()
-    big_n = normal_force[tid]
+    big_n = frame.normal_force[tid]
     lam_f = friction[0]
     if big_n == wp.float64(0.0) or lam_f == wp.float64(0.0):
         return
-    item = leaf_items[tid]
+    item = frame.leaf_items[tid]
     pair = seed_body_pair[item[3]]
-    nrm = normal[tid]
-    ra, rb, w, u = _slip(nrm, point_a[tid], point_b[tid], offset[tid], rotation_next[pair[0]], position_next[pair[0]], rotation_next[pair[1]], position_next[pair[1]])
+    nrm = frame.normal[tid]
+    ra, rb, w, u = _slip(nrm, frame.point_a[tid], frame.point_b[tid], frame.offset[tid], rotation_next[pair[0]], position_next[pair[0]], rotation_next[pair[1]], position_next[pair[1]])
     la = multiplier[pair[0]]
     lb = multiplier[pair[1]]
     ell = wp.vec3d()

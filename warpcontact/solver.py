@@ -80,22 +80,6 @@ def retract(poses: np.ndarray, step: np.ndarray) -> np.ndarray:
     return out
 
 
-@dataclass
-class _FrictionFrame:
-    """Lagged friction data of one step: the leaf pairs at q^t and their N, n^, points."""
-
-    leaf_items: wp.array
-    normal_force: wp.array
-    normal: wp.array
-    point_a: wp.array
-    point_b: wp.array
-    offset: wp.array
-
-    @property
-    def count(self) -> int:
-        return self.leaf_items.shape[0]
-
-
 class ImplicitSolver:
     """Implicit Newton time stepper of a ``Model``.
 
@@ -156,42 +140,40 @@ class ImplicitSolver:
         bodies.dt = float(dt)
         return bodies
 
-    def _friction_frame(self, mu: float) -> "_FrictionFrame | None":
+    def _friction_frame(self, mu: float) -> "friction_kernels.FrictionFrame | None":
         """Lagged friction data at the configuration the contact model evaluated last (q^t)."""
         model = self.model
         if float(model.friction.numpy()[0]) == 0.0:
             return None
         contact = model.contact
         with wp.ScopedDevice(model.device):
-            leaf = contact.leaf_items()
-            count = leaf.shape[0]
-            frame = _FrictionFrame(
-                leaf,
-                wp.zeros(count, dtype=wp.float64),
-                wp.zeros(count, dtype=wp.vec3d),
-                wp.zeros(count, dtype=wp.vec3d),
-                wp.zeros(count, dtype=wp.vec3d),
-                wp.zeros(count, dtype=wp.vec3d),
-            )
+            frame = friction_kernels.FrictionFrame()
+            frame.leaf_items = contact.leaf_items()
+            count = frame.leaf_items.shape[0]
+            frame.normal_force = wp.zeros(count, dtype=wp.float64)
+            frame.normal = wp.zeros(count, dtype=wp.vec3d)
+            frame.point_a = wp.zeros(count, dtype=wp.vec3d)
+            frame.point_b = wp.zeros(count, dtype=wp.vec3d)
+            frame.offset = wp.zeros(count, dtype=wp.vec3d)
             if count:
                 wp.launch(
                     friction_kernels.friction_setup_kernel,
                     dim=count,
-                    inputs=[contact.triangle_vertices, contact.eps, mu, contact.max_leaf_iterations, contact.body_rotation, contact.body_position, contact.seed_body_pair, leaf],
-                    outputs=[frame.normal_force, frame.normal, frame.point_a, frame.point_b, frame.offset],
+                    inputs=[contact.triangle_vertices, contact.eps, mu, contact.max_leaf_iterations, contact.body_rotation, contact.body_position, contact.seed_body_pair],
+                    outputs=[frame],
                 )
         return frame
 
-    def _friction_terms(self, frame: "_FrictionFrame", dt: float):
+    def _friction_terms(self, frame: "friction_kernels.FrictionFrame", dt: float):
         """Friction value, (nbodies, 6) gradient and dense Hessian at the contact model's last poses."""
         model = self.model
         contact = model.contact
         for arr in (self._friction_value, self._friction_grad, self._friction_hess):
             arr.zero_()
-        if frame.count:
+        if frame.leaf_items.shape[0]:
             wp.launch(
                 friction_kernels.friction_energy_kernel,
-                dim=frame.count,
+                dim=frame.leaf_items.shape[0],
                 inputs=[
                     model.friction,
                     model.friction_smoothing * dt,
@@ -199,12 +181,7 @@ class ImplicitSolver:
                     contact.body_position,
                     model.body_dynamic,
                     contact.seed_body_pair,
-                    frame.leaf_items,
-                    frame.normal_force,
-                    frame.normal,
-                    frame.point_a,
-                    frame.point_b,
-                    frame.offset,
+                    frame,
                 ],
                 outputs=[self._friction_value, self._friction_grad, self._friction_hess],
                 device=model.device,
@@ -354,7 +331,7 @@ class ImplicitSolver:
             step_length,
             value,
             float(contact.pair_separation.min()) if len(contact.pair_separation) else np.inf,
-            friction.count if friction is not None else 0,
+            friction.leaf_items.shape[0] if friction is not None else 0,
         )
         return self.last_step, lambda: self._backward_function(state_in, state_out, control, dt, hess, contact.grad, q, q_now, q_prev, friction, mu)
 
@@ -412,7 +389,7 @@ class ImplicitSolver:
                     outputs=[adj_now, adj_prev, adj_target, adj_mass],
                 )
                 mu_adj = float(lam_full @ contact_grad.reshape(-1))
-                if friction is not None and friction.count:
+                if friction is not None and friction.leaf_items.shape[0]:
                     mu_adj += self._friction_adjoint(friction, dt, mu, q_next_arr, q_now_arr, lam, adj_now)
                 wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[q_now_arr, adj_now], outputs=[state_in.body_q.grad])
                 wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[q_prev_arr, adj_prev], outputs=[state_in.body_q_prev.grad])
@@ -444,7 +421,7 @@ class ImplicitSolver:
         adj_mu = wp.zeros(1, dtype=wp.float64)
         wp.launch(
             friction_kernels.friction_adjoint_kernel,
-            dim=frame.count,
+            dim=frame.leaf_items.shape[0],
             inputs=[
                 contact.triangle_vertices,
                 contact.eps,
@@ -458,12 +435,7 @@ class ImplicitSolver:
                 pos_now,
                 model.body_dynamic,
                 contact.seed_body_pair,
-                frame.leaf_items,
-                frame.normal_force,
-                frame.normal,
-                frame.point_a,
-                frame.point_b,
-                frame.offset,
+                frame,
                 lam,
             ],
             outputs=[adj_q, adj_friction, adj_mu],
