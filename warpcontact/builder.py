@@ -8,6 +8,7 @@ import warp as wp
 
 from ._runtime import resolve_device
 from .contact import ContactModel
+from .rotation import quat_rotate
 from .types import Model
 
 __all__ = ["ModelBuilder"]
@@ -31,12 +32,6 @@ class _Body:
 def _second_moment_from_inertia(inertia: np.ndarray) -> np.ndarray:
     """S = sum m X X^T from the inertia tensor J = tr(S) I - S."""
     return 0.5 * np.trace(inertia) * np.eye(3) - inertia
-
-
-def _quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    x, y, z, w = q
-    u = np.array([x, y, z])
-    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
 
 
 class ModelBuilder:
@@ -174,7 +169,7 @@ class ModelBuilder:
 
         # Body frame: origin at the centre of mass, axes of the mesh frame.
         com_pose = pose.copy()
-        com_pose[:3] = pose[:3] + _quat_rotate(pose[3:], com)
+        com_pose[:3] = pose[:3] + quat_rotate(pose[3:], com)
         self._bodies.append(
             _Body(name, vertices - com, faces, body_mass, second_moment, com_pose, bool(static), kp_lin, kd_lin, float(kp_angular), float(kd_angular))
         )

@@ -40,6 +40,7 @@ import numpy as np
 import trimesh
 
 from .builder import ModelBuilder
+from .rotation import quat_rotate
 
 __all__ = [
     "BodySpec",
@@ -189,19 +190,6 @@ def _quat_xyzw(q) -> np.ndarray:
     """Gf quaternion -> (x, y, z, w)."""
     im = q.GetImaginary()
     return np.array([im[0], im[1], im[2], q.GetReal()], dtype=np.float64)
-
-
-def _quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    u, w = q[:3], q[3]
-    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    x1, y1, z1, w1 = a
-    x2, y2, z2, w2 = b
-    return np.array(
-        [w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2, w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2, w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2]
-    )
 
 
 def _attr(prim, name, default=None):
@@ -354,7 +342,7 @@ def load_scene(path) -> Scene:
             owner = str(desc.rigidBody) if desc.rigidBody and str(desc.rigidBody) in bodies else ""
             if owner:
                 target = bodies[owner]
-                vertices = np.array([_quat_rotate(local_pose[3:], v) for v in vertices]) + local_pose[:3]
+                vertices = np.array([quat_rotate(local_pose[3:], v) for v in vertices]) + local_pose[:3]
             else:
                 target = static_bodies.setdefault(
                     str(prim_path),
@@ -409,7 +397,7 @@ def _read_mass(prim, body: BodySpec, UsdPhysics, meters: float, source: str):
         diag = np.asarray(diag_attr.Get(), dtype=np.float64) * meters**2
         axes_attr = api.GetPrincipalAxesAttr()
         q = _quat_xyzw(axes_attr.Get()) if axes_attr and axes_attr.HasAuthoredValue() else np.array([0.0, 0.0, 0.0, 1.0])
-        R = np.column_stack([_quat_rotate(q, e) for e in np.eye(3)])
+        R = np.column_stack([quat_rotate(q, e) for e in np.eye(3)])
         if (diag <= 0).any():
             raise ValueError(f"{where}: diagonalInertia must be positive, got {diag}")
         body.inertia = R @ np.diag(diag) @ R.T

@@ -19,29 +19,10 @@ from __future__ import annotations
 import numpy as np
 
 from .contact import ContactEvaluation
+from .rotation import quat_to_matrix, skew
 from ._validate import as_float64_array
 
 __all__ = ["IpcContactModel"]
-
-
-def _rotation_matrices(quat: np.ndarray) -> np.ndarray:
-    x, y, z, w = quat.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
 
 
 class IpcContactModel:
@@ -91,7 +72,7 @@ class IpcContactModel:
         self._positions = np.zeros((self.num_bodies, 3))
 
     def _world_vertices(self, poses: np.ndarray) -> np.ndarray:
-        R = _rotation_matrices(poses[:, 3:])
+        R = quat_to_matrix(poses[:, 3:])
         return np.einsum("vij,vj->vi", R[self._body_of], self._local) + poses[self._body_of, :3]
 
     def evaluate(self, poses) -> ContactEvaluation:
@@ -120,7 +101,7 @@ class IpcContactModel:
         np.add.at(grad, self._body_of, np.concatenate([g, np.cross(r, g)], axis=1))
         J = np.zeros((len(V), 3, 6))
         J[:, :, :3] = np.eye(3)
-        J[:, :, 3:] = -_skew(r)
+        J[:, :, 3:] = -skew(r)
         J[~dynamic] = 0.0
         shape = (len(V), 3, 6)
         rows = np.broadcast_to(3 * np.arange(len(V))[:, None, None] + np.arange(3)[None, :, None], shape)
@@ -156,7 +137,7 @@ class IpcContactModel:
         angle = np.linalg.norm(step[:, 3:], axis=1, keepdims=True)
         half = 0.5 * angle
         scale = np.where(angle > 1e-12, np.sin(half) / np.where(angle > 1e-12, angle, 1.0), 0.5)
-        rotation = _rotation_matrices(np.concatenate([scale * step[:, 3:], np.cos(half)], axis=1))
+        rotation = quat_to_matrix(np.concatenate([scale * step[:, 3:], np.cos(half)], axis=1))
         V1 = np.einsum("vij,vj->vi", rotation[self._body_of], offsets) + (self._positions + step[:, :3])[self._body_of]
         alpha = float(self._ipctk.compute_collision_free_stepsize(self._mesh, self._world, V1))
         return 1.0 if alpha >= 1.0 else fraction * alpha

@@ -27,6 +27,7 @@ from .kernels import friction as friction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels.rigid import vec6d
 from ._runtime import paused_tape
+from .rotation import quat_from_rotation_vector, quat_mul
 from .types import Control, Model, State
 
 __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
@@ -49,33 +50,11 @@ class StepInfo:
     friction_pairs: int
 
 
-def _quat_mul(q, r):
-    x1, y1, z1, w1 = np.moveaxis(q, -1, 0)
-    x2, y2, z2, w2 = np.moveaxis(r, -1, 0)
-    return np.stack(
-        [
-            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-        ],
-        axis=-1,
-    )
-
-
-def _quat_exp(w):
-    angle = np.linalg.norm(w, axis=-1, keepdims=True)
-    half = 0.5 * angle
-    # sin(a/2)/a with its series near zero
-    scale = np.where(angle > 1e-8, np.sin(half) / np.where(angle > 1e-8, angle, 1.0), 0.5 - angle**2 / 48.0)
-    return np.concatenate([scale * w, np.cos(half)], axis=-1)
-
-
 def retract(poses: np.ndarray, step: np.ndarray) -> np.ndarray:
     """Poses moved by rigid coordinates: p + dp, exp([dtheta]x) R (world axes)."""
     out = poses.copy()
     out[:, :3] += step[:, :3]
-    q = _quat_mul(_quat_exp(step[:, 3:]), poses[:, 3:])
+    q = quat_mul(quat_from_rotation_vector(step[:, 3:]), poses[:, 3:])
     out[:, 3:] = q / np.linalg.norm(q, axis=1, keepdims=True)
     return out
 

@@ -1,0 +1,124 @@
+"""Host-side (numpy, float64) rotation helpers shared by the builder, solver, USD I/O,
+articulations and the IPC baseline.
+
+Quaternions are (x, y, z, w), Warp's order; every function broadcasts over leading axes.
+Rotation vectors w rotate by |w| radians about w / |w| (right-handed).
+"""
+
+import numpy as np
+
+__all__ = [
+    "quat_mul",
+    "quat_conjugate",
+    "quat_rotate",
+    "quat_from_rotation_vector",
+    "quat_to_matrix",
+    "quat_from_matrix",
+    "rotation_vector_from_quat",
+    "skew",
+    "pose_mul",
+    "pose_inverse",
+]
+
+
+def quat_mul(q, r) -> np.ndarray:
+    """Hamilton product q r (apply r first, then q)."""
+    x1, y1, z1, w1 = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
+    x2, y2, z2, w2 = np.moveaxis(np.asarray(r, dtype=np.float64), -1, 0)
+    return np.stack(
+        [
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        ],
+        axis=-1,
+    )
+
+
+def quat_conjugate(q) -> np.ndarray:
+    q = np.asarray(q, dtype=np.float64)
+    return np.concatenate([-q[..., :3], q[..., 3:]], axis=-1)
+
+
+def quat_rotate(q, v) -> np.ndarray:
+    """R(q) v for unit quaternions q."""
+    q = np.asarray(q, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    u, w = q[..., :3], q[..., 3:]
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+
+
+def quat_from_rotation_vector(w) -> np.ndarray:
+    """exp of a rotation vector as a unit quaternion (series near zero)."""
+    w = np.asarray(w, dtype=np.float64)
+    angle = np.linalg.norm(w, axis=-1, keepdims=True)
+    small = angle <= 1e-8
+    # sin(a/2)/a, with its series where a/2 would lose digits
+    scale = np.where(small, 0.5 - angle**2 / 48.0, np.sin(0.5 * angle) / np.where(small, 1.0, angle))
+    return np.concatenate([scale * w, np.cos(0.5 * angle)], axis=-1)
+
+
+def rotation_vector_from_quat(q) -> np.ndarray:
+    """log of a unit quaternion: the rotation vector with angle in [0, pi]."""
+    q = np.asarray(q, dtype=np.float64)
+    q = np.where(q[..., 3:] < 0.0, -q, q)
+    s = np.linalg.norm(q[..., :3], axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(s, q[..., 3:])
+    small = s <= 1e-12
+    scale = np.where(small, 2.0 / np.maximum(q[..., 3:], 1e-300), angle / np.where(small, 1.0, s))
+    return scale * q[..., :3]
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    x, y, z, w = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+def quat_from_matrix(m) -> np.ndarray:
+    """Unit quaternion of a single rotation matrix (Shepperd's branch choice)."""
+    m = np.asarray(m, dtype=np.float64)
+    trace = np.trace(m)
+    if trace > 0:
+        s = 2.0 * np.sqrt(1.0 + trace)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+        q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
+        q[i] = 0.25 * s
+        q[j] = (m[j, i] + m[i, j]) / s
+        q[k] = (m[k, i] + m[i, k]) / s
+    q = np.array(q)
+    return q / np.linalg.norm(q)
+
+
+def skew(v) -> np.ndarray:
+    """[v]x, the cross-product matrix."""
+    v = np.asarray(v, dtype=np.float64)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def pose_mul(a, b) -> np.ndarray:
+    """Composition of (7,) poses (p, q): a after b."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    return np.concatenate([a[..., :3] + quat_rotate(a[..., 3:], b[..., :3]), quat_mul(a[..., 3:], b[..., 3:])], axis=-1)
+
+
+def pose_inverse(a) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    q = quat_conjugate(a[..., 3:])
+    return np.concatenate([-quat_rotate(q, a[..., :3]), q], axis=-1)
