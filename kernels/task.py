@@ -9,7 +9,7 @@ import warp as wp
 
 from .state import quat_from_rotation_vector
 
-__all__ = ["DOF_CODES", "pd_target_kernel", "initial_state_kernel", "target_loss_kernel"]
+__all__ = ["DOF_CODES", "initial_state_kernel", "joint_sine_target_kernel", "pd_target_kernel", "target_loss_kernel"]
 
 DOF_CODES = {"x": 0, "y": 1, "z": 2, "rx": 3, "ry": 4, "rz": 5, "yaw": 6, "vx": 7, "vy": 8, "vz": 9}
 
@@ -69,6 +69,28 @@ def initial_state_kernel(
     rot = quat_from_rotation_vector(rv) * wp.transform_get_rotation(base_pose)
     body_q_out[body] = wp.transformd(wp.transform_get_translation(base_pose) + dp, rot)
     linear_velocity_out[body] = dv
+
+
+@wp.kernel
+def joint_sine_target_kernel(
+    # Model:
+    coordinate: wp.array(dtype=wp.int32),
+    rest: wp.array(dtype=wp.float64),
+    # Data in:
+    values: wp.array2d(dtype=wp.float64),
+    time: wp.float64,
+    # Data out:
+    target_out: wp.array(dtype=wp.float64),
+):
+    """Joint PD target of actuated coordinate ``coordinate[i]`` at ``time`` (s): its rest value
+    plus sum_j A_j sin(omega_j t + phi_j), row i of ``values`` = (A_1, omega_1, phi_1, A_2, ...)
+    (rad, rad/s, rad), the paper's accumulated sine waves (after ChainQueen)."""
+    i = wp.tid()
+    c = coordinate[i]
+    total = rest[c]
+    for j in range(values.shape[1] // 3):
+        total += values[i, 3 * j] * wp.sin(values[i, 3 * j + 1] * time + values[i, 3 * j + 2])
+    target_out[c] = total
 
 
 @wp.kernel

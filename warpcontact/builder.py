@@ -7,8 +7,9 @@ import trimesh
 import warp as wp
 
 from ._runtime import resolve_device
+from .articulation import BASE_DOFS, JOINT_KINDS, ArticulationModel, Joint, frame_in_body
 from .contact import ContactModel
-from .rotation import quat_rotate
+from .rotation import pose_mul, quat_rotate
 from .types import Model
 
 __all__ = ["ModelBuilder"]
@@ -27,11 +28,38 @@ class _Body:
     kd_linear: np.ndarray
     kp_angular: float
     kd_angular: float
+    center_of_mass: np.ndarray  # in the mesh frame
 
 
 def _second_moment_from_inertia(inertia: np.ndarray) -> np.ndarray:
     """S = sum m X X^T from the inertia tensor J = tr(S) I - S."""
     return 0.5 * np.trace(inertia) * np.eye(3) - inertia
+
+
+_ARTICULATION_CONTACT = ("nonadjacent", "all", "none")
+_IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+
+
+def _per_coordinate(value, count: int, label: str, where: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    try:
+        arr = np.broadcast_to(arr, (count,)).copy()
+    except ValueError:
+        raise ValueError(f"{where}: {label} needs 1 or {count} values, got {arr.shape}") from None
+    return arr
+
+
+def _unit_axes(axis, count: int, where: str) -> np.ndarray:
+    axes = np.asarray(axis, dtype=np.float64).reshape(-1, 3) if axis is not None else np.zeros((0, 3))
+    if axes.shape[0] != count or not np.isfinite(axes).all():
+        raise ValueError(f"{where}: expected {count} finite axis vector(s) of 3 values, got {axis!r}")
+    norms = np.linalg.norm(axes, axis=1)
+    if (norms < 1e-12).any():
+        raise ValueError(f"{where}: joint axis has zero length")
+    axes = axes / norms[:, None]
+    if count == 2 and abs(axes[0] @ axes[1]) > 1e-9:
+        raise ValueError(f"{where}: the two universal-joint axes must be orthogonal (cosine {axes[0] @ axes[1]:.3g})")
+    return axes
 
 
 class ModelBuilder:
@@ -46,9 +74,11 @@ class ModelBuilder:
         contact_mode: ``"bsh"``, ``"brute"`` (the paper's model, hierarchical or exact) or
             ``"ipc"`` (the IPC baseline through ipctk; CPU only, no friction).
         ipc_dhat: barrier support distance of the ``"ipc"`` baseline (m).
+        articulation_contact: contact between bodies of one articulation: ``"nonadjacent"``
+            (default: all pairs except a joint's parent and child), ``"all"`` or ``"none"``.
     """
 
-    def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, friction_smoothing: float = 1e-4, eps: float = 0.5, contact_mode: str = "bsh", ipc_dhat: float = 1e-2):
+    def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, friction_smoothing: float = 1e-4, eps: float = 0.5, contact_mode: str = "bsh", ipc_dhat: float = 1e-2, articulation_contact: str = "nonadjacent"):
         gravity = np.asarray(gravity, dtype=np.float64)
         if gravity.shape != (3,) or not np.isfinite(gravity).all():
             raise ValueError(f"gravity: expected 3 finite numbers, got {gravity}")
@@ -67,7 +97,11 @@ class ModelBuilder:
         self.eps = eps
         self.contact_mode = contact_mode
         self.ipc_dhat = ipc_dhat
+        if articulation_contact not in _ARTICULATION_CONTACT:
+            raise ValueError(f"articulation_contact: {articulation_contact!r} is not one of {_ARTICULATION_CONTACT}")
+        self.articulation_contact = articulation_contact
         self._bodies: list[_Body] = []
+        self._joints: list[Joint] = []
 
     def add_body(
         self,
@@ -171,9 +205,138 @@ class ModelBuilder:
         com_pose = pose.copy()
         com_pose[:3] = pose[:3] + quat_rotate(pose[3:], com)
         self._bodies.append(
-            _Body(name, vertices - com, faces, body_mass, second_moment, com_pose, bool(static), kp_lin, kd_lin, float(kp_angular), float(kd_angular))
+            _Body(name, vertices - com, faces, body_mass, second_moment, com_pose, bool(static), kp_lin, kd_lin, float(kp_angular), float(kd_angular), com)
         )
         return len(self._bodies) - 1
+
+    def add_joint(
+        self,
+        kind: str,
+        *,
+        child: int,
+        parent: int | None = None,
+        anchor=None,
+        axis=None,
+        parent_frame=None,
+        child_frame=None,
+        dofs=None,
+        limits=None,
+        kp=0.0,
+        kd=0.0,
+        limit_margin=None,
+        limit_stiffness=1.0,
+        name: str | None = None,
+    ) -> int:
+        """Connect ``child`` to ``parent`` (a body index, or None for the world); returns the joint index.
+
+        Args:
+            kind: ``"revolute"`` (1 coordinate, rad), ``"prismatic"`` (1, m), ``"universal"``
+                (2 rad: a ball joint with its twist locked), ``"ball"`` (3 rotations, no
+                coordinates, no gimbal singularity) or ``"base"`` (to the world: ``dofs``).
+            anchor: world point (m) of the joint in the initial poses; the joint frame is then
+                aligned with the world and ``axis`` is in world axes.
+            axis: revolute/prismatic: (3,); universal: (2, 3), the first fixed in the parent,
+                the second in the child.
+            parent_frame, child_frame: instead of ``anchor``: (7,) joint-frame poses in the
+                parent's (world's) and the child's mesh frames, as UsdPhysics localPos/localRot;
+                ``axis`` is then in the joint frame. The initial poses must satisfy the joint.
+            dofs: base joints: a subset of ("x", "y", "z", "rx", "ry", "rz") (world axes,
+                rotations about the child's centre of mass).
+            limits: per coordinate (lower, upper) in rad or m, or None.
+            kp, kd: PD gains per coordinate (scalar or one per coordinate), N m/rad, N m s/rad
+                (N/m, N s/m for translations); targets come from ``Control.joint_target``.
+            limit_margin: support of the limit barrier (default: a tenth of the range, at most
+                0.1); limit_stiffness: its scale (J).
+        """
+        name = name or f"joint{len(self._joints)}"
+        where = f"joint {name!r}"
+        if kind not in JOINT_KINDS:
+            raise ValueError(f"{where}: unknown joint type {kind!r}; supported: {JOINT_KINDS}")
+        n = len(self._bodies)
+        if not isinstance(child, (int, np.integer)) or not 0 <= child < n:
+            raise ValueError(f"{where}: child must be a body index in [0, {n}), got {child!r}")
+        if parent is not None and (not isinstance(parent, (int, np.integer)) or not 0 <= parent < n):
+            raise ValueError(f"{where}: parent must be a body index in [0, {n}) or None, got {parent!r}")
+        if parent == child:
+            raise ValueError(f"{where}: parent and child are the same body {self._bodies[child].name!r}")
+        child_body = self._bodies[child]
+        if child_body.static:
+            raise ValueError(f"{where}: child body {child_body.name!r} is static; a joint needs a dynamic child")
+        if any(j.child == child for j in self._joints):
+            other = next(j.name for j in self._joints if j.child == child)
+            raise ValueError(f"{where}: body {child_body.name!r} already has parent joint {other!r}; articulations must be trees (kinematic loops are not supported)")
+        parent_pose = _IDENTITY_POSE
+        parent_index = -1
+        if parent is not None:
+            parent_body = self._bodies[parent]
+            parent_pose = parent_body.pose
+            if not parent_body.static:
+                parent_index = int(parent)
+        if kind == "base":
+            if parent_index >= 0:
+                raise ValueError(f"{where}: a base joint connects a body to the world (parent None)")
+            dofs = tuple(dofs or ())
+            unknown = [d for d in dofs if d not in BASE_DOFS]
+            if unknown or len(set(dofs)) != len(dofs) or not dofs:
+                raise ValueError(f"{where}: dofs must be a non-empty subset of {BASE_DOFS}, got {dofs!r}")
+            dofs = tuple(d for d in BASE_DOFS if d in dofs)
+            axes = np.zeros((0, 3))
+            frames = (_IDENTITY_POSE.copy(), _IDENTITY_POSE.copy())
+        else:
+            if dofs is not None:
+                raise ValueError(f"{where}: dofs only applies to base joints")
+            dofs = ()
+            axes = _unit_axes(axis, {"revolute": 1, "prismatic": 1, "universal": 2, "ball": 0}[kind], where)
+            if anchor is not None:
+                if parent_frame is not None or child_frame is not None:
+                    raise ValueError(f"{where}: give an anchor or joint frames, not both")
+                anchor = np.asarray(anchor, dtype=np.float64)
+                if anchor.shape != (3,) or not np.isfinite(anchor).all():
+                    raise ValueError(f"{where}: anchor must be 3 finite numbers, got {anchor!r}")
+                world_frame = np.concatenate([anchor, [0.0, 0.0, 0.0, 1.0]])
+                frames = (frame_in_body(parent_pose, world_frame), frame_in_body(child_body.pose, world_frame))
+            elif parent_frame is not None and child_frame is not None:
+                frames = []
+                for label, frame, body in (("parent_frame", parent_frame, self._bodies[parent] if parent is not None else None), ("child_frame", child_frame, child_body)):
+                    frame = np.asarray(frame, dtype=np.float64)
+                    if frame.shape != (7,) or not np.isfinite(frame).all() or abs(np.linalg.norm(frame[3:]) - 1.0) > 1e-6:
+                        raise ValueError(f"{where}: {label} must be 7 finite numbers (p, unit quaternion), got {frame!r}")
+                    frame = frame.copy()
+                    frame[3:] /= np.linalg.norm(frame[3:])
+                    if body is not None:  # mesh frame -> centre-of-mass frame (same axes)
+                        frame[:3] -= body.center_of_mass
+                    frames.append(frame)
+                frames = tuple(frames)
+            else:
+                raise ValueError(f"{where}: give an anchor (world point) or both parent_frame and child_frame")
+        if parent is not None and parent_index < 0:  # a static parent is part of the world
+            frames = (pose_mul(parent_pose, frames[0]), frames[1])
+        probe = Joint(name, kind, parent_index, int(child), frames[0], frames[1], axes, dofs)
+        count = probe.num_coordinates()
+        lower = np.full(count, -np.inf)
+        upper = np.full(count, np.inf)
+        if limits is not None:
+            pairs = np.asarray(limits, dtype=np.float64).reshape(-1, 2)
+            if pairs.shape[0] == 1 and count > 1:
+                pairs = np.repeat(pairs, count, axis=0)
+            if pairs.shape[0] != count or np.isnan(pairs).any() or (pairs[:, 0] >= pairs[:, 1]).any():
+                raise ValueError(f"{where}: limits must be {count} (lower, upper) pairs with lower < upper, got {limits!r}")
+            lower, upper = pairs[:, 0].copy(), pairs[:, 1].copy()
+        span = np.where(np.isfinite(upper - lower), upper - lower, np.inf)
+        margin = np.minimum(0.1 * span, 0.1) if limit_margin is None else _per_coordinate(limit_margin, count, "limit_margin", where)
+        gains = {}
+        for label, value in (("kp", kp), ("kd", kd), ("limit_stiffness", limit_stiffness), ("limit_margin", margin)):
+            arr = _per_coordinate(value, count, label, where)
+            if not np.isfinite(arr).all() or (arr < 0).any() or (label.startswith("limit") and (arr <= 0).any()):
+                raise ValueError(f"{where}: {label} must be finite and {'positive' if label.startswith('limit') else '>= 0'}, got {value!r}")
+            gains[label] = arr
+        probe.lower, probe.upper = lower, upper
+        probe.limit_margin, probe.limit_stiffness = gains["limit_margin"], gains["limit_stiffness"]
+        probe.kp, probe.kd = gains["kp"], gains["kd"]
+        if kind == "ball" and count == 0 and (np.asarray(kp).any() or np.asarray(kd).any() or limits is not None):
+            raise ValueError(f"{where}: ball joints have no coordinates, so no PD gains or limits; use a universal joint or revolute joints")
+        self._joints.append(probe)
+        return len(self._joints) - 1
 
     def add_box(self, extents, **kwargs) -> int:
         """Add a box with the given (x, y, z) extents (m), centred on its frame."""
@@ -193,12 +356,16 @@ class ModelBuilder:
             raise ValueError(f"ModelBuilder: body names must be unique, got {names}")
         meshes = [(b.vertices, b.faces) for b in bodies]
         static = [b.static for b in bodies]
+        initial_q = np.array([b.pose for b in bodies])
+        body_radius = np.array([np.linalg.norm(b.vertices, axis=1).max() for b in bodies])
+        articulation = ArticulationModel(self._joints, body_names=names, body_static=static, body_poses=initial_q, length_scale=float(body_radius.max()))
+        exclude = self._excluded_pairs()
         if self.contact_mode == "ipc":
             from .ipc import IpcContactModel
 
-            contact = IpcContactModel(meshes, dhat=self.ipc_dhat, static=static, names=names, device=dev)
+            contact = IpcContactModel(meshes, dhat=self.ipc_dhat, static=static, names=names, device=dev, exclude_pairs=exclude)
         else:
-            contact = ContactModel(meshes, eps=self.eps, mode=self.contact_mode, static=static, names=names, device=dev)
+            contact = ContactModel(meshes, eps=self.eps, mode=self.contact_mode, static=static, names=names, device=dev, exclude_pairs=exclude)
         with wp.ScopedDevice(dev):
             return Model(
                 body_names=names,
@@ -209,13 +376,35 @@ class ModelBuilder:
                 body_kd_linear=wp.array(np.array([b.kd_linear for b in bodies]), dtype=wp.vec3d),
                 body_kp_angular=wp.array([b.kp_angular for b in bodies], dtype=wp.float64),
                 body_kd_angular=wp.array([b.kd_angular for b in bodies], dtype=wp.float64),
-                body_radius=np.array([np.linalg.norm(b.vertices, axis=1).max() for b in bodies]),
+                body_radius=body_radius,
                 body_meshes=[(b.vertices, b.faces) for b in bodies],
                 gravity=self.gravity.copy(),
                 contact_stiffness=wp.array([self.contact_stiffness], dtype=wp.float64, requires_grad=True),
                 friction=wp.array([self.friction], dtype=wp.float64, requires_grad=True),
                 friction_smoothing=self.friction_smoothing,
                 contact=contact,
-                initial_q=np.array([b.pose for b in bodies]),
+                initial_q=initial_q,
+                articulation=articulation,
                 device=dev,
             )
+
+    def _excluded_pairs(self) -> list[tuple[int, int]]:
+        """Body pairs without contact, from ``articulation_contact``."""
+        joints = [j for j in self._joints if j.parent >= 0]
+        if self.articulation_contact == "all" or not joints:
+            return []
+        if self.articulation_contact == "nonadjacent":
+            return sorted({(min(j.parent, j.child), max(j.parent, j.child)) for j in joints})
+        root = list(range(len(self._bodies)))
+
+        def find(b):
+            while root[b] != b:
+                b = root[b]
+            return b
+
+        for j in joints:
+            root[find(j.child)] = find(j.parent)
+        members = {}
+        for b in range(len(self._bodies)):
+            members.setdefault(find(b), []).append(b)
+        return sorted((a, b) for group in members.values() for i, a in enumerate(group) for b in group[i + 1 :])

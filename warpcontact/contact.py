@@ -73,6 +73,19 @@ class ContactEvaluation:
 
 
 @dataclass(frozen=True)
+class AdvancementFrame:
+    """Body transforms and term lists of one configuration, for conservative advancement."""
+
+    rotation: wp.array
+    position: wp.array
+    far: wp.array
+    num_far: int
+    leaf: wp.array
+    leaf_plane: wp.array
+    num_leaf: int
+
+
+@dataclass(frozen=True)
 class TermLists:
     """Term lists of one configuration (numpy copies, for inspection and tests).
 
@@ -88,6 +101,21 @@ class TermLists:
     leaf: np.ndarray
 
 
+def contact_body_pairs(static: np.ndarray, exclude_pairs=()) -> np.ndarray:
+    """(npairs, 2) body pairs a < b with contact: not both static, not excluded."""
+    n = len(static)
+    excluded = set()
+    for pair in exclude_pairs:
+        a, b = (int(i) for i in pair)
+        if not (0 <= a < n and 0 <= b < n) or a == b:
+            raise ValueError(f"exclude_pairs: ({a}, {b}) is not a pair of distinct body indices in [0, {n})")
+        excluded.add((min(a, b), max(a, b)))
+    return np.array(
+        [(a, b) for a in range(n) for b in range(a + 1, n) if not (static[a] and static[b]) and (a, b) not in excluded],
+        dtype=np.int32,
+    ).reshape(-1, 2)
+
+
 class ContactModel:
     """Contact potential between rigid bodies given as triangle meshes in their body frames.
 
@@ -100,6 +128,8 @@ class ContactModel:
         static: optional (nbodies,) booleans; static bodies have no degrees of freedom and
             pairs of two static bodies are skipped.
         names: optional body names used in messages (default ``body<i>``).
+        exclude_pairs: optional (a, b) body index pairs without contact (e.g. the two links of
+            a joint); they are never visited.
         device: Warp device.
         max_leaf_iterations: Newton iteration cap of each leaf solve.
     """
@@ -112,6 +142,7 @@ class ContactModel:
         mode: str = "bsh",
         static=None,
         names=None,
+        exclude_pairs=(),
         device="cpu",
         max_leaf_iterations: int = DEFAULT_MAX_ITERATIONS,
     ):
@@ -151,10 +182,7 @@ class ContactModel:
         self.trees: list[SphereTree] = trees
         self.node_offset = np.cumsum([0] + [t.num_nodes for t in trees])[:-1].astype(np.int32)
         self.triangle_offset = np.cumsum([0] + [t.num_triangles for t in trees])[:-1].astype(np.int32)
-        self.body_pairs = np.array(
-            [(a, b) for a in range(num_bodies) for b in range(a + 1, num_bodies) if not (static_flags[a] and static_flags[b])],
-            dtype=np.int32,
-        ).reshape(-1, 2)
+        self.body_pairs = contact_body_pairs(static_flags, exclude_pairs)
         self._upload_model(trees, triangles)
 
     # --- set-up ---------------------------------------------------------------------------
@@ -371,7 +399,22 @@ class ContactModel:
             pair_separation=self._seed_separation.numpy().copy(),
         )
 
-    def advancement_limit(self, step, *, fraction: float = 0.9) -> float:
+    def advancement_frame(self) -> "AdvancementFrame":
+        """A copy of the term lists and separating planes of the last ``evaluate``, so that
+        steps from that configuration can still be bounded after later evaluations."""
+        num_far, _, num_leaf, _ = self._counts
+        with wp.ScopedDevice(self.device):
+            return AdvancementFrame(
+                rotation=wp.clone(self._rotation),
+                position=wp.clone(self._position),
+                far=wp.clone(self._far[: max(num_far, 1)]) if self._far.shape[0] else wp.zeros(1, dtype=wp.vec4i),
+                num_far=num_far,
+                leaf=wp.clone(self._leaf[: max(num_leaf, 1)]) if self._leaf.shape[0] else wp.zeros(1, dtype=wp.vec4i),
+                leaf_plane=wp.clone(self._leaf_plane[: max(num_leaf, 1)]) if self._leaf_plane.shape[0] else wp.zeros(1, dtype=wp.vec4d),
+                num_leaf=num_leaf,
+            )
+
+    def advancement_limit(self, step, *, fraction: float = 0.9, frame: "AdvancementFrame | None" = None) -> float:
         """Largest alpha in (0, 1] such that moving the bodies by alpha * step, along the whole
         path p + alpha dp, exp(alpha [dtheta]x) R, keeps every pair apart.
 
@@ -382,11 +425,15 @@ class ContactModel:
 
         Args:
             step: (nbodies, 6) rigid-coordinate step (dp, dtheta); zero rows for static bodies.
+            frame: bound from the configuration of an ``advancement_frame()`` instead.
         """
         step = as_float64_array(step, "step", trailing_shape=(6,))
         if step.shape[0] != self.num_bodies:
             raise ValueError(f"step: expected {self.num_bodies} rows, got {step.shape[0]}")
-        num_far, _, num_leaf, _ = self._counts
+        if frame is None:
+            num_far, _, num_leaf, _ = self._counts
+            frame = AdvancementFrame(self._rotation, self._position, self._far, num_far, self._leaf, self._leaf_plane, num_leaf)
+        num_far, num_leaf = frame.num_far, frame.num_leaf
         self._alpha.fill_(1.0)
         if num_far + num_leaf:
             wp.launch(
@@ -397,13 +444,13 @@ class ContactModel:
                     self._node_radius,
                     self._triangle_vertices,
                     float(fraction),
-                    self._rotation,
-                    self._position,
+                    frame.rotation,
+                    frame.position,
                     self._seed_body_pair,
-                    self._far,
+                    frame.far,
                     num_far,
-                    self._leaf,
-                    self._leaf_plane,
+                    frame.leaf,
+                    frame.leaf_plane,
                     wp.array(step, dtype=rigid_kernels.vec6d, device=self.device),
                 ],
                 outputs=[self._alpha],

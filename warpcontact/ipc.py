@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .contact import ContactEvaluation
-from .rotation import quat_to_matrix, skew
+from .contact import ContactEvaluation, contact_body_pairs
+from .rotation import quat_from_rotation_vector, quat_to_matrix, skew
 from ._validate import as_float64_array
 
 __all__ = ["IpcContactModel"]
@@ -36,7 +36,7 @@ class IpcContactModel:
 
     mode = "ipc"
 
-    def __init__(self, meshes, *, dhat: float = 1e-2, static=None, names=None, device="cpu"):
+    def __init__(self, meshes, *, dhat: float = 1e-2, static=None, names=None, device="cpu", exclude_pairs=()):
         import ipctk
         import scipy.sparse as sp
 
@@ -50,10 +50,7 @@ class IpcContactModel:
         self.names = [f"body{i}" for i in range(self.num_bodies)] if names is None else [str(n) for n in names]
         self.static = np.zeros(self.num_bodies, dtype=bool) if static is None else np.asarray(static, dtype=bool)
         self.dhat = float(dhat)
-        self.body_pairs = np.array(
-            [(a, b) for a in range(self.num_bodies) for b in range(a + 1, self.num_bodies) if not (self.static[a] and self.static[b])],
-            dtype=np.int32,
-        ).reshape(-1, 2)
+        self.body_pairs = contact_body_pairs(self.static, exclude_pairs)
         vertices, faces, body_of = [], [], []
         offset = 0
         for b, (V, F) in enumerate(meshes):
@@ -66,10 +63,19 @@ class IpcContactModel:
         self._body_of = np.concatenate(body_of)
         F = np.concatenate(faces)
         self._mesh = ipctk.CollisionMesh(self._local, ipctk.edges(F), F)
-        self._mesh.can_collide = ipctk.make_vertex_patches_filter(self._body_of)
+        self._mesh.can_collide = ipctk.make_vertex_patches_filter(self._patches(exclude_pairs)[self._body_of])
         self._potential = ipctk.BarrierPotential(self.dhat, 1.0)
         self._world = self._local.copy()
         self._positions = np.zeros((self.num_bodies, 3))
+
+    def _patches(self, exclude_pairs) -> np.ndarray:
+        """Patch id per body: ipctk's filter only separates patches, so bodies joined by
+        excluded pairs share one patch (all contact inside such a group is off)."""
+        patch = np.arange(self.num_bodies)
+        for a, b in exclude_pairs:
+            old, new = patch[max(a, b)], patch[min(a, b)]
+            patch[patch == old] = new
+        return patch.astype(np.int32)
 
     def _world_vertices(self, poses: np.ndarray) -> np.ndarray:
         R = quat_to_matrix(poses[:, 3:])
@@ -127,17 +133,20 @@ class IpcContactModel:
         sub.can_collide = self._ipctk.make_vertex_patches_filter(self._body_of[keep])
         return bool(self._ipctk.has_intersections(sub, V[keep]))
 
-    def advancement_limit(self, step, *, fraction: float = 0.9) -> float:
+    def advancement_frame(self) -> tuple[np.ndarray, np.ndarray]:
+        """World vertices and body positions of the last ``evaluate`` (see ContactModel)."""
+        return self._world.copy(), self._positions.copy()
+
+    def advancement_limit(self, step, *, fraction: float = 0.9, frame: tuple | None = None) -> float:
         """Largest alpha in (0, 1] with no collision along the step, from the last evaluated
-        configuration (ipctk CCD on straight vertex paths, times ``fraction`` when limiting)."""
+        configuration or ``frame`` (ipctk CCD on straight vertex paths, times ``fraction``
+        when limiting)."""
         step = as_float64_array(step, "step", trailing_shape=(6,))
         if step.shape[0] != self.num_bodies:
             raise ValueError(f"step: expected {self.num_bodies} rows, got {step.shape[0]}")
-        offsets = self._world - self._positions[self._body_of]
-        angle = np.linalg.norm(step[:, 3:], axis=1, keepdims=True)
-        half = 0.5 * angle
-        scale = np.where(angle > 1e-12, np.sin(half) / np.where(angle > 1e-12, angle, 1.0), 0.5)
-        rotation = quat_to_matrix(np.concatenate([scale * step[:, 3:], np.cos(half)], axis=1))
-        V1 = np.einsum("vij,vj->vi", rotation[self._body_of], offsets) + (self._positions + step[:, :3])[self._body_of]
-        alpha = float(self._ipctk.compute_collision_free_stepsize(self._mesh, self._world, V1))
+        world, positions = frame if frame is not None else (self._world, self._positions)
+        offsets = world - positions[self._body_of]
+        rotation = quat_to_matrix(quat_from_rotation_vector(step[:, 3:]))
+        V1 = np.einsum("vij,vj->vi", rotation[self._body_of], offsets) + (positions + step[:, :3])[self._body_of]
+        alpha = float(self._ipctk.compute_collision_free_stepsize(self._mesh, world, V1))
         return 1.0 if alpha >= 1.0 else fraction * alpha

@@ -151,7 +151,7 @@ def bunny_mesh(target_faces: int = 270, height: float = 0.3):
     return v, f, (float(props["volume"]), np.asarray(props["center_mass"]), np.asarray(props["inertia"]))
 
 
-def _grid_ground(size_x: float, size_y: float, cell: float = 0.5, centre=(0.0, 0.0)) -> BodySpec:
+def grid_ground(size_x: float, size_y: float, cell: float = 0.5, centre=(0.0, 0.0)) -> BodySpec:
     nx, ny = max(1, int(round(size_x / cell))), max(1, int(round(size_y / cell)))
     xs = np.linspace(-size_x / 2, size_x / 2, nx + 1) + centre[0]
     ys = np.linspace(-size_y / 2, size_y / 2, ny + 1) + centre[1]
@@ -220,14 +220,14 @@ def _billiards(points_per_ball: int, *, seed: int = 0) -> Scene:
 
 
 def _billiards_ground() -> BodySpec:
-    return _grid_ground(16.0, 10.0, 0.5, centre=(3.0, 0.0))
+    return grid_ground(16.0, 10.0, 0.5, centre=(3.0, 0.0))
 
 
 def _push() -> Scene:
     box = _body("box", _box_mesh((0.5, 0.5, 0.5)), (0.0, 0.0, 0.25 + _REST_GAP), density=200.0, target_position=np.array([2.5, 0.0, 0.25]), target_tolerance=0.2)
     rod = _rod((1.0, 0.0, 0.3 + 0.02), ("x", "y", "z", "rx", "ry", "rz"))
     return Scene(
-        bodies=[_grid_ground(8.0, 6.0), box, rod],
+        bodies=[grid_ground(8.0, 6.0), box, rod],
         settings=SimulationSettings(time_step=0.04, frames=200, contact_stiffness=1e-6, friction=0.5),
         task=TaskSpec(name="push", control="pd_targets", horizon=200, receding_horizon=48, learning_rate=1e-2, iterations=50),
     )
@@ -262,7 +262,7 @@ def _sort(seed: int = 1) -> Scene:
     regions = {0: np.array([-3.0, 0.0, 0.15]), 1: np.array([3.0, 0.0, 0.15])}
     cubes = _scattered_cubes(rng, 10, _cube_factory("cube"), labels=labels, target_of=lambda b: (regions[b.group], 0.6))
     return Scene(
-        bodies=[_grid_ground(10.0, 7.0), *cubes, _rod((0.0, 0.0, 0.3 + 0.02), ("x", "y", "z"))],
+        bodies=[grid_ground(10.0, 7.0), *cubes, _rod((0.0, 0.0, 0.3 + 0.02), ("x", "y", "z"))],
         settings=SimulationSettings(time_step=0.04, frames=700, contact_stiffness=3e-8, friction=0.5),
         task=TaskSpec(name="sort", control="pd_targets", horizon=700, receding_horizon=16, learning_rate=1e-2, iterations=100),
     )
@@ -291,7 +291,7 @@ def _gather(seed: int = 2, *, bunny: bool = False) -> Scene:
     objects = _scattered_cubes(rng, 10, factory, target_of=lambda b: goal, spread=2.5)
     name = "gather_bunny" if bunny else "gather"
     return Scene(
-        bodies=[_grid_ground(8.0, 8.0), *objects, _rod((3.2, 3.2, 0.3 + 0.02), ("x", "y", "z", "yaw"))],
+        bodies=[grid_ground(8.0, 8.0), *objects, _rod((3.2, 3.2, 0.3 + 0.02), ("x", "y", "z", "yaw"))],
         settings=SimulationSettings(time_step=0.04, frames=550 if bunny else 300, contact_stiffness=5e-9 if bunny else 3e-8, friction=0.5),
         task=TaskSpec(name=name, control="pd_targets", horizon=550 if bunny else 300, receding_horizon=32, learning_rate=1e-2, iterations=60),
     )

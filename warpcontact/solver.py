@@ -27,6 +27,7 @@ from .kernels import friction as friction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels.rigid import vec6d
 from ._runtime import paused_tape
+from .articulation import joint_limit_energy
 from .rotation import quat_from_rotation_vector, quat_mul
 from .types import Control, Model, State
 
@@ -59,6 +60,19 @@ def retract(poses: np.ndarray, step: np.ndarray) -> np.ndarray:
     return out
 
 
+@dataclass(frozen=True)
+class _StepInputs:
+    """What a step's objective depends on besides the iterate."""
+
+    dt: float
+    mu: float
+    friction: "friction_kernels.FrictionFrame | None"
+    body_q: wp.array  # poses q^t
+    body_target: wp.array  # body PD targets
+    joint_q: np.ndarray  # joint coordinates at t
+    joint_target: np.ndarray  # joint PD targets
+
+
 class ImplicitSolver:
     """Implicit Newton time stepper of a ``Model``.
 
@@ -89,6 +103,8 @@ class ImplicitSolver:
         n = model.num_bodies
         self._dynamic = ~model.static
         self._dofs = np.flatnonzero(np.repeat(self._dynamic, 6))
+        # Free bodies only: the reduced coordinates are the rigid coordinates (J = I).
+        self._articulation = None if model.articulation.identity else model.articulation
         self._length_scale = float(model.body_radius.max())
         with wp.ScopedDevice(model.device):
             self._predicted_position = wp.zeros(n, dtype=wp.vec3d)
@@ -167,8 +183,8 @@ class ImplicitSolver:
             )
         return float(self._friction_value.numpy()[0]), self._friction_grad.numpy().reshape(-1), self._friction_hess.numpy()
 
-    def _evaluate(self, poses: np.ndarray, current_q: wp.array, target: wp.array, dt: float, mu: float, friction):
-        """L, its gradient and Hessian over the dynamic coordinates, and the contact evaluation."""
+    def _evaluate(self, poses: np.ndarray, coords: np.ndarray, step_in: "_StepInputs"):
+        """L, its gradient and Hessian over the reduced coordinates, and the contact evaluation."""
         contact = self.model.contact.evaluate(poses)
         if not contact.ok:
             return np.inf, None, None, contact
@@ -176,23 +192,63 @@ class ImplicitSolver:
         wp.launch(
             dynamics_kernels.body_energy_kernel,
             dim=self.model.num_bodies,
-            inputs=[self._body_model(dt), self._trial_q, current_q, self._predicted_position, self._predicted_rotation, target],
+            inputs=[self._body_model(step_in.dt), self._trial_q, step_in.body_q, self._predicted_position, self._predicted_rotation, step_in.body_target],
             outputs=[self._energy, self._energy_grad, self._energy_hess],
             device=self.model.device,
         )
+        mu = step_in.mu
         value = float(self._energy.numpy().sum()) + mu * contact.value
         grad = self._energy_grad.numpy().reshape(-1) + mu * contact.grad.reshape(-1)
         hess = mu * contact.hessian
-        if friction is not None:
-            f_value, f_grad, f_hess = self._friction_terms(friction, dt)
+        if step_in.friction is not None:
+            f_value, f_grad, f_hess = self._friction_terms(step_in.friction, step_in.dt)
             value += f_value
             grad += f_grad
             hess += f_hess
         blocks = self._energy_hess.numpy()
         for b in np.flatnonzero(self._dynamic):
             hess[6 * b : 6 * b + 6, 6 * b : 6 * b + 6] += blocks[b]
-        d = self._dofs
-        return value, grad[d], hess[np.ix_(d, d)], contact
+        art = self._articulation
+        if art is None:
+            d = self._dofs
+            return value, grad[d], hess[np.ix_(d, d)], contact
+        J = art.jacobian(poses)
+        reduced_grad = J.T @ grad
+        reduced_hess = J.T @ hess @ J + art.curvature(poses, grad.reshape(-1, 6))
+        if art.num_coordinates:
+            j_value, j_grad, j_hess = self._joint_terms(coords, step_in)
+            c = art.coordinate_dof
+            value += j_value
+            reduced_grad[c] += j_grad
+            reduced_hess[c, c] += j_hess
+        return value, reduced_grad, reduced_hess, contact
+
+    def _joint_terms(self, coords: np.ndarray, step_in: "_StepInputs"):
+        """Joint-space PD (implicit, like the body PD) and limit barriers: value, gradient, diagonal Hessian."""
+        art = self._articulation
+        dt = step_in.dt
+        error = coords - step_in.joint_target
+        velocity = coords - step_in.joint_q
+        value = 0.5 * float(np.sum(art.kp * error**2 + art.kd / dt * velocity**2))
+        grad = art.kp * error + art.kd / dt * velocity
+        hess = art.kp + art.kd / dt
+        if art.has_limits:
+            l_value, l_grad, l_hess = joint_limit_energy(coords, art.lower, art.upper, art.limit_margin, art.limit_stiffness)
+            value += float(l_value.sum())
+            grad = grad + l_grad
+            hess = hess + l_hess
+        return value, grad, hess
+
+    def _limit_step(self, coords: np.ndarray, direction: np.ndarray) -> float:
+        """Largest step fraction that closes at most ``advancement_fraction`` of any joint coordinate's distance to its limits."""
+        art = self._articulation
+        if art is None or not art.has_limits:
+            return 1.0
+        delta = direction[art.coordinate_dof]
+        room = np.where(delta < 0, coords - art.lower, art.upper - coords)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(delta != 0, self.advancement_fraction * room / np.abs(delta), np.inf)
+        return float(min(1.0, ratio.min(initial=np.inf)))
 
     def _newton_direction(self, hess: np.ndarray, grad: np.ndarray) -> np.ndarray:
         """Descent direction from H d = -g.
@@ -229,6 +285,22 @@ class ImplicitSolver:
             tape.record_func(*record())
         return info
 
+    def _joint_arrays(self, state_in: State, state_out: State, control: Control | None):
+        """Current joint coordinates and joint targets (numpy); checks the joint buffers."""
+        count = self.model.num_joint_coordinates
+        if count == 0:
+            return np.zeros(0), np.zeros(0)
+        for label, arr in (("state_in.joint_q", state_in.joint_q), ("state_out.joint_q", state_out.joint_q), ("state_out.joint_q_prev", state_out.joint_q_prev)):
+            if arr is None or arr.shape != (count,):
+                raise ValueError(f"{label}: expected a float64 array of the model's {count} joint coordinates (use model.state())")
+        coords = state_in.joint_q.numpy()
+        if not np.isfinite(coords).all():
+            raise ValueError("state_in.joint_q: contains non-finite values")
+        target = coords if control is None or control.joint_target is None else control.joint_target.numpy()
+        if target.shape != (count,) or not np.isfinite(target).all():
+            raise ValueError(f"control.joint_target: expected {count} finite joint targets")
+        return coords, target
+
     def _solve(self, state_in: State, state_out: State, control: Control | None, dt: float):
         if not np.isfinite(dt) or dt <= 0:
             raise ValueError(f"dt: must be a positive finite number of seconds, got {dt}")
@@ -240,15 +312,24 @@ class ImplicitSolver:
         for label, arr in (("state_in.body_q", q_now), ("state_in.body_q_prev", q_prev)):
             if not np.isfinite(arr).all():
                 raise ValueError(f"{label}: contains non-finite values")
-        target = control.body_target if control is not None else state_in.body_q
+        coords_now, joint_target = self._joint_arrays(state_in, state_out, control)
         mu = float(model.contact_stiffness.numpy()[0])
         dynamic = self._dynamic
+        art = self._articulation
 
         start = model.contact.evaluate(q_now)
         if start.contact_pairs:
             names = ", ".join(f"{a} and {b}" for a, b in start.contact_pairs)
             raise ValueError(f"state_in: bodies intersect or touch at the start of the step: {names}")
-        friction = self._friction_frame(mu)
+        step_in = _StepInputs(
+            dt=float(dt),
+            mu=mu,
+            friction=self._friction_frame(mu),
+            body_q=state_in.body_q,
+            body_target=control.body_target if control is not None else state_in.body_q,
+            joint_q=coords_now,
+            joint_target=joint_target,
+        )
 
         wp.launch(
             dynamics_kernels.predict_kernel,
@@ -263,9 +344,10 @@ class ImplicitSolver:
 
         q = q_now.copy()
         q[:, 3:] /= np.linalg.norm(q[:, 3:], axis=1, keepdims=True)
-        value, grad, hess, contact = self._evaluate(q, state_in.body_q, target, dt, mu, friction)
+        coords = coords_now.copy()
+        value, grad, hess, contact = self._evaluate(q, coords, step_in)
         if not np.isfinite(value):
-            raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs})")
+            raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs}; joint limits reached: {self._limits_reached(coords)})")
         full = np.zeros((model.num_bodies, 6))
         tol = self.tolerance * self._length_scale
         converged = False
@@ -273,8 +355,11 @@ class ImplicitSolver:
         step_length = np.inf
         for iterations in range(1, self.max_iterations + 1):
             direction = self._newton_direction(hess, grad)
-            full[:] = 0.0
-            full.reshape(-1)[self._dofs] = direction
+            if art is None:
+                full[:] = 0.0
+                full.reshape(-1)[self._dofs] = direction
+            else:
+                full = (art.jacobian(q) @ direction).reshape(-1, 6)
             travel = self._body_travel(full)
             step_length = float(travel.max())
             if step_length <= tol:
@@ -282,12 +367,24 @@ class ImplicitSolver:
                 break
             decrement = -float(grad @ direction)
             # The contact model still holds the term lists of q: trials come after this.
-            alpha = model.contact.advancement_limit(full, fraction=self.advancement_fraction)
+            frame = model.contact.advancement_frame() if art is not None else None
+            alpha = min(model.contact.advancement_limit(full, fraction=self.advancement_fraction, frame=frame), self._limit_step(coords, direction))
             quadratic_regime = decrement <= 1e-10 * max(abs(value), 1e-300) and alpha == 1.0
             accepted = False
             for _ in range(60):
-                trial = retract(q, alpha * full)
-                t_value, t_grad, t_hess, t_contact = self._evaluate(trial, state_in.body_q, target, dt, mu, friction)
+                if art is None:
+                    trial, t_coords = retract(q, alpha * full), coords
+                else:
+                    # Bodies move along products of exponentials, not along the straight
+                    # rigid-coordinate paths that conservative advancement bounds, so certify
+                    # the straight path to each body's actual trial pose.
+                    trial = art.retract(q, alpha * direction)
+                    t_coords = coords + alpha * direction[art.coordinate_dof]
+                    certified = model.contact.advancement_limit(art.chart_step(q, trial), fraction=self.advancement_fraction, frame=frame)
+                    if certified < 1.0:
+                        alpha *= min(max(certified, 0.1), 0.9)
+                        continue
+                t_value, t_grad, t_hess, t_contact = self._evaluate(trial, t_coords, step_in)
                 # Below the rounding of L an Armijo test is noise; full steps are safe there.
                 if np.isfinite(t_value) and (quadratic_regime or t_value <= value - 1e-4 * alpha * decrement):
                     accepted = True
@@ -298,13 +395,17 @@ class ImplicitSolver:
                     converged = True  # stalled at the rounding floor of L, within 1e3 tol
                     break
                 raise SolverError(self._diagnostics("line search failed", iterations, step_length, value, travel))
-            q, value, grad, hess, contact = trial, t_value, t_grad, t_hess, t_contact
+            q, coords, value, grad, hess, contact = trial, t_coords, t_value, t_grad, t_hess, t_contact
         if not converged:
             raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel))
 
         q[~dynamic] = q_now[~dynamic]
         state_out.body_q.assign(q)
         state_out.body_q_prev.assign(q_now)
+        if len(coords):
+            state_out.joint_q.assign(coords)
+            state_out.joint_q_prev.assign(coords_now)
+        friction = step_in.friction
         self.last_step = StepInfo(
             iterations,
             step_length,
@@ -312,7 +413,14 @@ class ImplicitSolver:
             float(contact.pair_separation.min()) if len(contact.pair_separation) else np.inf,
             friction.leaf_items.shape[0] if friction is not None else 0,
         )
-        return self.last_step, lambda: self._backward_function(state_in, state_out, control, dt, hess, contact.grad, q, q_now, q_prev, friction, mu)
+        return self.last_step, lambda: self._backward_function(state_in, state_out, control, step_in, hess, contact.grad, q, q_now, q_prev)
+
+    def _limits_reached(self, coords: np.ndarray) -> list[str]:
+        art = self._articulation
+        if art is None:
+            return []
+        outside = (coords <= art.lower) | (coords >= art.upper)
+        return [art.coordinate_names[i] for i in np.flatnonzero(outside)]
 
     def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray) -> str:
         worst = np.argsort(-travel)[:3]
@@ -325,21 +433,23 @@ class ImplicitSolver:
 
     # --- backward -----------------------------------------------------------------------------
 
-    def _backward_function(self, state_in, state_out, control, dt, hess, contact_grad, q_next, q_now, q_prev, friction, mu):
+    def _backward_function(self, state_in, state_out, control, step_in, hess, contact_grad, q_next, q_now, q_prev):
         """The step's backward and the arrays it touches, for ``tape.record_func``."""
         model = self.model
         dev = model.device
         n = model.num_bodies
+        dt, mu, friction = step_in.dt, step_in.mu, step_in.friction
         dynamic = self._dynamic
-        dofs = self._dofs
+        art = self._articulation
         hess = hess.copy()
         contact_grad = contact_grad.copy()
+        jacobian = art.jacobian(q_next) if art is not None else None
         with wp.ScopedDevice(dev):
             # Snapshots: the backward must see this step's values, not later contents.
             q_next_arr = wp.array(q_next, dtype=wp.transformd)
             q_now_arr = wp.array(q_now, dtype=wp.transformd)
             q_prev_arr = wp.array(q_prev, dtype=wp.transformd)
-            target_arr = wp.array((control.body_target if control is not None else state_in.body_q).numpy(), dtype=wp.transformd)
+            target_arr = wp.array(step_in.body_target.numpy(), dtype=wp.transformd)
             predicted_position = wp.clone(self._predicted_position)
             predicted_rotation = wp.clone(self._predicted_rotation)
             sensitivity = wp.clone(self._prediction_sensitivity)
@@ -347,6 +457,11 @@ class ImplicitSolver:
         arrays = [state_out.body_q, state_out.body_q_prev, state_in.body_q, state_in.body_q_prev, model.body_mass, model.contact_stiffness, model.friction]
         if control is not None and control.body_target.requires_grad:
             arrays.append(control.body_target)
+        joints = art is not None and art.num_coordinates > 0
+        if joints:
+            arrays += [state_out.joint_q, state_out.joint_q_prev, state_in.joint_q]
+            if control is not None and control.joint_target is not None and control.joint_target.requires_grad:
+                arrays.append(control.joint_target)
 
         def backward():
             with wp.ScopedDevice(dev):
@@ -354,8 +469,15 @@ class ImplicitSolver:
                 rigid_out = wp.zeros(n, dtype=vec6d)
                 wp.launch(dynamics_kernels.pose_adjoint_to_rigid_kernel, dim=n, inputs=[q_next_arr, out_adj], outputs=[rigid_out])
                 adj = rigid_out.numpy().reshape(-1)
-                lam_full = np.zeros(6 * n)
-                lam_full[dofs] = np.linalg.solve(hess, -adj[dofs])
+                if art is None:
+                    lam_full = np.zeros(6 * n)
+                    lam_full[self._dofs] = np.linalg.solve(hess, -adj[self._dofs])
+                else:
+                    reduced_adj = jacobian.T @ adj
+                    if joints:
+                        reduced_adj[art.coordinate_dof] += state_out.joint_q.grad.numpy()
+                    lam_reduced = np.linalg.solve(hess, -reduced_adj)
+                    lam_full = jacobian @ lam_reduced
                 lam = wp.array(lam_full.reshape(n, 6), dtype=vec6d)
                 adj_now = wp.zeros(n, dtype=vec6d)
                 adj_prev = wp.zeros(n, dtype=vec6d)
@@ -381,6 +503,14 @@ class ImplicitSolver:
                 static_adj = out_adj.numpy()
                 passthrough[~dynamic] += static_adj[~dynamic]
                 state_in.body_q.grad.assign(state_in.body_q.grad.numpy() + passthrough)
+                if joints:
+                    # d(grad)/d(target) = -kp and d(grad)/d(q^t) = -kd/dt on each coordinate;
+                    # state_out.joint_q_prev is a copy of state_in.joint_q.
+                    lam_coords = lam_reduced[art.coordinate_dof]
+                    adj_coords = -art.kd / dt * lam_coords + state_out.joint_q_prev.grad.numpy()
+                    state_in.joint_q.grad.assign(state_in.joint_q.grad.numpy() + adj_coords)
+                    if control is not None and control.joint_target is not None and control.joint_target.requires_grad:
+                        control.joint_target.grad.assign(control.joint_target.grad.numpy() - art.kp * lam_coords)
 
         return backward, arrays
 

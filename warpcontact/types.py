@@ -4,8 +4,9 @@
   whose origin is the centre of mass), masses, second moments, static flags, PD gains,
   gravity, contact stiffness, friction, and the contact model.
 - ``State``: body poses at the current and the previous time step (the paper's
-  (x^t, x^{t-1})); velocities are (pose - previous pose) / dt.
-- ``Control``: PD target poses of actuated bodies.
+  (x^t, x^{t-1})) and the joint coordinates of articulations at both; velocities are
+  (pose - previous pose) / dt.
+- ``Control``: PD target poses of actuated bodies and PD targets of joint coordinates.
 
 Poses are Warp transforms (px, py, pz, qx, qy, qz, qw) of each body's centre-of-mass frame,
 in metres. Arrays that users optimise are allocated with ``requires_grad=True``.
@@ -16,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from .articulation import ArticulationModel
 from .contact import ContactModel
 from .kernels import state as state_kernels
 
@@ -24,17 +26,22 @@ __all__ = ["Model", "State", "Control", "set_body_velocity"]
 
 @dataclass
 class State:
-    """Body poses now and one step earlier, (nbodies,) ``wp.transformd`` each."""
+    """Body poses now and one step earlier, (nbodies,) ``wp.transformd`` each, and joint
+    coordinates now and one step earlier, (ncoordinates,) float64 each (rad or m)."""
 
     body_q: wp.array
     body_q_prev: wp.array
+    joint_q: wp.array = None
+    joint_q_prev: wp.array = None
 
 
 @dataclass
 class Control:
-    """PD target poses, (nbodies,) ``wp.transformd``; used for bodies with non-zero gains."""
+    """PD target poses, (nbodies,) ``wp.transformd``, used for bodies with non-zero gains;
+    PD targets of joint coordinates, (ncoordinates,) float64 (rad or m)."""
 
     body_target: wp.array
+    joint_target: wp.array = None
 
 
 @dataclass
@@ -60,6 +67,8 @@ class Model:
             friction force reaches lambda N once slip speeds exceed a few v_eps.
         contact: the ``ContactModel`` over all bodies.
         initial_q: numpy (nbodies, 7) initial poses.
+        articulation: the ``ArticulationModel``: joints, reduced coordinates, joint gains and
+            limits (every dynamic body without a joint is a free body).
     """
 
     body_names: list
@@ -78,6 +87,7 @@ class Model:
     friction_smoothing: float
     contact: ContactModel
     initial_q: np.ndarray
+    articulation: ArticulationModel
     device: object = field(default=None)
 
     @property
@@ -88,16 +98,28 @@ class Model:
     def static(self) -> np.ndarray:
         return self.body_dynamic.numpy() == 0
 
+    @property
+    def num_joint_coordinates(self) -> int:
+        return self.articulation.num_coordinates
+
+    def _coordinates(self, requires_grad: bool) -> wp.array:
+        return wp.array(self.articulation.initial_coordinates, dtype=wp.float64, device=self.device, requires_grad=requires_grad)
+
     def state(self, *, requires_grad: bool = True) -> State:
         """A state at the initial poses, at rest."""
         return State(
             body_q=wp.array(self.initial_q, dtype=wp.transformd, device=self.device, requires_grad=requires_grad),
             body_q_prev=wp.array(self.initial_q, dtype=wp.transformd, device=self.device, requires_grad=requires_grad),
+            joint_q=self._coordinates(requires_grad),
+            joint_q_prev=self._coordinates(requires_grad),
         )
 
     def control(self, *, requires_grad: bool = True) -> Control:
-        """A control whose PD targets are the initial poses."""
-        return Control(body_target=wp.array(self.initial_q, dtype=wp.transformd, device=self.device, requires_grad=requires_grad))
+        """A control whose PD targets are the initial poses and joint coordinates."""
+        return Control(
+            body_target=wp.array(self.initial_q, dtype=wp.transformd, device=self.device, requires_grad=requires_grad),
+            joint_target=self._coordinates(requires_grad),
+        )
 
 
 def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity: wp.array, dt: float):

@@ -1,0 +1,328 @@
+"""Articulations in reduced coordinates: derivatives, physics, limits, the ant, gradients, bad input."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+import warpcontact as wc
+from warpcontact.kernels import task as task_kernels
+from warpcontact.robots import add_ant
+from warpcontact.scenes import grid_ground
+
+# --- helpers ---------------------------------------------------------------------------------
+
+
+def chain_model(**builder_options):
+    """A base (x, y, z, yaw) carrying universal -> revolute -> ball -> prismatic links, a free
+    sphere and a static triangle: every DOF kind, every joint kind."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), **builder_options)
+    base = b.add_box((0.4, 0.3, 0.1), mass=2.0, pose=(0, 0, 1.0, 0, 0, 0, 1), name="base")
+    l1 = b.add_box((0.3, 0.06, 0.06), mass=0.5, pose=(0.42, 0, 1.0, 0, 0, 0, 1), name="l1")
+    l2 = b.add_box((0.3, 0.06, 0.06), mass=0.5, pose=(0.78, 0, 1.0, 0, 0, 0, 1), name="l2")
+    l3 = b.add_box((0.06, 0.06, 0.3), mass=0.5, pose=(0.78, 0, 0.78, 0, 0, 0, 1), name="l3")
+    l4 = b.add_box((0.05, 0.05, 0.2), mass=0.3, pose=(0.78, 0, 0.52, 0, 0, 0, 1), name="l4")
+    b.add_sphere(0.1, density=500.0, pose=(0.3, 0.5, 0.6, 0, 0, 0, 1), name="ball")
+    b.add_body((np.array([[-2, -2, 0], [2, -2, 0], [0, 2, 0.0]]), np.array([[0, 1, 2]])), static=True, name="ground")
+    b.add_joint("base", child=base, dofs=("x", "y", "z", "rz"))
+    b.add_joint("universal", child=l1, parent=base, anchor=(0.23, 0, 1.0), axis=[(0, 0, 1), (0, 1, 0)])
+    b.add_joint("revolute", child=l2, parent=l1, anchor=(0.6, 0, 1.0), axis=(0, 1, 0))
+    b.add_joint("ball", child=l3, parent=l2, anchor=(0.78, 0, 0.95))
+    b.add_joint("prismatic", child=l4, parent=l3, anchor=(0.78, 0, 0.62), axis=(0, 0, 1))
+    return b.finalize()
+
+
+def pendulum(length=1.0, angle=0.05, *, links=1, limits=None, kp=0.0, kd=0.0):
+    """A chain of ``links`` thin rods hanging from a world hinge about y, the first at ``angle``."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    parent = None
+    for i in range(links):
+        rod = b.add_box((0.02, 0.02, length), mass=1.0, pose=(0, 0, -(i + 0.5) * length, 0, 0, 0, 1), name=f"rod{i}")
+        b.add_joint("revolute", child=rod, parent=parent, anchor=(0, 0, -i * length), axis=(0, 1, 0), limits=limits, kp=kp, kd=kd, name=f"hinge{i}")
+        parent = rod
+    model = b.finalize()
+    state = model.state(requires_grad=False)
+    start = np.zeros(model.articulation.num_dofs)
+    start[0] = angle
+    q = model.articulation.retract(model.initial_q, start)
+    for arr in (state.body_q, state.body_q_prev):
+        arr.assign(q)
+    for arr in (state.joint_q, state.joint_q_prev):
+        arr.assign(model.articulation.initial_coordinates + start)
+    return model, state
+
+
+def simulate(model, state, steps, dt, control=None):
+    solver = wc.ImplicitSolver(model)
+    states = [state]
+    for _ in range(steps):
+        nxt = model.state(requires_grad=False)
+        solver.step(states[-1], nxt, control, dt)
+        states.append(nxt)
+    return states, solver
+
+
+def reduced_terms(model, q):
+    art = model.articulation
+    ev = model.contact.evaluate(q)
+    J = art.jacobian(q)
+    return ev.value, J.T @ ev.grad.reshape(-1), J.T @ ev.hessian @ J + art.curvature(q, ev.grad)
+
+
+# --- kinematics and derivatives ----------------------------------------------------------------
+
+
+def test_reduced_gradient_and_hessian_match_finite_differences():
+    model = chain_model()
+    art = model.articulation
+    assert art.num_dofs == 4 + 2 + 1 + 3 + 1 + 6
+    rng = np.random.default_rng(0)
+    q = art.retract(model.initial_q, 0.2 * rng.standard_normal(art.num_dofs))
+    value, grad, hess = reduced_terms(model, q)
+    m = art.num_dofs
+
+    def f(delta):
+        return model.contact.evaluate(art.retract(q, delta)).value
+
+    h1, h2 = 1e-6, 1e-4
+    fd_grad = np.array([(f(h1 * e) - f(-h1 * e)) / (2 * h1) for e in np.eye(m)])
+    fd_hess = np.zeros((m, m))
+    for k in range(m):
+        for j in range(k, m):
+            ek, ej = h2 * np.eye(m)[k], h2 * np.eye(m)[j]
+            fd_hess[k, j] = fd_hess[j, k] = (f(ek + ej) - f(ek - ej) - f(ej - ek) + f(-ek - ej)) / (4 * h2 * h2)
+    assert np.abs(fd_grad - grad).max() <= 1e-7 * np.abs(grad).max()
+    assert np.abs(fd_hess - hess).max() <= 1e-4 * np.abs(hess).max()
+    # The forward-kinematics curvature matters here (about 10% of the Hessian).
+    curvature = art.curvature(q, model.contact.evaluate(q).grad)
+    assert np.abs(fd_hess - (hess - curvature)).max() > 1e-2 * np.abs(hess).max()
+
+
+def test_free_bodies_have_identity_coordinates():
+    b = wc.ModelBuilder()
+    b.add_box((1, 1, 1), density=1.0, pose=(0, 0, 2, 0, 0, 0, 1))
+    b.add_sphere(0.5, density=1.0)
+    art = b.finalize().articulation
+    assert art.identity and art.num_dofs == 12 and art.num_coordinates == 0
+
+
+def test_retract_keeps_joints_together_and_coordinates_additive():
+    model = chain_model()
+    art = model.articulation
+    rng = np.random.default_rng(1)
+    q = model.initial_q
+    coords = art.initial_coordinates.copy()
+    for _ in range(50):
+        step = 0.3 * rng.standard_normal(art.num_dofs)
+        q = art.retract(q, step)
+        coords += step[art.coordinate_dof]
+    assert art.anchor_gaps(q).max() < 1e-13
+    between = [c for c, name in enumerate(art.coordinate_names) if not name.startswith("joint0:")]
+    wrapped = np.angle(np.exp(1j * (art.coordinates(q)[between] - coords[between])))
+    assert np.abs(wrapped).max() < 1e-10
+
+
+# --- physics ----------------------------------------------------------------------------------
+
+
+def test_pendulum_small_angle_period():
+    length, dt = 1.0, 0.01
+    model, state = pendulum(length, 0.05)
+    states, solver = simulate(model, state, 500, dt)
+    angle = np.array([s.joint_q.numpy()[0] for s in states])
+    downward = [i - angle[i] / (angle[i + 1] - angle[i]) for i in range(len(angle) - 1) if angle[i] > 0 >= angle[i + 1]]
+    period = np.diff(downward).mean() * dt
+    inertia = (length**2 + 0.02**2) / 12 + (length / 2) ** 2  # about the hinge, m = 1
+    expected = 2 * np.pi * np.sqrt(inertia / (9.81 * length / 2))
+    assert period == pytest.approx(expected, rel=0.01)
+    assert solver.last_step.iterations <= 5
+
+
+def mechanical_energy(model, q_prev, q_next, dt):
+    """Kinetic (midpoint velocities) plus potential energy of the rods (m = 1 each)."""
+    energy = 0.0
+    rot_prev, rot_next = wc.rotation.quat_to_matrix(q_prev[:, 3:]), wc.rotation.quat_to_matrix(q_next[:, 3:])
+    second = model.body_unit_second_moment.numpy()
+    for b in range(model.num_bodies):
+        v = (q_next[b, :3] - q_prev[b, :3]) / dt
+        dr = (rot_next[b] - rot_prev[b]) / dt
+        energy += 0.5 * v @ v + 0.5 * np.trace(dr @ second[b] @ dr.T)
+        energy += 9.81 * 0.5 * (q_next[b, 2] + q_prev[b, 2])
+    return energy
+
+
+def test_double_pendulum_energy_bounded_and_joints_never_separate():
+    dt = 0.01
+    model, state = pendulum(0.5, 1.2, links=2)
+    states, _ = simulate(model, state, 400, dt)
+    q = np.array([s.body_q.numpy() for s in states])
+    energy = np.array([mechanical_energy(model, q[t], q[t + 1], dt) for t in range(len(q) - 1)])
+    rest = -9.81 * (0.25 + 0.75)  # both rods hanging straight down, at rest
+    # The implicit (incremental-potential) step dissipates (here ~65% in 4 s at dt = 0.01)
+    # and never gains energy.
+    assert np.all(np.diff(energy) <= 1e-6 * (energy[0] - rest))
+    assert energy.min() >= rest
+    art = model.articulation
+    assert max(art.anchor_gaps(qt).max() for qt in q) < 1e-12
+    assert np.allclose(art.coordinates(q[-1]), states[-1].joint_q.numpy(), atol=1e-9)
+
+
+def test_joint_limit_is_never_crossed():
+    # Released from horizontal, the rod swings down into a limit at -0.3 rad from vertical.
+    model, state = pendulum(1.0, np.pi / 2, limits=[(-0.3, 1.7)])
+    states, _ = simulate(model, state, 150, 0.01)
+    angles = np.array([s.joint_q.numpy()[0] for s in states])
+    assert angles.min() > -0.3
+    assert angles.min() < -0.25  # it did reach the barrier
+
+
+def test_joint_pd_holds_target():
+    model, state = pendulum(1.0, 0.0, kp=200.0, kd=20.0)
+    control = model.control(requires_grad=False)
+    control.joint_target.assign(np.array([0.4]))
+    states, _ = simulate(model, state, 300, 0.01, control)
+    # static equilibrium of a PD spring against gravity: kp (t - a) = m g l/2 sin(a)
+    a = states[-1].joint_q.numpy()[0]
+    assert 200.0 * (0.4 - a) == pytest.approx(9.81 * 0.5 * np.sin(a), rel=1e-3)
+
+
+# --- the ant ----------------------------------------------------------------------------------
+
+
+def ant_model(friction=0.5, friction_smoothing=1e-4):
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-6, friction=friction, friction_smoothing=friction_smoothing)
+    ant = add_ant(b)
+    ground = grid_ground(3.0, 3.0, 0.5)
+    b.add_body((ground.vertices, ground.faces), static=True, name="ground")
+    return b.finalize(), ant
+
+
+def test_ant_layout_matches_the_paper():
+    model, ant = ant_model()
+    art = model.articulation
+    assert len(ant["bodies"]) == 9
+    assert art.num_dofs == 16 and art.num_coordinates == 16
+    assert len(ant["actuated"]) == 12 and set(ant["actuated"]) <= set(art.coordinate_names)
+
+
+def test_ant_stands_without_penetration_or_drift():
+    model, ant = ant_model()
+    states, solver = simulate(model, model.state(requires_grad=False), 500, 0.02, model.control(requires_grad=False))
+    torso = ant["bodies"]["torso"]
+    path = np.array([s.body_q.numpy()[torso, :3] for s in states])
+    settled = path[100:]
+    assert np.abs(settled - settled[0]).max() < 1e-3  # m over 400 steps (8 s)
+    assert np.abs(path[:, :2] - path[0, :2]).max() < 1e-4
+    feet = [ant["bodies"][f"lower{i}"] for i in range(4)]
+    lowest = min(
+        (wc.rotation.quat_rotate(s.body_q.numpy()[f, 3:], model.body_meshes[f][0]) + s.body_q.numpy()[f, :3])[:, 2].min() for s in states for f in feet
+    )
+    assert lowest > 0.0  # never below the ground plane
+    assert solver.last_step.min_separation > 0.0
+    assert model.articulation.anchor_gaps(states[-1].body_q.numpy()).max() < 1e-12
+
+
+def test_ant_tape_gradient_of_sine_parameters_matches_finite_differences():
+    # A wider friction smoothing and a tight solver tolerance keep the finite differences
+    # themselves accurate to ~1e-6 (at 1e-4 m/s smoothing, sticking feet make the loss so
+    # stiff that central differences scatter by ~1e-4).
+    model, ant = ant_model(friction_smoothing=0.01)
+    art = model.articulation
+    actuated = np.array([art.coordinate_names.index(n) for n in ant["actuated"]], dtype=np.int32)
+    torso = ant["bodies"]["torso"]
+    dt, steps, waves = 0.02, 20, 2
+    coordinate = wp.array(actuated, dtype=wp.int32)
+    rest = wp.array(art.initial_coordinates, dtype=wp.float64)
+    solver = wc.ImplicitSolver(model, tolerance=1e-13)
+    goal = model.initial_q[torso, :3] + np.array([0.3, 0.1, 0.0])
+
+    def loss_and_grad(values, gradient=True):
+        params = wp.array(values, dtype=wp.float64, requires_grad=True)
+        states = [model.state() for _ in range(steps + 1)]
+        controls = [model.control() for _ in range(steps)]
+        tape = wp.Tape()
+        with tape:
+            for f in range(steps):
+                wp.launch(task_kernels.joint_sine_target_kernel, dim=len(actuated), inputs=[coordinate, rest, params, wp.float64((f + 1) * dt)], outputs=[controls[f].joint_target])
+                solver.step(states[f], states[f + 1], controls[f], dt)
+        position = states[-1].body_q.numpy()[torso, :3]
+        loss = float(np.sum((position - goal) ** 2))
+        if not gradient:
+            return loss, None
+        adj = np.zeros((model.num_bodies, 7))
+        adj[torso, :3] = 2 * (position - goal)
+        states[-1].body_q.grad.assign(adj)
+        tape.backward()
+        return loss, params.grad.numpy().copy()
+
+    rng = np.random.default_rng(3)
+    values = np.zeros((len(actuated), 3 * waves))
+    values[:, 0::3] = 0.3 * rng.standard_normal((len(actuated), waves))
+    values[:, 1::3] = 2 * np.pi * np.array([1.0, 2.0])
+    values[:, 2::3] = rng.uniform(0, 2 * np.pi, (len(actuated), waves))
+    loss, grad = loss_and_grad(values)
+    assert np.abs(grad).max() > 0
+    h = 1e-4
+    for index in [(0, 0), (7, 2), (2, 5)]:
+        plus, minus = values.copy(), values.copy()
+        plus[index] += h
+        minus[index] -= h
+        fd = (loss_and_grad(plus, False)[0] - loss_and_grad(minus, False)[0]) / (2 * h)
+        assert grad[index] == pytest.approx(fd, rel=1e-5, abs=1e-9 * np.abs(grad).max())
+
+
+# --- bad input --------------------------------------------------------------------------------
+
+
+def two_boxes():
+    b = wc.ModelBuilder()
+    a = b.add_box((0.2, 0.2, 0.2), density=100.0, pose=(0, 0, 1, 0, 0, 0, 1), name="a")
+    c = b.add_box((0.2, 0.2, 0.2), density=100.0, pose=(0.5, 0, 1, 0, 0, 0, 1), name="c")
+    return b, a, c
+
+
+def test_bad_joints_get_clear_errors():
+    b, a, c = two_boxes()
+    with pytest.raises(ValueError, match="unknown joint type 'hinge'"):
+        b.add_joint("hinge", child=a, anchor=(0, 0, 0), axis=(0, 0, 1))
+    with pytest.raises(ValueError, match="zero length"):
+        b.add_joint("revolute", child=a, anchor=(0, 0, 0), axis=(0, 0, 0))
+    with pytest.raises(ValueError, match="orthogonal"):
+        b.add_joint("universal", child=a, anchor=(0, 0, 0), axis=[(0, 0, 1), (0, 1, 1)])
+    with pytest.raises(ValueError, match="same body"):
+        b.add_joint("revolute", child=a, parent=a, anchor=(0, 0, 0), axis=(0, 0, 1))
+    with pytest.raises(ValueError, match="subset"):
+        b.add_joint("base", child=a, dofs=("x", "q"))
+    b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), name="first")
+    with pytest.raises(ValueError, match="already has parent joint 'first'"):
+        b.add_joint("ball", child=a, parent=c, anchor=(0.25, 0, 1))
+
+
+def test_joint_cycle_is_refused():
+    b, a, c = two_boxes()
+    b.add_joint("revolute", child=a, parent=c, anchor=(0.25, 0, 1), axis=(0, 1, 0), name="j1")
+    b.add_joint("revolute", child=c, parent=a, anchor=(0.25, 0, 1), axis=(0, 1, 0), name="j2")
+    with pytest.raises(ValueError, match="cycle"):
+        b.finalize()
+
+
+def test_violated_joint_and_limits_are_refused():
+    b, a, c = two_boxes()
+    frame = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    b.add_joint("revolute", child=c, parent=a, parent_frame=(0.25, 0, 0, 0, 0, 0, 1), child_frame=frame, axis=(0, 1, 0), name="apart")
+    with pytest.raises(ValueError, match="'apart'.*0.25 m apart"):
+        b.finalize()
+    b, a, c = two_boxes()
+    b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), limits=[(0.1, 0.5)], name="limited")
+    with pytest.raises(ValueError, match="limited:0.*not strictly inside"):
+        b.finalize()
+
+
+def test_static_child_and_missing_joint_state_are_refused():
+    b = wc.ModelBuilder()
+    s = b.add_box((1, 1, 0.1), static=True, name="floor")
+    with pytest.raises(ValueError, match="static"):
+        b.add_joint("revolute", child=s, anchor=(0, 0, 0), axis=(0, 0, 1))
+    model, state = pendulum()
+    broken = wc.State(body_q=state.body_q, body_q_prev=state.body_q_prev)
+    with pytest.raises(ValueError, match="joint coordinates"):
+        wc.ImplicitSolver(model).step(broken, model.state(), None, 0.01)

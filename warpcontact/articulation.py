@@ -1,0 +1,469 @@
+"""Articulated bodies in reduced (joint) coordinates for the implicit step.
+
+Every dynamic body is the child of exactly one joint: a joint to a parent body, a ``base``
+joint to the world (any subset of 3 translations and 3 rotations), or, when the user gave
+none, an implicit free joint (3 translations and a 3-axis rotation). The bodies and joints
+form a forest; cycles are refused.
+
+Coordinates. A joint contributes degrees of freedom (DOFs) of three kinds:
+
+- PRISMATIC: translation of the child's subtree along a world axis a (m);
+- REVOLUTE: rotation of the subtree by an angle about an axis a through a point c (rad);
+- ROTATION: one axis of a 3-axis rotation group (ball joints, free and base joints with all
+  three rotations), moved together as exp([w]x) about the group's point, so a ball joint
+  has no gimbal singularity.
+
+The Newton step works in increments delta of all DOFs at the current configuration (a
+chart re-centred every iteration), and moves body i by the product of exponentials
+(Brockett) over its ancestor DOFs k_1 < k_2 < ... (root first):
+
+    T_i(delta) = exp(xi_k1 delta_k1) exp(xi_k2 delta_k2) ... T_i,
+
+with the world twists xi_k of the current configuration. Revolute and prismatic
+increments are exact joint-coordinate increments (q_k += delta_k), so PD targets and limits
+act on plain coordinates. Joints can never separate: every body moves by a rigid motion
+that fixes its joint's anchor relative to its parent.
+
+Derivatives. A body's rigid coordinates (dp, dtheta) (see kernels/rigid.py) depend on delta
+through J (first derivatives) and through second derivatives (the curvature of forward
+kinematics). For k before l on a body's path, with v_k(x) the velocity of point x under DOF
+k (a_k for prismatic, a_k x (x - c_k) for rotations) and omega_k = a_k for rotations (0 for
+prismatic):
+
+    d2p / dk dl = a_k x v_l(p)      (0 if k is prismatic; a_k x v_k(p) on the diagonal)
+    d2theta / dk dl = 1/2 omega_k x omega_l   (0 on the diagonal)
+
+and inside one ROTATION group (an exponential map, symmetric in k and l)
+d2p/dk dl = 1/2 (a_k x v_l(p) + a_l x v_k(p)), d2theta = 0. The reduced Hessian of a scalar
+with rigid-coordinate gradient g and Hessian H is J^T H J + sum_i g_i . d2(p_i, theta_i).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .rotation import pose_inverse, pose_mul, quat_conjugate, quat_from_rotation_vector, quat_mul, quat_rotate, rotation_vector_from_quat
+
+__all__ = [
+    "BASE_DOFS",
+    "JOINT_KINDS",
+    "PRISMATIC",
+    "REVOLUTE",
+    "ROTATION",
+    "ArticulationModel",
+    "Joint",
+    "frame_in_body",
+    "joint_limit_energy",
+]
+
+PRISMATIC, REVOLUTE, ROTATION = 0, 1, 2
+JOINT_KINDS = ("revolute", "prismatic", "universal", "ball", "base")
+BASE_DOFS = ("x", "y", "z", "rx", "ry", "rz")
+
+_ANCHOR_TOLERANCE = 1e-6  # m, relative to the scene's largest body radius
+_ANGLE_TOLERANCE = 1e-6  # rad
+
+
+@dataclass
+class Joint:
+    """A joint between ``parent`` (a body index, or -1 for the world) and ``child``.
+
+    Frames are (7,) poses (p, q) of the joint frame in the parent's and the child's body
+    frames (origin at the centre of mass; the world frame for parent -1). ``axes`` are unit
+    vectors in the joint frame: one for revolute and prismatic joints, two orthogonal ones
+    for universal joints (the first fixed in the parent, the second in the child). ``base``
+    joints use ``base_dofs`` (a subset of ``BASE_DOFS``, world axes, rotations about the
+    child's centre of mass) and ignore frames and axes. Per coordinate: ``lower``/``upper``
+    limits (rad or m, +-inf for none), ``limit_margin`` (the barrier's support, rad or m),
+    ``limit_stiffness`` (J) and PD gains ``kp`` (N m/rad or N/m) and ``kd`` (N m s/rad or
+    N s/m).
+    """
+
+    name: str
+    kind: str
+    parent: int
+    child: int
+    parent_frame: np.ndarray
+    child_frame: np.ndarray
+    axes: np.ndarray
+    base_dofs: tuple = ()
+    lower: np.ndarray | None = None
+    upper: np.ndarray | None = None
+    limit_margin: np.ndarray | None = None
+    limit_stiffness: np.ndarray | None = None
+    kp: np.ndarray | None = None
+    kd: np.ndarray | None = None
+
+    def num_coordinates(self) -> int:
+        if self.kind in ("revolute", "prismatic"):
+            return 1
+        if self.kind == "universal":
+            return 2
+        if self.kind == "base":
+            translations = sum(d in ("x", "y", "z") for d in self.base_dofs)
+            rotations = len(self.base_dofs) - translations
+            return translations + (rotations if rotations < 3 else 0)
+        return 0
+
+
+def joint_limit_energy(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, margin: np.ndarray, stiffness: np.ndarray):
+    """Joint-limit barrier per coordinate: value, gradient and (diagonal) Hessian.
+
+    b(s) = -k (s - m)^2 log(s / m) for 0 < s < m, 0 beyond (C2 at s = m), +inf at s <= 0,
+    with s the distance to the nearer limit, m the margin and k the stiffness: like the
+    contact model, a limit is never crossed, and it costs nothing away from the limit.
+    """
+    value = np.zeros_like(q)
+    grad = np.zeros_like(q)
+    hess = np.zeros_like(q)
+    for s, sign in ((q - lower, 1.0), (upper - q, -1.0)):
+        active = s < margin
+        if not active.any():
+            continue
+        if (s[active] <= 0).any():
+            value[:] = np.inf
+            return value, grad, hess
+        sa, m, k = s[active], margin[active], stiffness[active]
+        log = np.log(sa / m)
+        value[active] += -k * (sa - m) ** 2 * log
+        grad[active] += sign * k * (-2.0 * (sa - m) * log - (sa - m) ** 2 / sa)
+        hess[active] += k * (-2.0 * log - 4.0 * (sa - m) / sa + (sa - m) ** 2 / sa**2)
+    return value, grad, hess
+
+
+def _rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    return quat_from_rotation_vector(axis * angle)
+
+
+def _signed_angle(q_rel: np.ndarray, axis: np.ndarray) -> float:
+    return 2.0 * float(np.arctan2(q_rel[:3] @ axis, q_rel[3]))
+
+
+def _rotation_gap(q_a: np.ndarray, q_b: np.ndarray) -> float:
+    """Angle (rad) of the rotation between two unit quaternions."""
+    return float(np.linalg.norm(rotation_vector_from_quat(quat_mul(q_a, quat_conjugate(q_b)))))
+
+
+class ArticulationModel:
+    """The kinematic forest of a model's dynamic bodies (host, numpy, float64).
+
+    Args:
+        joints: the ``Joint`` list (validated by ``ModelBuilder.add_joint``).
+        body_names: names of all bodies.
+        body_static: (nbodies,) booleans.
+        body_poses: (nbodies, 7) initial centre-of-mass poses; joints must hold in them.
+        length_scale: the largest body radius (m), for the anchor tolerance.
+
+    Attributes:
+        num_dofs: m, the number of reduced coordinates.
+        num_coordinates: the number of joint coordinates (revolute and prismatic DOFs), each
+            with PD gains and limits; ``coordinate_names``, ``coordinate_dof``,
+            ``initial_coordinates``, ``kp``, ``kd``, ``lower``, ``upper``,
+            ``limit_margin``, ``limit_stiffness`` are (num_coordinates,) arrays.
+        identity: True when every body is a free body (J = I, no curvature).
+    """
+
+    def __init__(self, joints: list[Joint], *, body_names, body_static, body_poses, length_scale: float):
+        n = len(body_names)
+        self.num_bodies = n
+        self.body_names = list(body_names)
+        static = np.asarray(body_static, dtype=bool)
+        poses = np.asarray(body_poses, dtype=np.float64)
+        parent_joint = {}
+        for j, joint in enumerate(joints):
+            if joint.child in parent_joint:
+                other = joints[parent_joint[joint.child]].name
+                raise ValueError(f"joint {joint.name!r}: body {self.body_names[joint.child]!r} already has parent joint {other!r}; articulations must be trees (kinematic loops are not supported)")
+            parent_joint[joint.child] = j
+        # Implicit free joints for dynamic bodies without one.
+        all_joints = list(joints)
+        for b in range(n):
+            if not static[b] and b not in parent_joint:
+                parent_joint[b] = len(all_joints)
+                all_joints.append(Joint(f"{self.body_names[b]}:free", "free", -1, b, np.array([0, 0, 0, 0, 0, 0, 1.0]), np.array([0, 0, 0, 0, 0, 0, 1.0]), np.zeros((0, 3)), BASE_DOFS))
+        order = self._topological_order(all_joints, parent_joint)
+        self.joints = [all_joints[j] for j in order]
+        self.body_joint = np.full(n, -1, dtype=np.int64)
+        for j, joint in enumerate(self.joints):
+            self.body_joint[joint.child] = j
+        self.body_parent = np.array([self.joints[self.body_joint[b]].parent if self.body_joint[b] >= 0 else -1 for b in range(n)])
+        self.identity = all(joint.kind == "free" for joint in self.joints)
+
+        kind, axis_body, axis_local, point_local, owner, group, coord = [], [], [], [], [], [], []
+        names, q0, kp, kd, lower, upper, margin, stiffness = [], [], [], [], [], [], [], []
+        self.joint_dofs = []
+        tol = _ANCHOR_TOLERANCE * max(length_scale, 1e-300)
+        for joint in self.joints:
+            first = len(kind)
+            values = self._initial_coordinates(joint, poses, tol)
+            dofs = self._joint_dofs(joint, poses)
+            coordinate = 0
+            for dof_kind, body, axis, point, group_id in dofs:
+                kind.append(dof_kind)
+                axis_body.append(body)
+                axis_local.append(axis)
+                point_local.append(point)
+                owner.append(joint.child)
+                group.append(group_id)
+                if joint.kind != "free" and dof_kind != ROTATION:
+                    coord.append(len(names))
+                    label = joint.base_dofs[coordinate] if joint.kind == "base" else str(coordinate)
+                    names.append(f"{joint.name}:{label}")
+                    q0.append(values[coordinate])
+                    for store, source in ((kp, joint.kp), (kd, joint.kd), (lower, joint.lower), (upper, joint.upper), (margin, joint.limit_margin), (stiffness, joint.limit_stiffness)):
+                        store.append(float(source[coordinate]))
+                    coordinate += 1
+                else:
+                    coord.append(-1)
+            self.joint_dofs.append(np.arange(first, len(kind)))
+        self.num_dofs = len(kind)
+        self.dof_kind = np.array(kind, dtype=np.int64)
+        self.dof_axis_body = np.array(axis_body, dtype=np.int64)
+        self.dof_axis_local = np.array(axis_local, dtype=np.float64).reshape(-1, 3)
+        self.dof_point_local = np.array(point_local, dtype=np.float64).reshape(-1, 3)
+        self.dof_owner = np.array(owner, dtype=np.int64)
+        self.dof_group = np.array(group, dtype=np.int64)
+        self.dof_coordinate = np.array(coord, dtype=np.int64)
+        self.coordinate_names = names
+        self.num_coordinates = len(names)
+        self.coordinate_dof = np.flatnonzero(self.dof_coordinate >= 0)
+        self.initial_coordinates = np.array(q0, dtype=np.float64)
+        self.kp, self.kd = np.array(kp), np.array(kd)
+        self.lower, self.upper = np.array(lower), np.array(upper)
+        self.limit_margin, self.limit_stiffness = np.array(margin), np.array(stiffness)
+        self.has_limits = bool(np.isfinite(self.lower).any() or np.isfinite(self.upper).any())
+        outside = np.flatnonzero((self.initial_coordinates <= self.lower) | (self.initial_coordinates >= self.upper))
+        if outside.size:
+            c = outside[0]
+            raise ValueError(f"joint coordinate {names[c]!r}: initial value {self.initial_coordinates[c]:.6g} is not strictly inside its limits [{self.lower[c]:.6g}, {self.upper[c]:.6g}]")
+        # Each body's ancestor DOFs, root first (DOFs are numbered in topological order).
+        self.body_dofs = []
+        for b in range(n):
+            path = []
+            j = self.body_joint[b]
+            while j >= 0:
+                path.append(self.joint_dofs[j])
+                parent = self.joints[j].parent
+                j = self.body_joint[parent] if parent >= 0 else -1
+            self.body_dofs.append(np.concatenate(path[::-1]) if path else np.zeros(0, dtype=np.int64))
+        # Dynamic bodies are those with DOFs; rows of J for static bodies stay zero.
+        self.dynamic_bodies = np.flatnonzero([len(d) > 0 for d in self.body_dofs])
+
+    # --- construction ---------------------------------------------------------------------
+
+    def _topological_order(self, joints: list[Joint], parent_joint: dict) -> list[int]:
+        order, state = [], {}
+
+        def visit(j, trail):
+            if state.get(j) == "done":
+                return
+            if state.get(j) == "active":
+                names = " -> ".join(joints[i].name for i in trail)
+                raise ValueError(f"joints form a cycle: {names}")
+            state[j] = "active"
+            parent = joints[j].parent
+            if parent >= 0:
+                if parent not in parent_joint:
+                    raise ValueError(f"joint {joints[j].name!r}: parent body {self.body_names[parent]!r} is static or unknown; attach to the world (parent None) instead")
+                visit(parent_joint[parent], [*trail, parent_joint[parent]])
+            state[j] = "done"
+            order.append(j)
+
+        for j in range(len(joints)):
+            visit(j, [j])
+        return order
+
+    def _frames(self, joint: Joint, poses: np.ndarray):
+        parent_pose = poses[joint.parent] if joint.parent >= 0 else np.array([0, 0, 0, 0, 0, 0, 1.0])
+        return pose_mul(parent_pose, joint.parent_frame), pose_mul(poses[joint.child], joint.child_frame)
+
+    def _initial_coordinates(self, joint: Joint, poses: np.ndarray, tol: float) -> np.ndarray:
+        """Joint coordinates of the initial poses; errors if the poses violate the joint."""
+        if joint.kind in ("free", "base"):
+            return np.zeros(joint.num_coordinates())
+        world_parent, world_child = self._frames(joint, poses)
+        where = f"joint {joint.name!r} ({self._link_names(joint)})"
+        q_rel = quat_mul(quat_conjugate(world_parent[3:]), world_child[3:])
+        offset = quat_rotate(quat_conjugate(world_parent[3:]), world_child[:3] - world_parent[:3])
+        if joint.kind == "prismatic":
+            axis = joint.axes[0]
+            value = float(offset @ axis)
+            off_axis = float(np.linalg.norm(offset - value * axis))
+            if off_axis > tol or _rotation_gap(q_rel, np.array([0, 0, 0, 1.0])) > _ANGLE_TOLERANCE:
+                raise ValueError(f"{where}: the initial poses violate the prismatic joint (off-axis offset {off_axis:.3g} m or relative rotation)")
+            return np.array([value])
+        gap = float(np.linalg.norm(offset))
+        if gap > tol:
+            raise ValueError(f"{where}: joint anchors are {gap:.3g} m apart in the initial poses")
+        if joint.kind == "ball":
+            return np.zeros(0)
+        if joint.kind == "revolute":
+            values = [_signed_angle(q_rel, joint.axes[0])]
+            rebuilt = _rotation_about(joint.axes[0], values[0])
+        else:  # universal: R_rel = Rot(e1, q1) Rot(e2, q2)
+            e1, e2 = joint.axes
+            u = quat_rotate(q_rel, e2)
+            q1 = float(np.arctan2(u @ np.cross(e1, e2), u @ e2))
+            q2 = _signed_angle(quat_mul(_rotation_about(e1, -q1), q_rel), e2)
+            values = [q1, q2]
+            rebuilt = quat_mul(_rotation_about(e1, q1), _rotation_about(e2, q2))
+        error = _rotation_gap(rebuilt, q_rel)
+        if error > _ANGLE_TOLERANCE:
+            raise ValueError(f"{where}: the initial relative rotation is not a {joint.kind} joint motion (off by {error:.3g} rad)")
+        return np.array(values)
+
+    def _link_names(self, joint: Joint) -> str:
+        parent = self.body_names[joint.parent] if joint.parent >= 0 else "world"
+        return f"{parent} -> {self.body_names[joint.child]}"
+
+    def _joint_dofs(self, joint: Joint, poses: np.ndarray):
+        """(kind, axis body, axis in that body's frame (world for -1), point in the child frame, group)."""
+        child_rot = joint.child_frame[3:]
+        anchor = joint.child_frame[:3]
+        parent_body = joint.parent
+        if joint.kind == "revolute":
+            return [(REVOLUTE, joint.child, quat_rotate(child_rot, joint.axes[0]), anchor, -1)]
+        if joint.kind == "prismatic":
+            return [(PRISMATIC, parent_body, quat_rotate(joint.parent_frame[3:], joint.axes[0]), anchor, -1)]
+        if joint.kind == "universal":
+            return [
+                (REVOLUTE, parent_body, quat_rotate(joint.parent_frame[3:], joint.axes[0]), anchor, -1),
+                (REVOLUTE, joint.child, quat_rotate(child_rot, joint.axes[1]), anchor, -1),
+            ]
+        if joint.kind == "ball":
+            return [(ROTATION, -1, e, anchor, joint.child) for e in np.eye(3)]
+        # base / free: world translations, then rotations about the child's centre of mass
+        axes = dict(zip(BASE_DOFS, np.vstack([np.eye(3), np.eye(3)]), strict=True))
+        out = [(PRISMATIC, -1, axes[d], np.zeros(3), -1) for d in joint.base_dofs if d in ("x", "y", "z")]
+        rotations = [axes[d] for d in joint.base_dofs if d in ("rx", "ry", "rz")]
+        if len(rotations) == 3:
+            out += [(ROTATION, -1, e, np.zeros(3), joint.child) for e in rotations]
+        elif rotations:
+            out.append((REVOLUTE, -1, rotations[0], np.zeros(3), -1))
+            if len(rotations) == 2:
+                # the second axis turns with the first: fixed in the child (R = Rot1 Rot2 R0)
+                out.append((REVOLUTE, joint.child, quat_rotate(quat_conjugate(poses[joint.child, 3:]), rotations[1]), np.zeros(3), -1))
+        return out
+
+    # --- kinematics at a configuration ----------------------------------------------------
+
+    def twists(self, poses: np.ndarray):
+        """World axes a (m, 3) and points c (m, 3) of every DOF at ``poses`` (nbodies, 7)."""
+        body = self.dof_axis_body
+        axes = self.dof_axis_local.copy()
+        moving = body >= 0
+        axes[moving] = quat_rotate(poses[body[moving], 3:], axes[moving])
+        owner = self.dof_owner
+        points = quat_rotate(poses[owner, 3:], self.dof_point_local) + poses[owner, :3]
+        return axes, points
+
+    def _body_columns(self, b: int, p: np.ndarray, axes: np.ndarray, points: np.ndarray):
+        dofs = self.body_dofs[b]
+        a = axes[dofs]
+        rotating = (self.dof_kind[dofs] != PRISMATIC)[:, None]
+        omega = np.where(rotating, a, 0.0)
+        velocity = np.where(rotating, np.cross(a, p - points[dofs]), a)
+        return dofs, omega, velocity
+
+    def jacobian(self, poses: np.ndarray) -> np.ndarray:
+        """J (6 nbodies, m): rigid coordinates (dp, dtheta) of each body per DOF increment."""
+        axes, points = self.twists(poses)
+        J = np.zeros((6 * self.num_bodies, self.num_dofs))
+        for b in self.dynamic_bodies:
+            dofs, omega, velocity = self._body_columns(b, poses[b, :3], axes, points)
+            J[6 * b : 6 * b + 3, dofs] = velocity.T
+            J[6 * b + 3 : 6 * b + 6, dofs] = omega.T
+        return J
+
+    def curvature(self, poses: np.ndarray, grad: np.ndarray) -> np.ndarray:
+        """sum_i g_i . d2(p_i, theta_i)/d delta2 (m, m) for a rigid gradient ``grad`` (nbodies, 6)."""
+        axes, points = self.twists(poses)
+        C = np.zeros((self.num_dofs, self.num_dofs))
+        for b in self.dynamic_bodies:
+            dofs, omega, velocity = self._body_columns(b, poses[b, :3], axes, points)
+            g_p, g_w = grad[b, :3], grad[b, 3:]
+            # g_p . (a_k x v_l) = (g_p x a_k) . v_l; zero rows for prismatic k via omega
+            M = np.cross(g_p, omega) @ velocity.T
+            N = 0.5 * np.cross(g_w, omega) @ omega.T
+            U = M + N
+            block = np.triu(U, 1)
+            block = block + block.T + np.diag(np.diag(M))
+            groups = self.dof_group[dofs]
+            same = (groups[:, None] == groups[None, :]) & (groups[:, None] >= 0)
+            np.fill_diagonal(same, False)
+            block[same] = (0.5 * (M + M.T))[same]
+            C[np.ix_(dofs, dofs)] += block
+        return C
+
+    def retract(self, poses: np.ndarray, step: np.ndarray) -> np.ndarray:
+        """Poses moved by the DOF increments ``step`` (m,) (the product of exponentials)."""
+        axes, points = self.twists(poses)
+        motion_q = np.zeros((self.num_bodies, 4))
+        motion_q[:, 3] = 1.0
+        motion_t = np.zeros((self.num_bodies, 3))
+        out = poses.copy()
+        for j, joint in enumerate(self.joints):
+            b = joint.child
+            if joint.parent >= 0:
+                gq, gt = motion_q[joint.parent].copy(), motion_t[joint.parent].copy()
+            else:
+                gq, gt = np.array([0, 0, 0, 1.0]), np.zeros(3)
+            dofs = self.joint_dofs[j]
+            k = 0
+            while k < len(dofs):
+                d = dofs[k]
+                if self.dof_kind[d] == PRISMATIC:
+                    eq, et = np.array([0, 0, 0, 1.0]), axes[d] * step[d]
+                    k += 1
+                elif self.dof_kind[d] == REVOLUTE:
+                    eq = _rotation_about(axes[d], step[d])
+                    et = points[d] - quat_rotate(eq, points[d])
+                    k += 1
+                else:  # one exponential for the whole 3-axis group
+                    group = dofs[k : k + 3]
+                    eq = quat_from_rotation_vector(axes[group].T @ step[group])
+                    et = points[d] - quat_rotate(eq, points[d])
+                    k += 3
+                # G <- G o E
+                gt = gt + quat_rotate(gq, et)
+                gq = quat_mul(gq, eq)
+            motion_q[b], motion_t[b] = gq, gt
+            out[b, :3] = quat_rotate(gq, poses[b, :3]) + gt
+            q = quat_mul(gq, poses[b, 3:])
+            out[b, 3:] = q / np.linalg.norm(q)
+        return out
+
+    def chart_step(self, poses_from: np.ndarray, poses_to: np.ndarray) -> np.ndarray:
+        """Rigid coordinates (dp, dtheta) (nbodies, 6) that take ``poses_from`` to ``poses_to``."""
+        out = np.zeros((self.num_bodies, 6))
+        out[:, :3] = poses_to[:, :3] - poses_from[:, :3]
+        out[:, 3:] = rotation_vector_from_quat(quat_mul(poses_to[:, 3:], quat_conjugate(poses_from[:, 3:])))
+        return out
+
+    def anchor_gaps(self, poses: np.ndarray) -> np.ndarray:
+        """Distance (m) between each body joint's anchors in the parent and child (0 for roots)."""
+        out = np.zeros(len(self.joints))
+        for j, joint in enumerate(self.joints):
+            if joint.kind in ("free", "base") or joint.kind == "prismatic":
+                continue
+            world_parent, world_child = self._frames(joint, poses)
+            out[j] = float(np.linalg.norm(world_parent[:3] - world_child[:3]))
+        return out
+
+    def coordinates(self, poses: np.ndarray) -> np.ndarray:
+        """Revolute and prismatic joint coordinates of joints between bodies, from ``poses``
+        (base coordinates are not recoverable from poses alone and come back as NaN)."""
+        out = np.full(self.num_coordinates, np.nan)
+        for j, joint in enumerate(self.joints):
+            if joint.kind in ("free", "base", "ball"):
+                continue
+            coords = self.dof_coordinate[self.joint_dofs[j]]
+            out[coords] = self._initial_coordinates(joint, poses, np.inf)
+        return out
+
+
+def frame_in_body(body_pose: np.ndarray, world_frame: np.ndarray) -> np.ndarray:
+    """A world frame (7,) expressed in a body's frame."""
+    return pose_mul(pose_inverse(body_pose), world_frame)
