@@ -149,7 +149,8 @@ def test_trajectory_export_opens_with_time_samples(tmp_path):
     [
         (dict(mass=0.0), r"/World/box: mass must be positive"),
         (dict(mass=-2.0), r"/World/box: mass must be positive"),
-        (dict(joint="RevoluteJoint"), r"/World/joint: RevoluteJoint is not supported"),
+        (dict(joint="RevoluteJoint"), r"/World/joint: body1 \(none\) is not a rigid body with a collider \(every link needs a mesh\)"),
+        (dict(joint="FixedJoint"), r"/World/joint: FixedJoint is not supported"),
         (dict(face_counts=[2] * 16), r"/World/ground: .*face 0 has 2 vertices"),
         (dict(drop_height=0.2), r"intersect in the initial pose: /World/ground and /World/box"),
     ],
@@ -171,3 +172,79 @@ def test_non_finite_points_missing_files_and_empty_stages(tmp_path):
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match="no dynamic rigid bodies"):
         io.load_scene(tmp_path / "empty.usda")
+
+
+def write_hinged_box(path, *, limits=(-30.0, 60.0), stiffness=2.0, cone=None):
+    """A box hanging from a world revolute joint about y (UsdPhysics only: degrees, per-degree gains)."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdPhysics.Scene.Define(stage, "/World/physicsScene")
+    box = UsdGeom.Xform.Define(stage, "/World/box")
+    box.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 1.0))
+    UsdPhysics.RigidBodyAPI.Apply(box.GetPrim())
+    cube = UsdGeom.Cube.Define(stage, "/World/box/shape")
+    cube.CreateSizeAttr(0.2)
+    UsdPhysics.CollisionAPI.Apply(cube.GetPrim())
+    if cone is None:
+        joint = UsdPhysics.RevoluteJoint.Define(stage, "/World/hinge")
+        joint.CreateAxisAttr("Y")
+        joint.CreateLowerLimitAttr(limits[0])
+        joint.CreateUpperLimitAttr(limits[1])
+        drive = UsdPhysics.DriveAPI.Apply(joint.GetPrim(), "angular")
+        drive.CreateStiffnessAttr(stiffness)
+        drive.CreateDampingAttr(0.1)
+    else:
+        joint = UsdPhysics.SphericalJoint.Define(stage, "/World/hinge")
+        joint.CreateConeAngle0LimitAttr(cone)
+        joint.CreateConeAngle1LimitAttr(cone)
+    joint.CreateBody1Rel().SetTargets(["/World/box"])
+    joint.CreateLocalPos0Attr(Gf.Vec3f(0.0, 0.0, 1.5))
+    joint.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.5))
+    stage.GetRootLayer().Save()
+    return path
+
+
+def test_revolute_joint_imports_limits_and_drive_in_si_units(tmp_path):
+    scene = io.load_scene(write_hinged_box(tmp_path / "hinge.usda"))
+    model = scene.build_model()
+    art = model.articulation
+    assert art.coordinate_names == ["hinge:0"] and art.num_dofs == 1
+    np.testing.assert_allclose([art.lower[0], art.upper[0]], np.radians([-30.0, 60.0]))
+    assert art.kp[0] == pytest.approx(2.0 * 180.0 / np.pi)  # per degree -> per radian
+    assert art.kd[0] == pytest.approx(0.1 * 180.0 / np.pi)
+    assert art.initial_coordinates[0] == pytest.approx(0.0, abs=1e-9)
+    # it swings about the hinge 0.5 m above the box, which stays attached
+    solver = wc.ImplicitSolver(model)
+    state = model.state(requires_grad=False)
+    state.joint_q.assign([0.3])
+    state.joint_q_prev.assign([0.3])
+    moved = art.retract(model.initial_q, np.array([0.3]))
+    state.body_q.assign(moved)
+    state.body_q_prev.assign(moved)
+    nxt = model.state(requires_grad=False)
+    solver.step(state, nxt, model.control(requires_grad=False), 0.01)
+    assert nxt.joint_q.numpy()[0] < 0.3
+    assert art.anchor_gaps(nxt.body_q.numpy()).max() < 1e-12
+
+
+def test_spherical_cone_limits_are_refused(tmp_path):
+    with pytest.raises(ValueError, match=r"/World/hinge: cone limits on spherical joints are not supported"):
+        io.load_scene(write_hinged_box(tmp_path / "cone.usda", cone=45.0))
+
+
+def test_articulated_scene_round_trip_preserves_joints(tmp_path):
+    from warpcontact import scenes
+
+    built = scenes.build_scene("ant_push")
+    io.save_scene(built, tmp_path / "ant.usda")
+    loaded = io.load_scene(tmp_path / "ant.usda")
+    assert sorted((j.name, j.kind, j.parent, j.child) for j in loaded.joints) == sorted((j.name, j.kind, j.parent, j.child) for j in built.joints)
+    a, b = built.build_model().articulation, loaded.build_model().articulation
+    assert a.num_dofs == b.num_dofs == 16 + 6
+    order = [b.coordinate_names.index(name) for name in a.coordinate_names]
+    b.kp, b.kd, b.lower, b.upper, b.initial_coordinates = (arr[order] for arr in (b.kp, b.kd, b.lower, b.upper, b.initial_coordinates))
+    np.testing.assert_allclose(b.kp, a.kp, rtol=1e-6)
+    np.testing.assert_allclose(b.kd, a.kd, rtol=1e-6)
+    np.testing.assert_allclose(b.lower, a.lower, rtol=1e-6)
+    np.testing.assert_allclose(b.upper, a.upper, rtol=1e-6)
+    np.testing.assert_allclose(b.initial_coordinates, a.initial_coordinates, atol=1e-6)

@@ -169,3 +169,18 @@ def test_cli_list_names_the_tasks(capsys):
     out = capsys.readouterr().out
     for name in ("billiards", "push", "sort", "gather", "gather_bunny"):
         assert name in out
+
+
+def test_ant_push_sine_controls_get_long_range_gradients_and_lower_the_loss():
+    from warpcontact.scenes import build_scene
+
+    problem = TaskProblem(build_scene("ant_push"), settings=TaskSettings(horizon=12, receding_horizon=0, iterations=2, learning_rate=3e-2))
+    assert len(problem.dof_names) == 12  # hips (swing, lift) and knees of four legs
+    values = problem.initial_values(1)
+    assert values.shape == (12, 12) and not values[:, 0::3].any()
+    q0 = problem.model.initial_q
+    loss, grad, _ = problem.rollout(values, (q0, q0), 12)
+    # The box is 1 m from the ant's feet: only the long-range potential links them.
+    assert loss > 0 and np.abs(grad[:, 0::3]).max() > 0
+    result = problem.optimize()
+    assert result.final_loss < result.initial_loss

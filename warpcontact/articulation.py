@@ -138,7 +138,9 @@ def _rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
 
 
 def _signed_angle(q_rel: np.ndarray, axis: np.ndarray) -> float:
-    return 2.0 * float(np.arctan2(q_rel[:3] @ axis, q_rel[3]))
+    """Angle in (-pi, pi] of a rotation about ``axis`` (q and -q are the same rotation)."""
+    sign = -1.0 if q_rel[3] < 0 else 1.0
+    return 2.0 * float(np.arctan2(sign * (q_rel[:3] @ axis), sign * q_rel[3]))
 
 
 def _rotation_gap(q_a: np.ndarray, q_b: np.ndarray) -> float:

@@ -40,10 +40,11 @@ import numpy as np
 import trimesh
 
 from .builder import ModelBuilder
-from .rotation import quat_rotate
+from .rotation import pose_mul, quat_from_matrix, quat_rotate
 
 __all__ = [
     "BodySpec",
+    "JointSpec",
     "Scene",
     "SimulationSettings",
     "TaskSpec",
@@ -112,14 +113,34 @@ class BodySpec:
 
 
 @dataclass
+class JointSpec:
+    """One joint: frames in the parent's and child's prim frames (the world's for parent None),
+    axes in the joint frame, per-coordinate limits (rad or m) and PD gains (SI, per radian)."""
+
+    name: str
+    path: str
+    kind: str  # revolute | prismatic | universal | ball | base
+    parent: str | None
+    child: str
+    parent_frame: np.ndarray
+    child_frame: np.ndarray
+    axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    dofs: tuple = ()
+    limits: list | None = None
+    kp: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    kd: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+@dataclass
 class Scene:
-    """A complete task scene: bodies, gravity, settings and task metadata."""
+    """A complete task scene: bodies, joints, gravity, settings and task metadata."""
 
     bodies: list
     gravity: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -9.81]))
     settings: SimulationSettings = field(default_factory=SimulationSettings)
     task: TaskSpec = field(default_factory=TaskSpec)
     source: str = ""
+    joints: list = field(default_factory=list)
 
     def body(self, name: str) -> BodySpec:
         for b in self.bodies:
@@ -154,7 +175,19 @@ class Scene:
                 builder.add_body((b.vertices, b.faces), **kwargs)
             except ValueError as exc:
                 raise ValueError(f"{self.source or '<scene>'}: prim {b.path}: {exc}") from None
-        model = builder.finalize(device=device)
+        index = {b.name: i for i, b in enumerate(self.bodies)}
+        for j in self.joints:
+            options = {"dofs": j.dofs} if j.kind == "base" else {"parent_frame": j.parent_frame, "child_frame": j.child_frame, "axis": j.axes if len(j.axes) else None}
+            if len(j.kp):
+                options.update(kp=j.kp, kd=j.kd)
+            try:
+                builder.add_joint(j.kind, child=index[j.child], parent=index[j.parent] if j.parent is not None else None, limits=j.limits, name=j.name, **options)
+            except ValueError as exc:
+                raise ValueError(f"{self.source or '<scene>'}: prim {j.path}: {exc}") from None
+        try:
+            model = builder.finalize(device=device)
+        except ValueError as exc:
+            raise ValueError(f"{self.source or '<scene>'}: {exc}") from None
         start = model.contact.evaluate(model.initial_q)
         if start.contact_pairs:
             paths = {b.name: b.path for b in self.bodies}
@@ -285,12 +318,9 @@ def load_scene(path) -> Scene:
     up = UsdGeom.GetStageUpAxis(stage)
     parsed = _load_physics(stage, UsdPhysics)
     descs = {str(k): list(zip(v[0], v[1])) for k, v in parsed.items()}
-    for kind in ("RevoluteJoint", "SphericalJoint", "PrismaticJoint", "FixedJoint", "DistanceJoint", "D6Joint", "CustomJoint"):
+    for kind in ("FixedJoint", "DistanceJoint", "CustomJoint"):
         for prim_path, _ in descs.get(kind, []):
-            raise ValueError(
-                f"{source}: prim {prim_path}: {kind} is not supported yet (articulated bodies are "
-                "the articulations issue); only free and static rigid bodies load today"
-            )
+            raise ValueError(f"{source}: prim {prim_path}: {kind} is not supported (supported: revolute, prismatic, spherical and D6 joints)")
 
     # Gravity: the first PhysicsScene, else standard gravity along -up.
     gravity = np.array([0.0, 0.0, -9.81]) if up == UsdGeom.Tokens.z else np.array([0.0, -9.81, 0.0])
@@ -369,7 +399,101 @@ def load_scene(path) -> Scene:
     task = TaskSpec()
     if scene_prim is not None:
         _read_settings(scene_prim, settings, task, source)
-    return Scene(bodies=all_bodies, gravity=gravity, settings=settings, task=task, source=source)
+    joints = _read_joints(descs, {**bodies, **static_bodies}, meters, source, UsdPhysics)
+    return Scene(bodies=all_bodies, gravity=gravity, settings=settings, task=task, source=source, joints=joints)
+
+
+_AXES = {"X": np.array([1.0, 0.0, 0.0]), "Y": np.array([0.0, 1.0, 0.0]), "Z": np.array([0.0, 0.0, 1.0])}
+_DEGREE = np.pi / 180.0
+
+
+def _axis_token(value) -> str:
+    return str(value).split(".")[-1].upper()[-1]
+
+
+def _read_joints(descs, bodies: dict, meters: float, source: str, UsdPhysics) -> list[JointSpec]:
+    """UsdPhysics joints -> JointSpec. Angles in degrees and angular gains per degree (UsdPhysics)
+    become radians and gains per radian; lengths scale by metersPerUnit."""
+    joints = []
+    kinds = [("RevoluteJoint", "revolute"), ("PrismaticJoint", "prismatic"), ("SphericalJoint", "ball"), ("D6Joint", "d6")]
+    for usd_kind, kind in kinds:
+        for prim_path, desc in descs.get(usd_kind, []):
+            where = f"{source}: prim {prim_path}"
+            if not desc.jointEnabled:
+                continue
+            parent_path, child_path = str(desc.body0), str(desc.body1)
+            if child_path not in bodies:
+                raise ValueError(f"{where}: body1 {child_path or '(none)'} is not a rigid body with a collider (every link needs a mesh)")
+            if parent_path and parent_path not in bodies:
+                raise ValueError(f"{where}: body0 {parent_path} is not a rigid body or collider")
+            frames = []
+            for position, orientation in ((desc.localPose0Position, desc.localPose0Orientation), (desc.localPose1Position, desc.localPose1Orientation)):
+                frame = np.array([*(np.asarray(position, dtype=np.float64) * meters), *_quat_xyzw(orientation)])
+                frame[3:] /= np.linalg.norm(frame[3:])
+                frames.append(frame)
+            spec = JointSpec(
+                name=str(prim_path).rsplit("/", 1)[-1],
+                path=str(prim_path),
+                kind=kind,
+                parent=bodies[parent_path].name if parent_path else None,
+                child=bodies[child_path].name,
+                parent_frame=frames[0],
+                child_frame=frames[1],
+            )
+            if kind in ("revolute", "prismatic"):
+                spec.axes = _AXES[_axis_token(desc.axis)][None]
+                scale = _DEGREE if kind == "revolute" else meters
+                if desc.limit.enabled and np.isfinite([desc.limit.lower, desc.limit.upper]).all():
+                    spec.limits = [(desc.limit.lower * scale, desc.limit.upper * scale)]
+                drive = desc.drive
+                gains = (drive.stiffness / scale, drive.damping / scale) if drive.enabled else (0.0, 0.0)
+                spec.kp, spec.kd = np.array([gains[0]]), np.array([gains[1]])
+            elif kind == "ball":
+                if desc.limit.enabled and max(abs(desc.limit.lower), abs(desc.limit.upper)) < 180.0:
+                    raise ValueError(f"{where}: cone limits on spherical joints are not supported; use a D6 joint with rotation limits (a universal joint) or remove the limit")
+            else:
+                _read_d6(desc, spec, where, meters)
+            joints.append(spec)
+    return joints
+
+
+def _read_d6(desc, spec: JointSpec, where: str, meters: float):
+    """A D6 joint: locked axes have low > high. Free rotations make a revolute (1), universal
+    (2, in X, Y, Z order) or ball (3) joint; free translations are allowed only on a joint to
+    the world with world-aligned axes, which makes a base joint."""
+    limits = {str(pair.first).split(".")[-1]: pair.second for pair in desc.jointLimits}
+    drives = {str(pair.first).split(".")[-1]: pair.second for pair in desc.jointDrives}
+    free = [axis for axis in ("TransX", "TransY", "TransZ", "RotX", "RotY", "RotZ") if not (axis in limits and limits[axis].enabled and limits[axis].lower > limits[axis].upper)]
+    translations = [a for a in free if a.startswith("Trans")]
+    rotations = [a for a in free if a.startswith("Rot")]
+    if translations:
+        if spec.parent is not None or abs(abs(spec.parent_frame[6]) - 1.0) > 1e-9:
+            raise ValueError(f"{where}: free translations are supported only on a D6 joint from the world (no body0) with world-aligned axes (a base joint)")
+        spec.kind = "base"
+        spec.dofs = tuple({"TransX": "x", "TransY": "y", "TransZ": "z", "RotX": "rx", "RotY": "ry", "RotZ": "rz"}[a] for a in free)
+        coordinates = free if len(rotations) < 3 else translations
+    elif len(rotations) == 3:
+        spec.kind = "ball"
+        coordinates = []
+    elif rotations:
+        spec.kind = "revolute" if len(rotations) == 1 else "universal"
+        spec.axes = np.array([_AXES[a[-1]] for a in rotations])
+        coordinates = rotations
+    else:
+        raise ValueError(f"{where}: a D6 joint with every axis locked is a fixed joint, which is not supported (merge the two bodies)")
+    bounds, kp, kd = [], [], []
+    for axis in coordinates:
+        scale = meters if axis.startswith("Trans") else _DEGREE
+        limit = limits.get(axis)
+        bounded = limit is not None and limit.enabled and np.isfinite([limit.lower, limit.upper]).all()
+        bounds.append((limit.lower * scale, limit.upper * scale) if bounded else (-np.inf, np.inf))
+        drive = drives.get(axis)
+        kp.append(drive.stiffness / scale if drive is not None and drive.enabled else 0.0)
+        kd.append(drive.damping / scale if drive is not None and drive.enabled else 0.0)
+    if spec.kind == "ball" and any(axis in limits and limits[axis].enabled for axis in rotations):
+        raise ValueError(f"{where}: a D6 joint with three free rotations is a ball joint, which takes no rotation limits here")
+    spec.limits = bounds if any(np.isfinite(b).all() for b in bounds) else None
+    spec.kp, spec.kd = np.array(kp), np.array(kd)
 
 
 def _read_mass(prim, body: BodySpec, UsdPhysics, meters: float, source: str):
@@ -572,9 +696,85 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
                 mass.CreateDiagonalInertiaAttr(Gf.Vec3f(*map(float, values)))
                 mass.CreatePrincipalAxesAttr(Gf.Quatf(float(q[0]), Gf.Vec3f(*map(float, q[1:]))))
             _write_warpcontact_body(body_prim, b, Sdf, Vt)
+        for j in scene.joints:
+            _author_joint(stage, j, Gf, UsdPhysics)
         stage.GetRootLayer().Save()
 
     _atomic_save(write, path, overwrite)
+
+
+def _frames_along_x(j: JointSpec):
+    """Joint frames rotated so that the first axis is the frame's X (and the second its Y),
+    as UsdPhysics joints name their axes by token."""
+    axes = np.asarray(j.axes, dtype=np.float64).reshape(-1, 3)
+    if len(axes) == 0:
+        return j.parent_frame, j.child_frame
+    first = axes[0]
+    second = axes[1] if len(axes) > 1 else np.cross(first, [1.0, 0.0, 0.0] if abs(first[0]) < 0.9 else [0.0, 1.0, 0.0])
+    second = second - (second @ first) * first
+    second /= np.linalg.norm(second)
+    align = quat_from_matrix(np.column_stack([first, second, np.cross(first, second)]))
+    turn = np.array([0.0, 0.0, 0.0, *align])
+    return pose_mul(j.parent_frame, turn), pose_mul(j.child_frame, turn)
+
+
+def _author_joint(stage, j: JointSpec, Gf, UsdPhysics):
+    path = f"/World/joints/{j.name}"
+    if j.kind == "revolute":
+        joint = UsdPhysics.RevoluteJoint.Define(stage, path)
+        joint.CreateAxisAttr("X")
+    elif j.kind == "prismatic":
+        joint = UsdPhysics.PrismaticJoint.Define(stage, path)
+        joint.CreateAxisAttr("X")
+    elif j.kind == "ball":
+        joint = UsdPhysics.SphericalJoint.Define(stage, path)
+    else:  # universal and base: a D6 joint with locked axes
+        joint = UsdPhysics.Joint.Define(stage, path)
+    prim = joint.GetPrim()
+    if j.parent is not None:
+        joint.CreateBody0Rel().SetTargets([f"/World/{j.parent}"])
+    joint.CreateBody1Rel().SetTargets([f"/World/{j.child}"])
+    parent_frame, child_frame = _frames_along_x(j) if j.kind != "base" else (j.parent_frame, j.child_frame)
+    for frame, pos_attr, rot_attr in ((parent_frame, joint.CreateLocalPos0Attr, joint.CreateLocalRot0Attr), (child_frame, joint.CreateLocalPos1Attr, joint.CreateLocalRot1Attr)):
+        pos_attr(Gf.Vec3f(*map(float, frame[:3])))
+        rot_attr(Gf.Quatf(float(frame[6]), Gf.Vec3f(*map(float, frame[3:6]))))
+    if j.kind in ("revolute", "prismatic"):
+        scale = _DEGREE if j.kind == "revolute" else 1.0
+        if j.limits is not None and np.isfinite(j.limits[0]).all():
+            joint.CreateLowerLimitAttr(float(j.limits[0][0] / scale))
+            joint.CreateUpperLimitAttr(float(j.limits[0][1] / scale))
+        if len(j.kp) and (j.kp[0] or j.kd[0]):
+            drive = UsdPhysics.DriveAPI.Apply(prim, "angular" if j.kind == "revolute" else "linear")
+            drive.CreateStiffnessAttr(float(j.kp[0] * scale))
+            drive.CreateDampingAttr(float(j.kd[0] * scale))
+        return
+    if j.kind == "ball":
+        return
+    if j.kind == "universal":
+        free = ["RotX", "RotY"]
+    else:
+        names = {"x": "TransX", "y": "TransY", "z": "TransZ", "rx": "RotX", "ry": "RotY", "rz": "RotZ"}
+        free = [names[d] for d in j.dofs]
+    coordinates = free if not (j.kind == "base" and sum(a.startswith("Rot") for a in free) == 3) else [a for a in free if a.startswith("Trans")]
+    for axis in ("TransX", "TransY", "TransZ", "RotX", "RotY", "RotZ"):
+        token = axis[0].lower() + axis[1:]
+        if axis not in free:
+            limit = UsdPhysics.LimitAPI.Apply(prim, token)
+            limit.CreateLowAttr(1.0)
+            limit.CreateHighAttr(-1.0)
+            continue
+        if axis not in coordinates:
+            continue
+        c = coordinates.index(axis)
+        scale = _DEGREE if axis.startswith("Rot") else 1.0
+        if j.limits is not None and np.isfinite(j.limits[c]).all():
+            limit = UsdPhysics.LimitAPI.Apply(prim, token)
+            limit.CreateLowAttr(float(j.limits[c][0] / scale))
+            limit.CreateHighAttr(float(j.limits[c][1] / scale))
+        if len(j.kp) and (j.kp[c] or j.kd[c]):
+            drive = UsdPhysics.DriveAPI.Apply(prim, token)
+            drive.CreateStiffnessAttr(float(j.kp[c] * scale))
+            drive.CreateDampingAttr(float(j.kd[c] * scale))
 
 
 def _write_warpcontact_body(prim, b: BodySpec, Sdf, Vt):

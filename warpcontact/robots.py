@@ -20,7 +20,7 @@ import numpy as np
 
 from .rotation import quat_from_rotation_vector
 
-__all__ = ["AntSpec", "ant_standing_height", "add_ant"]
+__all__ = ["AntSpec", "actuated_coordinates", "add_ant", "ant_description", "ant_standing_height"]
 
 
 @dataclass(frozen=True)
@@ -54,66 +54,67 @@ def ant_standing_height(spec: AntSpec = AntSpec(), *, clearance: float = 1e-3) -
     return spec.gap + spec.lower_length + clearance
 
 
-def add_ant(builder, *, position=(0.0, 0.0), yaw: float = 0.0, ground_height: float = 0.0, spec: AntSpec = AntSpec(), name: str = "ant") -> dict:
-    """Add the ant to ``builder`` standing at ``position`` (x, y) with its feet 1 mm above
+def ant_description(*, position=(0.0, 0.0), yaw: float = 0.0, ground_height: float = 0.0, spec: AntSpec = AntSpec(), name: str = "ant"):
+    """The ant's links and joints standing at ``position`` (x, y) with its feet 1 mm above
     ``ground_height``, facing ``yaw`` (rad).
 
-    Returns a dict with ``bodies`` (name -> body index), ``joints`` (name -> joint index) and
-    ``actuated`` (the 12 leg coordinate names, in the order hips (swing, lift) then knee,
-    leg by leg).
+    Returns (links, joints): links are dicts (name, extents (m), pose (7,)); joints are dicts
+    (name, kind, parent, child (link names; parent None for the world), anchor (world point
+    at these poses), axis (world), dofs, limits, kp, kd) in ``ModelBuilder.add_joint`` terms.
     """
     s = spec
-    height = ground_height + ant_standing_height(s)
-    origin = np.array([position[0], position[1], height])
+    origin = np.array([position[0], position[1], ground_height + ant_standing_height(s)])
 
-    def place(local_centre, local_rotation_z=0.0):
-        rot = quat_from_rotation_vector(np.array([0.0, 0.0, yaw + local_rotation_z]))
-        c = np.asarray(local_centre, dtype=np.float64)
-        world = origin + _rotate_z(c, yaw)
-        return (*world, *rot)
+    def place(local_centre, heading=0.0):
+        rot = quat_from_rotation_vector(np.array([0.0, 0.0, yaw + heading]))
+        return np.array([*(origin + _rotate_z(local_centre, yaw)), *rot])
 
-    bodies, joints, actuated = {}, {}, []
-    torso = builder.add_box(s.torso_size, density=s.density, pose=place((0.0, 0.0, 0.0)), name=f"{name}_torso")
-    bodies["torso"] = torso
-    joints["base"] = builder.add_joint("base", child=torso, dofs=("x", "y", "z", "rz"), name=f"{name}_base")
-    corner = np.hypot(s.torso_size[0], s.torso_size[1]) / 2.0
-    hip_radius = corner + s.hip_offset
+    torso = f"{name}_torso"
+    links = [{"name": torso, "extents": tuple(s.torso_size), "pose": place((0.0, 0.0, 0.0))}]
+    joints = [{"name": f"{name}_base", "kind": "base", "parent": None, "child": torso, "dofs": ("x", "y", "z", "rz")}]
+    hip_radius = np.hypot(s.torso_size[0], s.torso_size[1]) / 2.0 + s.hip_offset
     w = s.leg_width
     for leg, angle in enumerate(np.pi / 4 + np.pi / 2 * np.arange(4)):
         direction = np.array([np.cos(angle), np.sin(angle), 0.0])
-        side = np.array([-np.sin(angle), np.cos(angle), 0.0])
+        side = _rotate_z(np.array([-np.sin(angle), np.cos(angle), 0.0]), yaw)
         hip = hip_radius * direction
-        upper_centre = hip + (s.gap + s.upper_length / 2) * direction
         knee = hip + (2 * s.gap + s.upper_length) * direction
-        lower_centre = knee - np.array([0.0, 0.0, s.gap + s.lower_length / 2])
-        upper = builder.add_box((s.upper_length, w, w), density=s.density, pose=place(upper_centre, angle), name=f"{name}_upper{leg}")
-        lower = builder.add_box((w, w, s.lower_length), density=s.density, pose=place(lower_centre, angle), name=f"{name}_lower{leg}")
-        bodies[f"upper{leg}"], bodies[f"lower{leg}"] = upper, lower
-        world_side = _rotate_z(side, yaw)
-        joints[f"hip{leg}"] = builder.add_joint(
-            "universal",
-            child=upper,
-            parent=torso,
-            anchor=origin + _rotate_z(hip, yaw),
-            axis=[(0.0, 0.0, 1.0), world_side],
-            limits=s.hip_limits,
-            kp=s.hip_kp,
-            kd=s.hip_kd,
-            name=f"{name}_hip{leg}",
+        upper, lower = f"{name}_upper{leg}", f"{name}_lower{leg}"
+        links.append({"name": upper, "extents": (s.upper_length, w, w), "pose": place(hip + (s.gap + s.upper_length / 2) * direction, angle)})
+        links.append({"name": lower, "extents": (w, w, s.lower_length), "pose": place(knee - np.array([0.0, 0.0, s.gap + s.lower_length / 2]), angle)})
+        joints.append(
+            {"name": f"{name}_hip{leg}", "kind": "universal", "parent": torso, "child": upper, "anchor": origin + _rotate_z(hip, yaw), "axis": np.array([[0.0, 0.0, 1.0], side]), "limits": s.hip_limits, "kp": s.hip_kp, "kd": s.hip_kd}
         )
-        joints[f"knee{leg}"] = builder.add_joint(
-            "revolute",
-            child=lower,
-            parent=upper,
-            anchor=origin + _rotate_z(knee, yaw),
-            axis=world_side,
-            limits=[s.knee_limits],
-            kp=s.knee_kp,
-            kd=s.knee_kd,
-            name=f"{name}_knee{leg}",
+        joints.append(
+            {"name": f"{name}_knee{leg}", "kind": "revolute", "parent": upper, "child": lower, "anchor": origin + _rotate_z(knee, yaw), "axis": side, "limits": [s.knee_limits], "kp": s.knee_kp, "kd": s.knee_kd}
         )
-        actuated += [f"{name}_hip{leg}:0", f"{name}_hip{leg}:1", f"{name}_knee{leg}:0"]
-    return {"bodies": bodies, "joints": joints, "actuated": actuated}
+    return links, joints
+
+
+def actuated_coordinates(joints) -> list[str]:
+    """Names of the actuated joint coordinates (every coordinate of a joint with gains)."""
+    counts = {"revolute": 1, "prismatic": 1, "universal": 2}
+    return [f"{j['name']}:{k}" for j in joints if j.get("kp") for k in range(counts.get(j["kind"], 0))]
+
+
+def add_ant(builder, *, position=(0.0, 0.0), yaw: float = 0.0, ground_height: float = 0.0, spec: AntSpec = AntSpec(), name: str = "ant") -> dict:
+    """Add the ant (see ``ant_description``) to a ``ModelBuilder``.
+
+    Returns a dict with ``bodies`` (short name -> body index), ``joints`` (short name ->
+    joint index) and ``actuated`` (the 12 leg coordinate names: per leg hip swing, hip lift,
+    knee).
+    """
+    links, joints = ant_description(position=position, yaw=yaw, ground_height=ground_height, spec=spec, name=name)
+    index = {}
+    for link in links:
+        index[link["name"]] = builder.add_box(link["extents"], density=spec.density, pose=link["pose"], name=link["name"])
+    joint_index = {}
+    for j in joints:
+        options = {k: j[k] for k in ("anchor", "axis", "dofs", "limits", "kp", "kd") if k in j}
+        parent = index[j["parent"]] if j["parent"] is not None else None
+        joint_index[j["name"][len(name) + 1 :]] = builder.add_joint(j["kind"], child=index[j["child"]], parent=parent, name=j["name"], **options)
+    bodies = {k[len(name) + 1 :]: v for k, v in index.items()}
+    return {"bodies": bodies, "joints": joint_index, "actuated": actuated_coordinates(joints)}
 
 
 def _rotate_z(v, yaw: float) -> np.ndarray:

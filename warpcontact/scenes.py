@@ -26,13 +26,15 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .io import BodySpec, Scene, SimulationSettings, TaskSpec, save_scene
+from .io import BodySpec, JointSpec, Scene, SimulationSettings, TaskSpec, save_scene
+from .robots import AntSpec, ant_description
+from .rotation import pose_inverse, pose_mul
 
 __all__ = ["SCENE_NAMES", "BILLIARDS_SERIES", "build_scene", "write_scenes", "fibonacci_ball", "rest_on_face", "decimate", "bunny_mesh"]
 
 # Ball point counts for the scaling series: faces per ball = 2 N - 4.
 BILLIARDS_SERIES = {"billiards_512": 18, "billiards_1280": 42, "billiards_2560": 82, "billiards_6208": 196}
-SCENE_NAMES = ("billiards", "push", "sort", "gather", "gather_bunny", *BILLIARDS_SERIES)
+SCENE_NAMES = ("billiards", "push", "ant_push", "sort", "gather", "gather_bunny", *BILLIARDS_SERIES)
 
 _IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
 _REST_GAP = 1e-3  # bodies start 1 mm above their support (docs: initial gaps)
@@ -233,6 +235,51 @@ def _push() -> Scene:
     )
 
 
+def _ant_push() -> Scene:
+    """The paper's Ant-Push: the ant (robots.py) walks into a box and pushes it to a target;
+    the decision variables are 4 accumulated sine waves per actuated leg coordinate."""
+    links, joint_defs = ant_description(position=(0.0, 0.0))
+    bodies = [grid_ground(8.0, 6.0)]
+    for link in links:
+        body = _body(link["name"], _box_mesh(link["extents"]), link["pose"][:3], density=AntSpec().density)
+        body.pose = np.asarray(link["pose"], dtype=np.float64)
+        bodies.append(body)
+    poses = {b.name: b.pose for b in bodies}
+    joints = []
+    for j in joint_defs:
+        if j["kind"] == "base":
+            child_pose = poses[j["child"]]
+            world = np.array([*child_pose[:3], *_IDENTITY])
+            joints.append(JointSpec(j["name"], f"/World/joints/{j['name']}", "base", None, j["child"], world, pose_mul(pose_inverse(child_pose), world), dofs=j["dofs"]))
+            continue
+        # Joint frame at the anchor with the world's axes; the axes are then world vectors.
+        world = np.array([*j["anchor"], *_IDENTITY])
+        axes = np.asarray(j["axis"], dtype=np.float64).reshape(-1, 3)
+        joints.append(
+            JointSpec(
+                j["name"],
+                f"/World/joints/{j['name']}",
+                j["kind"],
+                j["parent"],
+                j["child"],
+                pose_mul(pose_inverse(poses[j["parent"]]), world),
+                pose_mul(pose_inverse(poses[j["child"]]), world),
+                axes=axes,
+                limits=[tuple(lim) for lim in j["limits"]],
+                kp=np.full(len(axes), j["kp"]),
+                kd=np.full(len(axes), j["kd"]),
+            )
+        )
+    box = _body("box", _box_mesh((0.4, 0.4, 0.4)), (1.3, 0.0, 0.2 + _REST_GAP), density=100.0, target_position=np.array([2.3, 0.0, 0.2]), target_tolerance=0.2)
+    bodies.append(box)
+    return Scene(
+        bodies=bodies,
+        joints=joints,
+        settings=SimulationSettings(time_step=0.02, frames=240, contact_stiffness=1e-8, friction=0.5),
+        task=TaskSpec(name="ant_push", control="joint_sine", horizon=240, receding_horizon=0, learning_rate=3e-2, iterations=100),
+    )
+
+
 def _scattered_cubes(rng, count, mesh_factory, *, labels=None, target_of=None, spread=2.0):
     bodies = []
     placed = []
@@ -303,7 +350,7 @@ def build_scene(name: str) -> Scene:
         return _billiards(18)
     if name in BILLIARDS_SERIES:
         return _billiards(BILLIARDS_SERIES[name])
-    builders = {"push": _push, "sort": _sort, "gather": _gather, "gather_bunny": lambda: _gather(bunny=True)}
+    builders = {"push": _push, "ant_push": _ant_push, "sort": _sort, "gather": _gather, "gather_bunny": lambda: _gather(bunny=True)}
     if name not in builders:
         raise ValueError(f"scene: {name!r} is not one of {', '.join(SCENE_NAMES)}")
     return builders[name]()

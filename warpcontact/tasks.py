@@ -7,7 +7,11 @@ controlled body whose ``control_dofs`` are the decision variables:
   initial pose and velocity (e.g. x, y, vx, vy);
 - control ``"pd_targets"`` (Push, Sort, Gather): one row per frame of offsets to the PD
   target pose (translations, rotation vector or yaw), optimised over a receding horizon of
-  ``receding_horizon`` frames; the first action is applied and the window shifts.
+  ``receding_horizon`` frames; the first action is applied and the window shifts;
+- control ``"joint_sine"`` (Ant-Push): every actuated joint coordinate (one with a PD gain)
+  follows its rest value plus ``SINE_WAVES`` accumulated sine waves; the decision variables
+  are each wave's amplitude, frequency and phase (after ChainQueen, as in the paper). The
+  trivial guess has zero amplitudes, frequencies of 1..4 Hz and zero phases.
 
 Loss: sum over targets of ReLU(|x_com - x*|^2 - tolerance^2) at the window's last frame.
 Gradients come from ``wp.Tape`` through the implicit steps; the optimiser is Adam with the
@@ -26,9 +30,10 @@ from .kernels import task as task_kernels
 from .solver import ImplicitSolver, SolverError
 from .types import State, set_body_velocity
 
-__all__ = ["CONTROL_KINDS", "TaskSettings", "TaskResult", "TaskProblem", "adam"]
+__all__ = ["CONTROL_KINDS", "SINE_WAVES", "TaskProblem", "TaskResult", "TaskSettings", "adam"]
 
-CONTROL_KINDS = ("initial_state", "pd_targets")
+CONTROL_KINDS = ("initial_state", "pd_targets", "joint_sine")
+SINE_WAVES = 4
 
 
 @dataclass
@@ -126,7 +131,7 @@ class TaskProblem:
         if task.control not in CONTROL_KINDS:
             raise ValueError(f"{source}: task control {task.control!r} is not one of {CONTROL_KINDS}")
         controlled = [i for i, b in enumerate(scene.bodies) if b.control_dofs]
-        if len(controlled) != 1:
+        if task.control != "joint_sine" and len(controlled) != 1:
             raise ValueError(f"{source}: expected exactly one body with warpcontact:control:dofs, found {len(controlled)}")
         targets = [i for i, b in enumerate(scene.bodies) if b.target_position is not None]
         if not targets:
@@ -142,15 +147,26 @@ class TaskProblem:
         self.model = scene.build_model(device=device)
         self.solver = ImplicitSolver(self.model)
         self.dt = scene.settings.time_step
-        self.body = controlled[0]
-        body = scene.bodies[self.body]
-        unknown = [d for d in body.control_dofs if d not in task_kernels.DOF_CODES]
-        if unknown:
-            raise ValueError(f"{source}: prim {body.path}: unknown control dofs {unknown}")
-        self.dof_names = tuple(body.control_dofs)
-        self.base_pose = self.model.initial_q[self.body].copy()
         device = self.model.device
-        self._dof_codes = wp.array([task_kernels.DOF_CODES[d] for d in self.dof_names], dtype=wp.int32, device=device)
+        art = self.model.articulation
+        if art.num_coordinates and self.settings.receding_horizon:
+            raise ValueError(f"{source}: receding-horizon control of articulated scenes is not supported (set warpcontact:task:recedingHorizon to 0)")
+        if self.kind == "joint_sine":
+            actuated = np.flatnonzero(art.kp > 0)
+            if actuated.size == 0:
+                raise ValueError(f"{source}: joint_sine control needs joints with drives (PD gains); none found")
+            self.dof_names = tuple(art.coordinate_names[c] for c in actuated)
+            self._actuated = wp.array(actuated.astype(np.int32), dtype=wp.int32, device=device)
+            self._rest = wp.array(art.initial_coordinates, dtype=wp.float64, device=device)
+        else:
+            self.body = controlled[0]
+            body = scene.bodies[self.body]
+            unknown = [d for d in body.control_dofs if d not in task_kernels.DOF_CODES]
+            if unknown:
+                raise ValueError(f"{source}: prim {body.path}: unknown control dofs {unknown}")
+            self.dof_names = tuple(body.control_dofs)
+            self.base_pose = self.model.initial_q[self.body].copy()
+            self._dof_codes = wp.array([task_kernels.DOF_CODES[d] for d in self.dof_names], dtype=wp.int32, device=device)
         self._target_body = wp.array(targets, dtype=wp.int32, device=device)
         self._target_position = wp.array([scene.bodies[i].target_position for i in targets], dtype=wp.vec3d, device=device)
         self._target_tolerance = wp.array([scene.bodies[i].target_tolerance for i in targets], dtype=wp.float64, device=device)
@@ -159,11 +175,18 @@ class TaskProblem:
     # --- rollouts -------------------------------------------------------------------------
 
     def _state(self, q, q_prev) -> State:
-        device = self.model.device
-        return State(
-            body_q=wp.array(q, dtype=wp.transformd, device=device, requires_grad=True),
-            body_q_prev=wp.array(q_prev, dtype=wp.transformd, device=device, requires_grad=True),
-        )
+        state = self.model.state()
+        state.body_q.assign(q)
+        state.body_q_prev.assign(q_prev)
+        return state
+
+    def initial_values(self, rows: int) -> np.ndarray:
+        """The trivial guess: zero offsets, or zero sine amplitudes at 1..SINE_WAVES Hz."""
+        if self.kind != "joint_sine":
+            return np.zeros((rows, len(self.dof_names)))
+        values = np.zeros((len(self.dof_names), 3 * SINE_WAVES))
+        values[:, 1::3] = 2 * np.pi * np.arange(1, SINE_WAVES + 1)
+        return values
 
     def rollout(self, values: np.ndarray, start: tuple, frames: int, *, gradient: bool = True):
         """Simulate ``frames`` frames from ``start`` = (q, q_prev) under ``values``.
@@ -172,19 +195,28 @@ class TaskProblem:
         """
         device = self.model.device
         values_arr = wp.array(np.atleast_2d(values), dtype=wp.float64, device=device, requires_grad=True)
-        base = wp.transformd(*map(float, self.base_pose))
         states = [self._state(*start)] + [self._state(start[0], start[0]) for _ in range(frames)]
-        controls = [self.model.control() for _ in range(frames)] if self.kind == "pd_targets" else [None] * frames
+        controls = [self.model.control() for _ in range(frames)] if self.kind != "initial_state" else [None] * frames
         loss = wp.zeros(1, dtype=wp.float64, device=device, requires_grad=True)
         tape = wp.Tape()
         with tape:
             if self.kind == "initial_state":
+                base = wp.transformd(*map(float, self.base_pose))
                 velocity = wp.zeros(self.model.num_bodies, dtype=wp.vec3d, device=device, requires_grad=True)
                 wp.launch(task_kernels.initial_state_kernel, dim=1, inputs=[self.body, base, self._dof_codes, values_arr], outputs=[states[0].body_q, velocity], device=device)
                 set_body_velocity(states[0], velocity, wp.zeros(self.model.num_bodies, dtype=wp.vec3d, device=device, requires_grad=True), self.dt)
             for f in range(frames):
                 if self.kind == "pd_targets":
+                    base = wp.transformd(*map(float, self.base_pose))
                     wp.launch(task_kernels.pd_target_kernel, dim=1, inputs=[self.body, base, self._dof_codes, values_arr, f], outputs=[controls[f].body_target], device=device)
+                elif self.kind == "joint_sine":
+                    wp.launch(
+                        task_kernels.joint_sine_target_kernel,
+                        dim=self._actuated.shape[0],
+                        inputs=[self._actuated, self._rest, values_arr, wp.float64((f + 1) * self.dt)],
+                        outputs=[controls[f].joint_target],
+                        device=device,
+                    )
                 self.solver.step(states[f], states[f + 1], controls[f], self.dt)
             wp.launch(
                 task_kernels.target_loss_kernel,
@@ -209,9 +241,8 @@ class TaskProblem:
         q0 = self.model.initial_q.copy()
         ndof = len(self.dof_names)
         history = []
-        if self.kind == "initial_state" or not s.receding_horizon or s.receding_horizon >= s.horizon:
-            rows = 1 if self.kind == "initial_state" else s.horizon
-            values = np.zeros((rows, ndof))
+        if self.kind != "pd_targets" or not s.receding_horizon or s.receding_horizon >= s.horizon:
+            values = self.initial_values(1 if self.kind == "initial_state" else s.horizon)
             best = _descend(lambda v: self.rollout(v, (q0, q0), s.horizon), values, s, history, progress)
             final, _, traj = self.rollout(best[1], (q0, q0), s.horizon, gradient=False)
             return TaskResult(history, history[0], final, final == 0.0, s.iterations, time.perf_counter() - start_time, best[1], traj)
