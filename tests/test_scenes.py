@@ -64,4 +64,4 @@ def test_fibonacci_balls_are_closed_convex_meshes(points, faces):
 
 def test_unknown_scene_is_a_clear_error():
     with pytest.raises(ValueError, match="not one of"):
-        scenes.build_scene("ant_push")
+        scenes.build_scene("ant_walk")
