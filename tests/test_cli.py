@@ -100,6 +100,7 @@ def test_bench_accuracy_writes_results_and_plot(tmp_path):
     args = ["bench", "accuracy", "--balls", "1", "--points", "8", "--frames", "1", "--eps", "0.5", "2", "--tolerances", "1e-6", "--out", str(tmp_path)]
     assert main(args) == 0
     data = json.loads((tmp_path / "accuracy.json").read_text())
+    assert data["module_load_seconds"] >= 0 and data["precision"] == "float64"
     rows = data["rows"]
     assert [(r["sweep"], r["model"], r["eps"], r["tolerance"]) for r in rows] == [
         ("reference", "brute", None, 1e-12),
