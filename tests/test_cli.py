@@ -1,11 +1,14 @@
 """CLI commands run end to end on tiny cases and write well-formed output."""
 
+import csv
 import json
 from pathlib import Path
 
 import pytest
 from pxr import Usd
 
+from warpcontact import io
+from warpcontact.bench import accuracy_scene
 from warpcontact.cli import main
 
 
@@ -31,15 +34,18 @@ def test_bench_contact_writes_results_and_plot(tmp_path):
     assert main(args) == 0
     data = json.loads((tmp_path / "contact.json").read_text())
     rows = data["rows"]
-    assert {(r["scene"], r["mode"]) for r in rows} == {(s, m) for s in ("two_icospheres", "rack16") for m in ("brute", "bsh")}
+    assert {(r["scene"], r["mode"]) for r in rows} == {(s, m) for s in ("two_icospheres", "rack16") for m in ("brute", "bsh", "ipc")}
     for r in rows:
         assert r["median_seconds"] > 0
-        if r["mode"] == "brute":
+        if r["mode"] == "ipc":  # ipctk side by side on the same geometry; no error vs brute force
+            assert r["median_seconds_rigid"] > 0 and r["force_error_max"] is None
+        elif r["mode"] == "brute":
             assert r["force_error_max"] == 0.0 and r["num_far"] == 0
         else:
             assert r["num_far"] + r["num_blend"] + r["num_leaf"] > 0
             assert 0 < r["force_cosine_min"] <= 1.0 + 1e-12
     assert (tmp_path / "contact.png").stat().st_size > 1000
+    assert _csv_rows(tmp_path / "contact.csv") == len(rows)
 
 
 def test_bench_scaling_writes_results(tmp_path):
@@ -50,7 +56,72 @@ def test_bench_scaling_writes_results(tmp_path):
     assert (tmp_path / "scaling.png").stat().st_size > 1000
 
 
-@pytest.mark.parametrize("argv", [["demo", "--gaps", "-1"], ["bench", "leaf", "--pairs", "0"], ["bench", "contact", "--eps", "nan"]])
+def _csv_rows(path):
+    """Data lines of a CSV file, checking that every line has the header's columns."""
+    with path.open(newline="") as f:
+        lines = list(csv.reader(f))
+    assert lines and all(len(line) == len(lines[0]) for line in lines)
+    return len(lines) - 1
+
+
+def _tiny_billiards(tmp_path) -> Path:
+    """Cue and one 12-face ball on a cropped table, the cue 2 cm away at 1 m/s, as a .usda."""
+    scene, _ = accuracy_scene(balls=1, points_per_ball=8)
+    path = tmp_path / "tiny.usda"
+    io.save_scene(scene, path)
+    return path
+
+
+def test_bench_frame_writes_results_and_plot(tmp_path):
+    args = ["bench", "frame", "--scenes", str(_tiny_billiards(tmp_path)), "--frames", "2", "--warmup", "0", "--out", str(tmp_path)]
+    assert main(args) == 0
+    data = json.loads((tmp_path / "frame.json").read_text())
+    assert data["module_load_seconds"] >= 0 and data["frames"] == 2
+    rows = data["rows"]
+    assert [(r["scene"], r["model"]) for r in rows] == [("tiny", "bsh"), ("tiny", "brute"), ("tiny", "ipc")]
+    for r in rows:
+        assert r["error"] is None and r["frames"] == 2 and r["triangles"] == 24
+        assert len(r["newton_iterations_per_frame"]) == 2 and r["newton_iterations"] >= 1
+        assert r["forward_seconds"] > 0 and r["contact_seconds"] > 0 and r["backward_seconds"] > 0
+        assert r["setup"] == "cue 0.02 m from ball00 at 1 m/s"
+    assert rows[2]["friction"] == 0.0 and rows[0]["eps"] == 0.5 and rows[1]["eps"] is None
+    assert _csv_rows(tmp_path / "frame.csv") == 3
+    assert (tmp_path / "frame.png").stat().st_size > 1000
+
+
+def test_bench_frame_times_brute_contact_only_above_the_cap(tmp_path):
+    args = ["bench", "frame", "--scenes", str(_tiny_billiards(tmp_path)), "--models", "bsh", "brute", "--frames", "1", "--warmup", "0", "--brute-max-triangles", "0", "--out", str(tmp_path)]
+    assert main(args) == 0
+    brute = json.loads((tmp_path / "frame.json").read_text())["rows"][1]
+    assert brute["model"] == "brute" and brute["frames"] == 0 and brute["forward_seconds"] is None and brute["contact_seconds"] > 0
+
+
+def test_bench_accuracy_writes_results_and_plot(tmp_path):
+    args = ["bench", "accuracy", "--balls", "1", "--points", "8", "--frames", "1", "--eps", "0.5", "2", "--tolerances", "1e-6", "--out", str(tmp_path)]
+    assert main(args) == 0
+    data = json.loads((tmp_path / "accuracy.json").read_text())
+    assert data["module_load_seconds"] >= 0 and data["precision"] == "float64"
+    rows = data["rows"]
+    assert [(r["sweep"], r["model"], r["eps"], r["tolerance"]) for r in rows] == [
+        ("reference", "brute", None, 1e-12),
+        ("eps", "bsh", 0.5, 1e-10),
+        ("eps", "bsh", 2.0, 1e-10),
+        ("eps", "brute", None, 1e-10),
+        ("tolerance", "bsh", 0.5, 1e-6),
+    ]
+    assert rows[0]["trajectory_deviation_max"] == 0.0 and rows[0]["gradient_cosine"] == pytest.approx(1.0)
+    for r in rows:
+        assert r["error"] is None and r["forward_seconds"] > 0 and r["newton_iterations"] >= 1
+        assert len(r["gradient"]) == 4 and -1.0 - 1e-12 <= r["gradient_cosine"] <= 1.0 + 1e-12
+        assert r["trajectory_deviation_max"] >= 0 and 0 <= r["force_error_max"]
+    assert _csv_rows(tmp_path / "accuracy.csv") == len(rows)
+    assert (tmp_path / "accuracy.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["demo", "--gaps", "-1"], ["bench", "leaf", "--pairs", "0"], ["bench", "contact", "--eps", "nan"], ["bench", "frame", "--frames", "0"], ["bench", "accuracy", "--eps", "-1"]],
+)
 def test_bad_arguments_exit_with_usage_error(argv):
     with pytest.raises(SystemExit) as exc:
         main(argv)

@@ -1,5 +1,6 @@
 """Benchmarks that write their results to files (never timed tests)."""
 
+import csv
 import json
 import platform
 import time
@@ -13,7 +14,20 @@ from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
 from .leaf import DEFAULT_MAX_ITERATIONS
 
-__all__ = ["leaf_benchmark_pairs", "run_leaf_benchmark", "contact_benchmark_scenes", "run_contact_benchmark", "run_scaling_benchmark"]
+__all__ = [
+    "leaf_benchmark_pairs",
+    "run_leaf_benchmark",
+    "contact_benchmark_scenes",
+    "run_contact_benchmark",
+    "run_scaling_benchmark",
+    "PAPER_FRAME_SECONDS",
+    "PEER_BALLS",
+    "frame_scene",
+    "strike_setup",
+    "run_frame_benchmark",
+    "accuracy_scene",
+    "run_accuracy_benchmark",
+]
 
 
 def leaf_benchmark_pairs(num_pairs: int, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -45,7 +59,8 @@ def optional_pyplot():
 
 
 def _write_results(out_dir: Path, name: str, device, repeats: int, fields: dict) -> dict:
-    """Write out_dir/NAME.json with the common header (benchmark, device, host, date, repeats)."""
+    """Write out_dir/NAME.json with the common header (benchmark, device, host, date, repeats),
+    and out_dir/NAME.csv with one line per entry of ``fields["rows"]`` when there is one."""
     payload = {
         "benchmark": name,
         "device": str(device),
@@ -56,8 +71,28 @@ def _write_results(out_dir: Path, name: str, device, repeats: int, fields: dict)
         **fields,
     }
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / f"{name}.json").write_text(json.dumps(payload, indent=2) + "\n")
+    (out_dir / f"{name}.json").write_text(json.dumps(payload, indent=2, default=_json_default) + "\n")
+    if "rows" in fields:
+        _write_csv(out_dir / f"{name}.csv", fields["rows"])
     return payload
+
+
+def _json_default(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+def _write_csv(path: Path, rows: list[dict]):
+    """One line per row; columns are the union of the rows' keys in first-seen order."""
+    columns = list(dict.fromkeys(key for row in rows for key in row))
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns, restval="")
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: ("" if v is None else json.dumps(v, default=_json_default) if isinstance(v, (list, tuple, dict)) else v) for k, v in row.items()})
 
 
 def _median_seconds(fn, repeats: int) -> float:
@@ -176,15 +211,22 @@ def _force_errors(grad: np.ndarray, reference: np.ndarray, body_radius: np.ndarr
 
 
 def run_contact_benchmark(
-    *, eps_values, gaps, subdivisions: int, repeats: int, device, out_dir: Path
+    *, eps_values, gaps, subdivisions: int, repeats: int, device, out_dir: Path, ipc_dhat: float | None = 1e-2
 ) -> list[dict]:
     """Time per evaluate (value + gradient + Hessian) and force/torque error against brute force.
 
-    Writes contact.json and, when matplotlib is installed, contact.png (time vs error).
+    With ``ipc_dhat`` on the CPU, each scene also gets an ``ipc`` row timing, side by side on
+    the same geometry, the IPC Toolkit's collision build + barrier value, gradient and
+    Hessian (``median_seconds``; vertex coordinates, as ipctk computes them) and the whole
+    rigid-coordinate ``IpcContactModel.evaluate`` (``median_seconds_rigid``); its error
+    fields are None (a different potential). Writes contact.json, contact.csv and, when
+    matplotlib is installed, contact.png (time vs error).
     """
     dev = resolve_device(device)
     rows = []
     for scene in contact_benchmark_scenes(subdivisions=subdivisions, gaps=gaps):
+        if ipc_dhat is not None and dev.is_cpu:
+            rows.append(_ipc_contact_row(scene, ipc_dhat, repeats))
         reference = None
         for mode, eps in [("brute", None)] + [("bsh", e) for e in eps_values]:
             model = ContactModel(scene["meshes"], mode=mode, eps=eps or 1.0, device=dev)
@@ -210,6 +252,32 @@ def run_contact_benchmark(
     _write_results(out_dir, "contact", dev, repeats, {"rows": rows})
     _plot_contact_benchmark(rows, out_dir / "contact.png")
     return rows
+
+
+def _ipc_contact_row(scene: dict, dhat: float, repeats: int) -> dict:
+    from .ipc import IpcContactModel
+
+    model = IpcContactModel(scene["meshes"], dhat=dhat)
+    poses = scene["poses"]
+    _, collisions = model.vertex_terms(poses)  # warm-up
+    model.evaluate(poses)
+    return {
+        "scene": scene["scene"],
+        "gap": scene["gap"],
+        "triangles": int(sum(len(f) for _, f in scene["meshes"])),
+        "mode": "ipc",
+        "eps": None,
+        "ipc_dhat": dhat,
+        "median_seconds": _median_seconds(lambda: model.vertex_terms(poses), repeats),
+        "median_seconds_rigid": _median_seconds(lambda: model.evaluate(poses), repeats),
+        "num_far": 0,
+        "num_blend": 0,
+        "num_leaf": collisions,
+        "force_error_median": None,
+        "force_error_max": None,
+        "force_cosine_min": None,
+        "torque_error_max": None,
+    }
 
 
 def _plot_contact_benchmark(rows: list[dict], path: Path) -> bool:
@@ -291,6 +359,555 @@ def _plot_scaling(rows: list[dict], path: Path) -> bool:
     ax.set_ylabel("seconds per evaluate (value, gradient, Hessian)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return True
+
+
+# --- per-frame cost of whole implicit steps (issue 8) ---------------------------------------
+
+# The paper's per-frame CPU seconds (appendix "Computational efficiency"): billiards at 512 and
+# 6208 triangles (hierarchy, brute force, IPC) and Gather-Bunny.
+PAPER_FRAME_SECONDS = {
+    "billiards_512": {"bsh": 0.6, "brute": 3.35, "ipc": 0.5},
+    "billiards_6208": {"bsh": 3.18, "brute": 604.5, "ipc": 0.5},
+    "gather_bunny": {"bsh": 3.89, "brute": 309.62, "ipc": 3.14},
+}
+
+# The paper code base's ball meshes (../shared/peer-meshes) by 16-ball triangle count.
+PEER_BALLS = {512: "18.obj", 1472: "48.obj", 3008: "96.obj", 4544: "144.obj", 6208: "196.obj"}
+
+
+def _peer_ball(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A peer ball mesh, centred, with its faces re-oriented outward.
+
+    The files' faces are not consistently oriented (their signed volumes are near zero), and
+    the points are in convex position, so the convex hull is the same surface with outward
+    faces; it must have the file's face count, else the file is not such a ball.
+    """
+    import trimesh
+
+    mesh = trimesh.load(path, process=False, force="mesh")
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    vertices = vertices - vertices.mean(axis=0)
+    hull = trimesh.convex.convex_hull(vertices)
+    if len(hull.faces) != len(mesh.faces):
+        raise ValueError(f"{path}: not a ball in convex position ({len(mesh.faces)} faces, hull {len(hull.faces)})")
+    return np.asarray(hull.vertices, dtype=np.float64), np.asarray(hull.faces, dtype=np.int64)
+
+
+def frame_scene(spec: str, *, scene_dir: Path = Path("scenes"), peer_meshes: Path = Path("../shared/peer-meshes")):
+    """The ``Scene`` named by ``spec``.
+
+    ``spec`` is a scene name (``scene_dir``/NAME.usda when usd-core is installed, otherwise
+    built by ``warpcontact.scenes``), ``peer_billiards_T`` (billiards with the paper code
+    base's balls, T in ``PEER_BALLS``, from ``peer_meshes``), a .usda path, or a .pkl path
+    (a pickled ``Scene``, for machines without usd-core).
+    """
+    from . import io
+    from .scenes import SCENE_NAMES, billiards_scene, build_scene
+
+    path = Path(spec)
+    if path.suffix == ".pkl":
+        import pickle
+
+        with path.open("rb") as f:
+            return pickle.load(f)
+    if path.suffix in (".usda", ".usd", ".usdc"):
+        return io.load_scene(path)
+    if spec.startswith("peer_billiards_"):
+        triangles = int(spec.rsplit("_", 1)[1])
+        if triangles not in PEER_BALLS:
+            raise ValueError(f"{spec}: peer billiards come in {sorted(PEER_BALLS)} triangles")
+        file = Path(peer_meshes) / PEER_BALLS[triangles]
+        if not file.is_file():
+            raise ValueError(f"{spec}: {file} not found (pass the peer-mesh folder)")
+        scene = billiards_scene(*_peer_ball(file))
+        scene.source = spec
+        return scene
+    if spec not in SCENE_NAMES:
+        raise ValueError(f"scene: {spec!r} is not a scene name ({', '.join(SCENE_NAMES)}), peer_billiards_T, .usda or .pkl")
+    usda = Path(scene_dir) / f"{spec}.usda"
+    try:
+        import pxr  # noqa: F401
+    except ImportError:
+        usda = None
+    if usda is not None and usda.is_file():
+        return io.load_scene(usda)
+    scene = build_scene(spec)
+    scene.source = spec
+    return scene
+
+
+def _horizontal_radius(body) -> float:
+    """Largest horizontal distance of a body's vertices from its prim origin (m)."""
+    from scipy.spatial.transform import Rotation
+
+    world = Rotation.from_quat(body.pose[3:]).apply(body.vertices)
+    return float(np.linalg.norm(world[:, :2], axis=1).max())
+
+
+def strike_setup(scene, *, gap: float, speed: float) -> dict:
+    """Put the scene's striker (``cue``, else ``rod``) ``gap`` metres (horizontal bounding
+    circles) in front of the dynamic body nearest to it, moving into it at ``speed`` m/s,
+    so the frames that follow involve contact. A PD-actuated striker (the rod) gets its
+    target on the far side of that body, so it keeps pushing.
+
+    Returns a description (striker, struck body, gap, speed, direction) and sets
+    ``control_target`` (prim-frame translation of the striker's PD target, or None).
+    """
+    names = [b.name for b in scene.bodies]
+    striker_name = "cue" if "cue" in names else "rod" if "rod" in names else None
+    if striker_name is None:
+        raise ValueError(f"{scene.source or '<scene>'}: no 'cue' or 'rod' body to strike with")
+    striker = scene.body(striker_name)
+    others = [b for b in scene.bodies if not b.static and b is not striker]
+    struck = min(others, key=lambda b: np.linalg.norm(b.pose[:2] - striker.pose[:2]))
+    direction = struck.pose[:2] - striker.pose[:2]
+    direction /= np.linalg.norm(direction)
+    reach = _horizontal_radius(striker) + _horizontal_radius(struck)
+    striker.pose[:2] = struck.pose[:2] - direction * (reach + gap)
+    striker.linear_velocity = np.array([*(speed * direction), 0.0])
+    striker.angular_velocity = np.zeros(3)
+    pd = bool(np.any(striker.kp_linear > 0))
+    target = striker.pose[:3].copy()
+    target[:2] += direction * (2 * reach + gap)
+    return {
+        "striker": striker_name,
+        "struck": struck.name,
+        "gap_m": gap,
+        "speed_m_per_s": speed,
+        "direction": direction.tolist(),
+        "control_target": target.tolist() if pd else None,
+    }
+
+
+def _load_kernel_modules(dev) -> float:
+    """Load (compile, or read from Warp's kernel cache) every warpcontact kernel module; seconds."""
+    import importlib
+    import pkgutil
+
+    from . import kernels
+
+    start = time.perf_counter()
+    for info in pkgutil.iter_modules(kernels.__path__):
+        wp.load_module(importlib.import_module(f"{kernels.__name__}.{info.name}"), device=dev)
+    return time.perf_counter() - start
+
+
+def _scene_triangles(scene) -> tuple[int, int]:
+    """(dynamic triangles, all triangles) of a scene."""
+    dynamic = sum(len(b.faces) for b in scene.bodies if not b.static)
+    return dynamic, sum(len(b.faces) for b in scene.bodies)
+
+
+def _timed(fn, dev):
+    start = time.perf_counter()
+    result = fn()
+    wp.synchronize_device(dev)
+    return result, time.perf_counter() - start
+
+
+def _simulate_frames(scene, setup: dict, *, mode: str, frames: int, warmup: int, dev, eps: float | None, ipc_stiffness: float = 1e3):
+    """Simulate ``frames`` timed frames of ``scene`` under contact ``mode`` after ``warmup``
+    untimed ones from the same start; per frame: forward step on a tape, contact evaluation
+    at the step's solution, and the tape's backward. Returns (row, solved poses per frame,
+    the ``Model``)."""
+    from .solver import ImplicitSolver, SolverError
+    from .types import set_body_velocity
+
+    scene.settings.contact_mode = mode
+    if eps is not None:
+        scene.settings.eps = eps
+    if mode == "ipc":
+        scene.settings.friction = 0.0  # the ipc baseline has no friction model here
+        # The scenes' mu is sized for the separating-plane potential; on IPC's barrier it is
+        # so soft that the balls sink ~dhat into the table over hundreds of Newton iterations.
+        scene.settings.contact_stiffness = ipc_stiffness
+    model = scene.build_model(device=dev)
+    solver = ImplicitSolver(model)
+    dt = scene.settings.time_step
+    control = model.control(requires_grad=False)
+    if setup["control_target"] is not None:
+        striker = model.body_names.index(setup["striker"])
+        targets = model.initial_q.copy()
+        targets[striker, :3] += np.asarray(setup["control_target"]) - scene.body(setup["striker"]).pose[:3]
+        control.body_target.assign(targets)
+    lin, ang = scene.initial_velocities()
+    start = model.state(requires_grad=True)
+    set_body_velocity(start, wp.array(lin, dtype=wp.vec3d, device=dev), wp.array(ang, dtype=wp.vec3d, device=dev), dt)
+    samples = {"forward": [], "iterations": [], "contact": [], "backward": [], "leaf": []}
+    poses, error, first = [], None, None
+
+    def frame(state):
+        nxt = model.state(requires_grad=True)
+        tape = wp.Tape()
+
+        def forward():
+            with tape:
+                return solver.step(state, nxt, control, dt)
+
+        info, t_forward = _timed(forward, dev)
+        q = nxt.body_q.numpy()
+        contact, t_contact = _timed(lambda: model.contact.evaluate(q), dev)
+        seed = wp.array(np.ones((model.num_bodies, 7)), dtype=wp.transformd, device=dev)
+        _, t_backward = _timed(lambda: tape.backward(grads={nxt.body_q: seed}), dev)
+        return nxt, info, contact, (t_forward, t_contact, t_backward)
+
+    try:
+        for _ in range(warmup):
+            _, _, _, times = frame(start)
+            first = first if first is not None else sum(times)
+        state = start
+        for _ in range(frames):
+            state, info, contact, (t_forward, t_contact, t_backward) = frame(state)
+            samples["forward"].append(t_forward)
+            samples["iterations"].append(info.iterations)
+            samples["contact"].append(t_contact)
+            samples["backward"].append(t_backward)
+            samples["leaf"].append(contact.num_leaf)
+            poses.append(state.body_q.numpy())
+    except SolverError as exc:
+        error = str(exc)
+
+    def median(key):
+        return float(np.median(samples[key])) if samples[key] else None
+
+    per_iteration = [t / max(i, 1) for t, i in zip(samples["forward"], samples["iterations"])]
+    row = {
+        "model": mode,
+        "eps": scene.settings.eps if mode == "bsh" else None,
+        "friction": scene.settings.friction,
+        "contact_stiffness": scene.settings.contact_stiffness,
+        "frames": len(samples["forward"]),
+        "first_frame_seconds": first,
+        "forward_seconds": median("forward"),
+        "newton_iterations": median("iterations"),
+        "newton_iterations_per_frame": samples["iterations"],
+        "forward_seconds_per_iteration": float(np.median(per_iteration)) if per_iteration else None,
+        "contact_seconds": median("contact"),
+        "leaf_terms": median("leaf"),
+        "backward_seconds": median("backward"),
+        "frame_seconds": (median("forward") + median("backward")) if samples["forward"] else None,
+        "error": error,
+    }
+    return row, poses, model
+
+
+def _contact_only_row(model, poses: list, *, mode: str, dev) -> dict:
+    """Contact evaluation (value, gradient, Hessian) under ``mode`` of a simulation ``Model``'s
+    bodies at given configurations (its body-frame poses)."""
+    from .contact import ContactModel
+
+    contact = ContactModel(model.body_meshes, eps=model.contact.eps, mode=mode, static=model.static, device=dev)
+    contact.evaluate(poses[0])  # warm-up: buffers and kernels
+    times, leaves = [], []
+    for q in poses:
+        result, seconds = _timed(lambda q=q: contact.evaluate(q), dev)
+        times.append(seconds)
+        leaves.append(result.num_leaf)
+    return {
+        "model": mode,
+        "eps": None if mode == "brute" else contact.eps,
+        "friction": float(model.friction.numpy()[0]),
+        "frames": 0,
+        "first_frame_seconds": None,
+        "forward_seconds": None,
+        "newton_iterations": None,
+        "newton_iterations_per_frame": [],
+        "forward_seconds_per_iteration": None,
+        "contact_seconds": float(np.median(times)),
+        "leaf_terms": float(np.median(leaves)),
+        "backward_seconds": None,
+        "frame_seconds": None,
+        "error": "contact evaluation only (frames above --brute-max-triangles)",
+    }
+
+
+def run_frame_benchmark(
+    *,
+    scenes,
+    models=("bsh", "brute", "ipc"),
+    frames: int,
+    warmup: int = 1,
+    eps: float | None = None,
+    gap: float = 0.02,
+    speed: float = 1.0,
+    brute_max_triangles: int = 512,
+    brute_eval_max_triangles: int = 6208,
+    ipc_stiffness: float = 1e3,
+    device,
+    out_dir: Path,
+    scene_dir: Path = Path("scenes"),
+    peer_meshes: Path = Path("../shared/peer-meshes"),
+    progress=None,
+) -> list[dict]:
+    """Per-frame cost of whole implicit steps with contact; writes frame.json, frame.csv and,
+    with matplotlib, frame.png (rewritten after every row, so a run cut short keeps its rows).
+
+    For each scene (see ``frame_scene``) the striker is set up by ``strike_setup`` (cue
+    ``gap`` m in front of the rack's apex ball at ``speed`` m/s; the rod into the nearest
+    object), then per model: ``warmup`` untimed frames, then ``frames`` timed frames from
+    the same start, each timed as forward step on a ``wp.Tape`` (Newton to tolerance),
+    contact evaluation (value, gradient, Hessian) at its solution, and ``tape.backward``
+    (implicit-function theorem). Rows hold medians over the frames (s). Brute force runs
+    whole frames only up to ``brute_max_triangles`` dynamic triangles and is timed at the
+    BSH run's configurations (contact evaluation only) up to ``brute_eval_max_triangles``;
+    ipc (ipctk, CPU only) runs on the CPU, frictionless, with barrier stiffness
+    ``ipc_stiffness`` in place of the scene's mu. ``eps`` None keeps each scene's.
+    """
+    dev = resolve_device(device)
+    module_seconds = _load_kernel_modules(dev)
+    rows: list[dict] = []
+    header = {
+        "module_load_seconds": module_seconds,
+        "frames": frames,
+        "warmup_frames": warmup,
+        "strike_gap_m": gap,
+        "strike_speed_m_per_s": speed,
+        "paper_frame_seconds": PAPER_FRAME_SECONDS,
+    }
+
+    def save():
+        _write_results(out_dir, "frame", dev, frames, {**header, "rows": rows})
+        _plot_frame_benchmark(rows, out_dir / "frame.png")
+
+    for spec in scenes:
+        solved = None  # (bsh Model, its solved poses) for contact-only rows
+        for mode in models:
+            scene = frame_scene(spec, scene_dir=scene_dir, peer_meshes=peer_meshes)
+            setup = strike_setup(scene, gap=gap, speed=speed)
+            dynamic, total = _scene_triangles(scene)
+            base = {
+                "scene": Path(spec).stem if spec.endswith((".pkl", ".usda")) else spec,
+                "triangles": dynamic,
+                "all_triangles": total,
+                "bodies": len(scene.bodies),
+                "time_step": scene.settings.time_step,
+                "contact_stiffness": scene.settings.contact_stiffness,
+                "setup": f"{setup['striker']} {gap:g} m from {setup['struck']} at {speed:g} m/s",
+            }
+            if mode == "ipc" and not dev.is_cpu:
+                continue
+            if mode == "brute" and dynamic > brute_max_triangles:
+                if dynamic > brute_eval_max_triangles or solved is None:
+                    continue
+                row = _contact_only_row(solved[0], solved[1], mode="brute", dev=dev)
+            else:
+                row, poses, model = _simulate_frames(scene, setup, mode=mode, frames=frames, warmup=warmup, dev=dev, eps=eps if mode == "bsh" else None, ipc_stiffness=ipc_stiffness)
+                if mode == "bsh" and poses:
+                    solved = (model, poses)
+            rows.append({**base, **row})
+            if progress:
+                progress(rows[-1])
+            save()
+    if not rows:
+        save()
+    return rows
+
+
+def _plot_frame_benchmark(rows: list[dict], path: Path) -> bool:
+    plt = optional_pyplot()
+    if plt is None or not rows:
+        return False
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for mode, marker in (("bsh", "o"), ("brute", "s"), ("ipc", "^")):
+        sel = sorted((r for r in rows if r["model"] == mode), key=lambda r: r["triangles"])
+        framed = [r for r in sel if r["forward_seconds"] is not None]
+        if framed:
+            line = axes[0].loglog([r["triangles"] for r in framed], [r["forward_seconds"] for r in framed], marker, label=f"{mode} forward")[0]
+            axes[0].loglog([r["triangles"] for r in framed], [r["backward_seconds"] for r in framed], marker, mfc="none", color=line.get_color(), label=f"{mode} backward")
+            for r in framed:
+                axes[0].annotate(r["scene"], (r["triangles"], r["forward_seconds"]), fontsize=6)
+        if sel:
+            axes[1].loglog([r["triangles"] for r in sel], [r["contact_seconds"] for r in sel], marker, label=mode)
+        paper = [(int(k.rsplit("_", 1)[1]) if k.startswith("billiards") else 2702, v[mode]) for k, v in PAPER_FRAME_SECONDS.items()]
+        axes[0].loglog(*zip(*paper), marker, mfc="none", color="gray", label=f"paper {mode} (CPU)")
+    axes[0].set_ylabel("seconds per frame (median)")
+    axes[1].set_ylabel("seconds per contact evaluation (value, gradient, Hessian)")
+    for ax in axes:
+        ax.set_xlabel("dynamic triangles")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return True
+
+
+# --- time against error (issue 8) -------------------------------------------------------------
+
+
+def accuracy_scene(*, balls: int = 3, points_per_ball: int = 18, gap: float = 0.02, speed: float = 1.0):
+    """A small billiards case: the cue and the rack's first ``balls`` balls of
+    ``warpcontact.scenes.billiards_scene`` (Fibonacci balls of ``points_per_ball`` points),
+    on the table cropped to 1 m around them; the cue starts ``gap`` m in front of the apex
+    ball moving into it at ``speed`` m/s (``strike_setup``). Each struck ball's goal is 1 m
+    beyond it (alternately 0.5 m left and right) with zero tolerance, so the task loss has a
+    gradient. Returns (scene, the cue's initial-state controls (x, y, vx, vy))."""
+    from .scenes import billiards_scene, fibonacci_ball
+
+    scene = billiards_scene(*fibonacci_ball(points_per_ball))
+    keep = {"ground", "cue", *(f"ball{i:02d}" for i in range(balls))}
+    scene.bodies = [b for b in scene.bodies if b.name in keep]
+    setup = strike_setup(scene, gap=gap, speed=speed)
+    for i, b in enumerate(b for b in scene.bodies if b.name.startswith("ball")):
+        b.target_position = b.pose[:3] + np.array([1.0, 0.5 * (-1) ** i, 0.0])
+        b.target_tolerance = 0.0
+    centres = np.array([b.pose[:2] for b in scene.bodies if not b.static])
+    lo, hi = centres.min(axis=0) - 1.0, centres.max(axis=0) + 1.0
+    ground = scene.body("ground")
+    centroid = ground.vertices[ground.faces].mean(axis=1)[:, :2]
+    faces = ground.faces[np.all((centroid >= lo) & (centroid <= hi), axis=1)]
+    used, remap = np.unique(faces, return_inverse=True)
+    ground.vertices, ground.faces = ground.vertices[used], remap.reshape(-1, 3)
+    cue = scene.body("cue")
+    cue.linear_velocity = np.zeros(3)  # the controls carry it (initial-state task)
+    return scene, np.array([0.0, 0.0, *(speed * np.asarray(setup["direction"]))])
+
+
+def _accuracy_run(scene, controls, *, mode: str, eps: float, tolerance: float, frames: int, dev):
+    """One rollout with its task gradient: (loss, d loss / d controls, trajectory (frames+1,
+    nbodies, 7), forward seconds per frame, Newton iterations per frame, backward seconds, the
+    problem)."""
+    from .solver import ImplicitSolver
+    from .tasks import TaskProblem
+
+    class TimedSolver(ImplicitSolver):
+        def step(self, *args, **kwargs):
+            info, seconds = _timed(lambda: super(TimedSolver, self).step(*args, **kwargs), self.model.device)
+            self.seconds.append(seconds)
+            self.iterations.append(info.iterations)
+            return info
+
+    scene.settings.contact_mode = mode
+    scene.settings.eps = eps
+    problem = TaskProblem(scene, device=dev)
+    problem.solver = TimedSolver(problem.model, tolerance=tolerance)
+    problem.solver.seconds, problem.solver.iterations = [], []
+    q0 = problem.model.initial_q
+    (loss, grad, trajectory), total = _timed(lambda: problem.rollout(controls, (q0, q0), frames), dev)
+    forward = problem.solver.seconds
+    return loss, grad.reshape(-1), trajectory, forward, problem.solver.iterations, total - sum(forward), problem
+
+
+def run_accuracy_benchmark(
+    *,
+    eps_values=(0.25, 0.5, 1.0, 2.0, 4.0),
+    tolerances=(1e-4, 1e-6, 1e-8),
+    eps: float = 0.5,
+    default_tolerance: float = 1e-10,
+    reference_tolerance: float = 1e-12,
+    frames: int = 3,
+    balls: int = 3,
+    points_per_ball: int = 18,
+    gap: float = 0.02,
+    speed: float = 1.0,
+    device,
+    out_dir: Path,
+    progress=None,
+) -> list[dict]:
+    """Time against error on the small billiards case of ``accuracy_scene``.
+
+    The reference is brute force (the exact sum) at ``reference_tolerance``. Configurations:
+    BSH at each of ``eps_values`` and brute force, at ``default_tolerance``; BSH at ``eps``
+    at each of ``tolerances``. Each simulates ``frames`` frames on a tape and takes the
+    gradient of the task loss (squared distances of the struck balls to their goals) with
+    respect to the cue's initial (x, y, vx, vy). Per configuration: forward seconds per frame
+    (median) and Newton iterations, backward seconds per frame; trajectory deviation from the
+    reference (largest centre-of-mass distance over bodies and frames, m, and relative to the
+    reference's largest displacement); contact force / torque errors against brute force at
+    the reference's configurations (worst over frames, as in ``bench contact``); and the
+    task gradient's cosine and relative error against the reference's. Everything is float64
+    (the only precision warpcontact has). Writes accuracy.json, accuracy.csv, accuracy.png.
+    """
+    from .solver import SolverError
+
+    dev = resolve_device(device)
+    module_seconds = _load_kernel_modules(dev)  # so the first configuration's times exclude compilation
+    configs = [("reference", "brute", 1.0, reference_tolerance)]
+    configs += [("eps", "bsh", e, default_tolerance) for e in eps_values]
+    configs += [("eps", "brute", 1.0, default_tolerance)]
+    configs += [("tolerance", "bsh", eps, t) for t in tolerances]
+    rows: list[dict] = []
+    reference = None
+    header = {"module_load_seconds": module_seconds, "frames": frames, "balls": balls, "points_per_ball": points_per_ball, "precision": "float64", "reference": f"brute force, tolerance {reference_tolerance:g}"}
+    for sweep, mode, e, tol in configs:
+        scene, controls = accuracy_scene(balls=balls, points_per_ball=points_per_ball, gap=gap, speed=speed)
+        row = {"sweep": sweep, "model": mode, "eps": e if mode == "bsh" else None, "tolerance": tol, "triangles": _scene_triangles(scene)[0], "frames": frames}
+        try:
+            loss, grad, trajectory, forward, iterations, backward, problem = _accuracy_run(scene, controls, mode=mode, eps=e, tolerance=tol, frames=frames, dev=dev)
+        except SolverError as exc:
+            rows.append({**row, "error": str(exc)})
+            if reference is None:
+                raise
+            continue
+        if reference is None:
+            ref_grads = [problem.model.contact.evaluate(q).grad for q in trajectory]
+            reference = {"grad": grad, "trajectory": trajectory, "contact_grads": ref_grads}
+        com = trajectory[:, :, :3]
+        ref_com = reference["trajectory"][:, :, :3]
+        deviation = np.linalg.norm(com - ref_com, axis=2)
+        motion = np.linalg.norm(ref_com - ref_com[0], axis=2).max()
+        radius = problem.model.body_radius
+        errors = [_force_errors(problem.model.contact.evaluate(q).grad, g, radius) for q, g in zip(reference["trajectory"], reference["contact_grads"])]
+        g_ref = reference["grad"]
+        rows.append({
+            **row,
+            "forward_seconds": float(np.median(forward)),
+            "newton_iterations": float(np.mean(iterations)),
+            "backward_seconds": backward / frames,
+            "loss": loss,
+            "trajectory_deviation_max": float(deviation.max()),
+            "trajectory_deviation_final": float(deviation[-1].max()),
+            "trajectory_deviation_relative": float(deviation.max() / motion) if motion > 0 else None,
+            "force_error_max": max(x["force_error_max"] for x in errors),
+            "force_cosine_min": min(x["force_cosine_min"] for x in errors),
+            "torque_error_max": max(x["torque_error_max"] for x in errors),
+            "gradient": grad.tolist(),
+            "gradient_cosine": float(grad @ g_ref / (np.linalg.norm(grad) * np.linalg.norm(g_ref))) if np.linalg.norm(grad) * np.linalg.norm(g_ref) > 0 else None,
+            "gradient_relative_error": float(np.linalg.norm(grad - g_ref) / np.linalg.norm(g_ref)) if np.linalg.norm(g_ref) > 0 else None,
+            "error": None,
+        })
+        if progress:
+            progress(rows[-1])
+        _write_results(out_dir, "accuracy", dev, 1, {**header, "rows": rows})
+    _write_results(out_dir, "accuracy", dev, 1, {**header, "rows": rows})
+    _plot_accuracy(rows, out_dir / "accuracy.png")
+    return rows
+
+
+def _plot_accuracy(rows: list[dict], path: Path) -> bool:
+    plt = optional_pyplot()
+    ok = [r for r in rows if r.get("error") is None and r["sweep"] != "reference"]
+    if plt is None or not ok:
+        return False
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    panels = (
+        ("trajectory_deviation_max", "max centre-of-mass deviation from reference (m)"),
+        ("force_error_max", "max contact force error / max brute-force force"),
+        ("gradient_cosine", "1 - cos(task gradient, reference)"),
+    )
+    for ax, (key, label) in zip(axes, panels):
+        for sweep, style in (("eps", "o-"), ("tolerance", "s-")):
+            sel = [r for r in ok if r["sweep"] == sweep and r["model"] == "bsh"]
+            if not sel:
+                continue
+            values = [(1.0 - r[key]) if key == "gradient_cosine" else r[key] for r in sel]
+            values = [max(v if v is not None else 1e-16, 1e-16) for v in values]
+            times = [r["forward_seconds"] for r in sel]
+            ax.loglog(times, values, style, label=f"bsh, {sweep} sweep")
+            for r, t, v in zip(sel, times, values):
+                ax.annotate(f"{r['eps']:g}" if sweep == "eps" else f"{r['tolerance']:.0e}", (t, v), fontsize=7)
+        for r in ok:
+            if r["model"] == "brute":
+                v = (1.0 - r[key]) if key == "gradient_cosine" else r[key]
+                ax.loglog([r["forward_seconds"]], [max(v if v is not None else 1e-16, 1e-16)], "k*", ms=9, label="brute force")
+        ax.set_xlabel("forward seconds per frame")
+        ax.set_ylabel(label)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

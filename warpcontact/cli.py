@@ -239,15 +239,16 @@ def _bench_contact(args) -> int:
         repeats=args.repeats,
         device=args.device,
         out_dir=Path(args.out),
+        ipc_dhat=args.ipc_dhat or None,
     )
     print(f"{'scene':>15} {'gap':>8} {'mode':>6} {'eps':>6} {'seconds':>9} {'far':>7} {'blend':>7} {'leaf':>7} {'F err med':>10} {'F err max':>10} {'F cos min':>10} {'T err max':>10}")
     for r in rows:
         eps = "-" if r["eps"] is None else f"{r['eps']:g}"
         print(
             f"{r['scene']:>15} {r['gap']:8.0e} {r['mode']:>6} {eps:>6} {r['median_seconds']:9.4f} {r['num_far']:7d} {r['num_blend']:7d} "
-            f"{r['num_leaf']:7d} {r['force_error_median']:10.2e} {r['force_error_max']:10.2e} {r['force_cosine_min']:10.6f} {r['torque_error_max']:10.2e}"
+            f"{r['num_leaf']:7d} {_fmt(r['force_error_median'], '10.2e')} {_fmt(r['force_error_max'], '10.2e')} {_fmt(r['force_cosine_min'], '10.6f')} {_fmt(r['torque_error_max'], '10.2e')}"
         )
-    print(f"wrote {Path(args.out) / 'contact.json'}")
+    print(f"wrote {Path(args.out) / 'contact.json'}, contact.csv (ipc rows: median_seconds is ipctk's collision build + barrier value/gradient/Hessian)")
     return 0
 
 
@@ -266,6 +267,75 @@ def _bench_scaling(args) -> int:
     for r in rows:
         print(f"{r['triangles']:9d} {r['mode']:>6} {r['median_seconds']:9.4f} {1e6 * r['seconds_per_triangle']:11.2f} {r['num_far']:7d} {r['num_blend']:7d} {r['num_leaf']:8d}")
     print(f"wrote {Path(args.out) / 'scaling.json'}")
+    return 0
+
+
+def _fmt(value, spec: str) -> str:
+    """A number formatted by ``spec``, or '-' where a benchmark has none."""
+    return "-" if value is None else format(value, spec)
+
+
+def _bench_frame(args) -> int:
+    from .bench import run_frame_benchmark
+
+    print(f"{'scene':>20} {'tri':>5} {'model':>5} {'frames':>6} {'forward s':>10} {'Newton it':>9} {'s/iter':>8} {'contact s':>10} {'backward s':>10}  note")
+
+    def show(r):
+        print(
+            f"{r['scene']:>20} {r['triangles']:5d} {r['model']:>5} {r['frames']:6d} {_fmt(r['forward_seconds'], '10.4f')} {_fmt(r['newton_iterations'], '9.1f')} "
+            f"{_fmt(r['forward_seconds_per_iteration'], '8.4f')} {_fmt(r['contact_seconds'], '10.5f')} {_fmt(r['backward_seconds'], '10.5f')}  {r['error'] or ''}",
+            flush=True,
+        )
+
+    run_frame_benchmark(
+        scenes=args.scenes,
+        models=args.models,
+        frames=args.frames,
+        warmup=args.warmup,
+        eps=args.eps,
+        gap=args.gap,
+        speed=args.speed,
+        brute_max_triangles=args.brute_max_triangles,
+        brute_eval_max_triangles=args.brute_eval_max_triangles,
+        ipc_stiffness=args.ipc_stiffness,
+        device=args.device,
+        out_dir=Path(args.out),
+        scene_dir=Path(args.scene_dir),
+        peer_meshes=Path(args.peer_meshes),
+        progress=show,
+    )
+    print(f"wrote {Path(args.out) / 'frame.json'}, frame.csv")
+    return 0
+
+
+def _bench_accuracy(args) -> int:
+    from .bench import run_accuracy_benchmark
+
+    print(f"{'sweep':>9} {'model':>5} {'eps':>5} {'tol':>7} {'forward s':>9} {'Newton it':>9} {'backward s':>10} {'traj dev m':>10} {'F err max':>9} {'F cos min':>9} {'grad cos':>12}  note")
+
+    def show(r):
+        print(
+            f"{r['sweep']:>9} {r['model']:>5} {_fmt(r['eps'], '5g')} {r['tolerance']:7.0e} {_fmt(r.get('forward_seconds'), '9.4f')} {_fmt(r.get('newton_iterations'), '9.1f')} "
+            f"{_fmt(r.get('backward_seconds'), '10.5f')} {_fmt(r.get('trajectory_deviation_max'), '10.2e')} {_fmt(r.get('force_error_max'), '9.2e')} "
+            f"{_fmt(r.get('force_cosine_min'), '9.5f')} {_fmt(r.get('gradient_cosine'), '12.9f')}  {r.get('error') or ''}",
+            flush=True,
+        )
+
+    run_accuracy_benchmark(
+        eps_values=args.eps,
+        tolerances=args.tolerances,
+        eps=args.tolerance_eps,
+        reference_tolerance=args.reference_tolerance,
+        frames=args.frames,
+        balls=args.balls,
+        points_per_ball=args.points,
+        gap=args.gap,
+        speed=args.speed,
+        device=args.device,
+        out_dir=Path(args.out),
+        progress=show,
+    )
+    print(f"wrote {Path(args.out) / 'accuracy.json'}, accuracy.csv")
     return 0
 
 
@@ -328,6 +398,7 @@ def build_parser() -> argparse.ArgumentParser:
     contact.add_argument("--gaps", type=_positive_float, nargs="+", default=[1e-3, 1e-2, 1e-1])
     contact.add_argument("--subdivisions", type=int, default=1, choices=range(0, 4))
     contact.add_argument("--repeats", type=_positive_int, default=3)
+    contact.add_argument("--ipc-dhat", type=float, default=1e-2, help="IPC Toolkit barrier support (m) for the side-by-side ipc rows (CPU); 0 skips them")
     contact.add_argument("--device", default="cpu")
     contact.add_argument("--out", default="outputs/bench")
     contact.set_defaults(func=_bench_contact)
@@ -339,6 +410,40 @@ def build_parser() -> argparse.ArgumentParser:
     scaling.add_argument("--device", default="cpu")
     scaling.add_argument("--out", default="outputs/bench")
     scaling.set_defaults(func=_bench_scaling)
+    frame = bench_sub.add_parser("frame", help="per-frame forward, contact, Newton iterations and backward on task scenes")
+    frame.add_argument(
+        "--scenes",
+        nargs="+",
+        default=["billiards_512", "billiards_1280", "billiards_2560", "billiards_6208", "gather_bunny", "peer_billiards_6208"],
+        help="scene names, peer_billiards_T (T in 512 1472 3008 4544 6208), .usda or pickled-Scene .pkl paths",
+    )
+    frame.add_argument("--models", nargs="+", choices=["bsh", "brute", "ipc"], default=["bsh", "brute", "ipc"])
+    frame.add_argument("--frames", type=_positive_int, default=3, help="timed frames (medians over them)")
+    frame.add_argument("--warmup", type=int, default=1, help="untimed frames first, from the same start")
+    frame.add_argument("--eps", type=_positive_float, default=None, help="BSH blend margin (default: each scene's)")
+    frame.add_argument("--gap", type=_positive_float, default=0.02, help="striker's start distance from the struck body (m)")
+    frame.add_argument("--speed", type=_positive_float, default=1.0, help="striker's speed into it (m/s)")
+    frame.add_argument("--brute-max-triangles", type=int, default=512, help="brute force runs whole frames up to this many dynamic triangles")
+    frame.add_argument("--brute-eval-max-triangles", type=int, default=6208, help="above that, only its contact evaluation is timed, up to this many")
+    frame.add_argument("--ipc-stiffness", type=_positive_float, default=1e3, help="IPC barrier stiffness (replaces the scene's mu for ipc)")
+    frame.add_argument("--scene-dir", default="scenes")
+    frame.add_argument("--peer-meshes", default="../shared/peer-meshes", help="folder of the paper code base's meshes (18.obj ... 196.obj)")
+    frame.add_argument("--device", default="cpu")
+    frame.add_argument("--out", default="outputs/bench")
+    frame.set_defaults(func=_bench_frame)
+    accuracy = bench_sub.add_parser("accuracy", help="time against error (eps, solver tolerance) on a small billiards case")
+    accuracy.add_argument("--eps", type=_positive_float, nargs="+", default=[0.25, 0.5, 1.0, 2.0, 4.0])
+    accuracy.add_argument("--tolerances", type=_positive_float, nargs="+", default=[1e-4, 1e-6, 1e-8], help="Newton tolerances swept at --tolerance-eps")
+    accuracy.add_argument("--tolerance-eps", type=_positive_float, default=0.5)
+    accuracy.add_argument("--reference-tolerance", type=_positive_float, default=1e-12, help="Newton tolerance of the brute-force reference run")
+    accuracy.add_argument("--frames", type=_positive_int, default=3)
+    accuracy.add_argument("--balls", type=_positive_int, default=3, help="rack balls besides the cue")
+    accuracy.add_argument("--points", type=_positive_int, default=18, help="points per ball (2N-4 faces)")
+    accuracy.add_argument("--gap", type=_positive_float, default=0.02)
+    accuracy.add_argument("--speed", type=_positive_float, default=1.0)
+    accuracy.add_argument("--device", default="cpu")
+    accuracy.add_argument("--out", default="outputs/bench")
+    accuracy.set_defaults(func=_bench_accuracy)
     return parser
 
 

@@ -95,11 +95,7 @@ class IpcContactModel:
         if ipctk.has_intersections(self._mesh, V):
             pairs = [(self.names[a], self.names[b]) for a, b in self.body_pairs if self._pair_intersects(V, a, b)]
             return ContactEvaluation(np.inf, np.zeros((n, 6)), np.zeros((6 * n, 6 * n)), 0, 0, 0, pairs, [], 0.0, np.zeros(len(self.body_pairs)))
-        collisions = ipctk.NormalCollisions()
-        collisions.build(self._mesh, V, self.dhat)
-        value = float(self._potential(collisions, self._mesh, V))
-        g = self._potential.gradient(collisions, self._mesh, V).reshape(-1, 3)
-        H = self._potential.hessian(collisions, self._mesh, V)
+        value, g, H, collisions = self._vertex_terms(V)
         r = V - poses[self._body_of, :3]
         dynamic = ~self.static[self._body_of]
         # Rigid projection: J = [I, -[r]x] per vertex, plus the exponential map's curvature.
@@ -122,6 +118,26 @@ class IpcContactModel:
         grad[self.static] = 0.0
         distance = collisions.compute_minimum_distance(self._mesh, V) ** 0.5 if len(collisions) else self.dhat
         return ContactEvaluation(value, grad, hess, 0, 0, len(collisions), [], [], 0.0, np.full(len(self.body_pairs), distance))
+
+    def _vertex_terms(self, V: np.ndarray):
+        """ipctk's own work at world vertices V: collision build, barrier value, gradient
+        (nv, 3) and sparse Hessian (3 nv, 3 nv), and the collision set."""
+        collisions = self._ipctk.NormalCollisions()
+        collisions.build(self._mesh, V, self.dhat)
+        value = float(self._potential(collisions, self._mesh, V))
+        g = self._potential.gradient(collisions, self._mesh, V).reshape(-1, 3)
+        H = self._potential.hessian(collisions, self._mesh, V)
+        return value, g, H, collisions
+
+    def vertex_terms(self, poses) -> tuple[float, int]:
+        """Only ipctk's part of ``evaluate`` at ``poses`` (collision build + barrier value,
+        gradient and Hessian in vertex coordinates, no intersection check or rigid
+        projection), for timing it side by side with other models; returns (value, number
+        of active collisions)."""
+        poses = as_float64_array(poses, "poses", trailing_shape=(7,)).copy()
+        poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
+        value, _, _, collisions = self._vertex_terms(self._world_vertices(poses))
+        return value, len(collisions)
 
     def _pair_intersects(self, V, a, b) -> bool:
         keep = np.isin(self._body_of, [a, b])

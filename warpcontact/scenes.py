@@ -30,7 +30,7 @@ from .io import BodySpec, JointSpec, Scene, SimulationSettings, TaskSpec, save_s
 from .robots import AntSpec, ant_description
 from .rotation import pose_inverse, pose_mul
 
-__all__ = ["SCENE_NAMES", "BILLIARDS_SERIES", "build_scene", "write_scenes", "fibonacci_ball", "rest_on_face", "decimate", "bunny_mesh"]
+__all__ = ["SCENE_NAMES", "BILLIARDS_SERIES", "build_scene", "billiards_scene", "write_scenes", "fibonacci_ball", "rest_on_face", "decimate", "bunny_mesh"]
 
 # Ball point counts for the scaling series: faces per ball = 2 N - 4.
 BILLIARDS_SERIES = {"billiards_512": 18, "billiards_1280": 42, "billiards_2560": 82, "billiards_6208": 196}
@@ -195,10 +195,17 @@ def _rod(position, dofs, kp=400.0, kd=60.0):
     )
 
 
-def _billiards(points_per_ball: int, *, seed: int = 0) -> Scene:
+def billiards_scene(vertices: np.ndarray, faces: np.ndarray, *, seed: int = 0) -> Scene:
+    """The Billiards task with 16 copies of a given convex ball mesh.
+
+    Args:
+        vertices: (nv, 3) ball vertices about the ball's centre (m); the rack spacing
+            assumes a radius of about 0.5 m.
+        faces: (nf, 3) outward-oriented triangles (the mass comes from the closed mesh).
+        seed: picks the target balls and their goals.
+    """
     rng = np.random.default_rng(seed)
-    vertices, faces = fibonacci_ball(points_per_ball)
-    vertices, height = rest_on_face(vertices, faces)
+    vertices, height = rest_on_face(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64))
     ball = (vertices, faces)
     radius = np.linalg.norm(vertices, axis=1).max()
     spacing = 2 * radius + 0.05
@@ -347,9 +354,9 @@ def _gather(seed: int = 2, *, bunny: bool = False) -> Scene:
 def build_scene(name: str) -> Scene:
     """The named task scene (``SCENE_NAMES``)."""
     if name == "billiards":
-        return _billiards(18)
+        return billiards_scene(*fibonacci_ball(18))
     if name in BILLIARDS_SERIES:
-        return _billiards(BILLIARDS_SERIES[name])
+        return billiards_scene(*fibonacci_ball(BILLIARDS_SERIES[name]))
     builders = {"push": _push, "ant_push": _ant_push, "sort": _sort, "gather": _gather, "gather_bunny": lambda: _gather(bunny=True)}
     if name not in builders:
         raise ValueError(f"scene: {name!r} is not one of {', '.join(SCENE_NAMES)}")
