@@ -5,11 +5,28 @@
 
 over the six vertices x_k (k < 3: triangle A with sigma = +1; k >= 3: triangle B with
 sigma = -1). L is strictly convex on its feasible set, so P is the value at the unique
-minimiser p*. Derivatives with respect to the vertices:
+minimiser p*. With b(g) = 1/g, derivatives with respect to the vertices are
 
-    dP/dx_k      = -sigma_k n / g_k^2                          (envelope theorem)
-    d2P/dx_k dx_l = delta_kl 2/g_k^3 n n^T - B_k L_pp^-1 B_l^T  (implicit function theorem)
-    B_k = d2L/dx_k dp = -sigma_k [I 0] / g_k^2 + 2/g_k^3 n (x_k, 1)^T
+    dP/dx_k      = sigma_k b'(g_k) n                           (envelope theorem)
+    d2P/dx_k dx_l = delta_kl b''(g_k) n n^T - B_k L_pp^-1 B_l^T  (implicit function theorem)
+    B_k = d2L/dx_k dp = sigma_k b'(g_k) [I 0] + b''(g_k) n (x_k, 1)^T
+
+SDRS baseline (Ye et al. 2024, ``sdrs_solve``): the same plane problem with IPC's locally
+supported log barrier b(g) = -(g - dhat)^2 log(g / dhat) / dhat^3 for g < dhat, 0 beyond
+(``leaf_barrier``), on unit normals |n| = 1, so that g_k is the vertex's distance to the
+plane:
+
+    P_sdrs(A, B) = min_{|n| = 1, d} sum_k b(g_k)
+
+b is convex and decreasing, so this equals the minimum over |n| <= 1 (a convex problem;
+scaling a plane up only lowers L while a gap is below dhat), whose minimiser is unique
+when P > 0. P = 0 exactly, with zero derivatives, when the triangles are at least 2 dhat
+apart (the best plane, the closest points' bisector, then leaves every gap >= dhat). b is
+C2 at dhat, so P is twice differentiable; it is +inf on contact. The solve is Newton on
+the sphere: steps tangent to |n| = 1 with the Riemannian Hessian
+P Lnn P + lam I (lam = -sum_k b'(g_k) g_k, the multiplier of |n| = 1; the radial block
+lam n n^T only fixes the gauge), retracted by normalising n. The same formulas give the
+derivatives with B_k's normal columns projected on the tangent plane (B_k [P 0; 0 1]).
 
 All work happens in a local frame centred on the midpoint of the closest points: the
 potential is translation invariant (d absorbs the shift), and the local frame keeps the
@@ -29,12 +46,16 @@ __all__ = [
     "LEAF_NOT_CONVERGED",
     "LEAF_NONFINITE",
     "LeafSolution",
+    "leaf_barrier",
     "leaf_solve",
+    "sdrs_solve",
+    "pair_solve",
     "leaf_vertex",
     "leaf_vertex_gradient",
     "leaf_hessian_block",
     "leaf_plane_sensitivity",
     "leaf_potential_kernel",
+    "sdrs_potential_kernel",
 ]
 
 LEAF_OK = wp.constant(0)
@@ -72,6 +93,36 @@ class LeafSolution:
     gap_b: wp.vec3d
     # Inverse plane Hessian L_pp^-1 at the optimum.
     lpp_inv: wp.mat44d
+    # Barrier support: 0 for the paper's 1/g, > 0 for SDRS's log barrier on unit normals.
+    dhat: wp.float64
+
+
+@wp.func
+def leaf_barrier(g: wp.float64, dhat: wp.float64):
+    """Barrier b(g) of one gap g > 0 and its derivatives (b, b', b'').
+
+    dhat <= 0: the paper's global b = 1/g. dhat > 0: SDRS's (IPC's) locally supported
+    log barrier, b = -(s - 1)^2 log(s) / dhat with s = g / dhat < 1, exactly 0 beyond; b, b'
+    and b'' all vanish at dhat, so b is C2 there. It is IPC's -(g - dhat)^2 log(g / dhat)
+    divided by dhat^3: a shape independent of dhat, in units of 1/length like 1/g, so the
+    contact stiffness mu means the same in both models (b' = -1/g^2 and -1/(dhat g) for
+    g << dhat).
+    """
+    one = wp.float64(1.0)
+    two = wp.float64(2.0)
+    if dhat <= wp.float64(0.0):
+        ig = one / g
+        return ig, -ig * ig, two * ig * ig * ig
+    if g >= dhat:
+        zero = wp.float64(0.0)
+        return zero, zero, zero
+    s = g / dhat
+    r = s - one
+    lg = wp.log(s)
+    b = -r * r * lg / dhat
+    b1 = (-two * r * lg - r * r / s) / (dhat * dhat)
+    b2 = (-two * lg - wp.float64(4.0) * r / s + r * r / (s * s)) / (dhat * dhat * dhat)
+    return b, b1, b2
 
 
 @wp.func
@@ -83,28 +134,37 @@ def leaf_vertex(sol: LeafSolution, k: int):
 
 
 @wp.func
-def _plane_energy(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d):
+def _barrier_sum(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dhat: wp.float64):
+    """sum_k b(g_k) at plane p; +inf if p does not separate the triangles strictly."""
     n = wp.vec3d(p[0], p[1], p[2])
-    r = wp.length(n)
-    one = wp.float64(1.0)
-    if r >= one:
-        return wp.float64(wp.inf)
-    energy = wp.float64(12.0) / (one - r)
+    energy = wp.float64(0.0)
     for k in range(3):
         ga = wp.dot(ta[k], n) + p[3]
         gb = -(wp.dot(tb[k], n) + p[3])
         if ga <= wp.float64(0.0) or gb <= wp.float64(0.0):
             return wp.float64(wp.inf)
-        energy += one / ga + one / gb
+        ba, _ba1, _ba2 = leaf_barrier(ga, dhat)
+        bb, _bb1, _bb2 = leaf_barrier(gb, dhat)
+        energy += ba + bb
     return energy
 
 
 @wp.func
-def _add_vertex_terms(x: wp.vec3d, sigma: wp.float64, n: wp.vec3d, d: wp.float64, grad: wp.vec4d, hess: wp.mat44d):
-    g = sigma * (wp.dot(x, n) + d)
+def _plane_energy(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d):
+    r = wp.length(wp.vec3d(p[0], p[1], p[2]))
+    one = wp.float64(1.0)
+    if r >= one:
+        return wp.float64(wp.inf)
+    return wp.float64(12.0) / (one - r) + _barrier_sum(ta, tb, p, wp.float64(0.0))
+
+
+@wp.func
+def _add_vertex_terms(x: wp.vec3d, sigma: wp.float64, p: wp.vec4d, dhat: wp.float64, grad: wp.vec4d, hess: wp.mat44d, lam: wp.float64):
+    """Adds vertex x's barrier term to grad and hess of L in p, and -b'(g) g to lam."""
+    g = sigma * (wp.dot(x, wp.vec3d(p[0], p[1], p[2])) + p[3])
+    _b, b1, b2 = leaf_barrier(g, dhat)
     v = wp.vec4d(x[0], x[1], x[2], wp.float64(1.0))
-    ig = wp.float64(1.0) / g
-    return grad - (sigma * ig * ig) * v, hess + (wp.float64(2.0) * ig * ig * ig) * wp.outer(v, v)
+    return grad + (sigma * b1) * v, hess + b2 * wp.outer(v, v), lam - b1 * g
 
 
 @wp.func
@@ -123,9 +183,10 @@ def _plane_derivatives(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d):
         for j in range(3):
             hess[i, j] = (f2 - f1 / r) * u[i] * u[j]
         hess[i, i] = hess[i, i] + f1 / r
+    lam = wp.float64(0.0)
     for k in range(3):
-        grad, hess = _add_vertex_terms(ta[k], one, n, p[3], grad, hess)
-        grad, hess = _add_vertex_terms(tb[k], -one, n, p[3], grad, hess)
+        grad, hess, lam = _add_vertex_terms(ta[k], one, p, wp.float64(0.0), grad, hess, lam)
+        grad, hess, lam = _add_vertex_terms(tb[k], -one, p, wp.float64(0.0), grad, hess, lam)
     return grad, hess
 
 
@@ -163,6 +224,66 @@ def _max_feasible_step(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dp: wp.vec4d):
 
 
 @wp.func
+def _tangent_projector(n: wp.vec3d):
+    """diag(I - n n^T, 1): restricts plane variations to unit normals."""
+    t = wp.identity(n=4, dtype=wp.float64)
+    for i in range(3):
+        for j in range(3):
+            t[i, j] = t[i, j] - n[i] * n[j]
+    return t
+
+
+@wp.func
+def _sdrs_derivatives(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dhat: wp.float64):
+    """Riemannian gradient and Hessian of the SDRS plane energy on |n| = 1 (see module docstring)."""
+    grad = wp.vec4d()
+    hess = wp.mat44d()
+    lam = wp.float64(0.0)
+    one = wp.float64(1.0)
+    for k in range(3):
+        grad, hess, lam = _add_vertex_terms(ta[k], one, p, dhat, grad, hess, lam)
+        grad, hess, lam = _add_vertex_terms(tb[k], -one, p, dhat, grad, hess, lam)
+    t = _tangent_projector(wp.vec3d(p[0], p[1], p[2]))
+    hess = t * hess * t
+    for i in range(3):
+        hess[i, i] = hess[i, i] + lam
+    return t * grad, hess
+
+
+@wp.func
+def _energy(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dhat: wp.float64):
+    if dhat > wp.float64(0.0):
+        return _barrier_sum(ta, tb, p, dhat)
+    return _plane_energy(ta, tb, p)
+
+
+@wp.func
+def _derivatives(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dhat: wp.float64):
+    if dhat > wp.float64(0.0):
+        return _sdrs_derivatives(ta, tb, p, dhat)
+    return _plane_derivatives(ta, tb, p)
+
+
+@wp.func
+def _step_bound(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dp: wp.vec4d, dhat: wp.float64):
+    # A retracted (SDRS) step leaves the linear constraint set along a curve; its
+    # infeasible trials have infinite energy and are backtracked instead.
+    if dhat > wp.float64(0.0):
+        return wp.float64(wp.inf)
+    return _max_feasible_step(ta, tb, p, dp)
+
+
+@wp.func
+def _advance(p: wp.vec4d, step: wp.vec4d, alpha: wp.float64, dhat: wp.float64):
+    trial = p + alpha * step
+    if dhat > wp.float64(0.0):
+        # Retraction onto unit normals (the step is tangent, so |n + alpha dn| >= 1).
+        n = wp.normalize(wp.vec3d(trial[0], trial[1], trial[2]))
+        trial = wp.vec4d(n[0], n[1], n[2], trial[3])
+    return trial
+
+
+@wp.func
 def _is_finite_mat(m: wp.mat33d):
     for i in range(3):
         for j in range(3):
@@ -172,15 +293,21 @@ def _is_finite_mat(m: wp.mat33d):
 
 
 @wp.func
-def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int):
-    """Solve the leaf plane problem for triangles A, B (rows = vertices, world frame)."""
+def _leaf_start(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64):
+    """Local frame and unit start normal e, the closest points' bisector plane (n = e, d = 0).
+
+    Sets status CONTACT when no such plane separates the triangles strictly (they touch or
+    intersect) and NONFINITE for non-finite input.
+    """
     sol = LeafSolution()
     sol.status = LEAF_OK
     sol.iterations = 0
     sol.value = wp.float64(wp.inf)
+    sol.dhat = dhat
+    e = wp.vec3d()
     if not (_is_finite_mat(ta_world) and _is_finite_mat(tb_world)):
         sol.status = LEAF_NONFINITE
-        return sol
+        return sol, e
 
     ca, cb = triangle_closest_points(ta_world, tb_world)
     sep = ca - cb
@@ -196,30 +323,43 @@ def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int):
     sol.tb = tb
     if dist <= wp.float64(0.0):
         sol.status = LEAF_CONTACT
-        return sol
+        return sol, e
 
     # The plane through the midpoint, normal to the closest-point direction, separates
     # disjoint triangles strictly; if it does not, the triangles touch or intersect.
     e = sep / dist
-    coupling = wp.float64(0.0)
     for k in range(3):
-        ga = wp.dot(ta[k], e)
-        gb = -wp.dot(tb[k], e)
-        if ga <= wp.float64(0.0) or gb <= wp.float64(0.0):
+        if wp.dot(ta[k], e) <= wp.float64(0.0) or wp.dot(tb[k], e) >= wp.float64(0.0):
             sol.status = LEAF_CONTACT
-            return sol
-        coupling += wp.float64(1.0) / ga + wp.float64(1.0) / gb
-    # Best scale along that plane: minimise 12/(1-r) + coupling/r.
-    q = wp.sqrt(coupling / wp.float64(12.0))
-    r0 = q / (wp.float64(1.0) + q)
-    p = wp.vec4d(r0 * e[0], r0 * e[1], r0 * e[2], wp.float64(0.0))
-    energy = _plane_energy(ta, tb, p)
+            return sol, e
+    return sol, e
 
+
+@wp.func
+def _store_plane(sol: LeafSolution, p: wp.vec4d):
+    n = wp.vec3d(p[0], p[1], p[2])
+    sol.n = n
+    sol.d = p[3]
+    ta = sol.ta
+    tb = sol.tb
+    sol.gap_a = wp.vec3d(wp.dot(ta[0], n) + p[3], wp.dot(ta[1], n) + p[3], wp.dot(ta[2], n) + p[3])
+    sol.gap_b = wp.vec3d(-(wp.dot(tb[0], n) + p[3]), -(wp.dot(tb[1], n) + p[3]), -(wp.dot(tb[2], n) + p[3]))
+    return sol
+
+
+@wp.func
+def _solve_from(sol: LeafSolution, start: wp.vec4d, max_iterations: int):
+    """Damped Newton on the plane from ``start``; fills the solution (see the module docstring)."""
+    ta = sol.ta
+    tb = sol.tb
+    dhat = sol.dhat
+    p = start
+    energy = _energy(ta, tb, p, dhat)
     converged = bool(False)
     previous_decrement = wp.float64(wp.inf)
     it = int(0)
     while it < max_iterations:
-        grad, hess = _plane_derivatives(ta, tb, p)
+        grad, hess = _derivatives(ta, tb, p, dhat)
         step, ok = spd4_solve(hess, -grad)
         if not ok:
             break
@@ -227,7 +367,7 @@ def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int):
         if decrement <= _DECREMENT_TOL * energy:
             converged = True
             break
-        max_step = _max_feasible_step(ta, tb, p, step)
+        max_step = _step_bound(ta, tb, p, step, dhat)
         if decrement <= _FULL_STEP_TOL * energy and max_step > wp.float64(1.0):
             # Quadratic regime: the expected decrease is below what an Armijo test on L
             # can resolve, so take the full (feasible) step; a decrement that stops
@@ -236,8 +376,8 @@ def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int):
                 converged = decrement <= _STALL_TOL * energy
                 break
             previous_decrement = decrement
-            trial = p + step
-            trial_energy = _plane_energy(ta, tb, trial)
+            trial = _advance(p, step, wp.float64(1.0), dhat)
+            trial_energy = _energy(ta, tb, trial, dhat)
             if wp.isfinite(trial_energy):
                 it += 1
                 p = trial
@@ -247,8 +387,8 @@ def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int):
         alpha = wp.min(wp.float64(1.0), wp.float64(0.99) * max_step)
         accepted = bool(False)
         for _bt in range(_MAX_BACKTRACKS):
-            trial = p + alpha * step
-            trial_energy = _plane_energy(ta, tb, trial)
+            trial = _advance(p, step, alpha, dhat)
+            trial_energy = _energy(ta, tb, trial, dhat)
             if trial_energy <= energy - _ARMIJO * alpha * decrement:
                 p = trial
                 energy = trial_energy
@@ -260,16 +400,12 @@ def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int):
             break
 
     sol.iterations = it
-    n = wp.vec3d(p[0], p[1], p[2])
-    sol.n = n
-    sol.d = p[3]
-    sol.gap_a = wp.vec3d(wp.dot(ta[0], n) + p[3], wp.dot(ta[1], n) + p[3], wp.dot(ta[2], n) + p[3])
-    sol.gap_b = wp.vec3d(-(wp.dot(tb[0], n) + p[3]), -(wp.dot(tb[1], n) + p[3]), -(wp.dot(tb[2], n) + p[3]))
+    sol = _store_plane(sol, p)
     sol.value = energy
     if not converged:
         sol.status = LEAF_NOT_CONVERGED
         return sol
-    grad, hess = _plane_derivatives(ta, tb, p)
+    grad, hess = _derivatives(ta, tb, p, dhat)
     inv, inv_ok = spd4_inverse(hess)
     if not inv_ok:
         sol.status = LEAF_NOT_CONVERGED
@@ -279,25 +415,66 @@ def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int):
 
 
 @wp.func
+def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int):
+    """Solve the leaf plane problem for triangles A, B (rows = vertices, world frame)."""
+    sol, e = _leaf_start(ta_world, tb_world, wp.float64(0.0))
+    if sol.status != LEAF_OK:
+        return sol
+    # Best scale along the start plane: minimise 12/(1-r) + coupling/r.
+    coupling = wp.float64(0.0)
+    for k in range(3):
+        coupling += wp.float64(1.0) / wp.dot(sol.ta[k], e) - wp.float64(1.0) / wp.dot(sol.tb[k], e)
+    q = wp.sqrt(coupling / wp.float64(12.0))
+    r0 = q / (wp.float64(1.0) + q)
+    return _solve_from(sol, wp.vec4d(r0 * e[0], r0 * e[1], r0 * e[2], wp.float64(0.0)), max_iterations)
+
+
+@wp.func
+def sdrs_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64, max_iterations: int):
+    """Solve the SDRS plane problem (support ``dhat`` > 0, m) for triangles A, B (world frame)."""
+    sol, e = _leaf_start(ta_world, tb_world, dhat)
+    if sol.status != LEAF_OK:
+        return sol
+    start = wp.vec4d(e[0], e[1], e[2], wp.float64(0.0))
+    sol = _store_plane(sol, start)
+    # The bisector is the widest-margin plane (margin = half the distance): if it leaves
+    # every gap at or beyond dhat, P = 0 and all derivatives vanish (lpp_inv stays 0).
+    if wp.min(wp.min(sol.gap_a), wp.min(sol.gap_b)) >= dhat:
+        sol.value = wp.float64(0.0)
+        return sol
+    return _solve_from(sol, start, max_iterations)
+
+
+@wp.func
+def pair_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64, max_iterations: int):
+    """``leaf_solve`` for dhat <= 0 (the paper's model), ``sdrs_solve`` otherwise."""
+    if dhat > wp.float64(0.0):
+        return sdrs_solve(ta_world, tb_world, dhat, max_iterations)
+    return leaf_solve(ta_world, tb_world, max_iterations)
+
+
+@wp.func
 def leaf_vertex_gradient(sol: LeafSolution, k: int):
     """dP/dx_k (the contact force on vertex k is its negative)."""
-    x, sigma, g = leaf_vertex(sol, k)
-    return (-sigma / (g * g)) * sol.n
+    _x, sigma, g = leaf_vertex(sol, k)
+    _b, b1, _b2 = leaf_barrier(g, sol.dhat)
+    return (sigma * b1) * sol.n
 
 
 @wp.func
 def _mixed_block(sol: LeafSolution, k: int):
-    """B_k = d2L / dx_k dp (3x4)."""
+    """B_k = d2L / dx_k dp (3x4); for SDRS restricted to unit-normal plane variations."""
     x, sigma, g = leaf_vertex(sol, k)
-    ig = wp.float64(1.0) / g
-    c = wp.float64(2.0) * ig * ig * ig
-    b = mat34d()
+    _b, b1, b2 = leaf_barrier(g, sol.dhat)
+    m = mat34d()
     for i in range(3):
         for j in range(3):
-            b[i, j] = c * sol.n[i] * x[j]
-        b[i, 3] = c * sol.n[i]
-        b[i, i] = b[i, i] - sigma * ig * ig
-    return b
+            m[i, j] = b2 * sol.n[i] * x[j]
+        m[i, 3] = b2 * sol.n[i]
+        m[i, i] = m[i, i] + sigma * b1
+    if sol.dhat > wp.float64(0.0):
+        m = m * _tangent_projector(sol.n)
+    return m
 
 
 @wp.func
@@ -307,8 +484,9 @@ def leaf_hessian_block(sol: LeafSolution, k: int, l: int):
     bl = _mixed_block(sol, l)
     block = -(bk * sol.lpp_inv * wp.transpose(bl))
     if k == l:
-        x, sigma, g = leaf_vertex(sol, k)
-        block = block + (wp.float64(2.0) / (g * g * g)) * wp.outer(sol.n, sol.n)
+        _x, _sigma, g = leaf_vertex(sol, k)
+        _b, _b1, b2 = leaf_barrier(g, sol.dhat)
+        block = block + b2 * wp.outer(sol.n, sol.n)
     return block
 
 
@@ -319,6 +497,36 @@ mat43d = wp.types.matrix(shape=(4, 3), dtype=wp.float64)
 def leaf_plane_sensitivity(sol: LeafSolution, k: int):
     """d p* / d x_k (4x3) of the optimal local plane p* = (n, d): -L_pp^-1 B_k^T."""
     return -(sol.lpp_inv * wp.transpose(_mixed_block(sol, k)))
+
+
+@wp.func
+def _write_pair(
+    tid: int,
+    sol: LeafSolution,
+    compute_derivatives: bool,
+    value_out: wp.array(dtype=wp.float64),
+    plane_out: wp.array(dtype=wp.vec4d),
+    status_out: wp.array(dtype=wp.int32),
+    iterations_out: wp.array(dtype=wp.int32),
+    grad_out: wp.array2d(dtype=wp.vec3d),
+    hess_out: wp.array3d(dtype=wp.mat33d),
+):
+    value_out[tid] = sol.value
+    status_out[tid] = sol.status
+    iterations_out[tid] = sol.iterations
+    plane_out[tid] = wp.vec4d(sol.n[0], sol.n[1], sol.n[2], sol.d - wp.dot(sol.n, sol.origin))
+    if not compute_derivatives:
+        return
+    for k in range(6):
+        if sol.status == LEAF_OK:
+            grad_out[tid, k] = leaf_vertex_gradient(sol, k)
+        else:
+            grad_out[tid, k] = wp.vec3d()
+        for l in range(6):
+            if sol.status == LEAF_OK:
+                hess_out[tid, k, l] = leaf_hessian_block(sol, k, l)
+            else:
+                hess_out[tid, k, l] = wp.mat33d()
 
 
 @wp.kernel
@@ -338,19 +546,26 @@ def leaf_potential_kernel(
 ):
     tid = wp.tid()
     sol = leaf_solve(tri_a_in[tid], tri_b_in[tid], max_iterations)
-    value_out[tid] = sol.value
-    status_out[tid] = sol.status
-    iterations_out[tid] = sol.iterations
-    plane_out[tid] = wp.vec4d(sol.n[0], sol.n[1], sol.n[2], sol.d - wp.dot(sol.n, sol.origin))
-    if not compute_derivatives:
-        return
-    for k in range(6):
-        if sol.status == LEAF_OK:
-            grad_out[tid, k] = leaf_vertex_gradient(sol, k)
-        else:
-            grad_out[tid, k] = wp.vec3d()
-        for l in range(6):
-            if sol.status == LEAF_OK:
-                hess_out[tid, k, l] = leaf_hessian_block(sol, k, l)
-            else:
-                hess_out[tid, k, l] = wp.mat33d()
+    _write_pair(tid, sol, compute_derivatives, value_out, plane_out, status_out, iterations_out, grad_out, hess_out)
+
+
+@wp.kernel
+def sdrs_potential_kernel(
+    # Model:
+    dhat: wp.float64,
+    # Data in:
+    tri_a_in: wp.array(dtype=wp.mat33d),
+    tri_b_in: wp.array(dtype=wp.mat33d),
+    max_iterations: int,
+    compute_derivatives: bool,
+    # Data out:
+    value_out: wp.array(dtype=wp.float64),
+    plane_out: wp.array(dtype=wp.vec4d),
+    status_out: wp.array(dtype=wp.int32),
+    iterations_out: wp.array(dtype=wp.int32),
+    grad_out: wp.array2d(dtype=wp.vec3d),
+    hess_out: wp.array3d(dtype=wp.mat33d),
+):
+    tid = wp.tid()
+    sol = sdrs_solve(tri_a_in[tid], tri_b_in[tid], dhat, max_iterations)
+    _write_pair(tid, sol, compute_derivatives, value_out, plane_out, status_out, iterations_out, grad_out, hess_out)

@@ -12,12 +12,17 @@ the deepest nesting level up, each applying
               + (grad P_c - grad S) grad phi^T + (P_c - S) hess phi
 
 to the exact sum S of its children, and adding B to its own target.
+
+Locally supported models (SDRS) have no far or blend terms: their far list holds the
+cluster pairs the traversal pruned, which contribute only their separation bound
+(``far_term_kernel`` with ``potential`` off), and their leaf terms use ``pair_solve``'s
+SDRS barrier (``dhat`` > 0).
 """
 
 import warp as wp
 
 from .blend import centered_potential, quintic_blend
-from .leaf import LEAF_OK, leaf_hessian_block, leaf_solve, leaf_vertex_gradient
+from .leaf import LEAF_OK, leaf_hessian_block, leaf_vertex_gradient, pair_solve
 from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
 
 wp.set_module_options({"enable_backward": False})
@@ -130,6 +135,7 @@ def far_term_kernel(
     # Model:
     node_center: wp.array(dtype=wp.vec3d),
     node_radius: wp.array(dtype=wp.float64),
+    potential: bool,
     # Data in:
     body_rotation: wp.array(dtype=wp.mat33d),
     body_position: wp.array(dtype=wp.vec3d),
@@ -142,9 +148,11 @@ def far_term_kernel(
     item = far_items[wp.tid()]
     pair = seed_body_pair[item[3]]
     ci, cj = _world_centres(node_center, item[0], item[1], pair, body_rotation, body_position)
-    dist, ga, gb, haa, hab, hbb = _centre_distance_derivatives(ci, cj, body_position[pair[0]], body_position[pair[1]])
     # The clusters lie inside their spheres, which are this far apart at least.
-    wp.atomic_min(seed_separation_out, item[3], dist - node_radius[item[0]] - node_radius[item[1]])
+    wp.atomic_min(seed_separation_out, item[3], wp.length(ci - cj) - node_radius[item[0]] - node_radius[item[1]])
+    if not potential:
+        return
+    dist, ga, gb, haa, hab, hbb = _centre_distance_derivatives(ci, cj, body_position[pair[0]], body_position[pair[1]])
     value, first, second = centered_potential(dist)
     parent = item[2]
     _add_value(targets, parent, value)
@@ -160,6 +168,7 @@ def far_term_kernel(
 def leaf_term_kernel(
     # Model:
     triangle_vertices: wp.array(dtype=wp.mat33d),
+    dhat: wp.float64,
     max_iterations: int,
     # Data in:
     body_rotation: wp.array(dtype=wp.mat33d),
@@ -183,7 +192,7 @@ def leaf_term_kernel(
     pos_b = body_position[pair[1]]
     ta = world_triangle(triangle_vertices[item[0]], rot_a, pos_a)
     tb = world_triangle(triangle_vertices[item[1]], rot_b, pos_b)
-    sol = leaf_solve(ta, tb, max_iterations)
+    sol = pair_solve(ta, tb, dhat, max_iterations)
     leaf_iterations_out[tid] = sol.iterations
     leaf_plane_out[tid] = wp.vec4d(sol.n[0], sol.n[1], sol.n[2], sol.d - wp.dot(sol.n, sol.origin))
     parent = item[2]
@@ -197,6 +206,8 @@ def leaf_term_kernel(
     gap_a = wp.min(wp.min(sol.gap_a[0], sol.gap_a[1]), sol.gap_a[2])
     gap_b = wp.min(wp.min(sol.gap_b[0], sol.gap_b[1]), sol.gap_b[2])
     wp.atomic_min(seed_separation_out, seed, (gap_a + gap_b) / wp.length(sol.n))
+    if sol.value == wp.float64(0.0):
+        return  # SDRS beyond its support: zero derivatives too
     # Vertex offsets from their body origins, r = x - p (world axes).
     offsets_a = wp.mat33d()
     offsets_b = wp.mat33d()

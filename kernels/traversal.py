@@ -12,6 +12,12 @@ records its enclosing blend record (`parent`, -1 at top level), so the reduction
 each blend to the exact sum below it. Blend records also store their nesting `level`
 (0 = outermost) so the reduction runs from the deepest level up.
 
+Locally supported models (SDRS, `support` > 0: no leaf pair farther apart than `support`
+has any potential) use the same walk as a broad phase: a node pair whose spheres are at
+least `support` apart goes to the far list as a pruned pair (no potential; the reduction
+only takes its separation bound, and conservative advancement its motion bound), closer
+pairs descend, and leaf pairs are leaf terms without blend records.
+
 One thread walks one body pair with an explicit stack in global scratch memory. Lists are
 filled through atomic counters that keep counting past capacity, so one launch reports the
 exact sizes needed; the host grows the buffers and relaunches on overflow.
@@ -57,6 +63,7 @@ def traverse_kernel(
     node_triangle: wp.array(dtype=wp.int32),
     body_root: wp.array(dtype=wp.int32),
     eps: wp.float64,
+    support: wp.float64,
     # Data in:
     body_rotation: wp.array(dtype=wp.mat33d),
     body_position: wp.array(dtype=wp.vec3d),
@@ -92,10 +99,14 @@ def traverse_kernel(
         dist = wp.length(ci - cj)
         d1 = node_radius[ni] + node_radius[nj]
         d2 = (wp.float64(1.0) + eps) * d1
-        if dist >= d2:
+        local = support > wp.float64(0.0)
+        far = dist >= d2
+        if local:
+            far = dist - d1 >= support
+        if far:
             _emit(counters_out, COUNTER_FAR, far_out, wp.vec4i(ni, nj, parent, seed))
             continue
-        if dist > d1:
+        if dist > d1 and not local:
             record = _emit(counters_out, COUNTER_BLEND, blend_out, wp.vec4i(ni, nj, parent, seed))
             if record < blend_level_out.shape[0]:
                 blend_level_out[record] = level

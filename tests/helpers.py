@@ -5,18 +5,19 @@ import numpy as np
 import warpcontact as wc
 
 
-def leaf_fd_errors(A, B, h):
+def leaf_fd_errors(A, B, h, **options):
     """Relative errors of the analytic gradient and Hessian of one pair against central differences.
 
     The gradient is compared with differences of the value, the Hessian with differences of
     the analytic gradient; errors are max-abs, relative to the max-abs analytic entry.
+    ``options`` go to ``triangle_pair_potential`` (e.g. ``dhat`` for the SDRS barrier).
     """
     x = np.concatenate([A, B]).reshape(18)
     X = np.repeat(x[None], 37, axis=0)
     for i in range(18):
         X[1 + 2 * i, i] += h
         X[2 + 2 * i, i] -= h
-    res = wc.triangle_pair_potential(X[:, :9].reshape(-1, 3, 3), X[:, 9:].reshape(-1, 3, 3))
+    res = wc.triangle_pair_potential(X[:, :9].reshape(-1, 3, 3), X[:, 9:].reshape(-1, 3, 3), **options)
     assert res.ok.all(), f"finite-difference stencil left the feasible set: status {res.status}"
     grad = res.grad[0].reshape(18)
     hess = res.hessian[0]

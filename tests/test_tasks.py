@@ -140,28 +140,84 @@ def test_cli_run_writes_metrics_plot_and_trajectory(tmp_path):
     assert Usd.Stage.Open(str(tmp_path / "out" / "trajectory.usda")).GetEndTimeCode() == 15
 
 
-def test_cli_run_errors_are_clear(tmp_path, capsys):
-    assert main(["run", "no_such_task", "--out", str(tmp_path)]) == 2
+def test_cli_run_accepts_baselines_and_seed(tmp_path):
+    scene_path = tmp_path / "space.usda"
+    io.save_scene(space_billiards(), scene_path)
+    assert main(["run", str(scene_path), "--model", "gb", "--seed", "5", "--quick", "--iters", "1", "--out", str(tmp_path / "out")]) == 0
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["model"] == "gb" and metrics["seed"] == 5
+    assert metrics["bundle"] == {"samples": 4, "initial_sigma": None, "final_sigma": None, "seed": 5}
+
+
+def test_cli_compare_writes_json_and_plot(tmp_path, capsys):
+    scene_path = tmp_path / "space.usda"
+    io.save_scene(space_billiards(), scene_path)
+    out = tmp_path / "cmp"
+    assert main(["compare", str(scene_path), "--models", "ours,sdrs,gb", "--iters", "2", "--quick", "--seed", "3", "--out", str(out)]) == 0
+    data = json.loads((out / "compare.json").read_text())
+    assert list(data["models"]) == ["ours", "sdrs", "gb"]
+    assert data["task"] == "space_billiards" and data["seed"] == 3 and data["iterations"] == 2
+    for result in data["models"].values():
+        for key in ("loss_history", "initial_loss", "final_loss", "success", "seconds"):
+            assert key in result
+        assert len(result["loss_history"]) == 2
+    assert data["models"]["gb"]["bundle"]["seed"] == 3
+    assert (out / "compare.png").stat().st_size > 1000
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_cli_compare_reports_models_that_cannot_run(tmp_path, capsys):
+    scene = space_billiards()
+    scene.settings.friction = 0.5
+    scene_path = tmp_path / "friction.usda"
+    io.save_scene(scene, scene_path)
+    argv = ["compare", str(scene_path), "--models", "ours,sdrs", "--iters", "1", "--out", str(tmp_path / "cmp")]
+    assert main(argv) == 0
+    models = json.loads((tmp_path / "cmp" / "compare.json").read_text())["models"]
+    assert "loss_history" in models["ours"] and "no friction model" in models["sdrs"]["error"]
+    assert "sdrs: skipped" in capsys.readouterr().err
+    assert main(argv + ["--frictionless"]) == 0
+    data = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert data["frictionless"] and all("loss_history" in r for r in data["models"].values())
+    assert main(["compare", str(scene_path), "--models", "sdrs", "--iters", "1", "--out", str(tmp_path / "c2")]) == 1
+    assert "no model could run" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["run", "compare"])
+def test_cli_task_errors_are_clear(tmp_path, capsys, command):
+    assert main([command, "no_such_task", "--out", str(tmp_path)]) == 2
     assert "not a .usda file" in capsys.readouterr().err
     plain = tmp_path / "plain.usda"
     scene = space_billiards()
     scene.task = io.TaskSpec()
     io.save_scene(scene, plain)
-    assert main(["run", str(plain), "--out", str(tmp_path / "o")]) == 2
+    assert main([command, str(plain), "--out", str(tmp_path / "o")]) == 2
     assert "no task metadata" in capsys.readouterr().err
-    assert main(["run", str(plain), "--model", "sdrs", "--out", str(tmp_path / "o")]) == 2
-    assert "not implemented yet" in capsys.readouterr().err
-    assert main(["run", str(plain), "--device", "cuda:9", "--out", str(tmp_path / "o")]) == 2
-    assert "device" in capsys.readouterr().err
+    assert main([command, str(plain), "--device", "cuda:7", "--out", str(tmp_path / "o")]) == 2
+    assert "device: 'cuda:7' is not available" in capsys.readouterr().err
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    assert main([command, str(plain), "--out", str(a_file)]) == 2
+    assert "is not a folder" in capsys.readouterr().err
+    assert main([command, str(plain), "--out", str(a_file / "sub")]) == 2
+    assert "cannot create the output folder" in capsys.readouterr().err
     locked = tmp_path / "locked"
     locked.mkdir()
     os.chmod(locked, 0o500)
     try:
         if not os.access(locked, os.W_OK):  # root can write anywhere
-            assert main(["run", str(plain), "--out", str(locked)]) == 2
+            assert main([command, str(plain), "--out", str(locked)]) == 2
             assert "not writable" in capsys.readouterr().err
     finally:
         os.chmod(locked, 0o700)
+
+
+@pytest.mark.parametrize("argv", [["run", "push", "--model", "mujoco"], ["compare", "push", "--models", "ours,mujoco"], ["compare", "push", "--models", ","]])
+def test_cli_unknown_models_are_usage_errors(argv, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert "ours" in capsys.readouterr().err  # names the choices
 
 
 def test_cli_list_names_the_tasks(capsys):

@@ -71,14 +71,18 @@ class ModelBuilder:
         friction: friction coefficient; 0 disables friction (and all its work).
         friction_smoothing: slip speed (m/s) below which the friction law is smoothed.
         eps: blend margin of the hierarchical contact potential.
-        contact_mode: ``"bsh"``, ``"brute"`` (the paper's model, hierarchical or exact) or
-            ``"ipc"`` (the IPC baseline through ipctk; CPU only, no friction).
+        contact_mode: ``"bsh"``, ``"brute"`` (the paper's model, hierarchical or exact),
+            ``"ipc"`` (the IPC baseline through ipctk; CPU only, no friction) or ``"sdrs"``
+            (the SDRS baseline: locally supported log barrier on separating planes; no
+            friction).
         ipc_dhat: barrier support distance of the ``"ipc"`` baseline (m).
+        sdrs_dhat: barrier support of the ``"sdrs"`` baseline on vertex-to-plane gaps (m);
+            triangles interact below 2 sdrs_dhat.
         articulation_contact: contact between bodies of one articulation: ``"nonadjacent"``
             (default: all pairs except a joint's parent and child), ``"all"`` or ``"none"``.
     """
 
-    def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, friction_smoothing: float = 1e-4, eps: float = 0.5, contact_mode: str = "bsh", ipc_dhat: float = 1e-2, articulation_contact: str = "nonadjacent"):
+    def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, friction_smoothing: float = 1e-4, eps: float = 0.5, contact_mode: str = "bsh", ipc_dhat: float = 1e-2, sdrs_dhat: float = 1e-2, articulation_contact: str = "nonadjacent"):
         gravity = np.asarray(gravity, dtype=np.float64)
         if gravity.shape != (3,) or not np.isfinite(gravity).all():
             raise ValueError(f"gravity: expected 3 finite numbers, got {gravity}")
@@ -92,14 +96,16 @@ class ModelBuilder:
             raise ValueError(f"friction_smoothing: must be positive and finite, got {friction_smoothing}")
         self.friction = float(friction)
         self.friction_smoothing = float(friction_smoothing)
-        if contact_mode == "ipc" and friction > 0:
-            raise ValueError("friction: the ipc baseline has no friction model here; use friction=0")
+        if contact_mode in ("ipc", "sdrs") and friction > 0:
+            raise ValueError(f"friction: the {contact_mode} baseline has no friction model here; use friction=0")
         self.eps = eps
         self.contact_mode = contact_mode
         self.ipc_dhat = ipc_dhat
         if articulation_contact not in _ARTICULATION_CONTACT:
             raise ValueError(f"articulation_contact: {articulation_contact!r} is not one of {_ARTICULATION_CONTACT}")
         self.articulation_contact = articulation_contact
+
+        self.sdrs_dhat = sdrs_dhat
         self._bodies: list[_Body] = []
         self._joints: list[Joint] = []
 
@@ -365,7 +371,7 @@ class ModelBuilder:
 
             contact = IpcContactModel(meshes, dhat=self.ipc_dhat, static=static, names=names, device=dev, exclude_pairs=exclude)
         else:
-            contact = ContactModel(meshes, eps=self.eps, mode=self.contact_mode, static=static, names=names, device=dev, exclude_pairs=exclude)
+            contact = ContactModel(meshes, eps=self.eps, mode=self.contact_mode, dhat=self.sdrs_dhat, static=static, names=names, device=dev, exclude_pairs=exclude)
         with wp.ScopedDevice(dev):
             return Model(
                 body_names=names,

@@ -1,4 +1,4 @@
-"""Command-line entry point: ``warpcontact run | list | simulate | demo | bench ...``."""
+"""Command-line entry point: ``warpcontact run | compare | list | simulate | demo | bench ...``."""
 
 import argparse
 import json
@@ -8,6 +8,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from .tasks import MODELS
 
 __all__ = ["main"]
 
@@ -125,26 +127,32 @@ def _resolve_scene_path(name: str) -> Path:
     raise ValueError(f"{name!r}: not a .usda file and not a scene in ./scenes (known: {', '.join(SCENE_NAMES)})")
 
 
-def _run(args) -> int:
-    from . import io
-    from .tasks import TaskProblem, TaskSettings
-
-    from ._runtime import resolve_device
-
-    if args.model in ("sdrs", "gb"):
-        raise ValueError(f"--model {args.model}: not implemented yet (available: ours, ipc)")
-    resolve_device(args.device)  # fail before any work
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+def _output_folder(path: str) -> Path:
+    """The output folder, created if needed; ValueError if it cannot be created or written."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out}: output path exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
     if not os.access(out, os.W_OK):
         raise ValueError(f"{out}: output folder is not writable")
+    return out
+
+
+def _load_task(args):
+    """(scene path, scene, TaskSettings) of a run or compare, after checking the device,
+    the output folder and the scene's task metadata, so bad input fails before any work."""
+    from . import io
+    from ._runtime import resolve_device
+    from .tasks import TaskSettings, validate_task
+
+    resolve_device(args.device)
+    _output_folder(args.out)
     scene_path = _resolve_scene_path(args.task)
     scene = io.load_scene(scene_path)
-    if args.model == "ipc":
-        if scene.settings.friction > 0:
-            raise ValueError(f"{scene_path}: the ipc baseline has no friction model here, and this scene uses friction {scene.settings.friction}")
-        scene.settings.contact_mode = "ipc"
-    np.random.seed(args.seed)
+    validate_task(scene)
     t = scene.task
     settings = TaskSettings(
         horizon=t.horizon or scene.settings.frames,
@@ -157,15 +165,52 @@ def _run(args) -> int:
         settings.horizon = min(settings.horizon, 24)
         settings.receding_horizon = min(settings.receding_horizon, 8) if settings.receding_horizon else 0
         settings.iterations = min(settings.iterations, args.iters or 8)
-    problem = TaskProblem(scene, device=args.device, settings=settings)
-    print(f"{scene_path}: task {t.name}, control {t.control} of {problem.dof_names}, horizon {settings.horizon}, "
-          f"window {settings.receding_horizon or settings.horizon}, {settings.iterations} iterations, lr {settings.learning_rate}")
+    return scene_path, scene, settings
 
+
+def _task_problem(scene, settings, model: str, args):
+    """The TaskProblem of one model; gb's bundle is seeded by --seed (4 samples with --quick)."""
+    from .bundle import BundleSettings
+    from .tasks import TaskProblem
+
+    bundle = BundleSettings(samples=4 if args.quick else 8, seed=args.seed) if model == "gb" else None
+    return TaskProblem(scene, device=args.device, settings=settings, model=model, bundle=bundle)
+
+
+def _progress(label: str):
     def progress(i, n, loss):
         bar = "#" * int(30 * i / n)
-        print(f"\r[{bar:<30}] {i}/{n} loss {loss:.6g}", end="", flush=True)
+        print(f"\r{label}[{bar:<30}] {i}/{n} loss {loss:.6g}", end="", flush=True)
 
-    result = problem.optimize(progress=progress)
+    return progress
+
+
+def _result_metrics(result) -> dict:
+    return {
+        "loss_history": result.loss_history,
+        "initial_loss": result.initial_loss,
+        "final_loss": result.final_loss,
+        "success": result.success,
+        "seconds": result.seconds,
+        "iterations": result.iterations,
+        **result.extra,
+    }
+
+
+def _settings_metrics(settings) -> dict:
+    return {"horizon": settings.horizon, "receding_horizon": settings.receding_horizon, "learning_rate": settings.learning_rate}
+
+
+def _run(args) -> int:
+    from . import io
+
+    scene_path, scene, settings = _load_task(args)
+    out = Path(args.out)
+    problem = _task_problem(scene, settings, args.model, args)
+    t = scene.task
+    print(f"{scene_path}: task {t.name}, model {args.model}, control {t.control} of {problem.dof_names}, horizon {settings.horizon}, "
+          f"window {settings.receding_horizon or settings.horizon}, {settings.iterations} iterations, lr {settings.learning_rate}")
+    result = problem.optimize(progress=_progress(""))
     print()
     metrics = {
         "task": t.name,
@@ -174,35 +219,94 @@ def _run(args) -> int:
         "device": str(problem.model.device),
         "seed": args.seed,
         "quick": bool(args.quick),
-        "horizon": settings.horizon,
-        "receding_horizon": settings.receding_horizon,
-        "learning_rate": settings.learning_rate,
-        "loss_history": result.loss_history,
-        "initial_loss": result.initial_loss,
-        "final_loss": result.final_loss,
-        "success": result.success,
-        "seconds": result.seconds,
-        "iterations": result.iterations,
+        **_settings_metrics(settings),
+        **_result_metrics(result),
     }
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
-    _plot_convergence(result.loss_history, out / "convergence.png", title=f"{t.name} ({args.model})")
+    _plot_convergence({args.model: result.loss_history}, out / "convergence.png", title=f"{t.name} ({args.model})")
     io.export_trajectory(scene, io.model_to_scene_poses(scene, problem.model, result.trajectory), out / "trajectory.usda", overwrite=True)
     print(f"loss {result.initial_loss:.6g} -> {result.final_loss:.6g}, success {result.success}, {result.seconds:.1f} s; wrote {out}/metrics.json, convergence.png, trajectory.usda")
     return 0
 
 
-def _plot_convergence(history, path: Path, *, title: str) -> bool:
+def _compare(args) -> int:
+    from .solver import SolverError
+
+    scene_path, scene, settings = _load_task(args)
+    out = Path(args.out)
+    if args.frictionless:
+        scene.settings.friction = 0.0
+    t = scene.task
+    print(f"{scene_path}: task {t.name}, models {', '.join(args.models)}, horizon {settings.horizon}, "
+          f"window {settings.receding_horizon or settings.horizon}, {settings.iterations} iterations, lr {settings.learning_rate}")
+    results = {}
+    device = args.device
+    for model in args.models:
+        # A model that cannot run this scene (a baseline without friction, ipc off the CPU,
+        # a failed step at the initial guess) is reported and the others still run.
+        try:
+            problem = _task_problem(scene, settings, model, args)
+            device = str(problem.model.device)
+            result = problem.optimize(progress=_progress(f"{model:>5} "))
+        except (ValueError, SolverError) as exc:
+            print(f"\n{model}: skipped: {exc}", file=sys.stderr)
+            results[model] = {"error": str(exc)}
+            continue
+        print()
+        results[model] = _result_metrics(result)
+    payload = {
+        "task": t.name,
+        "scene": str(scene_path),
+        "device": device,
+        "seed": args.seed,
+        "quick": bool(args.quick),
+        "frictionless": bool(args.frictionless),
+        "iterations": settings.iterations,
+        **_settings_metrics(settings),
+        "models": results,
+    }
+    (out / "compare.json").write_text(json.dumps(payload, indent=2) + "\n")
+    ran = {m: r["loss_history"] for m, r in results.items() if "error" not in r}
+    _plot_convergence(ran, out / "compare.png", title=f"{t.name}: loss from the same initial guess")
+    print(f"{'model':>6} {'initial loss':>13} {'final loss':>13} {'success':>8} {'seconds':>8}")
+    for model, r in results.items():
+        if "error" in r:
+            print(f"{model:>6} {'skipped (see compare.json)':>44}")
+        else:
+            print(f"{model:>6} {r['initial_loss']:13.6g} {r['final_loss']:13.6g} {r['success']!s:>8} {r['seconds']:8.1f}")
+    print(f"wrote {out}/compare.json, compare.png")
+    if not ran:
+        print("error: no model could run this scene", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _plot_convergence(histories: dict, path: Path, *, title: str) -> bool:
+    """Loss against optimiser iteration, log scale (as the paper's figures), one line per model.
+
+    A loss of exactly 0 (every target within tolerance) has no place on a log axis; such
+    points are left out and the legend says the model reached 0.
+    """
     from .bench import optional_pyplot
 
     plt = optional_pyplot()
     if plt is None:
         return False
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    ax.plot(np.arange(1, len(history) + 1), history)
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    # Stalled baselines share one flat line; distinct dashes and markers keep each visible.
+    styles = [("-", "o"), ("--", "s"), ("-.", "^"), (":", "x")]
+    for index, (label, history) in enumerate(histories.items()):
+        loss = np.asarray(history, dtype=np.float64)
+        reached = bool(len(loss)) and loss.min() == 0.0
+        dash, marker = styles[index % len(styles)]
+        ax.plot(np.arange(1, len(loss) + 1), np.where(loss > 0, loss, np.nan), linestyle=dash, marker=marker, markersize=4, label=f"{label} (reached 0)" if reached else label)
+    ax.set_yscale("log")
     ax.set_xlabel("optimiser iteration")
     ax.set_ylabel("loss")
     ax.set_title(title)
-    ax.grid(True, alpha=0.3)
+    ax.grid(True, which="both", alpha=0.3)
+    if histories:
+        ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -216,7 +320,12 @@ def _list(args) -> int:
     for name in SCENE_NAMES:
         path = Path("scenes") / f"{name}.usda"
         print(f"  {name:16s} {path if path.is_file() else '(not in ./scenes)'}")
-    print("models: ours, ipc (frictionless scenes); sdrs and gb are not implemented yet")
+    print("models (run --model, compare --models):")
+    print("  ours   the paper's contact model (long-range, twice differentiable)")
+    print("  ipc    IPC log barrier through ipctk (CPU, frictionless scenes)")
+    print("  sdrs   separating planes with a locally supported log barrier (frictionless scenes)")
+    print("  gb     gradient bundles over sdrs (seeded by --seed)")
+    print("the baselines have no friction model: compare --frictionless runs every model without friction")
     return 0
 
 
@@ -353,6 +462,23 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _model_list(text: str) -> list:
+    models = [m.strip() for m in text.split(",") if m.strip()]
+    unknown = [m for m in models if m not in MODELS]
+    if unknown or not models:
+        raise argparse.ArgumentTypeError(f"unknown model(s) {unknown or [text]}; choose from {','.join(MODELS)}")
+    return list(dict.fromkeys(models))
+
+
+def _add_task_arguments(parser, default_out: str):
+    parser.add_argument("task", help="a task name (scenes/NAME.usda) or a .usda with task metadata")
+    parser.add_argument("--iters", type=_positive_int, default=None, help="optimiser iterations (per window)")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--quick", action="store_true", help="short horizons and few iterations (minutes on a CPU)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the gb model's samples")
+    parser.add_argument("--out", default=default_out)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="warpcontact", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -365,14 +491,15 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_demo)
 
     run = sub.add_parser("run", help="optimise a task by gradient descent through the simulator")
-    run.add_argument("task", help="a task name (scenes/NAME.usda) or a .usda with task metadata")
-    run.add_argument("--model", default="ours", choices=["ours", "ipc", "sdrs", "gb"])
-    run.add_argument("--iters", type=_positive_int, default=None, help="optimiser iterations (per window)")
-    run.add_argument("--device", default="cpu")
-    run.add_argument("--quick", action="store_true", help="short horizons and few iterations (minutes on a CPU)")
-    run.add_argument("--seed", type=int, default=0)
-    run.add_argument("--out", default="outputs/run")
+    _add_task_arguments(run, "outputs/run")
+    run.add_argument("--model", default="ours", choices=MODELS)
     run.set_defaults(func=_run)
+
+    compare = sub.add_parser("compare", help="optimise a task with several models from the same initial guess; one convergence plot")
+    _add_task_arguments(compare, "outputs/compare")
+    compare.add_argument("--models", type=_model_list, default=list(MODELS), help=f"comma-separated subset of {','.join(MODELS)} (default: all)")
+    compare.add_argument("--frictionless", action="store_true", help="set the scene's friction to 0 for every model (the baselines have no friction model)")
+    compare.set_defaults(func=_compare)
 
     listing = sub.add_parser("list", help="list tasks and scenes")
     listing.set_defaults(func=_list)

@@ -6,6 +6,10 @@ exact gradient and Hessian in rigid-body coordinates, in one of these modes:
 - ``"bsh"``: the paper's hierarchical potential P_BSH (eq. BSH-potential), evaluated from
   far / blend / leaf term lists that a stack-based traversal kernel emits.
 - ``"brute"``: the O(T^2) reference sum of exact leaf potentials (eq. potential-slow).
+- ``"sdrs"``: the SDRS baseline (Ye et al. 2024): the same separating-plane leaf problem
+  with a locally supported log barrier of support ``dhat`` on unit-normal plane gaps
+  (``kernels/leaf.py``), summed over the triangle pairs the traversal finds within 2 dhat
+  (sphere-tree broad phase, no far or blend terms); exactly zero beyond.
 
 Each mode is a pair-list builder feeding the same term kernels, so further contact models
 (baselines) slot in as further builders and term kernels.
@@ -26,7 +30,7 @@ from .sphere_tree import SphereTree, build_sphere_tree
 
 __all__ = ["ContactEvaluation", "ContactModel", "CONTACT_MODES", "QUATERNION_TOLERANCE", "TermLists"]
 
-CONTACT_MODES = ("bsh", "brute")
+CONTACT_MODES = ("bsh", "brute", "sdrs")
 
 # Quaternions within this distance of unit norm are normalised; others are rejected as
 # almost certainly not rotations (e.g. an unnormalised optimiser step or a wrong layout).
@@ -45,7 +49,8 @@ class ContactEvaluation:
         grad: (nbodies, 6) dP/d(dp, dtheta) per body; zero rows for static bodies.
         hessian: (6 nbodies, 6 nbodies) second derivatives in the same coordinates;
             zero rows and columns for static bodies.
-        num_far, num_blend, num_leaf: term counts (centred-only, blend records, leaf solves).
+        num_far, num_blend, num_leaf: term counts (centred-only, blend records, leaf solves);
+            in ``"sdrs"`` mode num_far counts the pruned cluster pairs (no potential).
         contact_pairs: (name_a, name_b) of body pairs with a touching or intersecting
             triangle pair.
         unsolved_pairs: (name_a, name_b) of body pairs where a leaf solve did not converge.
@@ -124,7 +129,9 @@ class ContactModel:
             triangle vertex indices.
         eps: blend margin epsilon > 0 of P_BSH (d2 = (1 + eps) d1); larger is closer to the
             brute-force sum and costlier.
-        mode: ``"bsh"`` or ``"brute"``.
+        mode: ``"bsh"``, ``"brute"`` or ``"sdrs"``.
+        dhat: barrier support (m) of ``"sdrs"``: vertex-to-plane gaps below it are
+            penalised, so triangles interact below 2 dhat; unused by the other modes.
         static: optional (nbodies,) booleans; static bodies have no degrees of freedom and
             pairs of two static bodies are skipped.
         names: optional body names used in messages (default ``body<i>``).
@@ -140,6 +147,7 @@ class ContactModel:
         *,
         eps: float = 0.5,
         mode: str = "bsh",
+        dhat: float = 1e-2,
         static=None,
         names=None,
         exclude_pairs=(),
@@ -150,6 +158,8 @@ class ContactModel:
             raise ValueError(f"mode: {mode!r} is not one of {CONTACT_MODES}")
         if not np.isfinite(eps) or eps <= 0:
             raise ValueError(f"eps: must be a positive finite number, got {eps}")
+        if not np.isfinite(dhat) or dhat <= 0:
+            raise ValueError(f"dhat: must be a positive finite distance (m), got {dhat}")
         if int(max_leaf_iterations) < 1:
             raise ValueError(f"max_leaf_iterations: must be >= 1, got {max_leaf_iterations}")
         meshes = list(meshes)
@@ -165,6 +175,8 @@ class ContactModel:
 
         self.mode = mode
         self.eps = float(eps)
+        # The leaf kernels read dhat = 0 as the paper's barrier.
+        self.dhat = float(dhat) if mode == "sdrs" else 0.0
         self.max_leaf_iterations = int(max_leaf_iterations)
         self.num_bodies = num_bodies
         self.static = static_flags
@@ -309,6 +321,7 @@ class ContactModel:
                         self._node_triangle,
                         self._body_root,
                         self.eps,
+                        2.0 * self.dhat,
                         self._rotation,
                         self._position,
                         self._seed_body_pair,
@@ -350,14 +363,14 @@ class ContactModel:
                 wp.launch(
                     reduction_kernels.far_term_kernel,
                     dim=num_far,
-                    inputs=[self._node_center, self._node_radius, *common, self._far],
+                    inputs=[self._node_center, self._node_radius, self.mode != "sdrs", *common, self._far],
                     outputs=[targets, self._seed_separation],
                 )
             if num_leaf:
                 wp.launch(
                     reduction_kernels.leaf_term_kernel,
                     dim=num_leaf,
-                    inputs=[self._triangle_vertices, self.max_leaf_iterations, *common, self._leaf],
+                    inputs=[self._triangle_vertices, self.dhat, self.max_leaf_iterations, *common, self._leaf],
                     outputs=[targets, self._seed_status, self._seed_separation, self._leaf_iterations, self._leaf_plane],
                 )
             for level in range(max_level, -1, -1):
@@ -375,7 +388,7 @@ class ContactModel:
         ValueError naming the body.
         """
         self._set_poses(self._validated_poses(poses))
-        if self.mode == "bsh":
+        if self.mode != "brute":
             self._traverse()
         self._reduce()
         num_far, num_blend, num_leaf, _ = self._counts
@@ -486,7 +499,7 @@ class ContactModel:
     def term_lists(self, poses) -> TermLists:
         """The far / blend / leaf term lists at ``poses`` (for inspection and tests)."""
         self._set_poses(self._validated_poses(poses))
-        if self.mode == "bsh":
+        if self.mode != "brute":
             self._traverse()
         num_far, num_blend, num_leaf, _ = self._counts
         return TermLists(

@@ -54,7 +54,7 @@ class TrianglePairPotential:
 
 
 def triangle_pair_potential(
-    A, B, *, device="cpu", derivatives: bool = True, max_iterations: int = DEFAULT_MAX_ITERATIONS
+    A, B, *, device="cpu", derivatives: bool = True, max_iterations: int = DEFAULT_MAX_ITERATIONS, dhat: float | None = None
 ) -> TrianglePairPotential:
     """Separating-plane potential of triangle pairs, with exact first and second derivatives.
 
@@ -64,6 +64,10 @@ def triangle_pair_potential(
         device: Warp device to run on.
         derivatives: compute ``grad`` and ``hessian`` (zeros otherwise).
         max_iterations: Newton iteration cap per pair; pairs hitting it get ``ok = False``.
+        dhat: None for the paper's potential (global 1/x barrier); a support distance (m)
+            for the SDRS baseline: log barrier on vertex-to-plane distances below ``dhat``,
+            unit normals, exactly 0 (with zero derivatives) for triangles 2 dhat apart or
+            more. ``plane`` then has a unit normal.
 
     Zero-area triangles are valid: the potential is defined on convex hulls, so a collapsed
     triangle acts as the segment or point it is.
@@ -74,6 +78,8 @@ def triangle_pair_potential(
         raise ValueError(f"A and B: pair counts differ ({a.shape[0]} vs {b.shape[0]})")
     if int(max_iterations) < 1:
         raise ValueError(f"max_iterations: must be >= 1, got {max_iterations}")
+    if dhat is not None and not (np.isfinite(dhat) and dhat > 0):
+        raise ValueError(f"dhat: must be a positive finite distance (m) or None, got {dhat}")
     n = a.shape[0]
     dev = resolve_device(device)
     ncols = 6 if derivatives else 0
@@ -87,10 +93,14 @@ def triangle_pair_potential(
         grad = wp.zeros((n, ncols), dtype=wp.vec3d)
         hess = wp.zeros((n, ncols, ncols), dtype=wp.mat33d)
         if n:
+            if dhat is None:
+                kernel, inputs = leaf_kernels.leaf_potential_kernel, [tri_a, tri_b]
+            else:
+                kernel, inputs = leaf_kernels.sdrs_potential_kernel, [float(dhat), tri_a, tri_b]
             wp.launch(
-                leaf_kernels.leaf_potential_kernel,
+                kernel,
                 dim=n,
-                inputs=[tri_a, tri_b, int(max_iterations), bool(derivatives)],
+                inputs=[*inputs, int(max_iterations), bool(derivatives)],
                 outputs=[value, plane, status, iterations, grad, hess],
             )
     status_np = status.numpy()

@@ -16,24 +16,37 @@ controlled body whose ``control_dofs`` are the decision variables:
 Loss: sum over targets of ReLU(|x_com - x*|^2 - tolerance^2) at the window's last frame.
 Gradients come from ``wp.Tape`` through the implicit steps; the optimiser is Adam with the
 paper's betas (0.3, 0.5). Trivial initial guess: all offsets zero.
+
+Models (``MODELS``), all with the same optimiser from the same guess: ``"ours"`` (the
+scene's own contact mode, by default the paper's model), the baselines ``"ipc"`` and
+``"sdrs"`` (locally supported barriers, frictionless), and ``"gb"``: gradient bundles
+(``bundle.py``) over the SDRS model.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
 
+from .bundle import BundleSettings, bundled_gradient
 from .kernels import task as task_kernels
 from .solver import ImplicitSolver, SolverError
 from .types import State, set_body_velocity
 
-__all__ = ["CONTROL_KINDS", "SINE_WAVES", "TaskProblem", "TaskResult", "TaskSettings", "adam"]
+__all__ = ["CONTROL_KINDS", "MODELS", "SINE_WAVES", "TaskProblem", "TaskResult", "TaskSettings", "adam", "validate_task"]
 
 CONTROL_KINDS = ("initial_state", "pd_targets", "joint_sine")
 SINE_WAVES = 4
+MODELS = ("ours", "ipc", "sdrs", "gb")
+# Contact mode each baseline simulates with. gb bundles gradients of the SDRS model: it is
+# locally supported like IPC (so far-apart samples give zero gradients, the failure the
+# paper reports), but twice differentiable, so every sample's implicit-function-theorem
+# gradient is exact, and it runs on every device; gb vs sdrs isolates the estimator.
+_BASELINE_CONTACT_MODE = {"ipc": "ipc", "sdrs": "sdrs", "gb": "sdrs"}
 
 
 @dataclass
@@ -116,27 +129,58 @@ def _descend(rollout, values, settings, history, progress=None, total=None):
     return best
 
 
-class TaskProblem:
-    """A scene's optimisation problem: rollouts with loss and gradient, and the optimiser.
+def validate_task(scene) -> tuple:
+    """(controlled body index or None for joint_sine tasks, target body indices) of a task scene.
 
     Raises ValueError when the scene has no task metadata, no target bodies, no or several
     controlled bodies, or an unknown control kind.
     """
+    source = scene.source or "<scene>"
+    task = scene.task
+    if not task.name:
+        raise ValueError(f"{source}: no task metadata (warpcontact:task:name on the PhysicsScene prim)")
+    if task.control not in CONTROL_KINDS:
+        raise ValueError(f"{source}: task control {task.control!r} is not one of {CONTROL_KINDS}")
+    controlled = [i for i, b in enumerate(scene.bodies) if b.control_dofs]
+    if task.control != "joint_sine" and len(controlled) != 1:
+        raise ValueError(f"{source}: expected exactly one body with warpcontact:control:dofs, found {len(controlled)}")
+    targets = [i for i, b in enumerate(scene.bodies) if b.target_position is not None]
+    if not targets:
+        raise ValueError(f"{source}: no target bodies (warpcontact:target:position)")
+    return (controlled[0] if controlled else None), targets
 
-    def __init__(self, scene, *, device="cpu", settings: TaskSettings | None = None):
+
+class TaskProblem:
+    """A scene's optimisation problem: rollouts with loss and gradient, and the optimiser.
+
+    Args:
+        scene: a ``Scene`` with task metadata (see ``validate_task``).
+        device: Warp device.
+        settings: optimisation settings (default: the scene's task metadata).
+        model: one of ``MODELS``. ``"ours"`` simulates with the scene's own contact mode
+            (``SimulationSettings.contact_mode``, the paper's "bsh" unless the scene says
+            otherwise); the baselines replace it (and refuse scenes with friction, which
+            they do not model).
+        bundle: gradient-bundle settings of the ``"gb"`` model (default ``BundleSettings()``).
+
+    Raises ValueError for scenes ``validate_task`` rejects, unknown models, and baselines on
+    frictional scenes.
+    """
+
+    def __init__(self, scene, *, device="cpu", settings: TaskSettings | None = None, model: str = "ours", bundle: BundleSettings | None = None):
         source = scene.source or "<scene>"
         task = scene.task
-        if not task.name:
-            raise ValueError(f"{source}: no task metadata (warpcontact:task:name on the PhysicsScene prim)")
-        if task.control not in CONTROL_KINDS:
-            raise ValueError(f"{source}: task control {task.control!r} is not one of {CONTROL_KINDS}")
-        controlled = [i for i, b in enumerate(scene.bodies) if b.control_dofs]
-        if task.control != "joint_sine" and len(controlled) != 1:
-            raise ValueError(f"{source}: expected exactly one body with warpcontact:control:dofs, found {len(controlled)}")
-        targets = [i for i, b in enumerate(scene.bodies) if b.target_position is not None]
-        if not targets:
-            raise ValueError(f"{source}: no target bodies (warpcontact:target:position)")
+        controlled, targets = validate_task(scene)
+        if model not in MODELS:
+            raise ValueError(f"model: {model!r} is not one of {MODELS}")
+        if bundle is not None and model != "gb":
+            raise ValueError(f"bundle: only the gb model uses bundle settings, not {model!r}")
+        if model in _BASELINE_CONTACT_MODE:
+            if scene.settings.friction > 0:
+                raise ValueError(f"{source}: the {model} baseline has no friction model here, and this scene uses friction {scene.settings.friction}")
+            scene = dataclasses.replace(scene, settings=dataclasses.replace(scene.settings, contact_mode=_BASELINE_CONTACT_MODE[model]))
         self.scene = scene
+        self.bundle = (bundle or BundleSettings()) if model == "gb" else None
         self.kind = task.control
         self.settings = settings or TaskSettings(
             horizon=task.horizon or scene.settings.frames,
@@ -159,7 +203,7 @@ class TaskProblem:
             self._actuated = wp.array(actuated.astype(np.int32), dtype=wp.int32, device=device)
             self._rest = wp.array(art.initial_coordinates, dtype=wp.float64, device=device)
         else:
-            self.body = controlled[0]
+            self.body = controlled
             body = scene.bodies[self.body]
             unknown = [d for d in body.control_dofs if d not in task_kernels.DOF_CODES]
             if unknown:
@@ -234,6 +278,17 @@ class TaskProblem:
 
     # --- optimisation ---------------------------------------------------------------------
 
+    def _objective(self, start: tuple, frames: int, rng):
+        """values -> (loss, gradient or its bundled estimate, trajectory) of one window."""
+
+        def exact(values, gradient=True):
+            return self.rollout(values, start, frames, gradient=gradient)
+
+        if self.bundle is None:
+            return exact
+        sigmas = self.bundle.sigmas(self.settings.iterations, self.settings.learning_rate)
+        return bundled_gradient(exact, sigmas=sigmas, samples=self.bundle.samples, rng=rng)
+
     def optimize(self, *, progress=None) -> TaskResult:
         """Gradient descent from the trivial guess (zero offsets); see the module docstring."""
         start_time = time.perf_counter()
@@ -241,11 +296,13 @@ class TaskProblem:
         q0 = self.model.initial_q.copy()
         ndof = len(self.dof_names)
         history = []
+        rng = np.random.default_rng(self.bundle.seed) if self.bundle else None
+        extra = {"bundle": dataclasses.asdict(self.bundle)} if self.bundle else {}
         if self.kind != "pd_targets" or not s.receding_horizon or s.receding_horizon >= s.horizon:
             values = self.initial_values(1 if self.kind == "initial_state" else s.horizon)
-            best = _descend(lambda v: self.rollout(v, (q0, q0), s.horizon), values, s, history, progress)
+            best = _descend(self._objective((q0, q0), s.horizon, rng), values, s, history, progress)
             final, _, traj = self.rollout(best[1], (q0, q0), s.horizon, gradient=False)
-            return TaskResult(history, history[0], final, final == 0.0, s.iterations, time.perf_counter() - start_time, best[1], traj)
+            return TaskResult(history, history[0], final, final == 0.0, s.iterations, time.perf_counter() - start_time, best[1], traj, extra)
 
         # Receding horizon: optimise a window, apply its first action, shift.
         window = s.receding_horizon
@@ -254,7 +311,7 @@ class TaskProblem:
         current = (q0, q0)
         for t in range(s.horizon):
             values = plan[t : t + window].copy()
-            best = _descend(lambda v, start=current: self.rollout(v, start, window), values, s, history, progress, total=s.horizon)
+            best = _descend(self._objective(current, window, rng), values, s, history, progress, total=s.horizon)
             plan[t : t + window] = best[1]
             values = best[1]
             _, _, traj = self.rollout(values[:1], current, 1, gradient=False)
@@ -264,7 +321,7 @@ class TaskProblem:
                 progress(t + 1, s.horizon, history[-1])
         trajectory = np.array(executed)
         final = self._loss_at(trajectory[-1])
-        return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, plan[: s.horizon], trajectory)
+        return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, plan[: s.horizon], trajectory, extra)
 
     def _loss_at(self, q: np.ndarray) -> float:
         total = 0.0

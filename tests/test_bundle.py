@@ -1,0 +1,84 @@
+"""Gradient bundles (the gb baseline) and one short optimisation per model."""
+
+import numpy as np
+import pytest
+from test_tasks import space_billiards
+
+from warpcontact.bundle import BundleSettings, bundled_gradient
+from warpcontact.tasks import MODELS, TaskProblem, TaskSettings
+
+
+def quadratic(values, gradient=True):
+    return float(np.sum(values**2)), 2.0 * values if gradient else None, "trajectory"
+
+
+def test_sigma_schedule_decays_from_ten_to_one_learning_rate():
+    np.testing.assert_allclose(BundleSettings().sigmas(5, 0.01), [0.1, 0.1 * 10**-0.25, 0.1 * 10**-0.5, 0.1 * 10**-0.75, 0.01])
+    np.testing.assert_allclose(BundleSettings(initial_sigma=2.0, final_sigma=0.5).sigmas(3, 0.01), [2.0, 1.0, 0.5])
+    with pytest.raises(ValueError, match="samples"):
+        BundleSettings(samples=0).sigmas(3, 0.01)
+    with pytest.raises(ValueError, match="sigma"):
+        BundleSettings(final_sigma=-1.0).sigmas(3, 0.01)
+
+
+def test_bundle_averages_perturbed_gradients_reproducibly():
+    x = np.array([[1.0, -2.0]])
+    estimate = bundled_gradient(quadratic, sigmas=np.array([0.5]), samples=4, rng=np.random.default_rng(7))
+    loss, grad, trajectory = estimate(x)
+    w = np.random.default_rng(7).standard_normal((4, 1, 2))
+    assert loss == 5.0 and trajectory == "trajectory"  # at x itself
+    np.testing.assert_allclose(grad, np.mean(2.0 * (x + 0.5 * w), axis=0))
+
+
+def test_infeasible_samples_are_dropped():
+    def rollout(values, gradient=True):
+        if gradient and values[0, 0] > 1.0:
+            raise ValueError("bodies intersect at the start")
+        return quadratic(values, gradient)
+
+    x = np.array([[1.0]])
+    _, grad, _ = bundled_gradient(rollout, sigmas=np.array([1.0]), samples=64, rng=np.random.default_rng(0))(x)
+    w = np.random.default_rng(0).standard_normal((64, 1, 1))
+    kept = (x + w)[(x + w)[:, 0, 0] <= 1.0]
+    np.testing.assert_allclose(grad, np.mean(2.0 * kept, axis=0))
+    nothing = bundled_gradient(rollout, sigmas=np.array([1e-9]), samples=4, rng=np.random.default_rng(0))
+    assert np.all(nothing(np.array([[2.0]]))[1] == 0.0)
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_each_model_runs_a_short_optimisation(model):
+    scene = space_billiards()
+    scene.bodies[0].control_dofs = ("vx", "vy")
+    settings = TaskSettings(horizon=15, receding_horizon=0, iterations=2, learning_rate=0.3)
+    bundle = BundleSettings(samples=2, seed=1) if model == "gb" else None
+    result = TaskProblem(scene, settings=settings, model=model, bundle=bundle).optimize()
+    assert len(result.loss_history) == 2 and np.isfinite(result.loss_history).all()
+    if model == "ours":
+        assert result.loss_history[1] < result.loss_history[0]  # the long-range gradient moves it
+    if model in ("ipc", "sdrs"):
+        assert result.loss_history[1] == result.loss_history[0]  # zero gradient from rest
+    if model == "gb":
+        assert result.extra["bundle"] == {"samples": 2, "initial_sigma": None, "final_sigma": None, "seed": 1}
+
+
+def test_gb_finds_descent_near_contact_where_sdrs_sees_nothing():
+    """5 cm apart (beyond SDRS's 2 cm support) the SDRS gradient is zero; gradient bundles
+    with sigma = 3 m/s sample shots that hit, and descend (measured: 4.04 -> 3.67 in 3 steps)."""
+    scene = space_billiards(gap=0.05)
+    scene.bodies[0].control_dofs = ("vx", "vy")
+    settings = TaskSettings(horizon=15, receding_horizon=0, iterations=3, learning_rate=0.3)
+    sdrs = TaskProblem(scene, settings=settings, model="sdrs").optimize()
+    gb = TaskProblem(scene, settings=settings, model="gb", bundle=BundleSettings(samples=4)).optimize()
+    assert sdrs.final_loss == sdrs.initial_loss
+    assert gb.loss_history[-1] < 0.95 * gb.loss_history[0]
+
+
+def test_model_errors_are_clear():
+    scene = space_billiards()
+    with pytest.raises(ValueError, match="not one of"):
+        TaskProblem(scene, model="mujoco")
+    with pytest.raises(ValueError, match="only the gb model"):
+        TaskProblem(scene, model="ours", bundle=BundleSettings())
+    scene.settings.friction = 0.5
+    with pytest.raises(ValueError, match="gb baseline has no friction model"):
+        TaskProblem(scene, model="gb")
