@@ -3,7 +3,13 @@
 import numpy as np
 import pytest
 import warp as wp
-from helpers import edge_edge, leaf_fd_errors, parallel_faces, random_separated_pair, vertex_face
+from helpers import (
+    edge_edge,
+    leaf_fd_errors,
+    parallel_faces,
+    random_separated_pair,
+    vertex_face,
+)
 from helpers_rigid import fd_check, icosphere, identity_poses, quat
 from test_tasks import space_billiards
 
