@@ -24,9 +24,11 @@ when P > 0. P = 0 exactly, with zero derivatives, when the triangles are at leas
 apart (the best plane, the closest points' bisector, then leaves every gap >= dhat). b is
 C2 at dhat, so P is twice differentiable; it is +inf on contact. The solve is Newton on
 the sphere: steps tangent to |n| = 1 with the Riemannian Hessian
-P Lnn P + lam I (lam = -sum_k b'(g_k) g_k, the multiplier of |n| = 1; the radial block
-lam n n^T only fixes the gauge), retracted by normalising n. The same formulas give the
-derivatives with B_k's normal columns projected on the tangent plane (B_k [P 0; 0 1]).
+P Lnn P + lam P (lam = -sum_k b'(g_k) g_k, the multiplier of |n| = 1) plus a radial block
+c n n^T that only fixes the gauge (c = the mean tangent curvature, for conditioning),
+retracted by normalising n. The same formulas give the
+derivatives with B_k's normal columns projected on the tangent plane, B_k T with
+T = diag(P, 1); the solution stores T L_pp^-1 T, which applies that projection once per pair.
 
 All work happens in a local frame centred on the midpoint of the closest points: the
 potential is translation invariant (d absorbs the shift), and the local frame keeps the
@@ -68,12 +70,15 @@ mat34d = wp.types.matrix(shape=(3, 4), dtype=wp.float64)
 # Converged when the squared Newton decrement, relative to L, falls below this; about
 # two Newton steps past the point where L itself stops changing in float64.
 _DECREMENT_TOL = wp.constant(wp.float64(1.0e-24))
-# If the line search stalls, the iterate is accepted only below this decrement (the
-# precision floor of L's evaluation); otherwise the pair is flagged.
+# If the line search stalls, the iterate is accepted only below this decrement relative
+# to _energy_scale (the precision floor of L's evaluation); otherwise the pair is flagged.
 _STALL_TOL = wp.constant(wp.float64(1.0e-14))
-# Below this relative decrement the Newton step is taken in full (see leaf_solve).
+# Below this decrement relative to _energy_scale the Newton step is taken in full.
 _FULL_STEP_TOL = wp.constant(wp.float64(1.0e-10))
 _ARMIJO = wp.constant(wp.float64(1.0e-4))
+# SDRS pairs whose widest-margin plane misses dhat by less than this fraction count as
+# beyond the support (see sdrs_solve).
+_SUPPORT_TOL = wp.constant(wp.float64(1.0e-8))
 _MAX_BACKTRACKS = wp.constant(60)
 
 
@@ -91,7 +96,14 @@ class LeafSolution:
     tb: wp.mat33d
     gap_a: wp.vec3d
     gap_b: wp.vec3d
-    # Inverse plane Hessian L_pp^-1 at the optimum.
+    # Barrier slopes b'(g_k) and curvatures b''(g_k), stored once: the derivative blocks
+    # read them many times per pair.
+    slope_a: wp.vec3d
+    slope_b: wp.vec3d
+    curv_a: wp.vec3d
+    curv_b: wp.vec3d
+    # Inverse plane Hessian L_pp^-1 at the optimum; for SDRS T L_pp^-1 T with
+    # T = diag(I - n n^T, 1), which restricts every use to unit-normal plane variations.
     lpp_inv: wp.mat44d
     # Barrier support: 0 for the paper's 1/g, > 0 for SDRS's log barrier on unit normals.
     dhat: wp.float64
@@ -131,6 +143,14 @@ def leaf_vertex(sol: LeafSolution, k: int):
     if k < 3:
         return sol.ta[k], wp.float64(1.0), sol.gap_a[k]
     return sol.tb[k - 3], wp.float64(-1.0), sol.gap_b[k - 3]
+
+
+@wp.func
+def _vertex_barrier(sol: LeafSolution, k: int):
+    """b'(g_k) and b''(g_k) of vertex k."""
+    if k < 3:
+        return sol.slope_a[k], sol.curv_a[k]
+    return sol.slope_b[k - 3], sol.curv_b[k - 3]
 
 
 @wp.func
@@ -243,9 +263,16 @@ def _sdrs_derivatives(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dhat: wp.float6
     for k in range(3):
         grad, hess, lam = _add_vertex_terms(ta[k], one, p, dhat, grad, hess, lam)
         grad, hess, lam = _add_vertex_terms(tb[k], -one, p, dhat, grad, hess, lam)
-    t = _tangent_projector(wp.vec3d(p[0], p[1], p[2]))
+    n = wp.vec3d(p[0], p[1], p[2])
+    t = _tangent_projector(n)
     hess = t * hess * t
+    # The sphere's curvature adds lam on the tangent plane. The radial direction is a gauge
+    # (no gradient, no step, projected out of every derivative), so its curvature is free:
+    # the mean tangent curvature keeps H well conditioned where lam -> 0 at the support.
+    gauge = lam + wp.float64(0.5) * (hess[0, 0] + hess[1, 1] + hess[2, 2])
     for i in range(3):
+        for j in range(3):
+            hess[i, j] = hess[i, j] + (gauge - lam) * n[i] * n[j]
         hess[i, i] = hess[i, i] + lam
     return t * grad, hess
 
@@ -271,6 +298,24 @@ def _step_bound(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dp: wp.vec4d, dhat: w
     if dhat > wp.float64(0.0):
         return wp.float64(wp.inf)
     return _max_feasible_step(ta, tb, p, dp)
+
+
+@wp.func
+def _energy_scale(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dhat: wp.float64, energy: wp.float64):
+    """The scale of L's rounding error, which the full-step and stall tests compare
+    decrements with: L itself for the paper's model (L >= 12), but for SDRS also
+    sum_k |b'(g_k)| (|x_k| + |d|), E's slope times the size of its gaps' rounding: near
+    the support E -> 0 far faster than its rounding error, and an Armijo test on E, or a
+    stall test relative to E, resolves nothing there."""
+    if dhat <= wp.float64(0.0):
+        return energy
+    n = wp.vec3d(p[0], p[1], p[2])
+    scale = energy
+    for k in range(3):
+        _ba, ba1, _ba2 = leaf_barrier(wp.dot(ta[k], n) + p[3], dhat)
+        _bb, bb1, _bb2 = leaf_barrier(-(wp.dot(tb[k], n) + p[3]), dhat)
+        scale += -ba1 * (wp.length(ta[k]) + wp.abs(p[3])) - bb1 * (wp.length(tb[k]) + wp.abs(p[3]))
+    return scale
 
 
 @wp.func
@@ -344,6 +389,21 @@ def _store_plane(sol: LeafSolution, p: wp.vec4d):
     tb = sol.tb
     sol.gap_a = wp.vec3d(wp.dot(ta[0], n) + p[3], wp.dot(ta[1], n) + p[3], wp.dot(ta[2], n) + p[3])
     sol.gap_b = wp.vec3d(-(wp.dot(tb[0], n) + p[3]), -(wp.dot(tb[1], n) + p[3]), -(wp.dot(tb[2], n) + p[3]))
+    slope_a = wp.vec3d()
+    slope_b = wp.vec3d()
+    curv_a = wp.vec3d()
+    curv_b = wp.vec3d()
+    for k in range(3):
+        _ba, ba1, ba2 = leaf_barrier(sol.gap_a[k], sol.dhat)
+        _bb, bb1, bb2 = leaf_barrier(sol.gap_b[k], sol.dhat)
+        slope_a[k] = ba1
+        curv_a[k] = ba2
+        slope_b[k] = bb1
+        curv_b[k] = bb2
+    sol.slope_a = slope_a
+    sol.slope_b = slope_b
+    sol.curv_a = curv_a
+    sol.curv_b = curv_b
     return sol
 
 
@@ -364,16 +424,17 @@ def _solve_from(sol: LeafSolution, start: wp.vec4d, max_iterations: int):
         if not ok:
             break
         decrement = -wp.dot(grad, step)
+        scale = _energy_scale(ta, tb, p, dhat, energy)
         if decrement <= _DECREMENT_TOL * energy:
             converged = True
             break
         max_step = _step_bound(ta, tb, p, step, dhat)
-        if decrement <= _FULL_STEP_TOL * energy and max_step > wp.float64(1.0):
+        if decrement <= _FULL_STEP_TOL * scale and max_step > wp.float64(1.0):
             # Quadratic regime: the expected decrease is below what an Armijo test on L
             # can resolve, so take the full (feasible) step; a decrement that stops
             # shrinking means L's rounding floor is reached.
             if decrement >= previous_decrement:
-                converged = decrement <= _STALL_TOL * energy
+                converged = decrement <= _STALL_TOL * scale
                 break
             previous_decrement = decrement
             trial = _advance(p, step, wp.float64(1.0), dhat)
@@ -396,7 +457,7 @@ def _solve_from(sol: LeafSolution, start: wp.vec4d, max_iterations: int):
                 break
             alpha = alpha * wp.float64(0.5)
         if not accepted:
-            converged = decrement <= _STALL_TOL * energy
+            converged = decrement <= _STALL_TOL * scale
             break
 
     sol.iterations = it
@@ -410,6 +471,11 @@ def _solve_from(sol: LeafSolution, start: wp.vec4d, max_iterations: int):
     if not inv_ok:
         sol.status = LEAF_NOT_CONVERGED
         return sol
+    if dhat > wp.float64(0.0):
+        # B_k T H^-1 T B_l^T: the plane moves on unit normals (module docstring). The
+        # radial block of H is decoupled, so T H^-1 T is also the exact dp*/dx operator.
+        t = _tangent_projector(sol.n)
+        inv = t * inv * t
     sol.lpp_inv = inv
     return sol
 
@@ -436,10 +502,20 @@ def sdrs_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64, max_i
     if sol.status != LEAF_OK:
         return sol
     start = wp.vec4d(e[0], e[1], e[2], wp.float64(0.0))
-    sol = _store_plane(sol, start)
     # The bisector is the widest-margin plane (margin = half the distance): if it leaves
-    # every gap at or beyond dhat, P = 0 and all derivatives vanish (lpp_inv stays 0).
-    if wp.min(wp.min(sol.gap_a), wp.min(sol.gap_b)) >= dhat:
+    # every gap at or beyond dhat, P = 0 and all derivatives vanish. So it does when the
+    # deficit is below _SUPPORT_TOL dhat: there P < 1e-24 / dhat and the plane problem
+    # degenerates (its rotation about the active vertices is held only by the multiplier,
+    # ~ deficit^2, against curvatures ~ deficit), past what float64 Newton resolves.
+    margin = wp.float64(wp.inf)
+    for k in range(3):
+        margin = wp.min(margin, wp.min(wp.dot(sol.ta[k], e), -wp.dot(sol.tb[k], e)))
+    if margin >= dhat * (wp.float64(1.0) - _SUPPORT_TOL):
+        sol = _store_plane(sol, start)
+        sol.slope_a = wp.vec3d()
+        sol.slope_b = wp.vec3d()
+        sol.curv_a = wp.vec3d()
+        sol.curv_b = wp.vec3d()
         sol.value = wp.float64(0.0)
         return sol
     return _solve_from(sol, start, max_iterations)
@@ -456,24 +532,22 @@ def pair_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64, max_i
 @wp.func
 def leaf_vertex_gradient(sol: LeafSolution, k: int):
     """dP/dx_k (the contact force on vertex k is its negative)."""
-    _x, sigma, g = leaf_vertex(sol, k)
-    _b, b1, _b2 = leaf_barrier(g, sol.dhat)
+    _x, sigma, _g = leaf_vertex(sol, k)
+    b1, _b2 = _vertex_barrier(sol, k)
     return (sigma * b1) * sol.n
 
 
 @wp.func
 def _mixed_block(sol: LeafSolution, k: int):
-    """B_k = d2L / dx_k dp (3x4); for SDRS restricted to unit-normal plane variations."""
-    x, sigma, g = leaf_vertex(sol, k)
-    _b, b1, b2 = leaf_barrier(g, sol.dhat)
+    """B_k = d2L / dx_k dp (3x4)."""
+    x, sigma, _g = leaf_vertex(sol, k)
+    b1, b2 = _vertex_barrier(sol, k)
     m = mat34d()
     for i in range(3):
         for j in range(3):
             m[i, j] = b2 * sol.n[i] * x[j]
         m[i, 3] = b2 * sol.n[i]
         m[i, i] = m[i, i] + sigma * b1
-    if sol.dhat > wp.float64(0.0):
-        m = m * _tangent_projector(sol.n)
     return m
 
 
@@ -484,8 +558,7 @@ def leaf_hessian_block(sol: LeafSolution, k: int, l: int):
     bl = _mixed_block(sol, l)
     block = -(bk * sol.lpp_inv * wp.transpose(bl))
     if k == l:
-        _x, _sigma, g = leaf_vertex(sol, k)
-        _b, _b1, b2 = leaf_barrier(g, sol.dhat)
+        _b1, b2 = _vertex_barrier(sol, k)
         block = block + b2 * wp.outer(sol.n, sol.n)
     return block
 

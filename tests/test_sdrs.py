@@ -3,7 +3,13 @@
 import numpy as np
 import pytest
 import warp as wp
-from helpers import edge_edge, leaf_fd_errors, parallel_faces, random_separated_pair, vertex_face
+from helpers import (
+    edge_edge,
+    leaf_fd_errors,
+    parallel_faces,
+    random_separated_pair,
+    vertex_face,
+)
 from helpers_rigid import fd_check, icosphere, identity_poses, quat
 from test_tasks import space_billiards
 
@@ -45,6 +51,20 @@ def test_zero_beyond_the_support_and_twice_differentiable_into_it(config):
         assert near.ok[0] and near.value[0] > 0 and np.abs(near.grad).max() > 0
         values.append(near.value[0])
     assert values[1] / values[0] == pytest.approx(1e-3, rel=0.1)  # cubic onset
+
+
+def test_pairs_at_the_edge_of_the_support_always_solve():
+    """Just inside 2 dhat, E ~ deficit^3 falls far below its own rounding error and the
+    plane's rotation degenerates; solves must still succeed (or count as beyond support)."""
+    rng = np.random.default_rng(5)
+    for config in (parallel_faces, vertex_face, edge_edge):
+        for deficit in (1e-4, 1e-6, 3e-8, 1e-8, 1e-10, 1e-13, 0.0):
+            A, B = config(2 * DHAT * (1 - deficit), size=rng.uniform(0.05, 3.0))
+            rotation = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+            offset = rng.normal(size=3) * 3.0  # world coordinates far from the pair
+            res = wc.triangle_pair_potential((A @ rotation.T + offset)[None], (B @ rotation.T + offset)[None], dhat=DHAT)
+            assert res.ok[0], (config.__name__, deficit, res.status[0])
+            assert 0.0 <= res.value[0] < 1e-9
 
 
 def test_planes_have_unit_normals_and_separate():
@@ -114,6 +134,19 @@ def test_implicit_steps_with_sdrs_do_not_penetrate():
     x = np.array([s.body_q.numpy()[1, 0] for s in states])
     # The ball (radius <= 0.5) stops at the wall face (x = 0.6) and bounces back.
     assert 0.09 < x.max() < 0.1 + 1e-9 and x[-1] < x.max() - 0.01
+
+
+def test_steps_converge_when_sdrs_contact_ends():
+    """After a collision the balls fly apart with exactly zero contact energy: L is ~0 and
+    its rounding scales with the inertia terms, so the step must not rely on Armijo tests
+    relative to |L| (it used to hit the 500-iteration cap here)."""
+    scene = space_billiards(gap=0.05)
+    scene.bodies[0].control_dofs = ("vx", "vy")
+    problem = TaskProblem(scene, settings=TaskSettings(horizon=15, receding_horizon=0, iterations=1, learning_rate=0.3), model="sdrs")
+    q0 = problem.model.initial_q
+    loss, grad, trajectory = problem.rollout(np.array([[1.92126795, 0.31470035]]), (q0, q0), 15)
+    assert loss < 2.5 and np.all(grad != 0.0)
+    assert np.linalg.norm(trajectory[-1, 1, :2] - trajectory[0, 1, :2]) > 0.1  # the target ball was hit
 
 
 def test_from_rest_sdrs_has_no_gradient_while_near_contact_it_has_one():

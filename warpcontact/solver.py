@@ -369,7 +369,9 @@ class ImplicitSolver:
             # The contact model still holds the term lists of q: trials come after this.
             frame = model.contact.advancement_frame() if art is not None else None
             alpha = min(model.contact.advancement_limit(full, fraction=self.advancement_fraction, frame=frame), self._limit_step(coords, direction))
-            quadratic_regime = decrement <= 1e-10 * max(abs(value), 1e-300) and alpha == 1.0
+            # L's rounding scales with its terms, not with L, which is ~0 in free flight under
+            # a locally supported contact model (ipc, sdrs); steps within 1e3 tol are quadratic.
+            quadratic_regime = (decrement <= 1e-10 * max(abs(value), 1e-300) or step_length <= 1e3 * tol) and alpha == 1.0
             accepted = False
             for _ in range(60):
                 if art is None:
