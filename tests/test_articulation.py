@@ -64,8 +64,8 @@ def simulate(model, state, steps, dt, control=None):
 def reduced_terms(model, q):
     art = model.articulation
     ev = model.contact.evaluate(q)
-    J = art.jacobian(q)
-    return ev.value, J.T @ ev.grad.reshape(-1), J.T @ ev.hessian @ J + art.curvature(q, ev.grad)
+    _, grad, hess = art.reduce(q, ev.grad.reshape(-1), ev.hessian)
+    return ev.value, grad, hess
 
 
 # --- kinematics and derivatives ----------------------------------------------------------------

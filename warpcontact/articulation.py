@@ -371,7 +371,19 @@ class ArticulationModel:
 
     def jacobian(self, poses: np.ndarray) -> np.ndarray:
         """J (6 nbodies, m): rigid coordinates (dp, dtheta) of each body per DOF increment."""
+        return self._jacobian(poses, *self.twists(poses))
+
+    def curvature(self, poses: np.ndarray, grad: np.ndarray) -> np.ndarray:
+        """sum_i g_i . d2(p_i, theta_i)/d delta2 (m, m) for a rigid gradient ``grad`` (nbodies, 6)."""
+        return self._curvature(poses, grad, *self.twists(poses))
+
+    def reduce(self, poses: np.ndarray, grad: np.ndarray, hess: np.ndarray):
+        """(J, J^T g, J^T H J + C) for a rigid-coordinate gradient (6 nbodies,) and Hessian."""
         axes, points = self.twists(poses)
+        J = self._jacobian(poses, axes, points)
+        return J, J.T @ grad, J.T @ hess @ J + self._curvature(poses, grad.reshape(-1, 6), axes, points)
+
+    def _jacobian(self, poses, axes, points) -> np.ndarray:
         J = np.zeros((6 * self.num_bodies, self.num_dofs))
         for b in self.dynamic_bodies:
             dofs, omega, velocity = self._body_columns(b, poses[b, :3], axes, points)
@@ -379,9 +391,7 @@ class ArticulationModel:
             J[6 * b + 3 : 6 * b + 6, dofs] = omega.T
         return J
 
-    def curvature(self, poses: np.ndarray, grad: np.ndarray) -> np.ndarray:
-        """sum_i g_i . d2(p_i, theta_i)/d delta2 (m, m) for a rigid gradient ``grad`` (nbodies, 6)."""
-        axes, points = self.twists(poses)
+    def _curvature(self, poses, grad, axes, points) -> np.ndarray:
         C = np.zeros((self.num_dofs, self.num_dofs))
         for b in self.dynamic_bodies:
             dofs, omega, velocity = self._body_columns(b, poses[b, :3], axes, points)

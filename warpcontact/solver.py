@@ -184,10 +184,11 @@ class ImplicitSolver:
         return float(self._friction_value.numpy()[0]), self._friction_grad.numpy().reshape(-1), self._friction_hess.numpy()
 
     def _evaluate(self, poses: np.ndarray, coords: np.ndarray, step_in: "_StepInputs"):
-        """L, its gradient and Hessian over the reduced coordinates, and the contact evaluation."""
+        """L, its gradient and Hessian over the reduced coordinates, the contact evaluation and
+        the articulation Jacobian at ``poses`` (None for free bodies only)."""
         contact = self.model.contact.evaluate(poses)
         if not contact.ok:
-            return np.inf, None, None, contact
+            return np.inf, None, None, contact, None
         self._trial_q.assign(poses)
         wp.launch(
             dynamics_kernels.body_energy_kernel,
@@ -211,17 +212,15 @@ class ImplicitSolver:
         art = self._articulation
         if art is None:
             d = self._dofs
-            return value, grad[d], hess[np.ix_(d, d)], contact
-        J = art.jacobian(poses)
-        reduced_grad = J.T @ grad
-        reduced_hess = J.T @ hess @ J + art.curvature(poses, grad.reshape(-1, 6))
+            return value, grad[d], hess[np.ix_(d, d)], contact, None
+        J, reduced_grad, reduced_hess = art.reduce(poses, grad, hess)
         if art.num_coordinates:
             j_value, j_grad, j_hess = self._joint_terms(coords, step_in)
             c = art.coordinate_dof
             value += j_value
             reduced_grad[c] += j_grad
             reduced_hess[c, c] += j_hess
-        return value, reduced_grad, reduced_hess, contact
+        return value, reduced_grad, reduced_hess, contact, J
 
     def _joint_terms(self, coords: np.ndarray, step_in: "_StepInputs"):
         """Joint-space PD (implicit, like the body PD) and limit barriers: value, gradient, diagonal Hessian."""
@@ -345,7 +344,7 @@ class ImplicitSolver:
         q = q_now.copy()
         q[:, 3:] /= np.linalg.norm(q[:, 3:], axis=1, keepdims=True)
         coords = coords_now.copy()
-        value, grad, hess, contact = self._evaluate(q, coords, step_in)
+        value, grad, hess, contact, jacobian = self._evaluate(q, coords, step_in)
         if not np.isfinite(value):
             raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs}; joint limits reached: {self._limits_reached(coords)})")
         full = np.zeros((model.num_bodies, 6))
@@ -359,7 +358,7 @@ class ImplicitSolver:
                 full[:] = 0.0
                 full.reshape(-1)[self._dofs] = direction
             else:
-                full = (art.jacobian(q) @ direction).reshape(-1, 6)
+                full = (jacobian @ direction).reshape(-1, 6)
             travel = self._body_travel(full)
             step_length = float(travel.max())
             if step_length <= tol:
@@ -386,7 +385,7 @@ class ImplicitSolver:
                     if certified < 1.0:
                         alpha *= min(max(certified, 0.1), 0.9)
                         continue
-                t_value, t_grad, t_hess, t_contact = self._evaluate(trial, t_coords, step_in)
+                t_value, t_grad, t_hess, t_contact, t_jacobian = self._evaluate(trial, t_coords, step_in)
                 # Below the rounding of L an Armijo test is noise; full steps are safe there.
                 if np.isfinite(t_value) and (quadratic_regime or t_value <= value - 1e-4 * alpha * decrement):
                     accepted = True
@@ -397,7 +396,7 @@ class ImplicitSolver:
                     converged = True  # stalled at the rounding floor of L, within 1e3 tol
                     break
                 raise SolverError(self._diagnostics("line search failed", iterations, step_length, value, travel))
-            q, coords, value, grad, hess, contact = trial, t_coords, t_value, t_grad, t_hess, t_contact
+            q, coords, value, grad, hess, contact, jacobian = trial, t_coords, t_value, t_grad, t_hess, t_contact, t_jacobian
         if not converged:
             raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel))
 
@@ -415,7 +414,7 @@ class ImplicitSolver:
             float(contact.pair_separation.min()) if len(contact.pair_separation) else np.inf,
             friction.leaf_items.shape[0] if friction is not None else 0,
         )
-        return self.last_step, lambda: self._backward_function(state_in, state_out, control, step_in, hess, contact.grad, q, q_now, q_prev)
+        return self.last_step, lambda: self._backward_function(state_in, state_out, control, step_in, hess, jacobian, contact.grad, q, q_now, q_prev)
 
     def _limits_reached(self, coords: np.ndarray) -> list[str]:
         art = self._articulation
@@ -435,7 +434,7 @@ class ImplicitSolver:
 
     # --- backward -----------------------------------------------------------------------------
 
-    def _backward_function(self, state_in, state_out, control, step_in, hess, contact_grad, q_next, q_now, q_prev):
+    def _backward_function(self, state_in, state_out, control, step_in, hess, jacobian, contact_grad, q_next, q_now, q_prev):
         """The step's backward and the arrays it touches, for ``tape.record_func``."""
         model = self.model
         dev = model.device
@@ -445,7 +444,6 @@ class ImplicitSolver:
         art = self._articulation
         hess = hess.copy()
         contact_grad = contact_grad.copy()
-        jacobian = art.jacobian(q_next) if art is not None else None
         with wp.ScopedDevice(dev):
             # Snapshots: the backward must see this step's values, not later contents.
             q_next_arr = wp.array(q_next, dtype=wp.transformd)
