@@ -83,3 +83,25 @@ def identity_poses(positions):
     poses[:, :3] = positions
     poses[:, 6] = 1.0
     return poses
+
+
+def ball_into_wall(**builder_options):
+    """x of a 0.5 m ball launched at 1 m/s into a static wall (face at x = 0.6), 15 steps of
+    0.02 s in zero gravity; every step's poses are checked to be contact-free."""
+    import warp as wp
+
+    import warpcontact as wc
+
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), **builder_options)
+    b.add_box((0.1, 2.0, 2.0), static=True, name="wall", pose=(0.65, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    b.add_sphere(0.5, subdivisions=1, density=100.0, name="ball", pose=(0.0, 0.1, 0.05, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    solver = wc.ImplicitSolver(model)
+    states = [model.state(requires_grad=False)]
+    wc.set_body_velocity(states[0], wp.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(2, dtype=wp.vec3d), 0.02)
+    for _ in range(15):
+        nxt = model.state(requires_grad=False)
+        solver.step(states[-1], nxt, None, 0.02)
+        states.append(nxt)
+        assert model.contact.evaluate(nxt.body_q.numpy()).ok
+    return np.array([s.body_q.numpy()[1, 0] for s in states])

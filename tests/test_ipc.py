@@ -2,11 +2,9 @@
 
 import numpy as np
 import pytest
-import warp as wp
-from helpers_rigid import fd_check, icosphere, identity_poses, quat
+from helpers_rigid import ball_into_wall, fd_check, icosphere, identity_poses, quat
 from test_tasks import space_billiards
 
-import warpcontact as wc
 from warpcontact import io
 from warpcontact.cli import main
 from warpcontact.ipc import IpcContactModel
@@ -33,19 +31,7 @@ def test_potential_vanishes_beyond_dhat_and_is_infinite_on_contact():
 
 
 def test_implicit_steps_with_ipc_do_not_penetrate():
-    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e2, contact_mode="ipc", ipc_dhat=0.02)
-    b.add_box((0.1, 2.0, 2.0), static=True, name="wall", pose=(0.65, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
-    b.add_sphere(0.5, subdivisions=1, density=100.0, name="ball", pose=(0.0, 0.1, 0.05, 0.0, 0.0, 0.0, 1.0))
-    model = b.finalize()
-    solver = wc.ImplicitSolver(model)
-    states = [model.state(requires_grad=False)]
-    wc.set_body_velocity(states[0], wp.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(2, dtype=wp.vec3d), 0.02)
-    for _ in range(15):
-        nxt = model.state(requires_grad=False)
-        solver.step(states[-1], nxt, None, 0.02)
-        states.append(nxt)
-        assert model.contact.evaluate(nxt.body_q.numpy()).ok
-    x = np.array([s.body_q.numpy()[1, 0] for s in states])
+    x = ball_into_wall(contact_stiffness=1e2, contact_mode="ipc", ipc_dhat=0.02)
     # The ball (radius <= 0.5) stops at the wall face (x = 0.6) and never passes it.
     assert x.max() < 0.1 + 1e-9 and x[-1] < x.max()
 

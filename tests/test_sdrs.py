@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-import warp as wp
 from helpers import (
     edge_edge,
     leaf_fd_errors,
@@ -10,7 +9,7 @@ from helpers import (
     random_separated_pair,
     vertex_face,
 )
-from helpers_rigid import fd_check, icosphere, identity_poses, quat
+from helpers_rigid import ball_into_wall, fd_check, icosphere, identity_poses, quat
 from test_tasks import space_billiards
 
 import warpcontact as wc
@@ -119,19 +118,7 @@ def test_builder_selects_sdrs_and_refuses_friction():
 
 
 def test_implicit_steps_with_sdrs_do_not_penetrate():
-    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e-4, contact_mode="sdrs", sdrs_dhat=0.01)
-    b.add_box((0.1, 2.0, 2.0), static=True, name="wall", pose=(0.65, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
-    b.add_sphere(0.5, subdivisions=1, density=100.0, name="ball", pose=(0.0, 0.1, 0.05, 0.0, 0.0, 0.0, 1.0))
-    model = b.finalize()
-    solver = wc.ImplicitSolver(model)
-    states = [model.state(requires_grad=False)]
-    wc.set_body_velocity(states[0], wp.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(2, dtype=wp.vec3d), 0.02)
-    for _ in range(15):
-        nxt = model.state(requires_grad=False)
-        solver.step(states[-1], nxt, None, 0.02)
-        states.append(nxt)
-        assert model.contact.evaluate(nxt.body_q.numpy()).ok
-    x = np.array([s.body_q.numpy()[1, 0] for s in states])
+    x = ball_into_wall(contact_stiffness=1e-4, contact_mode="sdrs", sdrs_dhat=0.01)
     # The ball (radius <= 0.5) stops at the wall face (x = 0.6) and bounces back.
     assert 0.09 < x.max() < 0.1 + 1e-9 and x[-1] < x.max() - 0.01
 

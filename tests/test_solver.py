@@ -6,6 +6,7 @@ import trimesh
 import warp as wp
 
 import warpcontact as wc
+from warpcontact import scenes
 
 
 def quat_matrix(q):
@@ -20,16 +21,8 @@ def quat_matrix(q):
 
 
 def grid_ground(size=4.0, cell=0.5):
-    n = int(round(size / cell))
-    xs = np.linspace(-size / 2, size / 2, n + 1)
-    X, Y = np.meshgrid(xs, xs, indexing="ij")
-    V = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], axis=1)
-    F = []
-    for i in range(n):
-        for j in range(n):
-            a = i * (n + 1) + j
-            F += [[a, a + n + 1, a + 1], [a + 1, a + n + 1, a + n + 2]]
-    return V, np.array(F)
+    ground = scenes.grid_ground(size, size, cell)
+    return ground.vertices, ground.faces
 
 
 def rollout(model, steps, dt, *, control=None, solver=None, first=None):

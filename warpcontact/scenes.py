@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from .articulation import frame_in_body
 from .io import BodySpec, JointSpec, Scene, SimulationSettings, TaskSpec, save_scene
 from .robots import AntSpec, ant_description
-from .rotation import pose_inverse, pose_mul
 
 __all__ = ["SCENE_NAMES", "BILLIARDS_SERIES", "build_scene", "billiards_scene", "write_scenes", "fibonacci_ball", "rest_on_face", "decimate", "bunny_mesh"]
 
@@ -257,7 +257,7 @@ def _ant_push() -> Scene:
         if j["kind"] == "base":
             child_pose = poses[j["child"]]
             world = np.array([*child_pose[:3], *_IDENTITY])
-            joints.append(JointSpec(j["name"], f"/World/joints/{j['name']}", "base", None, j["child"], world, pose_mul(pose_inverse(child_pose), world), dofs=j["dofs"]))
+            joints.append(JointSpec(j["name"], f"/World/joints/{j['name']}", "base", None, j["child"], world, frame_in_body(child_pose, world), dofs=j["dofs"]))
             continue
         # Joint frame at the anchor with the world's axes; the axes are then world vectors.
         world = np.array([*j["anchor"], *_IDENTITY])
@@ -269,8 +269,8 @@ def _ant_push() -> Scene:
                 j["kind"],
                 j["parent"],
                 j["child"],
-                pose_mul(pose_inverse(poses[j["parent"]]), world),
-                pose_mul(pose_inverse(poses[j["child"]]), world),
+                frame_in_body(poses[j["parent"]], world),
+                frame_in_body(poses[j["child"]], world),
                 axes=axes,
                 limits=[tuple(lim) for lim in j["limits"]],
                 kp=np.full(len(axes), j["kp"]),
