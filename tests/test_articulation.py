@@ -326,3 +326,60 @@ def test_static_child_and_missing_joint_state_are_refused():
     broken = wc.State(body_q=state.body_q, body_q_prev=state.body_q_prev)
     with pytest.raises(ValueError, match="joint coordinates"):
         wc.ImplicitSolver(model).step(broken, model.state(), None, 0.01)
+
+
+def ball_pendulum(swing, *, cone=0.3):
+    """A rod hanging from a world ball joint with a swing (cone) limit about the vertical,
+    started at ``swing`` rad about x."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    rod = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, -0.5, 0, 0, 0, 1), name="rod")
+    b.add_joint("ball", child=rod, anchor=(0, 0, 0), axis=(0, 0, 1), cone_limit=cone, name="shoulder")
+    model = b.finalize()
+    q = model.articulation.retract(model.initial_q, np.array([swing, 0.0, 0.0]))
+    return model, q
+
+
+def test_ball_joint_cone_barrier_derivatives_match_finite_differences():
+    model, q = ball_pendulum(0.27)
+    art = model.articulation
+    q = art.retract(q, np.array([0.0, 0.02, 0.05]))  # off-plane, with twist
+    value, grad, hess = art.cone_terms(q)
+    assert value > 0  # inside the barrier's margin (0.03 rad)
+
+    def f(delta):
+        return art.cone_terms(art.retract(q, delta))[0]
+
+    h1, h2, eye = 1e-7, 1e-5, np.eye(3)
+    fd_grad = np.array([(f(h1 * e) - f(-h1 * e)) / (2 * h1) for e in eye])
+    fd_hess = np.array([[(f(h2 * (ek + ej)) - f(h2 * (ek - ej)) - f(h2 * (ej - ek)) + f(-h2 * (ek + ej))) / (4 * h2 * h2) for ej in eye] for ek in eye])
+    assert np.abs(fd_grad - grad).max() <= 1e-6 * np.abs(grad).max()
+    assert np.abs(fd_hess - hess).max() <= 1e-4 * np.abs(hess).max()
+
+
+def test_ball_joint_swing_never_crosses_its_cone_limit():
+    model, q = ball_pendulum(0.2)
+    state = model.state(requires_grad=False)
+    state.body_q.assign(q)
+    state.body_q_prev.assign(model.articulation.retract(q, np.array([-0.04, 0.01, 0.0])))  # swinging outwards
+    states, _ = simulate(model, state, 60, 0.01)
+    cone = model.articulation.cones[0]
+    swings = [model.articulation._cone_angle(cone, s.body_q.numpy())[0] for s in states]
+    assert max(swings) < 0.3
+    assert max(swings) > 0.27  # it reached the barrier
+    assert max(model.articulation.anchor_gaps(s.body_q.numpy()).max() for s in states) < 1e-12
+
+
+def test_bad_cone_limits_are_refused():
+    b, a, c = two_boxes()
+    with pytest.raises(ValueError, match="cone_limit only applies to ball joints"):
+        b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), cone_limit=0.5)
+    with pytest.raises(ValueError, match=r"cone_limit must be in \(0, pi\)"):
+        b.add_joint("ball", child=a, anchor=(0, 0, 1.2), cone_limit=4.0)
+    with pytest.raises(ValueError, match="no PD gains"):
+        b.add_joint("ball", child=a, anchor=(0, 0, 1.2), kp=3.0)
+    model_builder = wc.ModelBuilder()
+    rod = model_builder.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, -0.5, 0, 0, 0, 1), name="rod")
+    tilt = (0.0, np.sin(0.5), 0.0, np.cos(0.5))  # the child's joint frame turned by 1 rad about y
+    model_builder.add_joint("ball", child=rod, parent_frame=(0, 0, 0, 0, 0, 0, 1), child_frame=(0, 0, 0.5, *tilt), axis=(1, 0, 0), cone_limit=0.5, name="tilted")
+    with pytest.raises(ValueError, match="'tilted'.*not strictly inside its cone limit"):
+        model_builder.finalize()

@@ -174,7 +174,7 @@ def test_non_finite_points_missing_files_and_empty_stages(tmp_path):
         io.load_scene(tmp_path / "empty.usda")
 
 
-def write_hinged_box(path, *, limits=(-30.0, 60.0), stiffness=2.0, cone=None):
+def write_hinged_box(path, *, limits=(-30.0, 60.0), stiffness=2.0, cone=None, cone1=None):
     """A box hanging from a world revolute joint about y (UsdPhysics only: degrees, per-degree gains)."""
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
@@ -195,8 +195,9 @@ def write_hinged_box(path, *, limits=(-30.0, 60.0), stiffness=2.0, cone=None):
         drive.CreateDampingAttr(0.1)
     else:
         joint = UsdPhysics.SphericalJoint.Define(stage, "/World/hinge")
+        joint.CreateAxisAttr("Z")
         joint.CreateConeAngle0LimitAttr(cone)
-        joint.CreateConeAngle1LimitAttr(cone)
+        joint.CreateConeAngle1LimitAttr(cone if cone1 is None else cone1)
     joint.CreateBody1Rel().SetTargets(["/World/box"])
     joint.CreateLocalPos0Attr(Gf.Vec3f(0.0, 0.0, 1.5))
     joint.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.5))
@@ -227,9 +228,18 @@ def test_revolute_joint_imports_limits_and_drive_in_si_units(tmp_path):
     assert art.anchor_gaps(nxt.body_q.numpy()).max() < 1e-12
 
 
-def test_spherical_cone_limits_are_refused(tmp_path):
-    with pytest.raises(ValueError, match=r"/World/hinge: cone limits on spherical joints are not supported"):
-        io.load_scene(write_hinged_box(tmp_path / "cone.usda", cone=45.0))
+def test_spherical_joint_cone_limit_loads_in_radians_and_round_trips(tmp_path):
+    scene = io.load_scene(write_hinged_box(tmp_path / "cone.usda", cone=45.0))
+    (joint,) = scene.joints
+    assert joint.kind == "ball" and joint.cone_limit == pytest.approx(np.pi / 4)
+    np.testing.assert_allclose(joint.axes, [[0.0, 0.0, 1.0]])
+    cone = scene.build_model().articulation.cones[0]
+    assert cone["limit"] == pytest.approx(np.pi / 4)
+    io.save_scene(scene, tmp_path / "again.usda")
+    again = io.load_scene(tmp_path / "again.usda").build_model().articulation.cones[0]
+    assert again["limit"] == pytest.approx(np.pi / 4, rel=1e-6)
+    with pytest.raises(ValueError, match=r"/World/hinge: elliptical cone limits"):
+        io.load_scene(write_hinged_box(tmp_path / "ellipse.usda", cone=45.0, cone1=30.0))
 
 
 def test_articulated_scene_round_trip_preserves_joints(tmp_path):

@@ -75,7 +75,9 @@ class Joint:
     vectors in the joint frame: one for revolute and prismatic joints, two orthogonal ones
     for universal joints (the first fixed in the parent, the second in the child). ``base``
     joints use ``base_dofs`` (a subset of ``BASE_DOFS``, world axes, rotations about the
-    child's centre of mass) and ignore frames and axes. Per coordinate: ``lower``/``upper``
+    child's centre of mass) and ignore frames and axes. Ball joints may carry one axis (the
+    joint frame's, default X) and a ``cone_limit`` on the angle between that axis in the
+    parent and in the child (a swing limit; twist is free). Per coordinate: ``lower``/``upper``
     limits (rad or m, +-inf for none), ``limit_margin`` (the barrier's support, rad or m),
     ``limit_stiffness`` (J) and PD gains ``kp`` (N m/rad or N/m) and ``kd`` (N m s/rad or
     N s/m).
@@ -95,6 +97,7 @@ class Joint:
     limit_stiffness: np.ndarray | None = None
     kp: np.ndarray | None = None
     kd: np.ndarray | None = None
+    cone_limit: float = np.inf  # ball joints: largest angle (rad) between the axis in parent and child
 
     def num_coordinates(self) -> int:
         if self.kind in ("revolute", "prismatic"):
@@ -252,6 +255,7 @@ class ArticulationModel:
             self.body_dofs.append(np.concatenate(path[::-1]) if path else np.zeros(0, dtype=np.int64))
         # Dynamic bodies are those with DOFs; rows of J for static bodies stay zero.
         self.dynamic_bodies = np.flatnonzero([len(d) > 0 for d in self.body_dofs])
+        self.cones = [self._cone(j, joint, poses) for j, joint in enumerate(self.joints) if joint.kind == "ball" and np.isfinite(joint.cone_limit)]
 
     # --- construction ---------------------------------------------------------------------
 
@@ -315,6 +319,75 @@ class ArticulationModel:
         if error > _ANGLE_TOLERANCE:
             raise ValueError(f"{where}: the initial relative rotation is not a {joint.kind} joint motion (off by {error:.3g} rad)")
         return np.array(values)
+
+    def _cone(self, j: int, joint: Joint, poses: np.ndarray) -> dict:
+        """A ball joint's swing limit: the axis fixed in the parent and in the child, the limit,
+        the barrier's margin (a tenth of the limit, at most 0.1 rad) and stiffness (J)."""
+        axis = joint.axes[0] if len(joint.axes) else np.array([1.0, 0.0, 0.0])
+        cone = {
+            "dofs": self.joint_dofs[j],
+            "parent": joint.parent,
+            "parent_axis": quat_rotate(joint.parent_frame[3:], axis),
+            "child": joint.child,
+            "child_axis": quat_rotate(joint.child_frame[3:], axis),
+            "limit": float(joint.cone_limit),
+            "margin": min(0.1 * float(joint.cone_limit), 0.1),
+            "stiffness": float(joint.limit_stiffness[0]) if joint.limit_stiffness is not None and len(joint.limit_stiffness) else 1.0,
+        }
+        angle = self._cone_angle(cone, poses)[0]
+        if angle >= cone["limit"]:
+            raise ValueError(f"joint {joint.name!r} ({self._link_names(joint)}): initial swing {angle:.6g} rad is not strictly inside its cone limit {cone['limit']:.6g} rad")
+        return cone
+
+    @staticmethod
+    def _cone_angle(cone: dict, poses: np.ndarray):
+        """(swing angle, parent axis, child axis) in the world at ``poses``."""
+        parent_axis = cone["parent_axis"] if cone["parent"] < 0 else quat_rotate(poses[cone["parent"], 3:], cone["parent_axis"])
+        child_axis = quat_rotate(poses[cone["child"], 3:], cone["child_axis"])
+        return float(np.arccos(np.clip(parent_axis @ child_axis, -1.0, 1.0))), parent_axis, child_axis
+
+    def cone_terms(self, poses: np.ndarray):
+        """Swing-limit barriers of ball joints: value, gradient (m,) and Hessian (m, m).
+
+        With c = a_p . a_c (a_c turned by the joint's rotation group w: d a_c = w x a_c),
+        dc/dw = a_c x a_p and d2c/dw2 = 1/2 (a_c a_p^T + a_p a_c^T) - c I; the swing is
+        beta = arccos c, and the barrier is ``joint_limit_energy`` of beta below the limit.
+        Ancestor motions turn both axes alike and leave c unchanged.
+        """
+        value, grad, hess = 0.0, np.zeros(self.num_dofs), np.zeros((self.num_dofs, self.num_dofs))
+        for cone in self.cones:
+            beta, a_p, a_c = self._cone_angle(cone, poses)
+            e_value, e_grad, e_hess = joint_limit_energy(np.array([beta]), np.array([-np.inf]), np.array([cone["limit"]]), np.array([cone["margin"]]), np.array([cone["stiffness"]]))
+            if not np.isfinite(e_value[0]):
+                return np.inf, grad, hess
+            if e_value[0] == 0.0 and e_grad[0] == 0.0:
+                continue
+            c = a_p @ a_c
+            sine = np.sqrt(max(1.0 - c * c, 1e-300))
+            dc = np.cross(a_c, a_p)
+            d2c = 0.5 * (np.outer(a_c, a_p) + np.outer(a_p, a_c)) - c * np.eye(3)
+            dbeta = -dc / sine
+            d2beta = -d2c / sine - c / sine**3 * np.outer(dc, dc)
+            d = cone["dofs"]
+            value += float(e_value[0])
+            grad[d] += e_grad[0] * dbeta
+            hess[np.ix_(d, d)] += e_hess[0] * np.outer(dbeta, dbeta) + e_grad[0] * d2beta
+        return value, grad, hess
+
+    def cone_step_limit(self, poses: np.ndarray, direction: np.ndarray, fraction: float) -> float:
+        """Largest step fraction whose rotation closes at most ``fraction`` of any swing's room
+        to its cone limit. Turning by w moves the child's axis a_c through at most |w x a_c|
+        (sin(phi/2) = sin(|w|/2) sin(angle(w, a_c))), so twist about a_c costs nothing."""
+        alpha = 1.0
+        for cone in self.cones:
+            swing, _, a_c = self._cone_angle(cone, poses)
+            w = direction[cone["dofs"]]
+            turn = float(np.linalg.norm(np.cross(w, a_c)))
+            if turn > 0:
+                # the bound holds for rotations up to pi
+                alpha = min(alpha, np.pi / float(np.linalg.norm(w)))
+                alpha = min(alpha, fraction * (cone["limit"] - swing) / turn)
+        return alpha
 
     def _link_names(self, joint: Joint) -> str:
         parent = self.body_names[joint.parent] if joint.parent >= 0 else "world"

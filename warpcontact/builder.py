@@ -231,6 +231,7 @@ class ModelBuilder:
         kd=0.0,
         limit_margin=None,
         limit_stiffness=1.0,
+        cone_limit: float | None = None,
         name: str | None = None,
     ) -> int:
         """Connect ``child`` to ``parent`` (a body index, or None for the world); returns the joint index.
@@ -253,6 +254,8 @@ class ModelBuilder:
                 (N/m, N s/m for translations); targets come from ``Control.joint_target``.
             limit_margin: support of the limit barrier (default: a tenth of the range, at most
                 0.1); limit_stiffness: its scale (J).
+            cone_limit: ball joints: the largest swing (rad, in (0, pi)) between ``axis`` (in
+                the joint frame, default X) fixed in the parent and fixed in the child.
         """
         name = name or f"joint{len(self._joints)}"
         where = f"joint {name!r}"
@@ -292,7 +295,8 @@ class ModelBuilder:
             if dofs is not None:
                 raise ValueError(f"{where}: dofs only applies to base joints")
             dofs = ()
-            axes = _unit_axes(axis, {"revolute": 1, "prismatic": 1, "universal": 2, "ball": 0}[kind], where)
+            ball_axes = 0 if axis is None else 1
+            axes = _unit_axes(axis, {"revolute": 1, "prismatic": 1, "universal": 2, "ball": ball_axes}[kind], where)
             if anchor is not None:
                 if parent_frame is not None or child_frame is not None:
                     raise ValueError(f"{where}: give an anchor or joint frames, not both")
@@ -339,8 +343,15 @@ class ModelBuilder:
         probe.lower, probe.upper = lower, upper
         probe.limit_margin, probe.limit_stiffness = gains["limit_margin"], gains["limit_stiffness"]
         probe.kp, probe.kd = gains["kp"], gains["kd"]
-        if kind == "ball" and count == 0 and (np.asarray(kp).any() or np.asarray(kd).any() or limits is not None):
-            raise ValueError(f"{where}: ball joints have no coordinates, so no PD gains or limits; use a universal joint or revolute joints")
+        if kind == "ball" and (np.asarray(kp).any() or np.asarray(kd).any() or limits is not None):
+            raise ValueError(f"{where}: ball joints have no coordinates, so no PD gains or coordinate limits (a swing limit is cone_limit); use a universal joint or revolute joints for actuation")
+        if cone_limit is not None:
+            if kind != "ball":
+                raise ValueError(f"{where}: cone_limit only applies to ball joints")
+            if not 0.0 < float(cone_limit) < np.pi:
+                raise ValueError(f"{where}: cone_limit must be in (0, pi) rad, got {cone_limit!r}")
+            probe.cone_limit = float(cone_limit)
+            probe.limit_stiffness = np.array([float(np.asarray(limit_stiffness).reshape(-1)[0])])
         self._joints.append(probe)
         return len(self._joints) - 1
 

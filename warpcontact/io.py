@@ -129,6 +129,7 @@ class JointSpec:
     limits: list | None = None
     kp: np.ndarray = field(default_factory=lambda: np.zeros(0))
     kd: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    cone_limit: float | None = None  # ball joints: swing limit about the first axis (rad)
 
 
 @dataclass
@@ -178,6 +179,8 @@ class Scene:
         index = {b.name: i for i, b in enumerate(self.bodies)}
         for j in self.joints:
             options = {"dofs": j.dofs} if j.kind == "base" else {"parent_frame": j.parent_frame, "child_frame": j.child_frame, "axis": j.axes if len(j.axes) else None}
+            if j.cone_limit is not None:
+                options["cone_limit"] = j.cone_limit
             if len(j.kp):
                 options.update(kp=j.kp, kd=j.kd)
             try:
@@ -449,8 +452,12 @@ def _read_joints(descs, bodies: dict, meters: float, source: str, UsdPhysics) ->
                 gains = (drive.stiffness / scale, drive.damping / scale) if drive.enabled else (0.0, 0.0)
                 spec.kp, spec.kd = np.array([gains[0]]), np.array([gains[1]])
             elif kind == "ball":
-                if desc.limit.enabled and max(abs(desc.limit.lower), abs(desc.limit.upper)) < 180.0:
-                    raise ValueError(f"{where}: cone limits on spherical joints are not supported; use a D6 joint with rotation limits (a universal joint) or remove the limit")
+                spec.axes = _AXES[_axis_token(desc.axis)][None]
+                if desc.limit.enabled and min(abs(desc.limit.lower), abs(desc.limit.upper)) < 180.0:
+                    # coneAngle0Limit / coneAngle1Limit: only a circular cone is modelled
+                    if abs(desc.limit.lower - desc.limit.upper) > 1e-6:
+                        raise ValueError(f"{where}: elliptical cone limits ({desc.limit.lower} and {desc.limit.upper} degrees) are not supported; give both cone angles the same value")
+                    spec.cone_limit = float(desc.limit.lower) * _DEGREE
             else:
                 _read_d6(desc, spec, where, meters)
             joints.append(spec)
@@ -728,6 +735,10 @@ def _author_joint(stage, j: JointSpec, Gf, UsdPhysics):
         joint.CreateAxisAttr("X")
     elif j.kind == "ball":
         joint = UsdPhysics.SphericalJoint.Define(stage, path)
+        joint.CreateAxisAttr("X")
+        if j.cone_limit is not None:
+            joint.CreateConeAngle0LimitAttr(float(j.cone_limit / _DEGREE))
+            joint.CreateConeAngle1LimitAttr(float(j.cone_limit / _DEGREE))
     else:  # universal and base: a D6 joint with locked axes
         joint = UsdPhysics.Joint.Define(stage, path)
     prim = joint.GetPrim()

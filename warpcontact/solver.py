@@ -214,6 +214,13 @@ class ImplicitSolver:
             d = self._dofs
             return value, grad[d], hess[np.ix_(d, d)], contact, None
         J, reduced_grad, reduced_hess = art.reduce(poses, grad, hess)
+        if art.cones:
+            c_value, c_grad, c_hess = art.cone_terms(poses)
+            if not np.isfinite(c_value):
+                return np.inf, None, None, contact, None
+            value += c_value
+            reduced_grad += c_grad
+            reduced_hess += c_hess
         if art.num_coordinates:
             j_value, j_grad, j_hess = self._joint_terms(coords, step_in)
             c = art.coordinate_dof
@@ -238,16 +245,20 @@ class ImplicitSolver:
             hess = hess + l_hess
         return value, grad, hess
 
-    def _limit_step(self, coords: np.ndarray, direction: np.ndarray) -> float:
-        """Largest step fraction that closes at most ``advancement_fraction`` of any joint coordinate's distance to its limits."""
+    def _limit_step(self, poses: np.ndarray, coords: np.ndarray, direction: np.ndarray) -> float:
+        """Largest step fraction that closes at most ``advancement_fraction`` of any joint
+        coordinate's distance to its limits, or of any ball joint's room to its cone limit."""
         art = self._articulation
-        if art is None or not art.has_limits:
+        if art is None:
             return 1.0
+        cone_alpha = art.cone_step_limit(poses, direction, self.advancement_fraction) if art.cones else 1.0
+        if not art.has_limits:
+            return cone_alpha
         delta = direction[art.coordinate_dof]
         room = np.where(delta < 0, coords - art.lower, art.upper - coords)
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(delta != 0, self.advancement_fraction * room / np.abs(delta), np.inf)
-        return float(min(1.0, ratio.min(initial=np.inf)))
+        return float(min(1.0, cone_alpha, ratio.min(initial=np.inf)))
 
     def _newton_direction(self, hess: np.ndarray, grad: np.ndarray) -> np.ndarray:
         """Descent direction from H d = -g.
@@ -367,7 +378,7 @@ class ImplicitSolver:
             decrement = -float(grad @ direction)
             # The contact model still holds the term lists of q: trials come after this.
             frame = model.contact.advancement_frame() if art is not None else None
-            alpha = min(model.contact.advancement_limit(full, fraction=self.advancement_fraction, frame=frame), self._limit_step(coords, direction))
+            alpha = min(model.contact.advancement_limit(full, fraction=self.advancement_fraction, frame=frame), self._limit_step(q, coords, direction))
             # L's rounding scales with its terms, not with L, which is ~0 in free flight under
             # a locally supported contact model (ipc, sdrs); steps within 1e3 tol are quadratic.
             quadratic_regime = (decrement <= 1e-10 * max(abs(value), 1e-300) or step_length <= 1e3 * tol) and alpha == 1.0
