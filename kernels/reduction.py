@@ -313,17 +313,17 @@ _ADVANCEMENT_BISECTIONS = wp.constant(40)
 
 
 @wp.func
-def _toward_plane_bound(
-    tri: wp.mat33d, pos: wp.vec3d, direction: wp.vec3d, step: vec6d, alpha: wp.float64
-):
-    """Upper bound on how far a triangle's points move along ``direction`` under any alpha' <= alpha.
+def _gap_closure(tri: wp.mat33d, pos: wp.vec3d, direction: wp.vec3d, step: vec6d, alpha: wp.float64):
+    """Upper bound on how much a triangle closes a gap along ``direction`` under any
+    alpha' <= alpha of a rigid step: max over vertices of (its travel along ``direction``
+    minus how far behind the triangle's leading vertex it starts).
 
     A vertex at offset r moves along d by alpha dp.d + sin(phi) (k x r).d
     + (1 - cos(phi)) ((k.r)(k.d) - r.d) with phi = alpha |dtheta|, k = dtheta / |dtheta|.
     Bounding sin(phi) by phi (or phi - phi^3/6 where its factor is negative) and 1 - cos(phi)
     by phi^2/2 gives a bound convex and non-decreasing in phi beyond its linear part, so the
-    admissible alphas form an interval. A rigid motion moves a triangle's points affinely,
-    so the worst point is a vertex.
+    result is convex in alpha and zero at alpha = 0. A rigid motion moves a triangle's points
+    affinely, so the worst point is a vertex.
     """
     dp = wp.vec3d(step[0], step[1], step[2])
     dtheta = wp.vec3d(step[3], step[4], step[5])
@@ -333,16 +333,63 @@ def _toward_plane_bound(
     k = wp.vec3d()
     if spin > zero:
         k = dtheta / spin
+    lead = wp.max(wp.max(wp.dot(tri[0], direction), wp.dot(tri[1], direction)), wp.dot(tri[2], direction))
     worst = wp.float64(-1.0e308)
     for v in range(3):
         r = tri[v] - pos
         b = wp.dot(wp.cross(k, r), direction)
         c = wp.dot(k, r) * wp.dot(k, direction) - wp.dot(r, direction)
-        bound = alpha * wp.dot(dp, direction) + phi * b + wp.float64(0.5) * phi * phi * wp.max(c, zero)
+        travel = alpha * wp.dot(dp, direction) + phi * b + wp.float64(0.5) * phi * phi * wp.max(c, zero)
         if b < zero:
-            bound += phi * phi * phi * (-b) / wp.float64(6.0)
-        worst = wp.max(worst, bound)
+            travel += phi * phi * phi * (-b) / wp.float64(6.0)
+        worst = wp.max(worst, travel - (lead - wp.dot(tri[v], direction)))
     return worst
+
+
+@wp.func
+def _axis_advancement(
+    ta: wp.mat33d,
+    tb: wp.mat33d,
+    pos_a: wp.vec3d,
+    pos_b: wp.vec3d,
+    step_a: vec6d,
+    step_b: vec6d,
+    axis: wp.vec3d,
+    fraction: wp.float64,
+):
+    """Largest alpha in [0, 1] (to bisection accuracy) for which the triangles' gap along
+    ``axis`` (their extents' separation) closes by at most ``fraction`` along the step;
+    0 if their extents along it overlap now.
+
+    While that gap stays positive a plane normal to ``axis`` separates the triangles, so they
+    stay disjoint. The gap is bounded by what both sides close (``_gap_closure``), so it is
+    the relative motion that counts: bodies moving together are not held back, a static side
+    takes none of the room, and a face may tilt about a vertex or edge resting close to the
+    other triangle. The closure is convex in alpha, so the admissible alphas are an interval.
+    """
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    if wp.length(axis) == zero:
+        return zero
+    normal = wp.normalize(axis)
+    if wp.dot(normal, ta[0] + ta[1] + ta[2] - tb[0] - tb[1] - tb[2]) < zero:
+        normal = -normal
+    low_a = wp.min(wp.min(wp.dot(ta[0], normal), wp.dot(ta[1], normal)), wp.dot(ta[2], normal))
+    high_b = wp.max(wp.max(wp.dot(tb[0], normal), wp.dot(tb[1], normal)), wp.dot(tb[2], normal))
+    room = fraction * (low_a - high_b)
+    if not (room > zero):
+        return zero
+    if _gap_closure(ta, pos_a, -normal, step_a, one) + _gap_closure(tb, pos_b, normal, step_b, one) <= room:
+        return one
+    lo = zero
+    hi = one
+    for _it in range(_ADVANCEMENT_BISECTIONS):
+        mid = wp.float64(0.5) * (lo + hi)
+        if _gap_closure(ta, pos_a, -normal, step_a, mid) + _gap_closure(tb, pos_b, normal, step_b, mid) <= room:
+            lo = mid
+        else:
+            hi = mid
+    return lo
 
 
 @wp.kernel
@@ -368,8 +415,9 @@ def advancement_kernel(
 
     Far terms: the clusters stay inside their spheres, so their points approach by at most
     alpha (|dp_a - dp_b| + |dtheta_a| rho_a + |dtheta_b| rho_b), rho = |c - p| + R.
-    Leaf terms: each triangle may close at most ``fraction`` of its distance to the (fixed)
-    separating plane, so the pair stays disjoint along the whole path.
+    Leaf terms: the two triangles may close at most ``fraction`` of their gap along a fixed
+    axis, so a plane normal to it keeps separating them along the whole path; the axis is the
+    best of the potential's plane normal and the two triangles' face normals.
     """
     tid = wp.tid()
     zero = wp.float64(0.0)
@@ -394,31 +442,20 @@ def advancement_kernel(
     item = leaf_items[tid - num_far]
     pair = seed_body_pair[item[3]]
     plane = leaf_plane[tid - num_far]
-    n = wp.vec3d(plane[0], plane[1], plane[2])
-    inv_norm = one / wp.length(n)
-    normal = n * inv_norm
-    rot_a = body_rotation[pair[0]]
-    rot_b = body_rotation[pair[1]]
+    ta = world_triangle(triangle_vertices[item[0]], body_rotation[pair[0]], body_position[pair[0]])
+    tb = world_triangle(triangle_vertices[item[1]], body_rotation[pair[1]], body_position[pair[1]])
     pos_a = body_position[pair[0]]
     pos_b = body_position[pair[1]]
-    ta = world_triangle(triangle_vertices[item[0]], rot_a, pos_a)
-    tb = world_triangle(triangle_vertices[item[1]], rot_b, pos_b)
-    dist_a = wp.float64(1.0e308)
-    dist_b = wp.float64(1.0e308)
-    for k in range(3):
-        dist_a = wp.min(dist_a, (wp.dot(ta[k], n) + plane[3]) * inv_norm)
-        dist_b = wp.min(dist_b, -(wp.dot(tb[k], n) + plane[3]) * inv_norm)
     step_a = body_step[pair[0]]
     step_b = body_step[pair[1]]
-    if _toward_plane_bound(ta, pos_a, -normal, step_a, one) <= fraction * dist_a and _toward_plane_bound(tb, pos_b, normal, step_b, one) <= fraction * dist_b:
-        return
-    # The admissible set of alpha is an interval [0, alpha*] (the bounds are convex in alpha).
-    lo = zero
-    hi = one
-    for _it in range(_ADVANCEMENT_BISECTIONS):
-        mid = wp.float64(0.5) * (lo + hi)
-        if _toward_plane_bound(ta, pos_a, -normal, step_a, mid) <= fraction * dist_a and _toward_plane_bound(tb, pos_b, normal, step_b, mid) <= fraction * dist_b:
-            lo = mid
-        else:
-            hi = mid
-    wp.atomic_min(alpha_out, 0, lo)
+    # Any axis along which the pair stays apart certifies the path. The potential's plane sits
+    # between the triangles' orientations, so a face resting on another face (a body on the
+    # ground) nearly meets it at its raised end; the face normals let it tilt much further.
+    alpha = _axis_advancement(ta, tb, pos_a, pos_b, step_a, step_b, wp.vec3d(plane[0], plane[1], plane[2]), fraction)
+    if alpha < one:
+        alpha = wp.max(alpha, _axis_advancement(ta, tb, pos_a, pos_b, step_a, step_b, wp.cross(ta[1] - ta[0], ta[2] - ta[0]), fraction))
+    if alpha < one:
+        alpha = wp.max(alpha, _axis_advancement(ta, tb, pos_a, pos_b, step_a, step_b, wp.cross(tb[1] - tb[0], tb[2] - tb[0]), fraction))
+    if alpha < one:
+        wp.atomic_min(alpha_out, 0, alpha)
+

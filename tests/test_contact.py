@@ -295,3 +295,70 @@ def test_blend_zone_terms_push_apart():
         assert np.dot(-res.grad[1, :3], direction) > 0
         assert np.dot(-res.grad[0, :3], -direction) > 0
         np.testing.assert_allclose(res.grad[0, :3], -res.grad[1, :3], rtol=1e-9)
+
+
+# --- conservative advancement -----------------------------------------------------------------
+
+
+def _resting_box(tilt: float, low_gap: float):
+    """A static slab with its top at z = 0 and a box tilted by ``tilt`` about y whose lowest
+    bottom edge is ``low_gap`` above it; returns the model, poses and the box's bottom corners."""
+    from warpcontact.rotation import quat_to_matrix
+
+    slab, body = box((6.0, 6.0, 0.2)), box()
+    poses = identity_poses([[0, 0, -0.1], [0, 0, 0]])
+    poses[1, 3:] = quat([0, 1, 0], tilt)
+    world = body[0] @ quat_to_matrix(poses[1, 3:]).T
+    poses[1, 2] = low_gap - world[:, 2].min()
+    model = wc.ContactModel([slab, body], static=[True, False])
+    return model, poses, world + poses[1, :3]
+
+
+def _along_path_ok(model, poses, step, alpha, samples=40):
+    from warpcontact.solver import retract
+
+    return all(model.evaluate(retract(poses, t * step)).ok for t in np.linspace(0, alpha, samples)[1:])
+
+
+def test_advancement_lets_a_face_tilt_about_its_resting_edge():
+    """A box rests on one bottom edge 1e-4 m above a slab, its opposite edge 1e-2 m up; a step
+    pivoting about the resting edge lowers the opposite edge by 2e-2 m at alpha = 1. The edge
+    on the pivot barely moves, so the step may go until the high edge has closed 0.9 of its own
+    distance (alpha near 0.45), not 0.9 of the low edge's distance (alpha near 0.005)."""
+    model, poses, corners = _resting_box(tilt=0.01, low_gap=1e-4)
+    bottom = corners[np.argsort(corners[:, 2])[:4]]
+    low, high = bottom[0], bottom[-1]
+    assert high[2] - low[2] > 9e-3
+    lever = np.linalg.norm((high - low)[[0, 2]])
+    spin = np.array([0.0, 0.02 / lever, 0.0])
+    if np.cross(spin, high - low)[2] > 0:
+        spin = -spin
+    step = np.zeros((2, 6))
+    step[1, 3:] = spin
+    step[1, :3] = -np.cross(spin, low - poses[1, :3])
+    assert model.evaluate(poses).ok
+    alpha = model.advancement_limit(step)
+    assert 0.3 < alpha < 0.5
+    assert _along_path_ok(model, poses, step, alpha)
+
+
+def test_advancement_keeps_random_steps_apart():
+    """Random rigid steps, large against the gap: every configuration on the bounded path is
+    intersection free and the bound is not vacuous."""
+    rng = np.random.default_rng(7)
+    model = wc.ContactModel([icosphere(1), box()])
+    for trial in range(6):
+        gap = 10.0 ** rng.uniform(-4, -1)
+        poses = identity_poses([[0, 0, 0], [1.0 + gap, 0.1, 0.0]])
+        poses[1, 3:] = quat(rng.normal(size=3), rng.uniform(0, np.pi))
+        while not model.evaluate(poses).ok or model.evaluate(poses).pair_separation[0] < 0.5 * gap:
+            poses[1, 0] += gap
+        step = np.zeros((2, 6))
+        step[:, :3] = rng.normal(size=(2, 3)) * 0.2
+        step[:, 3:] = rng.normal(size=(2, 3)) * 0.5
+        step[0, :3] += [0.3, 0, 0]
+        step[1, :3] -= [0.3, 0, 0]  # towards each other
+        model.evaluate(poses)
+        alpha = model.advancement_limit(step)
+        assert 0 < alpha <= 1, trial
+        assert _along_path_ok(model, poses, step, alpha), trial
