@@ -422,21 +422,21 @@ class ArticulationModel:
         parent, child = self._ball_frames(poses)
         return quat_mul(quat_conjugate(parent), child)
 
-    def _ball_drive_matrices(self, poses: np.ndarray, target: np.ndarray, previous: np.ndarray, dt: float):
+    def _ball_drive_matrices(self, poses: np.ndarray, target: np.ndarray, start: np.ndarray, dt: float):
         """World frame rotations (parent, child) as quaternions, P as matrices, and the spring
         and damper matrices kp P R* C^T and kd/dt P R^t C^T, (nball, 3, 3) each."""
         parent, child = self._ball_frames(poses)
         P = quat_to_matrix(parent)
         C_transposed = np.swapaxes(quat_to_matrix(child), 1, 2)
         spring = self.ball_kp[:, None, None] * (P @ quat_to_matrix(target) @ C_transposed)
-        damper = (self.ball_kd / dt)[:, None, None] * (P @ quat_to_matrix(previous) @ C_transposed)
+        damper = (self.ball_kd / dt)[:, None, None] * (P @ quat_to_matrix(start) @ C_transposed)
         return parent, child, P, spring, damper
 
-    def ball_drive_terms(self, poses: np.ndarray, target: np.ndarray, previous: np.ndarray, dt: float):
+    def ball_drive_terms(self, poses: np.ndarray, target: np.ndarray, start: np.ndarray, dt: float):
         """Implicit PD of the ball joints: value (J), gradient (m,) and Hessian (m, m).
 
         Per ball joint, with R its relative rotation (``ball_rotations``), R* its target and
-        R^t its relative rotation at the start of the step (``target`` and ``previous``,
+        R^t its relative rotation at the start of the step (``target`` and ``start``,
         (nball, 4) unit quaternions):
 
             E = kp/2 (3 - tr(R*^T R)) + kd/(2 dt) (3 - tr(R^t^T R))
@@ -450,13 +450,13 @@ class ArticulationModel:
         as 2 |vec(q_ref^-1 q)|^2 (= 1 - cos theta), which keeps its digits near the
         reference where the trace form cancels.
         """
-        parent, child, _, spring, damper = self._ball_drive_matrices(poses, target, previous, dt)
+        parent, child, _, spring, damper = self._ball_drive_matrices(poses, target, start, dt)
         relative = quat_mul(quat_conjugate(parent), child)
 
         def one_minus_cosine(reference):
             return 2.0 * np.sum(quat_mul(quat_conjugate(reference), relative)[:, :3] ** 2, axis=1)
 
-        value = float(np.sum(self.ball_kp * one_minus_cosine(target) + self.ball_kd / dt * one_minus_cosine(previous)))
+        value = float(np.sum(self.ball_kp * one_minus_cosine(target) + self.ball_kd / dt * one_minus_cosine(start)))
         grad, hess = np.zeros(self.num_dofs), np.zeros((self.num_dofs, self.num_dofs))
         for dofs, m in zip(self._ball_dofs, spring + damper, strict=True):
             grad[dofs] -= 0.5 * axial(m)
@@ -474,8 +474,8 @@ class ArticulationModel:
         P P_t^T C_t by P P_t^T beta; the parent's turns it by the opposite.
         """
         parent_start, child_start = self._ball_frames(poses_start)
-        previous = quat_mul(quat_conjugate(parent_start), child_start)
-        _, _, P, spring, damper = self._ball_drive_matrices(poses, target, previous, dt)
+        start = quat_mul(quat_conjugate(parent_start), child_start)
+        _, _, P, spring, damper = self._ball_drive_matrices(poses, target, start, dt)
         P_start = quat_to_matrix(parent_start)
 
         def turn_adjoint(m, l):
