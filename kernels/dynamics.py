@@ -38,6 +38,7 @@ __all__ = [
     "body_adjoint_kernel",
     "pose_adjoint_to_rigid_kernel",
     "rigid_adjoint_to_pose_kernel",
+    "rotation_adjoint_to_quat_kernel",
 ]
 
 PREDICT_OK = wp.constant(0)
@@ -326,6 +327,20 @@ def pose_adjoint_to_rigid_kernel(
     rigid_adjoint_out[b] = out
 
 
+@wp.func
+def _quat_adjoint(q: wp.quatd, a: wp.vec3d):
+    """Quaternion-component adjoint of a cotangent a of a left turn exp([theta]x) R(q), through
+    theta = 2 vec(dq q*) (norm changes give 0)."""
+    qc = wp.quat_inverse(wp.normalize(q))
+    out = wp.quatd(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    for j in range(4):
+        e = wp.quatd(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+        e[j] = wp.float64(1.0)
+        v = e * qc
+        out[j] = wp.float64(2.0) * (a[0] * v[0] + a[1] * v[1] + a[2] * v[2])
+    return out
+
+
 @wp.kernel
 def rigid_adjoint_to_pose_kernel(
     # Data in:
@@ -336,15 +351,24 @@ def rigid_adjoint_to_pose_kernel(
 ):
     """Add a rigid cotangent to a pose adjoint, through theta = 2 vec(dq q*) (norm changes give 0)."""
     b = wp.tid()
-    q = wp.normalize(wp.transform_get_rotation(body_q[b]))
     a = rigid_adjoint[b]
     out = pose_adjoint_out[b]
+    dq = _quat_adjoint(wp.transform_get_rotation(body_q[b]), wp.vec3d(a[3], a[4], a[5]))
     for i in range(3):
         out[i] = out[i] + a[i]
-    qc = wp.quat_inverse(q)
     for j in range(4):
-        e = wp.quatd(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
-        e[j] = wp.float64(1.0)
-        v = e * qc
-        out[3 + j] = out[3 + j] + wp.float64(2.0) * (a[3] * v[0] + a[4] * v[1] + a[5] * v[2])
+        out[3 + j] = out[3 + j] + dq[j]
     pose_adjoint_out[b] = out
+
+
+@wp.kernel
+def rotation_adjoint_to_quat_kernel(
+    # Data in:
+    rotations: wp.array(dtype=wp.quatd),
+    rotation_adjoint: wp.array(dtype=wp.vec3d),
+    # Data out:
+    quat_adjoint_out: wp.array(dtype=wp.quatd),
+):
+    """Add a left-turn cotangent to a quaternion adjoint (as ``rigid_adjoint_to_pose_kernel``)."""
+    i = wp.tid()
+    quat_adjoint_out[i] = quat_adjoint_out[i] + _quat_adjoint(rotations[i], rotation_adjoint[i])

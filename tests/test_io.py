@@ -174,8 +174,11 @@ def test_non_finite_points_missing_files_and_empty_stages(tmp_path):
         io.load_scene(tmp_path / "empty.usda")
 
 
-def write_hinged_box(path, *, limits=(-30.0, 60.0), stiffness=2.0, cone=None, cone1=None):
-    """A box hanging from a world revolute joint about y (UsdPhysics only: degrees, per-degree gains)."""
+def write_hinged_box(path, *, limits=(-30.0, 60.0), stiffness=2.0, cone=None, cone1=None, d6_ball=False, ball_drives=None):
+    """A box hanging from a world revolute joint about y (UsdPhysics only: degrees, per-degree
+    gains), or from a spherical joint with a ``cone`` limit, or from a D6 joint with three free
+    rotations (``d6_ball``); ``ball_drives`` {"rotX": (stiffness, damping), ...} drive the
+    latter two."""
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
     UsdPhysics.Scene.Define(stage, "/World/physicsScene")
@@ -185,7 +188,13 @@ def write_hinged_box(path, *, limits=(-30.0, 60.0), stiffness=2.0, cone=None, co
     cube = UsdGeom.Cube.Define(stage, "/World/box/shape")
     cube.CreateSizeAttr(0.2)
     UsdPhysics.CollisionAPI.Apply(cube.GetPrim())
-    if cone is None:
+    if d6_ball:
+        joint = UsdPhysics.Joint.Define(stage, "/World/hinge")
+        for axis in ("transX", "transY", "transZ"):
+            locked = UsdPhysics.LimitAPI.Apply(joint.GetPrim(), axis)
+            locked.CreateLowAttr(1.0)
+            locked.CreateHighAttr(-1.0)
+    elif cone is None:
         joint = UsdPhysics.RevoluteJoint.Define(stage, "/World/hinge")
         joint.CreateAxisAttr("Y")
         joint.CreateLowerLimitAttr(limits[0])
@@ -198,6 +207,10 @@ def write_hinged_box(path, *, limits=(-30.0, 60.0), stiffness=2.0, cone=None, co
         joint.CreateAxisAttr("Z")
         joint.CreateConeAngle0LimitAttr(cone)
         joint.CreateConeAngle1LimitAttr(cone if cone1 is None else cone1)
+    for token, (drive_stiffness, damping) in (ball_drives or {}).items():
+        drive = UsdPhysics.DriveAPI.Apply(joint.GetPrim(), token)
+        drive.CreateStiffnessAttr(drive_stiffness)
+        drive.CreateDampingAttr(damping)
     joint.CreateBody1Rel().SetTargets(["/World/box"])
     joint.CreateLocalPos0Attr(Gf.Vec3f(0.0, 0.0, 1.5))
     joint.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.5))
@@ -240,6 +253,29 @@ def test_spherical_joint_cone_limit_loads_in_radians_and_round_trips(tmp_path):
     assert again["limit"] == pytest.approx(np.pi / 4, rel=1e-6)
     with pytest.raises(ValueError, match=r"/World/hinge: elliptical cone limits"):
         io.load_scene(write_hinged_box(tmp_path / "ellipse.usda", cone=45.0, cone1=30.0))
+
+
+def test_ball_joint_drives_load_per_radian_and_round_trip(tmp_path):
+    equal = {token: (2.0, 0.1) for token in ("rotX", "rotY", "rotZ")}
+    per_radian = np.array([2.0, 0.1]) * 180.0 / np.pi
+    for name, options in (("spherical", dict(cone=45.0)), ("d6", dict(d6_ball=True))):
+        scene = io.load_scene(write_hinged_box(tmp_path / f"{name}.usda", ball_drives=equal, **options))
+        (joint,) = scene.joints
+        assert joint.kind == "ball"
+        art = scene.build_model().articulation
+        np.testing.assert_allclose([art.ball_kp[0], art.ball_kd[0]], per_radian, rtol=1e-6)  # float attributes
+        io.save_scene(scene, tmp_path / f"{name}_again.usda")
+        again = io.load_scene(tmp_path / f"{name}_again.usda").build_model().articulation
+        np.testing.assert_allclose([again.ball_kp[0], again.ball_kd[0]], per_radian, rtol=1e-6)
+    stage = Usd.Stage.Open(str(tmp_path / "spherical_again.usda"))
+    saved = stage.GetPrimAtPath("/World/joints/hinge")
+    assert saved.IsA(UsdPhysics.SphericalJoint) and all(saved.HasAPI(UsdPhysics.DriveAPI, t) for t in ("rotX", "rotY", "rotZ"))
+    unequal = {**equal, "rotY": (3.0, 0.1)}
+    with pytest.raises(ValueError, match=r"/World/hinge: a ball joint's drives need equal stiffness and damping on rotX, rotY and rotZ.*RotY stiffness 3 damping 0.1"):
+        io.load_scene(write_hinged_box(tmp_path / "unequal.usda", cone=45.0, ball_drives=unequal))
+    missing = {"rotX": (2.0, 0.1), "rotY": (2.0, 0.1)}
+    with pytest.raises(ValueError, match=r"/World/hinge: a ball joint's drives need equal.*RotZ missing"):
+        io.load_scene(write_hinged_box(tmp_path / "missing.usda", d6_ball=True, ball_drives=missing))
 
 
 def test_articulated_scene_round_trip_preserves_joints(tmp_path):

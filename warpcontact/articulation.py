@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rotation import pose_inverse, pose_mul, quat_conjugate, quat_from_rotation_vector, quat_mul, quat_rotate, rotation_vector_from_quat
+from .rotation import axial, pose_inverse, pose_mul, quat_conjugate, quat_from_rotation_vector, quat_mul, quat_rotate, quat_to_matrix, rotation_vector_from_quat
 
 __all__ = [
     "BASE_DOFS",
@@ -80,7 +80,8 @@ class Joint:
     parent and in the child (a swing limit; twist is free). Per coordinate: ``lower``/``upper``
     limits (rad or m, +-inf for none), ``limit_margin`` (the barrier's support, rad or m),
     ``limit_stiffness`` (J) and PD gains ``kp`` (N m/rad or N/m) and ``kd`` (N m s/rad or
-    N s/m).
+    N s/m). Ball joints have no coordinates but one ``kp`` and one ``kd`` (N m/rad,
+    N m s/rad) that drive their relative rotation (see ``ArticulationModel.ball_drive_terms``).
     """
 
     name: str
@@ -168,6 +169,11 @@ class ArticulationModel:
             ``initial_coordinates``, ``kp``, ``kd``, ``lower``, ``upper``,
             ``limit_margin``, ``limit_stiffness`` are (num_coordinates,) arrays.
         identity: True when every body is a free body (J = I, no curvature).
+        num_ball_joints: the number of ball joints, each with a relative rotation that PD
+            gains may drive; ``ball_joint_names``, ``ball_kp`` (N m/rad), ``ball_kd``
+            (N m s/rad) are (num_ball_joints,), ``initial_ball_rotations`` (num_ball_joints,
+            4) quaternions (``ball_rotations`` of the initial poses); ``has_ball_drives``
+            when any ball gain is non-zero.
     """
 
     def __init__(self, joints: list[Joint], *, body_names, body_static, body_poses, length_scale: float):
@@ -256,6 +262,18 @@ class ArticulationModel:
         # Dynamic bodies are those with DOFs; rows of J for static bodies stay zero.
         self.dynamic_bodies = np.flatnonzero([len(d) > 0 for d in self.body_dofs])
         self.cones = [self._cone(j, joint, poses) for j, joint in enumerate(self.joints) if joint.kind == "ball" and np.isfinite(joint.cone_limit)]
+        balls = [(j, joint) for j, joint in enumerate(self.joints) if joint.kind == "ball"]
+        self.num_ball_joints = len(balls)
+        self.ball_joint_names = [joint.name for _, joint in balls]
+        self._ball_dofs = np.array([self.joint_dofs[j] for j, _ in balls], dtype=np.int64).reshape(-1, 3)
+        self._ball_parent = np.array([joint.parent for _, joint in balls], dtype=np.int64)
+        self._ball_child = np.array([joint.child for _, joint in balls], dtype=np.int64)
+        self._ball_parent_frame = np.array([joint.parent_frame[3:] for _, joint in balls]).reshape(-1, 4)
+        self._ball_child_frame = np.array([joint.child_frame[3:] for _, joint in balls]).reshape(-1, 4)
+        self.ball_kp = np.array([float(joint.kp[0]) if joint.kp is not None and len(joint.kp) else 0.0 for _, joint in balls])
+        self.ball_kd = np.array([float(joint.kd[0]) if joint.kd is not None and len(joint.kd) else 0.0 for _, joint in balls])
+        self.has_ball_drives = bool(np.any(self.ball_kp > 0) or np.any(self.ball_kd > 0))
+        self.initial_ball_rotations = self.ball_rotations(poses)
 
     # --- construction ---------------------------------------------------------------------
 
@@ -388,6 +406,90 @@ class ArticulationModel:
                 alpha = min(alpha, np.pi / float(np.linalg.norm(w)))
                 alpha = min(alpha, fraction * (cone["limit"] - swing) / turn)
         return alpha
+
+    # --- ball-joint drives ------------------------------------------------------------------
+
+    def _ball_frames(self, poses: np.ndarray):
+        """World rotations (nball, 4) of every ball joint's frame fixed in the parent and in the child."""
+        rotations = poses[:, 3:] / np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
+        parent = np.where((self._ball_parent >= 0)[:, None], rotations[self._ball_parent], [0.0, 0.0, 0.0, 1.0])
+        return quat_mul(parent, self._ball_parent_frame), quat_mul(rotations[self._ball_child], self._ball_child_frame)
+
+    def ball_rotations(self, poses: np.ndarray) -> np.ndarray:
+        """Relative rotations (nball, 4) of the ball joints at ``poses`` (nbodies, 7): unit
+        quaternions (x, y, z, w) of the child's joint frame in the parent's joint frame (the
+        world's for a joint to the world), the convention of ``Control.ball_target``."""
+        parent, child = self._ball_frames(poses)
+        return quat_mul(quat_conjugate(parent), child)
+
+    def _ball_drive_matrices(self, poses: np.ndarray, target: np.ndarray, start: np.ndarray, dt: float):
+        """World frame rotations (parent, child) as quaternions, P as matrices, and the spring
+        and damper matrices kp P R* C^T and kd/dt P R^t C^T, (nball, 3, 3) each."""
+        parent, child = self._ball_frames(poses)
+        P = quat_to_matrix(parent)
+        C_transposed = np.swapaxes(quat_to_matrix(child), 1, 2)
+        spring = self.ball_kp[:, None, None] * (P @ quat_to_matrix(target) @ C_transposed)
+        damper = (self.ball_kd / dt)[:, None, None] * (P @ quat_to_matrix(start) @ C_transposed)
+        return parent, child, P, spring, damper
+
+    def ball_drive_terms(self, poses: np.ndarray, target: np.ndarray, start: np.ndarray, dt: float):
+        """Implicit PD of the ball joints: value (J), gradient (m,) and Hessian (m, m).
+
+        Per ball joint, with R its relative rotation (``ball_rotations``), R* its target and
+        R^t its relative rotation at the start of the step (``target`` and ``start``,
+        (nball, 4) unit quaternions):
+
+            E = kp/2 (3 - tr(R*^T R)) + kd/(2 dt) (3 - tr(R^t^T R))
+              = kp (1 - cos theta*) + kd/dt (1 - cos theta^t),
+
+        theta the angle between the two rotations: the body orientation PD's form, smooth on
+        the whole rotation group (a hinge's kp/2 theta^2 to fourth order). The joint's rotation
+        group w turns the child's frame C to exp([w]x) C in the world and ancestor motions
+        turn both frames alike, so with M = P (kp R* + kd/dt R^t) C^T the gradient is
+        -1/2 axial(M) and the Hessian 1/2 (tr(M) I - sym(M)). Each value term is evaluated
+        as 2 |vec(q_ref^-1 q)|^2 (= 1 - cos theta), which keeps its digits near the
+        reference where the trace form cancels.
+        """
+        parent, child, _, spring, damper = self._ball_drive_matrices(poses, target, start, dt)
+        relative = quat_mul(quat_conjugate(parent), child)
+
+        def one_minus_cosine(reference):
+            return 2.0 * np.sum(quat_mul(quat_conjugate(reference), relative)[:, :3] ** 2, axis=1)
+
+        value = float(np.sum(self.ball_kp * one_minus_cosine(target) + self.ball_kd / dt * one_minus_cosine(start)))
+        grad, hess = np.zeros(self.num_dofs), np.zeros((self.num_dofs, self.num_dofs))
+        for dofs, m in zip(self._ball_dofs, spring + damper, strict=True):
+            grad[dofs] -= 0.5 * axial(m)
+            hess[np.ix_(dofs, dofs)] += 0.5 * (np.trace(m) * np.eye(3) - 0.5 * (m + m.T))
+        return value, grad, hess
+
+    def ball_drive_adjoint(self, poses: np.ndarray, poses_start: np.ndarray, lam: np.ndarray, target: np.ndarray, dt: float):
+        """lambda^T d(gradient of ``ball_drive_terms``)/d(inputs) at ``poses`` for a reduced
+        adjoint ``lam`` (m,), with R^t taken from the step's start poses ``poses_start``.
+
+        Returns the targets' cotangents (nball, 3), as left turns exp([g]x) R* in the parent's
+        joint frame, and the start poses' rigid cotangent (nbodies, 6) (dp, dtheta).
+        Turning a term's world frame P R_ref by exp([zeta]x) turns M by it and changes the
+        gradient by -1/2 (tr(M) I - M) zeta. A start turn beta of the child turns P R^t =
+        P P_t^T C_t by P P_t^T beta; the parent's turns it by the opposite.
+        """
+        parent_start, child_start = self._ball_frames(poses_start)
+        start = quat_mul(quat_conjugate(parent_start), child_start)
+        _, _, P, spring, damper = self._ball_drive_matrices(poses, target, start, dt)
+        P_start = quat_to_matrix(parent_start)
+
+        def turn_adjoint(m, l):
+            return -0.5 * (np.trace(m) * l - m.T @ l)
+
+        target_adjoint = np.zeros((self.num_ball_joints, 3))
+        start_adjoint = np.zeros((self.num_bodies, 6))
+        for i, dofs in enumerate(self._ball_dofs):
+            target_adjoint[i] = P[i].T @ turn_adjoint(spring[i], lam[dofs])
+            turn = P_start[i] @ P[i].T @ turn_adjoint(damper[i], lam[dofs])
+            start_adjoint[self._ball_child[i], 3:] += turn
+            if self._ball_parent[i] >= 0:
+                start_adjoint[self._ball_parent[i], 3:] -= turn
+        return target_adjoint, start_adjoint
 
     def _link_names(self, joint: Joint) -> str:
         parent = self.body_names[joint.parent] if joint.parent >= 0 else "world"

@@ -252,6 +252,10 @@ class ModelBuilder:
             limits: per coordinate (lower, upper) in rad or m, or None.
             kp, kd: PD gains per coordinate (scalar or one per coordinate), N m/rad, N m s/rad
                 (N/m, N s/m for translations); targets come from ``Control.joint_target``.
+                Ball joints: one kp and one kd (N m/rad, N m s/rad) on the relative rotation,
+                kp (1 - cos theta*) + kd/dt (1 - cos theta^t) (theta: angle to the target,
+                and to the rotation at the step's start); targets come from
+                ``Control.ball_target``.
             limit_margin: support of the limit barrier (default: a tenth of the range, at most
                 0.1); limit_stiffness: its scale (J).
             cone_limit: ball joints: the largest swing (rad, in (0, pi)) between ``axis`` (in
@@ -323,6 +327,8 @@ class ModelBuilder:
             frames = (pose_mul(parent_pose, frames[0]), frames[1])
         probe = Joint(name, kind, parent_index, int(child), frames[0], frames[1], axes, dofs)
         count = probe.num_coordinates()
+        if kind == "ball" and limits is not None:
+            raise ValueError(f"{where}: ball joints have no coordinates, so no coordinate limits (a swing limit is cone_limit)")
         lower = np.full(count, -np.inf)
         upper = np.full(count, np.inf)
         if limits is not None:
@@ -334,17 +340,19 @@ class ModelBuilder:
             lower, upper = pairs[:, 0].copy(), pairs[:, 1].copy()
         span = np.where(np.isfinite(upper - lower), upper - lower, np.inf)
         margin = np.minimum(0.1 * span, 0.1) if limit_margin is None else _per_coordinate(limit_margin, count, "limit_margin", where)
+        if kind == "ball" and (np.size(kp) != 1 or np.size(kd) != 1):
+            raise ValueError(f"{where}: a ball joint takes one kp and one kd (they drive its whole relative rotation), got kp={kp!r}, kd={kd!r}")
+        # A ball joint's single gain pair drives its relative rotation (no coordinates).
+        gain_count = 1 if kind == "ball" else count
         gains = {}
-        for label, value in (("kp", kp), ("kd", kd), ("limit_stiffness", limit_stiffness), ("limit_margin", margin)):
-            arr = _per_coordinate(value, count, label, where)
+        for label, value, size in (("kp", kp, gain_count), ("kd", kd, gain_count), ("limit_stiffness", limit_stiffness, count), ("limit_margin", margin, count)):
+            arr = _per_coordinate(value, size, label, where)
             if not np.isfinite(arr).all() or (arr < 0).any() or (label.startswith("limit") and (arr <= 0).any()):
                 raise ValueError(f"{where}: {label} must be finite and {'positive' if label.startswith('limit') else '>= 0'}, got {value!r}")
             gains[label] = arr
         probe.lower, probe.upper = lower, upper
         probe.limit_margin, probe.limit_stiffness = gains["limit_margin"], gains["limit_stiffness"]
         probe.kp, probe.kd = gains["kp"], gains["kd"]
-        if kind == "ball" and (np.asarray(kp).any() or np.asarray(kd).any() or limits is not None):
-            raise ValueError(f"{where}: ball joints have no coordinates, so no PD gains or coordinate limits (a swing limit is cone_limit); use a universal joint or revolute joints for actuation")
         if cone_limit is not None:
             if kind != "ball":
                 raise ValueError(f"{where}: cone_limit only applies to ball joints")

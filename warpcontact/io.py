@@ -115,7 +115,8 @@ class BodySpec:
 @dataclass
 class JointSpec:
     """One joint: frames in the parent's and child's prim frames (the world's for parent None),
-    axes in the joint frame, per-coordinate limits (rad or m) and PD gains (SI, per radian)."""
+    axes in the joint frame, per-coordinate limits (rad or m) and PD gains (SI, per radian;
+    ball joints: one kp and one kd on the relative rotation)."""
 
     name: str
     path: str
@@ -402,19 +403,20 @@ def load_scene(path) -> Scene:
     task = TaskSpec()
     if scene_prim is not None:
         _read_settings(scene_prim, settings, task, source)
-    joints = _read_joints(descs, {**bodies, **static_bodies}, meters, source, UsdPhysics)
+    joints = _read_joints(stage, descs, {**bodies, **static_bodies}, meters, source, UsdPhysics)
     return Scene(bodies=all_bodies, gravity=gravity, settings=settings, task=task, source=source, joints=joints)
 
 
 _AXES = {"X": np.array([1.0, 0.0, 0.0]), "Y": np.array([0.0, 1.0, 0.0]), "Z": np.array([0.0, 0.0, 1.0])}
 _DEGREE = np.pi / 180.0
+_BALL_DRIVE_AXES = ("RotX", "RotY", "RotZ")  # DriveAPI instances rotX, rotY, rotZ
 
 
 def _axis_token(value) -> str:
     return str(value).split(".")[-1].upper()[-1]
 
 
-def _read_joints(descs, bodies: dict, meters: float, source: str, UsdPhysics) -> list[JointSpec]:
+def _read_joints(stage, descs, bodies: dict, meters: float, source: str, UsdPhysics) -> list[JointSpec]:
     """UsdPhysics joints -> JointSpec. Angles in degrees and angular gains per degree (UsdPhysics)
     become radians and gains per radian; lengths scale by metersPerUnit."""
     joints = []
@@ -458,10 +460,32 @@ def _read_joints(descs, bodies: dict, meters: float, source: str, UsdPhysics) ->
                     if abs(desc.limit.lower - desc.limit.upper) > 1e-6:
                         raise ValueError(f"{where}: elliptical cone limits ({desc.limit.lower} and {desc.limit.upper} degrees) are not supported; give both cone angles the same value")
                     spec.cone_limit = float(desc.limit.lower) * _DEGREE
+                # UsdPhysics parses no drives for spherical joints: read DriveAPI:rot* off the prim.
+                prim = stage.GetPrimAtPath(prim_path)
+                drives = {}
+                for axis in _BALL_DRIVE_AXES:
+                    token = axis[0].lower() + axis[1:]
+                    if prim.HasAPI(UsdPhysics.DriveAPI, token):
+                        drive = UsdPhysics.DriveAPI(prim, token)
+                        drives[axis] = (float(drive.GetStiffnessAttr().Get() or 0.0), float(drive.GetDampingAttr().Get() or 0.0))
+                spec.kp, spec.kd = _ball_gains(drives, where)
             else:
                 _read_d6(desc, spec, where, meters)
             joints.append(spec)
     return joints
+
+
+def _ball_gains(drives: dict, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """A ball joint's (kp, kd) per radian from its angular drives {"RotX": (stiffness, damping)
+    per degree, ...}: none, or all three axes with equal gains, since one gain pair drives
+    the whole relative rotation (no per-axis gains)."""
+    if not drives:
+        return np.zeros(0), np.zeros(0)
+    gains = [drives.get(axis) for axis in _BALL_DRIVE_AXES]
+    if any(g is None for g in gains) or not all(np.allclose(g, gains[0], rtol=1e-6, atol=0.0) for g in gains):
+        found = ", ".join(f"{axis} " + ("missing" if g is None else f"stiffness {g[0]:g} damping {g[1]:g}") for axis, g in zip(_BALL_DRIVE_AXES, gains, strict=True))
+        raise ValueError(f"{where}: a ball joint's drives need equal stiffness and damping on rotX, rotY and rotZ (one gain pair drives its whole rotation); got {found}")
+    return np.array([gains[0][0] / _DEGREE]), np.array([gains[0][1] / _DEGREE])
 
 
 def _read_d6(desc, spec: JointSpec, where: str, meters: float):
@@ -501,6 +525,8 @@ def _read_d6(desc, spec: JointSpec, where: str, meters: float):
         raise ValueError(f"{where}: a D6 joint with three free rotations is a ball joint, which takes no rotation limits here")
     spec.limits = bounds if any(np.isfinite(b).all() for b in bounds) else None
     spec.kp, spec.kd = np.array(kp), np.array(kd)
+    if spec.kind == "ball":
+        spec.kp, spec.kd = _ball_gains({axis: (drive.stiffness, drive.damping) for axis, drive in drives.items() if axis in _BALL_DRIVE_AXES and drive.enabled}, where)
 
 
 def _read_mass(prim, body: BodySpec, UsdPhysics, meters: float, source: str):
@@ -755,11 +781,12 @@ def _author_joint(stage, j: JointSpec, Gf, UsdPhysics):
             joint.CreateLowerLimitAttr(float(j.limits[0][0] / scale))
             joint.CreateUpperLimitAttr(float(j.limits[0][1] / scale))
         if len(j.kp) and (j.kp[0] or j.kd[0]):
-            drive = UsdPhysics.DriveAPI.Apply(prim, "angular" if j.kind == "revolute" else "linear")
-            drive.CreateStiffnessAttr(float(j.kp[0] * scale))
-            drive.CreateDampingAttr(float(j.kd[0] * scale))
+            _author_drive(prim, "angular" if j.kind == "revolute" else "linear", j.kp[0] * scale, j.kd[0] * scale, UsdPhysics)
         return
     if j.kind == "ball":
+        if len(j.kp) and (j.kp[0] or j.kd[0]):
+            for axis in _BALL_DRIVE_AXES:
+                _author_drive(prim, axis[0].lower() + axis[1:], j.kp[0] * _DEGREE, j.kd[0] * _DEGREE, UsdPhysics)
         return
     if j.kind == "universal":
         free = ["RotX", "RotY"]
@@ -783,9 +810,14 @@ def _author_joint(stage, j: JointSpec, Gf, UsdPhysics):
             limit.CreateLowAttr(float(j.limits[c][0] / scale))
             limit.CreateHighAttr(float(j.limits[c][1] / scale))
         if len(j.kp) and (j.kp[c] or j.kd[c]):
-            drive = UsdPhysics.DriveAPI.Apply(prim, token)
-            drive.CreateStiffnessAttr(float(j.kp[c] * scale))
-            drive.CreateDampingAttr(float(j.kd[c] * scale))
+            _author_drive(prim, token, j.kp[c] * scale, j.kd[c] * scale, UsdPhysics)
+
+
+def _author_drive(prim, token: str, stiffness: float, damping: float, UsdPhysics):
+    """A DriveAPI instance with gains already in UsdPhysics units (per degree for rotations)."""
+    drive = UsdPhysics.DriveAPI.Apply(prim, token)
+    drive.CreateStiffnessAttr(float(stiffness))
+    drive.CreateDampingAttr(float(damping))
 
 
 def _write_warpcontact_body(prim, b: BodySpec, Sdf, Vt):

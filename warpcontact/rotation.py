@@ -16,6 +16,7 @@ __all__ = [
     "quat_from_matrix",
     "rotation_vector_from_quat",
     "skew",
+    "axial",
     "pose_mul",
     "pose_inverse",
 ]
@@ -109,6 +110,12 @@ def skew(v) -> np.ndarray:
     out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
     out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
     return out
+
+
+def axial(m) -> np.ndarray:
+    """vee(M - M^T), the axial vector of twice the skew part: tr([w]x M) = -w . axial(M)."""
+    m = np.asarray(m, dtype=np.float64)
+    return np.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], axis=-1)
 
 
 def pose_mul(a, b) -> np.ndarray:

@@ -14,7 +14,7 @@ Differentiation: inside ``with wp.Tape()``, each step records its backward with
 ``tape.record_func``. By the implicit function theorem, with H = d2L/dq2 at the solution
 and lambda solving H lambda = -(adjoint of q^{t+1}), the adjoint of any input y is
 lambda^T d(grad_q L)/dy; it is pushed into q^t, q^{t-1}, the PD targets, the masses, mu and
-the friction coefficient.
+the friction coefficient, and into ball-joint targets and (through their damping) q^t.
 """
 
 from dataclasses import dataclass
@@ -71,6 +71,8 @@ class _StepInputs:
     body_target: wp.array  # body PD targets
     joint_q: np.ndarray  # joint coordinates at t
     joint_target: np.ndarray  # joint PD targets
+    ball_target: np.ndarray  # (nball, 4) ball-joint target rotations
+    ball_start: np.ndarray  # (nball, 4) ball-joint rotations at t
 
 
 class ImplicitSolver:
@@ -221,6 +223,11 @@ class ImplicitSolver:
             value += c_value
             reduced_grad += c_grad
             reduced_hess += c_hess
+        if art.has_ball_drives:
+            b_value, b_grad, b_hess = art.ball_drive_terms(poses, step_in.ball_target, step_in.ball_start, step_in.dt)
+            value += b_value
+            reduced_grad += b_grad
+            reduced_hess += b_hess
         if art.num_coordinates:
             j_value, j_grad, j_hess = self._joint_terms(coords, step_in)
             c = art.coordinate_dof
@@ -311,6 +318,26 @@ class ImplicitSolver:
             raise ValueError(f"control.joint_target: expected {count} finite joint targets")
         return coords, target
 
+    def _ball_arrays(self, control: Control | None, poses: np.ndarray):
+        """Ball-joint target rotations and rotations at ``poses`` (nball, 4); checks the targets."""
+        art = self.model.articulation
+        start = art.ball_rotations(poses)
+        supplied = None if control is None else control.ball_target
+        if supplied is None:
+            return start, start
+        count = art.num_ball_joints
+        if not isinstance(supplied, wp.array) or supplied.dtype != wp.quatd or supplied.shape != (count,):
+            got = f"{supplied.dtype.__name__} array of shape {supplied.shape}" if isinstance(supplied, wp.array) else type(supplied).__name__
+            raise ValueError(f"control.ball_target: expected a wp.array of {count} wp.quatd (x, y, z, w), one per ball joint {art.ball_joint_names} (use model.control()), got {got}")
+        target = supplied.numpy()
+        if not np.isfinite(target).all():
+            raise ValueError("control.ball_target: contains non-finite values")
+        norms = np.linalg.norm(target, axis=1)
+        bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-6)
+        if bad.size:
+            raise ValueError(f"control.ball_target: the target of ball joint {art.ball_joint_names[bad[0]]!r} has norm {norms[bad[0]]:.9g}; expected a unit quaternion")
+        return target / norms[:, None], start
+
     def _solve(self, state_in: State, state_out: State, control: Control | None, dt: float):
         if not np.isfinite(dt) or dt <= 0:
             raise ValueError(f"dt: must be a positive finite number of seconds, got {dt}")
@@ -323,6 +350,7 @@ class ImplicitSolver:
             if not np.isfinite(arr).all():
                 raise ValueError(f"{label}: contains non-finite values")
         coords_now, joint_target = self._joint_arrays(state_in, state_out, control)
+        ball_target, ball_start = self._ball_arrays(control, q_now)
         mu = float(model.contact_stiffness.numpy()[0])
         dynamic = self._dynamic
         art = self._articulation
@@ -339,6 +367,8 @@ class ImplicitSolver:
             body_target=control.body_target if control is not None else state_in.body_q,
             joint_q=coords_now,
             joint_target=joint_target,
+            ball_target=ball_target,
+            ball_start=ball_start,
         )
 
         wp.launch(
@@ -473,6 +503,11 @@ class ImplicitSolver:
             arrays += [state_out.joint_q, state_out.joint_q_prev, state_in.joint_q]
             if control is not None and control.joint_target is not None and control.joint_target.requires_grad:
                 arrays.append(control.joint_target)
+        balls = art is not None and art.has_ball_drives
+        ball_target_grad = balls and control is not None and control.ball_target is not None and control.ball_target.requires_grad
+        if ball_target_grad:
+            arrays.append(control.ball_target)
+            ball_target_arr = wp.array(step_in.ball_target, dtype=wp.quatd, device=dev)
 
         def backward():
             with wp.ScopedDevice(dev):
@@ -503,6 +538,11 @@ class ImplicitSolver:
                 mu_adj = float(lam_full @ contact_grad.reshape(-1))
                 if friction is not None and friction.leaf_items.shape[0]:
                     mu_adj += self._friction_adjoint(friction, dt, mu, q_next_arr, q_now_arr, lam, adj_now)
+                if balls:
+                    target_adj, start_adj = art.ball_drive_adjoint(q_next, q_now, lam_reduced, step_in.ball_target, dt)
+                    adj_now.assign(adj_now.numpy() + start_adj)
+                    if ball_target_grad:
+                        wp.launch(dynamics_kernels.rotation_adjoint_to_quat_kernel, dim=art.num_ball_joints, inputs=[ball_target_arr, wp.array(target_adj, dtype=wp.vec3d)], outputs=[control.ball_target.grad])
                 wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[q_now_arr, adj_now], outputs=[state_in.body_q.grad])
                 wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[q_prev_arr, adj_prev], outputs=[state_in.body_q_prev.grad])
                 if control is not None and control.body_target.requires_grad:

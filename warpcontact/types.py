@@ -6,7 +6,8 @@
 - ``State``: body poses at the current and the previous time step (the paper's
   (x^t, x^{t-1})) and the joint coordinates of articulations at both; velocities are
   (pose - previous pose) / dt.
-- ``Control``: PD target poses of actuated bodies and PD targets of joint coordinates.
+- ``Control``: PD target poses of actuated bodies, PD targets of joint coordinates and
+  target relative rotations of ball joints.
 
 Poses are Warp transforms (px, py, pz, qx, qy, qz, qw) of each body's centre-of-mass frame,
 in metres. Arrays that users optimise are allocated with ``requires_grad=True``.
@@ -38,10 +39,15 @@ class State:
 @dataclass
 class Control:
     """PD target poses, (nbodies,) ``wp.transformd``, used for bodies with non-zero gains;
-    PD targets of joint coordinates, (ncoordinates,) float64 (rad or m)."""
+    PD targets of joint coordinates, (ncoordinates,) float64 (rad or m); PD target relative
+    rotations of ball joints, (nball,) ``wp.quatd`` unit quaternions (x, y, z, w) of the
+    child's joint frame in the parent's joint frame, in ``articulation.ball_joint_names``
+    order (see ``ArticulationModel.ball_rotations``). A missing target holds the joint where
+    the step starts (damping only)."""
 
     body_target: wp.array
     joint_target: wp.array = None
+    ball_target: wp.array = None
 
 
 @dataclass
@@ -115,10 +121,11 @@ class Model:
         )
 
     def control(self, *, requires_grad: bool = True) -> Control:
-        """A control whose PD targets are the initial poses and joint coordinates."""
+        """A control whose PD targets are the initial poses, joint coordinates and ball-joint rotations."""
         return Control(
             body_target=wp.array(self.initial_q, dtype=wp.transformd, device=self.device, requires_grad=requires_grad),
             joint_target=self._coordinates(requires_grad),
+            ball_target=wp.array(self.articulation.initial_ball_rotations, dtype=wp.quatd, device=self.device, requires_grad=requires_grad),
         )
 
 
