@@ -2,15 +2,20 @@
 
 For every leaf pair (triangles A on body a, B on body b) listed at the step's start q^t:
 
-    N   = mu W |n| sum_{k in A} 1/g_k^2      normal force magnitude of the pair's leaf
+    N   = mu W |n| sum_{k in A} -b'(g_k)     normal force magnitude of the pair's leaf
                                              potential (net force on A), times the local
-                                             support weight W = 1 - Phi((rho - d1)/(d2 - d1))
-                                             of P_local (rho = centroid distance, d1 = R_A + R_B)
+                                             support weight W
     n^  = n / |n|,   T = I - n^ n^^T          lagged contact normal of the separating plane
     u   = T (x_a(X_A; q) - x_b(X_B; q) - (c_A^t - c_B^t))
                                              tangential slip over the step of the two
                                              triangles' centroids (body-fixed points X_A, X_B)
     D   = lambda N (sqrt(|u|^2 + e^2) - e),  e = v_eps dt
+
+The leaf potential is the contact model's (``pair_solve`` with its ``dhat``): for the
+paper's model b(g) = 1/g (so -b' = 1/g^2) and W = 1 - Phi((rho - d1)/(d2 - d1)) of P_local
+(rho = centroid distance, d1 = R_A + R_B); for the SDRS baseline (dhat > 0) b is the
+locally supported log barrier on unit normals and W = 1, so N is exactly zero once every
+gap of A reaches dhat: no friction acts beyond the barrier's support.
 
 D is C-infinity in q (a smoothed Coulomb law: the friction force lambda N u / sqrt(|u|^2 + e^2)
 saturates at lambda N once slip speeds exceed v_eps). N and n^ depend on q^t; the adjoint
@@ -20,7 +25,7 @@ kernel differentiates them exactly through the leaf plane's sensitivity dp*/dx.
 import warp as wp
 
 from .blend import quintic_blend
-from .leaf import LEAF_OK, leaf_plane_sensitivity, leaf_solve
+from .leaf import LEAF_OK, leaf_plane_sensitivity, pair_solve
 from .rigid import rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
 
 wp.set_module_options({"enable_backward": False})
@@ -52,8 +57,10 @@ def _leaf_radius(t: wp.mat33d):
 
 
 @wp.func
-def _support_weight(ca: wp.vec3d, cb: wp.vec3d, d1: wp.float64, eps: wp.float64):
-    """W = 1 - Phi(s) and dW/drho."""
+def _support_weight(ca: wp.vec3d, cb: wp.vec3d, d1: wp.float64, eps: wp.float64, dhat: wp.float64):
+    """W = 1 - Phi(s) and dW/drho; (1, 0) for SDRS, whose barrier has its own support."""
+    if dhat > wp.float64(0.0):
+        return wp.float64(1.0), wp.float64(0.0)
     width = eps * d1
     phi, dphi, _ = quintic_blend((wp.length(ca - cb) - d1) / width)
     return wp.float64(1.0) - phi, -dphi / width
@@ -64,6 +71,7 @@ def friction_setup_kernel(
     # Model:
     triangle_vertices: wp.array(dtype=wp.mat33d),
     eps: wp.float64,
+    dhat: wp.float64,
     mu: wp.float64,
     max_iterations: int,
     # Data in:
@@ -87,15 +95,13 @@ def friction_setup_kernel(
     ca = _centroid(ta)
     cb = _centroid(tb)
     frame.offset[tid] = ca - cb
-    sol = leaf_solve(ta, tb, max_iterations)
+    sol = pair_solve(ta, tb, dhat, max_iterations)
     frame.normal_force[tid] = wp.float64(0.0)
     frame.normal[tid] = wp.vec3d()
     if sol.status != LEAF_OK:
         return
-    weight, _ = _support_weight(ca, cb, _leaf_radius(ta) + _leaf_radius(tb), eps)
-    q = wp.float64(0.0)
-    for k in range(3):
-        q += wp.float64(1.0) / (sol.gap_a[k] * sol.gap_a[k])
+    weight, _ = _support_weight(ca, cb, _leaf_radius(ta) + _leaf_radius(tb), eps, dhat)
+    q = -(sol.slope_a[0] + sol.slope_a[1] + sol.slope_a[2])
     norm = wp.length(sol.n)
     frame.normal_force[tid] = mu * weight * norm * q
     frame.normal[tid] = sol.n / norm
@@ -186,6 +192,7 @@ def friction_adjoint_kernel(
     # Model:
     triangle_vertices: wp.array(dtype=wp.mat33d),
     eps: wp.float64,
+    dhat: wp.float64,
     mu: wp.float64,
     friction: wp.array(dtype=wp.float64),
     smoothing: wp.float64,
@@ -240,19 +247,17 @@ def friction_adjoint_kernel(
     pos_b = position_now[pair[1]]
     ta = world_triangle(triangle_vertices[item[0]], rot_a, pos_a)
     tb = world_triangle(triangle_vertices[item[1]], rot_b, pos_b)
-    sol = leaf_solve(ta, tb, max_iterations)
+    sol = pair_solve(ta, tb, dhat, max_iterations)
     if sol.status != LEAF_OK:
         return
     ca = _centroid(ta)
     cb = _centroid(tb)
     rho_vec = ca - cb
     rho_hat = rho_vec / wp.length(rho_vec)
-    weight, dweight = _support_weight(ca, cb, _leaf_radius(ta) + _leaf_radius(tb), eps)
+    weight, dweight = _support_weight(ca, cb, _leaf_radius(ta) + _leaf_radius(tb), eps, dhat)
     norm = wp.length(sol.n)
     nhat = sol.n / norm
-    q = wp.float64(0.0)
-    for k in range(3):
-        q += wp.float64(1.0) / (sol.gap_a[k] * sol.gap_a[k])
+    q = -(sol.slope_a[0] + sol.slope_a[1] + sol.slope_a[2])
     third = wp.float64(1.0) / wp.float64(3.0)
     for j in range(6):
         dp = leaf_plane_sensitivity(sol, j)  # 4x3
@@ -261,14 +266,14 @@ def friction_adjoint_kernel(
             for c in range(3):
                 dn[i, c] = dp[i, c]
         dd = wp.vec3d(dp[3, 0], dp[3, 1], dp[3, 2])
-        # dQ/dx_j with Q = sum_{k in A} 1/g_k^2, g_k = <x_k, n> + d (local frame).
+        # dQ/dx_j with Q = sum_{k in A} -b'(g_k), g_k = <x_k, n> + d (local frame). For
+        # SDRS dn is tangent to |n| = 1 (the sensitivity is projected), so d|n| = 0 below.
         dq = wp.vec3d()
         for k in range(3):
-            gk = sol.gap_a[k]
             dg = wp.transpose(dn) * sol.ta[k] + dd
             if k == j:
                 dg += sol.n
-            dq += (wp.float64(-2.0) / (gk * gk * gk)) * dg
+            dq -= sol.curv_a[k] * dg
         sign = wp.float64(1.0)
         if j >= 3:
             sign = wp.float64(-1.0)

@@ -80,5 +80,4 @@ def test_model_errors_are_clear():
     with pytest.raises(ValueError, match="only the gb model"):
         TaskProblem(scene, model="ours", bundle=BundleSettings())
     scene.settings.friction = 0.5
-    with pytest.raises(ValueError, match="gb baseline has no friction model"):
-        TaskProblem(scene, model="gb")
+    assert TaskProblem(scene, model="gb").model.friction.numpy()[0] == 0.5  # gb's sdrs has friction

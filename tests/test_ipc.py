@@ -60,5 +60,4 @@ def test_cli_run_with_ipc(tmp_path, capsys):
     scene = space_billiards()
     scene.settings.friction = 0.5
     io.save_scene(scene, tmp_path / "friction.usda")
-    assert main(["run", str(tmp_path / "friction.usda"), "--model", "ipc", "--out", str(tmp_path / "o")]) == 2
-    assert "no friction model" in capsys.readouterr().err
+    assert main(["run", str(tmp_path / "friction.usda"), "--model", "ipc", "--iters", "1", "--out", str(tmp_path / "o")]) == 0

@@ -108,9 +108,7 @@ def test_bodies_beyond_the_support_cost_and_feel_nothing():
         wc.ContactModel([icosphere(0)], mode="sdrs", dhat=-1.0)
 
 
-def test_builder_selects_sdrs_and_refuses_friction():
-    with pytest.raises(ValueError, match="sdrs baseline has no friction model"):
-        wc.ModelBuilder(contact_mode="sdrs", friction=0.5)
+def test_builder_selects_sdrs_with_friction():
     b = wc.ModelBuilder(contact_mode="sdrs", sdrs_dhat=0.02)
     b.add_sphere(0.5, subdivisions=0, density=100.0)
     contact = b.finalize().contact

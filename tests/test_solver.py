@@ -119,11 +119,11 @@ def test_stack_of_three_boxes_keeps_order_without_penetration():
         assert model.contact.evaluate(q[t]).ok
 
 
-def incline_model(angle, friction):
+def incline_model(angle, friction, **builder_options):
     half = 0.5 * angle
     q = (0.0, np.sin(half), 0.0, np.cos(half))  # tilt about y
     R = quat_matrix(np.array(q))
-    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-6, friction=friction)
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), friction=friction, **{"contact_stiffness": 1e-6, **builder_options})
     b.add_body(grid_ground(4.0, 0.5), static=True, name="ramp", pose=(0.0, 0.0, 0.0, *q))
     b.add_box((0.4, 0.4, 0.4), density=500.0, name="box", pose=(*(R @ [0.0, 0.0, 0.2501]), *q))
     return b.finalize(), R

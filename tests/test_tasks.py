@@ -10,7 +10,7 @@ import trimesh
 import warp as wp
 from pxr import Usd
 
-from warpcontact import io
+from warpcontact import cli, io
 from warpcontact.cli import main
 from warpcontact.kernels import task as task_kernels
 from warpcontact.tasks import TaskProblem, TaskSettings, adam
@@ -166,19 +166,28 @@ def test_cli_compare_writes_json_and_plot(tmp_path, capsys):
     assert "wrote" in capsys.readouterr().out
 
 
-def test_cli_compare_reports_models_that_cannot_run(tmp_path, capsys):
+def test_cli_compare_runs_baselines_with_friction_and_reports_models_that_cannot_run(tmp_path, capsys, monkeypatch):
     scene = space_billiards()
     scene.settings.friction = 0.5
     scene_path = tmp_path / "friction.usda"
     io.save_scene(scene, scene_path)
     argv = ["compare", str(scene_path), "--models", "ours,sdrs", "--iters", "1", "--out", str(tmp_path / "cmp")]
     assert main(argv) == 0
-    models = json.loads((tmp_path / "cmp" / "compare.json").read_text())["models"]
-    assert "loss_history" in models["ours"] and "no friction model" in models["sdrs"]["error"]
-    assert "sdrs: skipped" in capsys.readouterr().err
+    data = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert not data["frictionless"] and all("loss_history" in r for r in data["models"].values())
+    real = cli._task_problem
+
+    def sdrs_cannot_run(scene, settings, model, args):
+        if model == "sdrs":
+            raise ValueError("sdrs cannot run this scene")
+        return real(scene, settings, model, args)
+
+    monkeypatch.setattr(cli, "_task_problem", sdrs_cannot_run)
     assert main(argv + ["--frictionless"]) == 0
     data = json.loads((tmp_path / "cmp" / "compare.json").read_text())
-    assert data["frictionless"] and all("loss_history" in r for r in data["models"].values())
+    assert data["frictionless"] and "loss_history" in data["models"]["ours"]
+    assert "cannot run" in data["models"]["sdrs"]["error"]
+    assert "sdrs: skipped" in capsys.readouterr().err
     assert main(["compare", str(scene_path), "--models", "sdrs", "--iters", "1", "--out", str(tmp_path / "c2")]) == 1
     assert "no model could run" in capsys.readouterr().err
 

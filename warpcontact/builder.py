@@ -72,9 +72,9 @@ class ModelBuilder:
         friction_smoothing: slip speed (m/s) below which the friction law is smoothed.
         eps: blend margin of the hierarchical contact potential.
         contact_mode: ``"bsh"``, ``"brute"`` (the paper's model, hierarchical or exact),
-            ``"ipc"`` (the IPC baseline through ipctk; CPU only, no friction) or ``"sdrs"``
-            (the SDRS baseline: locally supported log barrier on separating planes; no
-            friction).
+            ``"ipc"`` (the IPC baseline through ipctk, with IPC's lagged friction; CPU only)
+            or ``"sdrs"`` (the SDRS baseline: locally supported log barrier on separating
+            planes). Every mode takes friction's lagged normal forces from its own potential.
         ipc_dhat: barrier support distance of the ``"ipc"`` baseline (m).
         sdrs_dhat: barrier support of the ``"sdrs"`` baseline on vertex-to-plane gaps (m);
             triangles interact below 2 sdrs_dhat.
@@ -96,8 +96,6 @@ class ModelBuilder:
             raise ValueError(f"friction_smoothing: must be positive and finite, got {friction_smoothing}")
         self.friction = float(friction)
         self.friction_smoothing = float(friction_smoothing)
-        if contact_mode in ("ipc", "sdrs") and friction > 0:
-            raise ValueError(f"friction: the {contact_mode} baseline has no friction model here; use friction=0")
         self.eps = eps
         self.contact_mode = contact_mode
         self.ipc_dhat = ipc_dhat

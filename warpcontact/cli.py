@@ -242,8 +242,8 @@ def _compare(args) -> int:
     results = {}
     device = args.device
     for model in args.models:
-        # A model that cannot run this scene (a baseline without friction, ipc off the CPU,
-        # a failed step at the initial guess) is reported and the others still run.
+        # A model that cannot run this scene (ipc off the CPU, a failed step at the initial
+        # guess) is reported and the others still run.
         try:
             problem = _task_problem(scene, settings, model, args)
             device = str(problem.model.device)
@@ -322,10 +322,10 @@ def _list(args) -> int:
         print(f"  {name:16s} {path if path.is_file() else '(not in ./scenes)'}")
     print("models (run --model, compare --models):")
     print("  ours   the paper's contact model (long-range, twice differentiable)")
-    print("  ipc    IPC log barrier through ipctk (CPU, frictionless scenes)")
-    print("  sdrs   separating planes with a locally supported log barrier (frictionless scenes)")
+    print("  ipc    IPC log barrier through ipctk, with IPC's lagged friction (CPU)")
+    print("  sdrs   separating planes with a locally supported log barrier")
     print("  gb     gradient bundles over sdrs (seeded by --seed)")
-    print("the baselines have no friction model: compare --frictionless runs every model without friction")
+    print("every model applies the scene's friction; compare --frictionless sets it to 0 for all")
     return 0
 
 
@@ -498,7 +498,7 @@ def build_parser() -> argparse.ArgumentParser:
     compare = sub.add_parser("compare", help="optimise a task with several models from the same initial guess; one convergence plot")
     _add_task_arguments(compare, "outputs/compare")
     compare.add_argument("--models", type=_model_list, default=list(MODELS), help=f"comma-separated subset of {','.join(MODELS)} (default: all)")
-    compare.add_argument("--frictionless", action="store_true", help="set the scene's friction to 0 for every model (the baselines have no friction model)")
+    compare.add_argument("--frictionless", action="store_true", help="set the scene's friction to 0 for every model")
     compare.set_defaults(func=_compare)
 
     listing = sub.add_parser("list", help="list tasks and scenes")

@@ -13,6 +13,10 @@ exact gradient and Hessian in rigid-body coordinates, in one of these modes:
 
 Each mode is a pair-list builder feeding the same term kernels, so further contact models
 (baselines) slot in as further builders and term kernels.
+
+Friction (``friction_frame``, ``friction_terms``, ``friction_adjoint``; the law is in
+``kernels/friction.py``) takes its lagged normal forces and normals from each mode's own leaf
+potential, so the modes differ only in the normal contact potential.
 """
 
 from dataclasses import dataclass
@@ -20,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from .kernels import friction as friction_kernels
 from .kernels import reduction as reduction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels import traversal as traversal_kernels
@@ -28,7 +33,7 @@ from ._validate import as_float64_array
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus
 from .sphere_tree import SphereTree, build_sphere_tree
 
-__all__ = ["ContactEvaluation", "ContactModel", "CONTACT_MODES", "QUATERNION_TOLERANCE", "TermLists"]
+__all__ = ["ContactEvaluation", "ContactModel", "CONTACT_MODES", "LaggedFriction", "QUATERNION_TOLERANCE", "TermLists"]
 
 CONTACT_MODES = ("bsh", "brute", "sdrs")
 
@@ -75,6 +80,26 @@ class ContactEvaluation:
     def ok(self) -> bool:
         """True when the potential is finite and every leaf solve converged."""
         return not self.contact_pairs and not self.unsolved_pairs
+
+
+@dataclass(frozen=True)
+class LaggedFriction:
+    """Friction data of one time step, lagged at its start configuration q^t.
+
+    Attributes:
+        pairs: contact pairs with lagged data (leaf pairs, or ipc's active collisions).
+        mu: contact stiffness the normal forces were computed with.
+        friction: (1,) friction coefficient lambda (the model's array).
+        slip_smoothing: e = v_eps dt (m), the slip below which the Coulomb law is smoothed.
+        data: the contact model's own lagged data (a ``FrictionFrame``, or ipctk's
+            tangential collisions).
+    """
+
+    pairs: int
+    mu: float
+    friction: wp.array
+    slip_smoothing: float
+    data: object
 
 
 @dataclass(frozen=True)
@@ -225,6 +250,9 @@ class ContactModel:
             self._total_value = wp.zeros(1, dtype=wp.float64)
             self._total_grad = wp.zeros((self.num_bodies, 6), dtype=wp.float64)
             self._total_hess = wp.zeros((6 * self.num_bodies, 6 * self.num_bodies), dtype=wp.float64)
+            self._friction_value = wp.zeros(1, dtype=wp.float64)
+            self._friction_grad = wp.zeros((self.num_bodies, 6), dtype=wp.float64)
+            self._friction_hess = wp.zeros((6 * self.num_bodies, 6 * self.num_bodies), dtype=wp.float64)
         # A depth-first walk holds at most 3 pending pairs per level of both trees plus one
         # expansion; the kernel still guards the bound and the host grows it on overflow.
         self._stack_capacity = 3 * (2 * max_depth + 2) + 4
@@ -470,6 +498,87 @@ class ContactModel:
                 device=self.device,
             )
         return float(self._alpha.numpy()[0])
+
+    # --- friction -----------------------------------------------------------------------
+
+    def friction_frame(self, mu: float, friction: wp.array, slip_smoothing: float) -> LaggedFriction:
+        """Lagged friction data at the last evaluated configuration (a step's q^t): per leaf
+        pair, the normal force mu W |n| sum_A -b'(g_k) of this mode's leaf potential, its
+        plane normal and the triangles' centroids (``kernels/friction.py``)."""
+        with wp.ScopedDevice(self.device):
+            frame = friction_kernels.FrictionFrame()
+            frame.leaf_items = self.leaf_items()
+            count = frame.leaf_items.shape[0]
+            frame.normal_force = wp.zeros(count, dtype=wp.float64)
+            frame.normal = wp.zeros(count, dtype=wp.vec3d)
+            frame.point_a = wp.zeros(count, dtype=wp.vec3d)
+            frame.point_b = wp.zeros(count, dtype=wp.vec3d)
+            frame.offset = wp.zeros(count, dtype=wp.vec3d)
+            if count:
+                wp.launch(
+                    friction_kernels.friction_setup_kernel,
+                    dim=count,
+                    inputs=[self._triangle_vertices, self.eps, self.dhat, float(mu), self.max_leaf_iterations, self._rotation, self._position, self._seed_body_pair],
+                    outputs=[frame],
+                )
+        return LaggedFriction(pairs=count, mu=float(mu), friction=friction, slip_smoothing=float(slip_smoothing), data=frame)
+
+    def friction_terms(self, lagged: LaggedFriction):
+        """Friction value, (6 nbodies,) gradient and dense Hessian in rigid coordinates at the
+        last evaluated poses."""
+        for arr in (self._friction_value, self._friction_grad, self._friction_hess):
+            arr.zero_()
+        if lagged.pairs:
+            wp.launch(
+                friction_kernels.friction_energy_kernel,
+                dim=lagged.pairs,
+                inputs=[lagged.friction, lagged.slip_smoothing, self._rotation, self._position, self._body_dynamic, self._seed_body_pair, lagged.data],
+                outputs=[self._friction_value, self._friction_grad, self._friction_hess],
+                device=self.device,
+            )
+        return float(self._friction_value.numpy()[0]), self._friction_grad.numpy().reshape(-1), self._friction_hess.numpy()
+
+    def friction_adjoint(self, lagged: LaggedFriction, q_next: np.ndarray, q_now: np.ndarray, multiplier: np.ndarray):
+        """lambda^T d(grad_q D)/dy of the step's friction D at its solution q_next, for y = q^t
+        (through the slip, the lagged normal forces and normals), the friction coefficient and mu.
+
+        Returns ((nbodies, 6) rigid-coordinate adjoint of q_now, adjoint of lambda, of mu).
+        """
+        n = self.num_bodies
+        with wp.ScopedDevice(self.device):
+            rot_next = wp.zeros(n, dtype=wp.mat33d)
+            pos_next = wp.zeros(n, dtype=wp.vec3d)
+            rot_now = wp.zeros(n, dtype=wp.mat33d)
+            pos_now = wp.zeros(n, dtype=wp.vec3d)
+            wp.launch(rigid_kernels.body_transforms_kernel, dim=n, inputs=[wp.array(q_next, dtype=wp.transformd)], outputs=[rot_next, pos_next])
+            wp.launch(rigid_kernels.body_transforms_kernel, dim=n, inputs=[wp.array(q_now, dtype=wp.transformd)], outputs=[rot_now, pos_now])
+            adj_q = wp.zeros((n, 6), dtype=wp.float64)
+            adj_friction = wp.zeros(1, dtype=wp.float64)
+            adj_mu = wp.zeros(1, dtype=wp.float64)
+            if lagged.pairs:
+                wp.launch(
+                    friction_kernels.friction_adjoint_kernel,
+                    dim=lagged.pairs,
+                    inputs=[
+                        self._triangle_vertices,
+                        self.eps,
+                        self.dhat,
+                        lagged.mu,
+                        lagged.friction,
+                        lagged.slip_smoothing,
+                        self.max_leaf_iterations,
+                        rot_next,
+                        pos_next,
+                        rot_now,
+                        pos_now,
+                        self._body_dynamic,
+                        self._seed_body_pair,
+                        lagged.data,
+                        wp.array(multiplier, dtype=rigid_kernels.vec6d),
+                    ],
+                    outputs=[adj_q, adj_friction, adj_mu],
+                )
+        return adj_q.numpy(), float(adj_friction.numpy()[0]), float(adj_mu.numpy()[0])
 
     @property
     def body_rotation(self) -> wp.array:

@@ -11,18 +11,41 @@ for the separating-plane model. Choices: one collision mesh of all bodies, with 
 vertex-patch filter so a body's own triangles never pair; line-search steps bounded by
 ipctk's continuous collision detection along the straight line from the current to the
 stepped vertex positions (a body's rotation moves its vertices on arcs, so the bound is
-applied with the same safety fraction as the plane bound); friction is not supported.
+applied with the same safety fraction as the plane bound).
+
+Friction is IPC's own lagged friction (Li et al. 2020, section 5) through ipctk, with the
+model's coefficient lambda and smoothing v_eps: for each point-triangle / edge-edge
+collision active at q^t (within dhat), the lagged normal force is the barrier's force
+magnitude mu |b'(d)| (ipctk's ``BarrierPotential`` with stiffness mu), the tangent basis and
+closest-point coordinates are those at q^t, and the slip is the closest points' relative
+displacement over the step, u = x - x^t; D = lambda N f0(|T^T u|) with IPC's C2 mollifier f0
+(eps = v_eps dt, saturating at lambda N like the separating-plane models' sqrt law; the two
+differ only below eps). Beyond dhat there is no collision and no friction. The backward is
+exact: ipctk's ``force_jacobian`` with respect to the lagged positions differentiates N, the
+basis and the closest points by x^t.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .contact import ContactEvaluation, contact_body_pairs
+from dataclasses import dataclass
+
+from .contact import ContactEvaluation, LaggedFriction, contact_body_pairs
 from .rotation import quat_from_rotation_vector, quat_to_matrix, skew
 from ._validate import as_float64_array
 
 __all__ = ["IpcContactModel"]
+
+
+@dataclass(frozen=True)
+class _IpcLaggedFriction:
+    """ipctk's lagged friction data of one step (``LaggedFriction.data``)."""
+
+    collisions: object  # ipctk.TangentialCollisions at q^t
+    lagged_vertices: np.ndarray  # world vertices x^t
+    normal_potential: object  # barrier with stiffness mu: the normal forces' source
+    potential: object  # ipctk.FrictionPotential(eps)
 
 
 class IpcContactModel:
@@ -67,6 +90,7 @@ class IpcContactModel:
         self._potential = ipctk.BarrierPotential(self.dhat, 1.0)
         self._world = self._local.copy()
         self._positions = np.zeros((self.num_bodies, 3))
+        self._collisions = ipctk.NormalCollisions()
 
     def _patches(self, exclude_pairs) -> np.ndarray:
         """Patch id per body: ipctk's filter only separates patches, so bodies joined by
@@ -96,9 +120,18 @@ class IpcContactModel:
             pairs = [(self.names[a], self.names[b]) for a, b in self.body_pairs if self._pair_intersects(V, a, b)]
             return ContactEvaluation(np.inf, np.zeros((n, 6)), np.zeros((6 * n, 6 * n)), 0, 0, 0, pairs, [], 0.0, np.zeros(len(self.body_pairs)))
         value, g, H, collisions = self._vertex_terms(V)
-        r = V - poses[self._body_of, :3]
+        self._collisions = collisions
+        grad, hess = self._rigid_terms(V, poses[:, :3], g, H)
+        distance = collisions.compute_minimum_distance(self._mesh, V) ** 0.5 if len(collisions) else self.dhat
+        return ContactEvaluation(value, grad, hess, 0, 0, len(collisions), [], [], 0.0, np.full(len(self.body_pairs), distance))
+
+    def _rigid_terms(self, V: np.ndarray, positions: np.ndarray, g: np.ndarray, H):
+        """A vertex-coordinate gradient (nv, 3) and sparse Hessian in rigid coordinates
+        (dp, dtheta) of the bodies at ``positions``: J = [I, -[r]x] per vertex, plus the
+        exponential map's curvature; zero for static bodies."""
+        n = self.num_bodies
+        r = V - positions[self._body_of]
         dynamic = ~self.static[self._body_of]
-        # Rigid projection: J = [I, -[r]x] per vertex, plus the exponential map's curvature.
         grad = np.zeros((n, 6))
         np.add.at(grad, self._body_of, np.concatenate([g, np.cross(r, g)], axis=1))
         J = np.zeros((len(V), 3, 6))
@@ -116,8 +149,7 @@ class IpcContactModel:
         for b in np.flatnonzero(~self.static):
             hess[6 * b + 3 : 6 * b + 6, 6 * b + 3 : 6 * b + 6] += blocks[b]
         grad[self.static] = 0.0
-        distance = collisions.compute_minimum_distance(self._mesh, V) ** 0.5 if len(collisions) else self.dhat
-        return ContactEvaluation(value, grad, hess, 0, 0, len(collisions), [], [], 0.0, np.full(len(self.body_pairs), distance))
+        return grad, hess
 
     def _vertex_terms(self, V: np.ndarray):
         """ipctk's own work at world vertices V: collision build, barrier value, gradient
@@ -148,6 +180,63 @@ class IpcContactModel:
         sub = self._ipctk.CollisionMesh(V[keep], self._ipctk.edges(index[F]), index[F])
         sub.can_collide = self._ipctk.make_vertex_patches_filter(self._body_of[keep])
         return bool(self._ipctk.has_intersections(sub, V[keep]))
+
+    # --- friction -----------------------------------------------------------------------
+
+    def friction_frame(self, mu: float, friction, slip_smoothing: float) -> LaggedFriction:
+        """IPC's lagged friction at the last evaluated configuration (a step's q^t): ipctk's
+        tangential collisions of the collisions active there (module docstring)."""
+        ipctk = self._ipctk
+        normal_potential = ipctk.BarrierPotential(self.dhat, float(mu))
+        collisions = ipctk.TangentialCollisions()
+        collisions.build(self._mesh, self._world, self._collisions, normal_potential, float(friction.numpy()[0]))
+        data = _IpcLaggedFriction(collisions, self._world.copy(), normal_potential, ipctk.FrictionPotential(float(slip_smoothing)))
+        return LaggedFriction(pairs=len(collisions), mu=float(mu), friction=friction, slip_smoothing=float(slip_smoothing), data=data)
+
+    def friction_terms(self, lagged: LaggedFriction):
+        """Friction value, (6 nbodies,) gradient and dense Hessian in rigid coordinates at the
+        last evaluated poses."""
+        n = self.num_bodies
+        data = lagged.data
+        if not lagged.pairs:
+            return 0.0, np.zeros(6 * n), np.zeros((6 * n, 6 * n))
+        slip = self._world - data.lagged_vertices
+        value = float(data.potential(data.collisions, self._mesh, slip))
+        g = data.potential.gradient(data.collisions, self._mesh, slip).reshape(-1, 3)
+        H = data.potential.hessian(data.collisions, self._mesh, slip)
+        grad, hess = self._rigid_terms(self._world, self._positions, g, H)
+        return value, grad.reshape(-1), hess
+
+    def friction_adjoint(self, lagged: LaggedFriction, q_next: np.ndarray, q_now: np.ndarray, multiplier: np.ndarray):
+        """lambda^T d(grad_q D)/dy of the step's friction at its solution q_next, for y = q^t,
+        the friction coefficient and mu (see ``ContactModel.friction_adjoint``).
+
+        With F(x^t, u) ipctk's friction force (-dD/du) and u = x - x^t, grad_x D = -F and
+        d(grad_x D)/dx^t = -dF/dx^t|_u + dF/du = -dF/dx^t|_u - d2D/du2.
+        """
+        ipctk = self._ipctk
+        data = lagged.data
+        mesh = self._mesh
+        V_next = self._world_vertices(q_next)
+        V_now = data.lagged_vertices
+        slip = V_next - V_now
+        dynamic = ~self.static[self._body_of]
+        r_next = V_next - q_next[self._body_of, :3]
+        velocity = multiplier[self._body_of, :3] + np.cross(multiplier[self._body_of, 3:], r_next)
+        velocity[~dynamic] = 0.0
+        lagged_jacobian = data.potential.force_jacobian(
+            data.collisions, mesh, V_now, np.zeros_like(V_now), slip, data.normal_potential, ipctk.TangentialPotential.LAGGED_DISPLACEMENTS
+        )
+        slip_hessian = data.potential.hessian(data.collisions, mesh, slip)
+        w = velocity.reshape(-1)
+        vertex_adjoint = (-(lagged_jacobian.T @ w) - slip_hessian.T @ w).reshape(-1, 3)
+        vertex_adjoint[~dynamic] = 0.0
+        r_now = V_now - q_now[self._body_of, :3]
+        adj_q = np.zeros((self.num_bodies, 6))
+        np.add.at(adj_q, self._body_of, np.concatenate([vertex_adjoint, np.cross(r_now, vertex_adjoint)], axis=1))
+        contraction = float(w @ data.potential.gradient(data.collisions, mesh, slip))
+        friction = float(lagged.friction.numpy()[0])
+        return adj_q, contraction / friction, contraction / lagged.mu
 
     def advancement_frame(self) -> tuple[np.ndarray, np.ndarray]:
         """World vertices and body positions of the last ``evaluate`` (see ContactModel)."""

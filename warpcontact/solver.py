@@ -23,11 +23,10 @@ import numpy as np
 import warp as wp
 
 from .kernels import dynamics as dynamics_kernels
-from .kernels import friction as friction_kernels
-from .kernels import rigid as rigid_kernels
 from .kernels.rigid import vec6d
 from ._runtime import paused_tape
 from .articulation import joint_limit_energy
+from .contact import LaggedFriction
 from .rotation import quat_from_rotation_vector, quat_mul
 from .types import Control, Model, State
 
@@ -66,7 +65,7 @@ class _StepInputs:
 
     dt: float
     mu: float
-    friction: "friction_kernels.FrictionFrame | None"
+    friction: "LaggedFriction | None"
     body_q: wp.array  # poses q^t
     body_target: wp.array  # body PD targets
     joint_q: np.ndarray  # joint coordinates at t
@@ -117,9 +116,6 @@ class ImplicitSolver:
             self._energy = wp.zeros(n, dtype=wp.float64)
             self._energy_grad = wp.zeros(n, dtype=vec6d)
             self._energy_hess = wp.zeros(n, dtype=dynamics_kernels.mat66d)
-            self._friction_value = wp.zeros(1, dtype=wp.float64)
-            self._friction_grad = wp.zeros((n, 6), dtype=wp.float64)
-            self._friction_hess = wp.zeros((6 * n, 6 * n), dtype=wp.float64)
 
     # --- forward ------------------------------------------------------------------------------
 
@@ -137,53 +133,13 @@ class ImplicitSolver:
         bodies.dt = float(dt)
         return bodies
 
-    def _friction_frame(self, mu: float) -> "friction_kernels.FrictionFrame | None":
-        """Lagged friction data at the configuration the contact model evaluated last (q^t)."""
+    def _friction_frame(self, mu: float, dt: float) -> "LaggedFriction | None":
+        """Lagged friction data at the configuration the contact model evaluated last (q^t);
+        None when friction is off, so that no friction work is done."""
         model = self.model
         if float(model.friction.numpy()[0]) == 0.0:
             return None
-        contact = model.contact
-        with wp.ScopedDevice(model.device):
-            frame = friction_kernels.FrictionFrame()
-            frame.leaf_items = contact.leaf_items()
-            count = frame.leaf_items.shape[0]
-            frame.normal_force = wp.zeros(count, dtype=wp.float64)
-            frame.normal = wp.zeros(count, dtype=wp.vec3d)
-            frame.point_a = wp.zeros(count, dtype=wp.vec3d)
-            frame.point_b = wp.zeros(count, dtype=wp.vec3d)
-            frame.offset = wp.zeros(count, dtype=wp.vec3d)
-            if count:
-                wp.launch(
-                    friction_kernels.friction_setup_kernel,
-                    dim=count,
-                    inputs=[contact.triangle_vertices, contact.eps, mu, contact.max_leaf_iterations, contact.body_rotation, contact.body_position, contact.seed_body_pair],
-                    outputs=[frame],
-                )
-        return frame
-
-    def _friction_terms(self, frame: "friction_kernels.FrictionFrame", dt: float):
-        """Friction value, (nbodies, 6) gradient and dense Hessian at the contact model's last poses."""
-        model = self.model
-        contact = model.contact
-        for arr in (self._friction_value, self._friction_grad, self._friction_hess):
-            arr.zero_()
-        if frame.leaf_items.shape[0]:
-            wp.launch(
-                friction_kernels.friction_energy_kernel,
-                dim=frame.leaf_items.shape[0],
-                inputs=[
-                    model.friction,
-                    model.friction_smoothing * dt,
-                    contact.body_rotation,
-                    contact.body_position,
-                    model.body_dynamic,
-                    contact.seed_body_pair,
-                    frame,
-                ],
-                outputs=[self._friction_value, self._friction_grad, self._friction_hess],
-                device=model.device,
-            )
-        return float(self._friction_value.numpy()[0]), self._friction_grad.numpy().reshape(-1), self._friction_hess.numpy()
+        return model.contact.friction_frame(mu, model.friction, model.friction_smoothing * dt)
 
     def _evaluate(self, poses: np.ndarray, coords: np.ndarray, step_in: "_StepInputs"):
         """L, its gradient and Hessian over the reduced coordinates, the contact evaluation and
@@ -204,7 +160,7 @@ class ImplicitSolver:
         grad = self._energy_grad.numpy().reshape(-1) + mu * contact.grad.reshape(-1)
         hess = mu * contact.hessian
         if step_in.friction is not None:
-            f_value, f_grad, f_hess = self._friction_terms(step_in.friction, step_in.dt)
+            f_value, f_grad, f_hess = self.model.contact.friction_terms(step_in.friction)
             value += f_value
             grad += f_grad
             hess += f_hess
@@ -362,7 +318,7 @@ class ImplicitSolver:
         step_in = _StepInputs(
             dt=float(dt),
             mu=mu,
-            friction=self._friction_frame(mu),
+            friction=self._friction_frame(mu, dt),
             body_q=state_in.body_q,
             body_target=control.body_target if control is not None else state_in.body_q,
             joint_q=coords_now,
@@ -453,7 +409,7 @@ class ImplicitSolver:
             step_length,
             value,
             float(contact.pair_separation.min()) if len(contact.pair_separation) else np.inf,
-            friction.leaf_items.shape[0] if friction is not None else 0,
+            friction.pairs if friction is not None else 0,
         )
         return self.last_step, lambda: self._backward_function(state_in, state_out, control, step_in, hess, jacobian, contact.grad, q, q_now, q_prev)
 
@@ -480,7 +436,7 @@ class ImplicitSolver:
         model = self.model
         dev = model.device
         n = model.num_bodies
-        dt, mu, friction = step_in.dt, step_in.mu, step_in.friction
+        dt, friction = step_in.dt, step_in.friction
         dynamic = self._dynamic
         art = self._articulation
         hess = hess.copy()
@@ -536,8 +492,11 @@ class ImplicitSolver:
                     outputs=[adj_now, adj_prev, adj_target, adj_mass],
                 )
                 mu_adj = float(lam_full @ contact_grad.reshape(-1))
-                if friction is not None and friction.leaf_items.shape[0]:
-                    mu_adj += self._friction_adjoint(friction, dt, mu, q_next_arr, q_now_arr, lam, adj_now)
+                if friction is not None and friction.pairs:
+                    adj_q, adj_friction, adj_mu = model.contact.friction_adjoint(friction, q_next, q_now, lam_full.reshape(n, 6))
+                    adj_now.assign(adj_now.numpy() + adj_q)
+                    model.friction.grad.assign(model.friction.grad.numpy() + adj_friction)
+                    mu_adj += adj_mu
                 if balls:
                     target_adj, start_adj = art.ball_drive_adjoint(q_next, q_now, lam_reduced, step_in.ball_target, dt)
                     adj_now.assign(adj_now.numpy() + start_adj)
@@ -564,42 +523,3 @@ class ImplicitSolver:
                         control.joint_target.grad.assign(control.joint_target.grad.numpy() - art.kp * lam_coords)
 
         return backward, arrays
-
-    def _friction_adjoint(self, frame, dt, mu, q_next_arr, q_now_arr, lam, adj_now) -> float:
-        """Add friction's lambda^T d(grad D)/d(q^t) to adj_now and its lambda_f adjoint; return mu's."""
-        model = self.model
-        contact = model.contact
-        n = model.num_bodies
-        rot_next = wp.zeros(n, dtype=wp.mat33d)
-        pos_next = wp.zeros(n, dtype=wp.vec3d)
-        rot_now = wp.zeros(n, dtype=wp.mat33d)
-        pos_now = wp.zeros(n, dtype=wp.vec3d)
-        wp.launch(rigid_kernels.body_transforms_kernel, dim=n, inputs=[q_next_arr], outputs=[rot_next, pos_next])
-        wp.launch(rigid_kernels.body_transforms_kernel, dim=n, inputs=[q_now_arr], outputs=[rot_now, pos_now])
-        adj_q = wp.zeros((n, 6), dtype=wp.float64)
-        adj_friction = wp.zeros(1, dtype=wp.float64)
-        adj_mu = wp.zeros(1, dtype=wp.float64)
-        wp.launch(
-            friction_kernels.friction_adjoint_kernel,
-            dim=frame.leaf_items.shape[0],
-            inputs=[
-                contact.triangle_vertices,
-                contact.eps,
-                mu,
-                model.friction,
-                model.friction_smoothing * dt,
-                contact.max_leaf_iterations,
-                rot_next,
-                pos_next,
-                rot_now,
-                pos_now,
-                model.body_dynamic,
-                contact.seed_body_pair,
-                frame,
-                lam,
-            ],
-            outputs=[adj_q, adj_friction, adj_mu],
-        )
-        adj_now.assign(adj_now.numpy() + adj_q.numpy())
-        model.friction.grad.assign(model.friction.grad.numpy() + adj_friction.numpy())
-        return float(adj_mu.numpy()[0])

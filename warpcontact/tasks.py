@@ -19,8 +19,9 @@ paper's betas (0.3, 0.5). Trivial initial guess: all offsets zero.
 
 Models (``MODELS``), all with the same optimiser from the same guess: ``"ours"`` (the
 scene's own contact mode, by default the paper's model), the baselines ``"ipc"`` and
-``"sdrs"`` (locally supported barriers, frictionless), and ``"gb"``: gradient bundles
-(``bundle.py``) over the SDRS model.
+``"sdrs"`` (locally supported barriers, each with friction lagged from its own normal
+forces, so a frictional scene is the same problem for every model), and ``"gb"``: gradient
+bundles (``bundle.py``) over the SDRS model.
 """
 
 from __future__ import annotations
@@ -159,12 +160,10 @@ class TaskProblem:
         settings: optimisation settings (default: the scene's task metadata).
         model: one of ``MODELS``. ``"ours"`` simulates with the scene's own contact mode
             (``SimulationSettings.contact_mode``, the paper's "bsh" unless the scene says
-            otherwise); the baselines replace it (and refuse scenes with friction, which
-            they do not model).
+            otherwise); the baselines replace it.
         bundle: gradient-bundle settings of the ``"gb"`` model (default ``BundleSettings()``).
 
-    Raises ValueError for scenes ``validate_task`` rejects, unknown models, and baselines on
-    frictional scenes.
+    Raises ValueError for scenes ``validate_task`` rejects and unknown models.
     """
 
     def __init__(self, scene, *, device="cpu", settings: TaskSettings | None = None, model: str = "ours", bundle: BundleSettings | None = None):
@@ -176,8 +175,6 @@ class TaskProblem:
         if bundle is not None and model != "gb":
             raise ValueError(f"bundle: only the gb model uses bundle settings, not {model!r}")
         if model in _BASELINE_CONTACT_MODE:
-            if scene.settings.friction > 0:
-                raise ValueError(f"{source}: the {model} baseline has no friction model here, and this scene uses friction {scene.settings.friction}")
             scene = dataclasses.replace(scene, settings=dataclasses.replace(scene.settings, contact_mode=_BASELINE_CONTACT_MODE[model]))
         self.scene = scene
         self.bundle = (bundle or BundleSettings()) if model == "gb" else None

@@ -1,0 +1,166 @@
+"""Friction in the ipc and sdrs baselines: the same lagged, smoothed Coulomb law as ours, with
+normal forces from each model's own barrier (zero beyond its support) and exact gradients."""
+
+import numpy as np
+import pytest
+import warp as wp
+from test_solver import assert_close, central, grid_ground, incline_model, rollout
+
+import warpcontact as wc
+from warpcontact import scenes
+from warpcontact.tasks import TaskProblem, TaskSettings
+
+# Barrier stiffness per mode: ipctk's barrier is not normalised by dhat^3 like sdrs's
+# (on squared distances, b' ~ -2 dhat^4 / d instead of -1 / (dhat d)): it needs a far larger mu
+# for gaps of ~1e-4 m under a box's weight (tiny gaps make ipctk's CCD very slow).
+STIFFNESS = {"bsh": 1e-6, "sdrs": 1e-6, "ipc": 1e5}
+
+
+def box_on_ground(mode, *, gap, friction=0.5, friction_smoothing=1e-4, contact_stiffness=None, yaw=0.3):
+    """A 0.4 m box ``gap`` above a tessellated ground, yawed so no box edge is parallel to a
+    ground edge (parallel edge-edge pairs are degenerate for IPC's tangent bases)."""
+    b = wc.ModelBuilder(
+        gravity=(0.0, 0.0, -9.81),
+        contact_stiffness=contact_stiffness or STIFFNESS[mode],
+        friction=friction,
+        friction_smoothing=friction_smoothing,
+        contact_mode=mode,
+    )
+    b.add_body(grid_ground(2.0, 0.5), static=True, name="ground", pose=(0.03, 0.07, 0.0, 0.0, 0.0, 0.0, 1.0))
+    b.add_box((0.4, 0.4, 0.4), density=500.0, name="box", pose=(0.0, 0.0, 0.2 + gap, 0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)))
+    return b.finalize()
+
+
+@pytest.mark.parametrize("mode", ["sdrs", "ipc"])
+@pytest.mark.parametrize("angle, friction", [(0.3, 0.5), (0.4, 0.2)])
+def test_box_on_incline_sticks_below_and_slides_above_the_coulomb_threshold(mode, angle, friction):
+    model, R = incline_model(angle, friction, contact_mode=mode, contact_stiffness=STIFFNESS[mode])
+    dt = 0.02
+    q, solver = rollout(model, 40, dt)
+    assert solver.last_step.friction_pairs > 0
+    along = (q[1:, 1, :3] @ R)[:, 0]
+    t = np.arange(1, 41) * dt
+    late = t > 0.3
+    acceleration = abs(2 * np.polyfit(t[late], along[late], 2)[0])
+    if np.tan(angle) < friction:
+        assert np.ptp(along[late]) < 1e-3  # stuck, like ours (tests/test_solver.py)
+    else:
+        assert acceleration == pytest.approx(9.81 * (np.sin(angle) - friction * np.cos(angle)), rel=0.02)
+
+
+def lagged_friction(model, poses):
+    contact = model.contact
+    contact.evaluate(poses)
+    return contact.friction_frame(float(model.contact_stiffness.numpy()[0]), model.friction, 1e-4)
+
+
+def slid(poses, dx):
+    out = poses.copy()
+    out[1, 0] += dx
+    return out
+
+
+@pytest.mark.parametrize("mode, dhat", [("sdrs", 0.01), ("ipc", 0.01)])
+def test_no_friction_beyond_the_support_and_friction_inside(mode, dhat):
+    # sdrs triangles interact below 2 dhat, ipc's primitives below dhat.
+    support = 2 * dhat if mode == "sdrs" else dhat
+    for gap, acts in ((1.2 * support, False), (0.5 * support, True)):
+        model = box_on_ground(mode, gap=gap)
+        poses = model.initial_q
+        lagged = lagged_friction(model, poses)
+        model.contact.evaluate(slid(poses, 0.01))
+        value, grad, _ = model.contact.friction_terms(lagged)
+        if acts:
+            assert lagged.pairs > 0 and value > 0 and grad[6] > 0  # resists the slide along +x
+        else:
+            assert value == 0.0 and np.all(grad == 0.0)
+            if mode == "sdrs":  # listed by the broad phase, yet no normal force
+                assert lagged.pairs > 0 and np.all(lagged.data.normal_force.numpy() == 0.0)
+
+
+def test_sdrs_normal_forces_are_the_barrier_forces():
+    model = box_on_ground("sdrs", gap=0.004)
+    poses = model.initial_q
+    lagged = lagged_friction(model, poses)
+    contact = model.contact.evaluate(poses)
+    mu = float(model.contact_stiffness.numpy()[0])
+    frame = lagged.data
+    # Per pair N n^ is the barrier's force on triangle A (the ground; n^ points to A's side,
+    # down), which balances the force on the box: minus the gradient of its translation.
+    total = (frame.normal_force.numpy()[:, None] * frame.normal.numpy()).sum(axis=0)
+    np.testing.assert_allclose(total, mu * contact.grad[1, :3], rtol=1e-9)
+    assert total[2] < 0
+
+
+@wp.kernel
+def _position_loss(q: wp.array(dtype=wp.transformd), target: wp.vec3d, loss: wp.array(dtype=wp.float64)):
+    d = wp.transform_get_translation(q[1]) - target
+    loss[0] = wp.dot(d, d)
+
+
+def sliding_box(mode, *, velocity, friction, mu, start_x=0.0, tape=None, steps=6, dt=0.02):
+    """Loss after a box, launched sideways just above the ground, slides and settles for
+    ``steps`` steps; wide friction smoothing keeps finite differences well conditioned."""
+    model = box_on_ground(mode, gap=0.004, friction=friction, friction_smoothing=0.05, contact_stiffness=mu)
+    solver = wc.ImplicitSolver(model, tolerance=1e-13)
+    states = [model.state() for _ in range(steps + 1)]
+    q0 = states[0].body_q.numpy()
+    q0[1, 0] += start_x
+    states[0].body_q.assign(q0)
+    states[0].body_q_prev.assign(q0)
+    vel = wp.array([[0.0, 0.0, 0.0], velocity], dtype=wp.vec3d, requires_grad=True)
+    ang = wp.zeros(2, dtype=wp.vec3d, requires_grad=True)
+    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+
+    def forward():
+        wc.set_body_velocity(states[0], vel, ang, dt)
+        for t in range(steps):
+            solver.step(states[t], states[t + 1], None, dt)
+        wp.launch(_position_loss, dim=1, inputs=[states[-1].body_q, wp.vec3d(1.0, 0.5, 0.2)], outputs=[loss])
+
+    if tape is None:
+        forward()
+    else:
+        with tape:
+            forward()
+    return dict(model=model, vel=vel, loss=loss, states=states, solver=solver)
+
+
+@pytest.mark.parametrize("mode", ["sdrs", "ipc"])
+def test_tape_gradients_with_baseline_friction_match_finite_differences(mode):
+    """Exact gradients: the lagged normal forces, normals (sdrs) and ipctk's tangent bases and
+    closest points (ipc) are differentiated by q^t, not held fixed."""
+    v0 = np.array([0.3, 0.1, 0.0])
+    mu, lam = STIFFNESS[mode], 0.5
+    tape = wp.Tape()
+    out = sliding_box(mode, velocity=v0, friction=lam, mu=mu, tape=tape)
+    assert out["solver"].last_step.friction_pairs > 0
+    tape.backward(out["loss"])
+    loss = lambda **kw: sliding_box(mode, **{"velocity": v0, "friction": lam, "mu": mu, **kw})["loss"].numpy()[0]  # noqa: E731
+    free = sliding_box(mode, velocity=v0, friction=0.0, mu=mu)["states"][-1].body_q.numpy()[1, 0]
+    assert out["states"][-1].body_q.numpy()[1, 0] < free - 1e-3  # friction slows the slide
+    g_v = out["vel"].grad.numpy()[1]
+    for i in range(2):
+        e = np.zeros(3)
+        e[i] = 1.0
+        assert_close(g_v[i], central(lambda h: loss(velocity=v0 + h * e), 0.0, 1e-5))
+    assert_close(out["model"].friction.grad.numpy()[0], central(lambda h: loss(friction=lam + h), 0.0, 1e-5))
+    assert_close(out["model"].contact_stiffness.grad.numpy()[0], central(lambda h: loss(mu=mu + h), 0.0, mu * 1e-5))
+    assert_close(out["states"][0].body_q.grad.numpy()[1, 0], central(lambda h: loss(start_x=h), 0.0, 1e-5))
+
+
+def test_push_task_runs_the_sdrs_baseline_with_friction():
+    scene = scenes.build_scene("push")
+    assert scene.settings.friction > 0
+    problem = TaskProblem(scene, model="sdrs", settings=TaskSettings(horizon=4, receding_horizon=0, iterations=1, learning_rate=scene.task.learning_rate))
+    assert problem.model.contact.mode == "sdrs" and problem.model.friction.numpy()[0] == scene.settings.friction
+    result = problem.optimize()
+    assert len(result.loss_history) >= 1 and np.isfinite(result.final_loss)
+    assert problem.solver.last_step.friction_pairs > 0
+
+
+def test_without_friction_no_baseline_friction_work_is_done():
+    for mode in ("sdrs", "ipc"):
+        model = box_on_ground(mode, gap=0.004, friction=0.0)
+        _, solver = rollout(model, 2, 0.02)
+        assert solver.last_step.friction_pairs == 0
