@@ -4,7 +4,7 @@ normal forces from each model's own barrier (zero beyond its support) and exact 
 import numpy as np
 import pytest
 import warp as wp
-from test_solver import assert_close, central, grid_ground, incline_model, rollout
+from test_solver import assert_frictional_gradients, grid_ground, incline_model, rollout
 
 import warpcontact as wc
 from warpcontact import scenes
@@ -139,14 +139,9 @@ def test_tape_gradients_with_baseline_friction_match_finite_differences(mode):
     loss = lambda **kw: sliding_box(mode, **{"velocity": v0, "friction": lam, "mu": mu, **kw})["loss"].numpy()[0]  # noqa: E731
     free = sliding_box(mode, velocity=v0, friction=0.0, mu=mu)["states"][-1].body_q.numpy()[1, 0]
     assert out["states"][-1].body_q.numpy()[1, 0] < free - 1e-3  # friction slows the slide
-    g_v = out["vel"].grad.numpy()[1]
-    for i in range(2):
-        e = np.zeros(3)
-        e[i] = 1.0
-        assert_close(g_v[i], central(lambda h: loss(velocity=v0 + h * e), 0.0, 1e-5))
-    assert_close(out["model"].friction.grad.numpy()[0], central(lambda h: loss(friction=lam + h), 0.0, 1e-5))
-    assert_close(out["model"].contact_stiffness.grad.numpy()[0], central(lambda h: loss(mu=mu + h), 0.0, mu * 1e-5))
-    assert_close(out["states"][0].body_q.grad.numpy()[1, 0], central(lambda h: loss(start_x=h), 0.0, 1e-5))
+    # Central differences in mu are stable from steps of mu * 1e-3 (sdrs: 2e-9 from the tape
+    # there, but 1e-5 at mu * 1e-5, where solver rounding dominates).
+    assert_frictional_gradients(out, loss, body=1, velocity=v0, friction=lam, mu=mu, mu_step=1e-3)
 
 
 def test_push_task_runs_the_sdrs_baseline_with_friction():

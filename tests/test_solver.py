@@ -311,14 +311,21 @@ def test_tape_gradients_with_friction_match_finite_differences():
     loss = lambda **kw: sim.run(**{"velocity": v0, "mu": mu, "friction": lam, **kw})["loss"].numpy()[0]  # noqa: E731
     # Friction acts: ball b picks up spin in the glancing collision.
     assert abs(out["states"][-1].body_q.numpy()[1, 5]) > 1e-3
-    g_v = out["vel"].grad.numpy()[0]
+    assert_frictional_gradients(out, loss, body=0, velocity=v0, friction=lam, mu=mu)
+
+
+def assert_frictional_gradients(out, loss, *, body, velocity, friction, mu, mu_step=1e-5):
+    """Tape adjoints of the launch velocity (x, y), friction coefficient, contact stiffness and
+    start x of ``body`` against central differences of ``loss(**changed_inputs)``; the
+    stiffness is perturbed by ``mu_step * mu``."""
+    g_v = out["vel"].grad.numpy()[body]
     for i in range(2):
         e = np.zeros(3)
         e[i] = 1.0
-        assert_close(g_v[i], central(lambda h: loss(velocity=v0 + h * e), 0.0, 1e-5))
-    assert_close(out["model"].friction.grad.numpy()[0], central(lambda h: loss(friction=lam + h), 0.0, 1e-5))
-    assert_close(out["model"].contact_stiffness.grad.numpy()[0], central(lambda h: loss(mu=mu + h), 0.0, mu * 1e-5))
-    assert_close(out["states"][0].body_q.grad.numpy()[0, 0], central(lambda h: loss(start_x=h), 0.0, 1e-5))
+        assert_close(g_v[i], central(lambda h: loss(velocity=velocity + h * e), 0.0, 1e-5))
+    assert_close(out["model"].friction.grad.numpy()[0], central(lambda h: loss(friction=friction + h), 0.0, 1e-5))
+    assert_close(out["model"].contact_stiffness.grad.numpy()[0], central(lambda h: loss(mu=mu + h), 0.0, mu * mu_step))
+    assert_close(out["states"][0].body_q.grad.numpy()[body, 0], central(lambda h: loss(start_x=h), 0.0, 1e-5))
 
 
 def test_gradient_is_non_zero_when_balls_start_far_apart():
