@@ -210,11 +210,12 @@ def test_undersized_buffers_are_grown_and_give_the_same_result():
     poses = identity_poses([[0, 0, 0], [1.05, 0.1, 0.0]])
     reference = wc.ContactModel(meshes).evaluate(poses)
     model = wc.ContactModel(meshes)
-    model._stack_capacity = 4
-    model._far = model._blend = model._leaf = model._stack = None
+    model._visit_budget = 2  # many rounds, each handing on many tasks
+    model._far = model._blend = model._leaf = model._tasks = None
     model._reserve_lists(far=1, blend=1, leaf=1)
+    model._reserve_tasks(1)
     res = model.evaluate(poses)
-    assert model._stack.shape[1] > 4 and model._leaf.shape[0] >= res.num_leaf
+    assert model._traversal_rounds > 3 and model._tasks[0].shape[0] > 1 and model._leaf.shape[0] >= res.num_leaf
     assert res.value == pytest.approx(reference.value, rel=1e-12)
     np.testing.assert_allclose(res.hessian, reference.hessian, rtol=1e-10, atol=1e-12 * np.abs(reference.hessian).max())
 
