@@ -29,6 +29,8 @@ round's task list. Every stack entry carries everything its subtree needs (blend
 are global indices into the blend list), so where a subtree is walked does not change what
 it emits: the lists hold the same items as one serial walk, in another order. Busy body
 pairs split into more tasks each round, so the thread count grows until the GPU is full.
+Measured on an H100 (docs/architecture.md): billiards_6208, 136 body pairs, 671k items,
+48.7 ms in one per-body-pair launch before, 0.82 ms in 9 rounds now.
 
 Rounds end: a node pair's children lie one level deeper in both trees, or in the one
 that is not at a leaf, so the walk reaches node pair (I, J) after max(depth I, depth J)

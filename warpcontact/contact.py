@@ -259,6 +259,8 @@ class ContactModel:
             self._friction_value = wp.zeros(1, dtype=wp.float64)
             self._friction_grad = wp.zeros((self.num_bodies, 6), dtype=wp.float64)
             self._friction_hess = wp.zeros((6 * self.num_bodies, 6 * self.num_bodies), dtype=wp.float64)
+        # Node pairs one traversal thread visits per round; the kernel's local stack is sized
+        # for MAX_VISIT_BUDGET, so only smaller values are valid (tests use them to force rounds).
         self._visit_budget = traversal_kernels.MAX_VISIT_BUDGET
         self._traversal_rounds = 0
         self._far = self._blend = self._leaf = self._blend_level = None
