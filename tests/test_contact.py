@@ -210,13 +210,121 @@ def test_undersized_buffers_are_grown_and_give_the_same_result():
     poses = identity_poses([[0, 0, 0], [1.05, 0.1, 0.0]])
     reference = wc.ContactModel(meshes).evaluate(poses)
     model = wc.ContactModel(meshes)
-    model._stack_capacity = 4
-    model._far = model._blend = model._leaf = model._stack = None
+    model._visit_budget = 2  # many rounds, each handing on many tasks
+    model._far = model._blend = model._leaf = model._tasks = None
     model._reserve_lists(far=1, blend=1, leaf=1)
+    model._reserve_tasks(1)
     res = model.evaluate(poses)
-    assert model._stack.shape[1] > 4 and model._leaf.shape[0] >= res.num_leaf
+    assert model._traversal_rounds > 3 and model._tasks[0].shape[0] > 1 and model._leaf.shape[0] >= res.num_leaf
     assert res.value == pytest.approx(reference.value, rel=1e-12)
     np.testing.assert_allclose(res.hessian, reference.hessian, rtol=1e-10, atol=1e-12 * np.abs(reference.hessian).max())
+
+
+# --- traversal rounds give the lists of one serial walk -----------------------------------------
+
+
+def _serial_walk(model, eps, support):
+    """Term lists of one depth-first walk per body pair (numpy), at the model's last poses.
+
+    Rows name each item's enclosing blend record by its identity (node_a, node_b, body pair),
+    or (-1, -1, -1) at top level, since record indices depend on the order of emission.
+    """
+    rotation, position = model.body_rotation.numpy(), model.body_position.numpy()
+    top = (-1, -1, -1)
+    far, blend, leaf = [], [], []
+    for seed, (a, b) in enumerate(model.body_pairs):
+        tree_a, tree_b = model.trees[a], model.trees[b]
+        centre_a = tree_a.centers @ rotation[a].T + position[a]
+        centre_b = tree_b.centers @ rotation[b].T + position[b]
+        stack = [(0, 0, top, 0)]  # local roots
+        while stack:
+            i, j, parent, level = stack.pop()
+            node_a, node_b = i + model.node_offset[a], j + model.node_offset[b]
+            dist = np.linalg.norm(centre_a[i] - centre_b[j])
+            d1 = tree_a.radii[i] + tree_b.radii[j]
+            if (dist - d1 >= support) if support > 0 else (dist >= (1.0 + eps) * d1):
+                far.append((node_a, node_b, *parent, seed))
+                continue
+            if support == 0 and dist > d1:
+                blend.append((node_a, node_b, *parent, seed, level))
+                parent, level = (node_a, node_b, seed), level + 1
+            leaf_a, leaf_b = tree_a.left[i] < 0, tree_b.left[j] < 0
+            if leaf_a and leaf_b:
+                triangles = (tree_a.triangle[i] + model.triangle_offset[a], tree_b.triangle[j] + model.triangle_offset[b])
+                leaf.append((*triangles, *parent, seed))
+                continue
+            children_a = [i] if leaf_a else [tree_a.left[i], tree_a.right[i]]
+            children_b = [j] if leaf_b else [tree_b.left[j], tree_b.right[j]]
+            stack.extend((ci, cj, parent, level) for ci in children_a for cj in children_b)
+    return sorted(far), sorted(blend), sorted(leaf)
+
+
+def _with_parent_identities(lists):
+    identity = [tuple(int(v) for v in (row[0], row[1], row[3])) for row in lists.blend]
+    assert len(set(identity)) == len(identity)
+
+    def parent(index):
+        return identity[index] if index >= 0 else (-1, -1, -1)
+
+    far = sorted((int(r[0]), int(r[1]), *parent(r[2]), int(r[3])) for r in lists.far)
+    blend = sorted((int(r[0]), int(r[1]), *parent(r[2]), int(r[3]), int(level)) for r, level in zip(lists.blend, lists.blend_level))
+    leaf = sorted((int(r[0]), int(r[1]), *parent(r[2]), int(r[3])) for r in lists.leaf)
+    return far, blend, leaf
+
+
+def _rack_meshes_and_poses(gap):
+    spacing = 1.0 + gap
+    centres = [[row * spacing * np.sqrt(3) / 2, (k - row / 2) * spacing, 0.5] for row in range(4) for k in range(row + 1)]
+    poses = identity_poses([*centres, [0.0, 0.0, -0.2 - gap]])
+    for body, angle in enumerate(np.linspace(0.1, 2.0, len(centres))):
+        poses[body, 3:] = quat([1.0, 2.0, body], angle)
+    return [icosphere(1)] * len(centres) + [box(extents=(6.0, 6.0, 0.4))], poses
+
+
+def _two_icospheres(gap):
+    poses = identity_poses([[0, 0, 0], [1.0 + gap, 0.1, 0.05]])
+    poses[1, 3:] = quat([0, 1, 1], 0.7)
+    return [icosphere(2), icosphere(1)], poses
+
+
+@pytest.mark.parametrize("eps", [0.1, 0.5, 2.0])
+@pytest.mark.parametrize("scene", ["two_icospheres_0.01", "two_icospheres_0.2", "two_icospheres_1.0", "rack_0.02"])
+def test_traversal_rounds_emit_the_serial_walks_items(scene, eps):
+    name, gap = scene.rsplit("_", 1)
+    meshes, poses = (_rack_meshes_and_poses if name == "rack" else _two_icospheres)(float(gap))
+    static = [False] * (len(meshes) - 1) + [name == "rack"]
+    model = wc.ContactModel(meshes, eps=eps, static=static)
+    lists = model.term_lists(poses)
+    assert len(lists.blend)  # the walk went below the roots
+    assert _with_parent_identities(lists) == _serial_walk(model, eps, 0.0)
+
+
+@pytest.mark.parametrize("budget", [1, 3])
+def test_traversal_rounds_regrow_buffers_and_still_emit_the_serial_walks_items(budget):
+    meshes, poses = _rack_meshes_and_poses(0.05)
+    model = wc.ContactModel(meshes, eps=0.5, static=[False] * (len(meshes) - 1) + [True])
+    model._visit_budget = budget
+    model._far = model._blend = model._leaf = model._tasks = None
+    model._reserve_lists(far=1, blend=1, leaf=1)
+    model._reserve_tasks(1)
+    lists = model.term_lists(poses)
+    max_depth = max(t.max_depth for t in model.trees)
+    assert 3 < model._traversal_rounds <= max_depth + 1
+    assert model._tasks[0].shape[0] > 1 and model._blend.shape[0] >= len(lists.blend) > 1
+    assert _with_parent_identities(lists) == _serial_walk(model, 0.5, 0.0)
+    # Once grown, the buffers are reused: a second traversal allocates nothing.
+    buffers = (model._tasks[0], model._far, model._blend, model._leaf)
+    model.term_lists(poses)
+    assert all(a is b for a, b in zip(buffers, (model._tasks[0], model._far, model._blend, model._leaf)))
+
+
+def test_sdrs_traversal_rounds_emit_the_serial_walks_broad_phase():
+    meshes, poses = _two_icospheres(0.01)
+    model = wc.ContactModel(meshes, mode="sdrs", dhat=0.05)
+    model._visit_budget = 2
+    lists = model.term_lists(poses)
+    assert len(lists.far) and len(lists.leaf) and len(lists.blend) == 0
+    assert _with_parent_identities(lists) == _serial_walk(model, model.eps, 2 * model.dhat)
 
 
 # --- bad input --------------------------------------------------------------------------------

@@ -4,7 +4,7 @@
 exact gradient and Hessian in rigid-body coordinates, in one of these modes:
 
 - ``"bsh"``: the paper's hierarchical potential P_BSH (eq. BSH-potential), evaluated from
-  far / blend / leaf term lists that a stack-based traversal kernel emits.
+  far / blend / leaf term lists that a load-balanced traversal kernel emits in rounds.
 - ``"brute"``: the O(T^2) reference sum of exact leaf potentials (eq. potential-slow).
 - ``"sdrs"``: the SDRS baseline (Ye et al. 2024): the same separating-plane leaf problem
   with a locally supported log barrier of support ``dhat`` on unit-normal plane gaps
@@ -238,13 +238,19 @@ class ContactModel:
             self._node_left = wp.array(left, dtype=wp.int32)
             self._node_right = wp.array(right, dtype=wp.int32)
             self._node_triangle = wp.array(tri, dtype=wp.int32)
-            self._body_root = wp.array(self.node_offset, dtype=wp.int32)
+            # Round 0 of the traversal: one task per body pair, its two roots at top level.
+            roots = self.node_offset[self.body_pairs].reshape(-1, 2)
+            root_task = np.column_stack([roots, np.full((len(roots), 1), -1), np.zeros((len(roots), 1))]).astype(np.int32)
+            self._root_task = wp.array(root_task.reshape(-1, 4), dtype=wp.vec4i)
+            self._root_task_seed = wp.array(np.arange(len(roots), dtype=np.int32), dtype=wp.int32)
             self._triangle_vertices = wp.array(np.concatenate(triangles), dtype=wp.mat33d)
             self._body_dynamic = wp.array((~self.static).astype(np.int32), dtype=wp.int32)
             self._seed_body_pair = wp.array(self.body_pairs, dtype=wp.vec2i)
             self._rotation = wp.empty(self.num_bodies, dtype=wp.mat33d)
             self._position = wp.empty(self.num_bodies, dtype=wp.vec3d)
-            self._counters = wp.zeros(traversal_kernels.NUM_COUNTERS, dtype=wp.int32)
+            # The traversal ends within max_depth + 1 rounds (kernels/traversal.py): one task
+            # counter per round.
+            self._counters = wp.zeros(int(traversal_kernels.COUNTER_ROUND_TASKS) + max_depth + 1, dtype=wp.int32)
             self._seed_status = wp.zeros(len(self.body_pairs), dtype=wp.int32)
             self._seed_separation = wp.zeros(len(self.body_pairs), dtype=wp.float64)
             self._total_value = wp.zeros(1, dtype=wp.float64)
@@ -253,10 +259,12 @@ class ContactModel:
             self._friction_value = wp.zeros(1, dtype=wp.float64)
             self._friction_grad = wp.zeros((self.num_bodies, 6), dtype=wp.float64)
             self._friction_hess = wp.zeros((6 * self.num_bodies, 6 * self.num_bodies), dtype=wp.float64)
-        # A depth-first walk holds at most 3 pending pairs per level of both trees plus one
-        # expansion; the kernel still guards the bound and the host grows it on overflow.
-        self._stack_capacity = 3 * (2 * max_depth + 2) + 4
-        self._far = self._blend = self._leaf = self._blend_level = self._stack = None
+        # Node pairs one traversal thread visits per round; the kernel's local stack is sized
+        # for MAX_VISIT_BUDGET, so only smaller values are valid (tests use them to force rounds).
+        self._visit_budget = traversal_kernels.MAX_VISIT_BUDGET
+        self._traversal_rounds = 0
+        self._far = self._blend = self._leaf = self._blend_level = None
+        self._tasks = self._task_seeds = None
         self._leaf_iterations = self._leaf_plane = None
         self._alpha = wp.zeros(1, dtype=wp.float64, device=self.device)
         self._blend_value = self._blend_grad = self._blend_hess = None
@@ -265,6 +273,7 @@ class ContactModel:
         else:
             per_pair = 8 * max(t.num_triangles for t in trees)
             self._reserve_lists(far=per_pair * max(1, len(self.body_pairs)), blend=per_pair, leaf=per_pair)
+            self._reserve_tasks(3 * self._visit_budget * max(1, len(self.body_pairs)))
 
     def _set_brute_leaf_list(self):
         rows = []
@@ -301,8 +310,13 @@ class ContactModel:
                 self._leaf = wp.zeros(leaf, dtype=wp.vec4i)
                 self._leaf_iterations = wp.zeros(leaf, dtype=wp.int32)
                 self._leaf_plane = wp.zeros(leaf, dtype=wp.vec4d)
-            if self._stack is None or self._stack.shape[1] < self._stack_capacity:
-                self._stack = wp.zeros((max(1, len(self.body_pairs)), self._stack_capacity), dtype=wp.vec4i)
+
+    def _reserve_tasks(self, count: int):
+        """Two task lists of at least ``count``: traversal rounds read one and fill the other."""
+        if self._tasks is None or self._tasks[0].shape[0] < count:
+            with wp.ScopedDevice(self.device):
+                self._tasks = [wp.zeros(count, dtype=wp.vec4i) for _ in range(2)]
+                self._task_seeds = [wp.zeros(count, dtype=wp.int32) for _ in range(2)]
 
     def _reserve_blend_accumulators(self, count: int):
         with wp.ScopedDevice(self.device):
@@ -334,37 +348,51 @@ class ContactModel:
             wp.launch(rigid_kernels.body_transforms_kernel, dim=self.num_bodies, inputs=[pose], outputs=[self._rotation, self._position])
 
     def _traverse(self):
-        """Fill the BSH term lists for the current poses, growing buffers until they fit."""
+        """Fill the BSH term lists for the current poses, growing buffers until they fit.
+
+        Runs traversal rounds (``kernels/traversal.py``) until no task is left; the host
+        reads the counters once per round to size the next launch."""
         for _ in range(_MAX_TRAVERSAL_ATTEMPTS):
             self._counters.zero_()
-            if len(self.body_pairs):
+            tasks, task_seeds, num_tasks = self._root_task, self._root_task_seed, len(self.body_pairs)
+            rounds, counters = 0, np.zeros(4, dtype=np.int32)
+            while num_tasks:
+                slot = int(traversal_kernels.COUNTER_ROUND_TASKS) + rounds
+                next_tasks, next_task_seeds = self._tasks[rounds % 2], self._task_seeds[rounds % 2]
                 wp.launch(
-                    traversal_kernels.traverse_kernel,
-                    dim=len(self.body_pairs),
+                    traversal_kernels.traverse_round_kernel,
+                    dim=num_tasks,
                     inputs=[
                         self._node_center,
                         self._node_radius,
                         self._node_left,
                         self._node_right,
                         self._node_triangle,
-                        self._body_root,
                         self.eps,
                         2.0 * self.dhat,
+                        self._visit_budget,
                         self._rotation,
                         self._position,
                         self._seed_body_pair,
-                        self._stack,
+                        tasks,
+                        task_seeds,
+                        slot,
                     ],
-                    outputs=[self._counters, self._far, self._blend, self._blend_level, self._leaf],
+                    outputs=[self._counters, self._far, self._blend, self._blend_level, self._leaf, next_tasks, next_task_seeds],
                     device=self.device,
                 )
-            far, blend, leaf, max_level, overflow = (int(c) for c in self._counters.numpy())
+                counters = self._counters.numpy()
+                rounds += 1
+                tasks, task_seeds, num_tasks = next_tasks, next_task_seeds, int(counters[slot])
+                if num_tasks > next_tasks.shape[0]:
+                    break  # tasks were dropped: grow the task lists and start over
+            far, blend, leaf, max_level = (int(c) for c in counters[:4])
             fits = far <= self._far.shape[0] and blend <= self._blend.shape[0] and leaf <= self._leaf.shape[0]
-            if fits and overflow == 0:
+            if fits and num_tasks == 0:
                 self._counts = (far, blend, leaf, max_level if blend else -1)
+                self._traversal_rounds = rounds
                 return
-            if overflow:
-                self._stack_capacity *= 2
+            self._reserve_tasks(int(num_tasks * 1.25) + 16)
             self._reserve_lists(far=int(far * 1.25) + 16, blend=int(blend * 1.25) + 16, leaf=int(leaf * 1.25) + 16)
         raise RuntimeError(f"sphere-tree traversal did not fit its buffers after {_MAX_TRAVERSAL_ATTEMPTS} attempts")
 
