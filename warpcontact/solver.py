@@ -346,6 +346,10 @@ class ImplicitSolver:
             raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs}; joint limits reached: {self._limits_reached(coords)})")
         full = np.zeros((model.num_bodies, 6))
         tol = self.tolerance * self._length_scale
+        # Steps this short are in Newton's quadratic regime, where Armijo tests only rounding
+        # noise; the cap keeps that true for loose tolerances (1e3 x 1e-6 would let full steps
+        # cycle at millimetres).
+        rounding_step = min(1e3 * self.tolerance, 1e-7) * self._length_scale
         converged = False
         iterations = 0
         step_length = np.inf
@@ -366,8 +370,8 @@ class ImplicitSolver:
             frame = model.contact.advancement_frame() if art is not None else None
             alpha = min(model.contact.advancement_limit(full, fraction=self.advancement_fraction, frame=frame), self._limit_step(q, coords, direction))
             # L's rounding scales with its terms, not with L, which is ~0 in free flight under
-            # a locally supported contact model (ipc, sdrs); steps within 1e3 tol are quadratic.
-            quadratic_regime = (decrement <= 1e-10 * max(abs(value), 1e-300) or step_length <= 1e3 * tol) and alpha == 1.0
+            # a locally supported contact model (ipc, sdrs): short steps are taken in full.
+            quadratic_regime = (decrement <= 1e-10 * max(abs(value), 1e-300) or step_length <= rounding_step) and alpha == 1.0
             accepted = False
             for _ in range(60):
                 if art is None:
@@ -389,8 +393,8 @@ class ImplicitSolver:
                     break
                 alpha *= 0.5
             if not accepted:
-                if step_length <= 1e3 * tol:
-                    converged = True  # stalled at the rounding floor of L, within 1e3 tol
+                if step_length <= rounding_step:
+                    converged = True  # stalled at the rounding floor of L
                     break
                 raise SolverError(self._diagnostics("line search failed", iterations, step_length, value, travel))
             q, coords, value, grad, hess, contact, jacobian = trial, t_coords, t_value, t_grad, t_hess, t_contact, t_jacobian
