@@ -9,6 +9,7 @@ from pxr import Usd
 
 from warpcontact import io
 from warpcontact.bench import accuracy_scene
+from warpcontact import cli
 from warpcontact.cli import main
 
 
@@ -154,3 +155,49 @@ def test_simulate_writes_trajectory_and_summary(tmp_path, capsys):
 def test_simulate_reports_bad_scene_paths(tmp_path, capsys):
     assert main(["simulate", str(tmp_path / "missing.usda"), "--out", str(tmp_path)]) == 2
     assert "file not found" in capsys.readouterr().err
+
+
+def _two_ball_task(tmp_path) -> Path:
+    """A cue ball (initial vx, vy optimised) 0.5 m from a target ball in space, as a .usda."""
+    import numpy as np
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=0, radius=0.5)
+    V, F = np.asarray(m.vertices), np.asarray(m.faces)
+    cue = io.BodySpec("cue", "/World/cue", V, F, np.array([0, 0, 0, 0, 0, 0, 1.0]), density=100.0, control_dofs=("vx", "vy"))
+    target = io.BodySpec("target", "/World/target", V, F, np.array([1.5, 0.3, 0, 0, 0, 0, 1.0]), density=100.0)
+    target.target_position, target.target_tolerance = np.array([3.0, 0.8, 0.0]), 0.1
+    scene = io.Scene(
+        bodies=[cue, target],
+        gravity=np.zeros(3),
+        settings=io.SimulationSettings(time_step=0.04, frames=3, contact_stiffness=1e-4),
+        task=io.TaskSpec(name="two_balls", control="initial_state", horizon=3, iterations=1, learning_rate=0.3),
+    )
+    path = tmp_path / "two_balls.usda"
+    io.save_scene(scene, path)
+    return path
+
+
+def test_ipc_stiffness_reaches_the_ipc_model_only(tmp_path, monkeypatch):
+    """run/compare give ipc --ipc-stiffness as its barrier stiffness (the scenes' mu is sized
+    for ours and far too soft for IPC's barrier); the other models keep the scene's mu."""
+    from warpcontact.tasks import TaskProblem
+
+    seen = {}
+    real = TaskProblem.optimize
+
+    def optimize(self, **kwargs):
+        seen[self.scene.settings.contact_mode] = float(self.model.contact_stiffness.numpy()[0])
+        return real(self, **kwargs)
+
+    monkeypatch.setattr(TaskProblem, "optimize", optimize)
+    scene = _two_ball_task(tmp_path)
+    assert main(["run", str(scene), "--model", "ipc", "--ipc-stiffness", "1234", "--iters", "1", "--out", str(tmp_path / "run")]) == 0
+    assert seen == {"ipc": 1234.0}
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text())["ipc_stiffness"] == 1234.0
+    seen.clear()
+    assert main(["compare", str(scene), "--models", "ours,ipc", "--iters", "1", "--out", str(tmp_path / "cmp")]) == 0
+    assert seen == {"bsh": 1e-4, "ipc": cli.IPC_TASK_STIFFNESS}
+    assert json.loads((tmp_path / "cmp" / "compare.json").read_text())["ipc_stiffness"] == cli.IPC_TASK_STIFFNESS
+    with pytest.raises(SystemExit):
+        main(["run", str(scene), "--model", "ipc", "--ipc-stiffness", "0", "--out", str(tmp_path / "bad")])
