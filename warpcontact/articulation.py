@@ -152,6 +152,12 @@ def _rotation_gap(q_a: np.ndarray, q_b: np.ndarray) -> float:
     return float(np.linalg.norm(rotation_vector_from_quat(quat_mul(q_a, quat_conjugate(q_b)))))
 
 
+def _relative_rotation(parent: np.ndarray, child: np.ndarray) -> np.ndarray:
+    """Rotations (n, 4) of child frames in parent frames, both (n, 4) world quaternions: the
+    convention of ``Control.ball_target``."""
+    return quat_mul(quat_conjugate(parent), child)
+
+
 class ArticulationModel:
     """The kinematic forest of a model's dynamic bodies (host, numpy, float64).
 
@@ -419,8 +425,7 @@ class ArticulationModel:
         """Relative rotations (nball, 4) of the ball joints at ``poses`` (nbodies, 7): unit
         quaternions (x, y, z, w) of the child's joint frame in the parent's joint frame (the
         world's for a joint to the world), the convention of ``Control.ball_target``."""
-        parent, child = self._ball_frames(poses)
-        return quat_mul(quat_conjugate(parent), child)
+        return _relative_rotation(*self._ball_frames(poses))
 
     def _ball_drive_matrices(self, poses: np.ndarray, target: np.ndarray, start: np.ndarray, dt: float):
         """World frame rotations (parent, child) as quaternions, P as matrices, and the spring
@@ -451,7 +456,7 @@ class ArticulationModel:
         reference where the trace form cancels.
         """
         parent, child, _, spring, damper = self._ball_drive_matrices(poses, target, start, dt)
-        relative = quat_mul(quat_conjugate(parent), child)
+        relative = _relative_rotation(parent, child)
 
         def one_minus_cosine(reference):
             return 2.0 * np.sum(quat_mul(quat_conjugate(reference), relative)[:, :3] ** 2, axis=1)
@@ -474,7 +479,7 @@ class ArticulationModel:
         P P_t^T C_t by P P_t^T beta; the parent's turns it by the opposite.
         """
         parent_start, child_start = self._ball_frames(poses_start)
-        start = quat_mul(quat_conjugate(parent_start), child_start)
+        start = _relative_rotation(parent_start, child_start)
         _, _, P, spring, damper = self._ball_drive_matrices(poses, target, start, dt)
         P_start = quat_to_matrix(parent_start)
 

@@ -64,6 +64,7 @@ class _StepInputs:
     """What a step's objective depends on besides the iterate."""
 
     dt: float
+    bodies: dynamics_kernels.BodyModel  # per-body terms' model at this dt
     mu: float
     friction: "LaggedFriction | None"
     body_q: wp.array  # poses q^t
@@ -151,7 +152,7 @@ class ImplicitSolver:
         wp.launch(
             dynamics_kernels.body_energy_kernel,
             dim=self.model.num_bodies,
-            inputs=[self._body_model(step_in.dt), self._trial_q, step_in.body_q, self._predicted_position, self._predicted_rotation, step_in.body_target],
+            inputs=[step_in.bodies, self._trial_q, step_in.body_q, self._predicted_position, self._predicted_rotation, step_in.body_target],
             outputs=[self._energy, self._energy_grad, self._energy_hess],
             device=self.model.device,
         )
@@ -317,6 +318,7 @@ class ImplicitSolver:
             raise ValueError(f"state_in: bodies intersect or touch at the start of the step: {names}")
         step_in = _StepInputs(
             dt=float(dt),
+            bodies=self._body_model(dt),
             mu=mu,
             friction=self._friction_frame(mu, dt),
             body_q=state_in.body_q,
@@ -454,7 +456,7 @@ class ImplicitSolver:
             predicted_position = wp.clone(self._predicted_position)
             predicted_rotation = wp.clone(self._predicted_rotation)
             sensitivity = wp.clone(self._prediction_sensitivity)
-        bodies = self._body_model(dt)
+        bodies = step_in.bodies
         arrays = [state_out.body_q, state_out.body_q_prev, state_in.body_q, state_in.body_q_prev, model.body_mass, model.contact_stiffness, model.friction]
         if control is not None and control.body_target.requires_grad:
             arrays.append(control.body_target)
