@@ -92,7 +92,18 @@ def test_round_trip_preserves_bodies_masses_meshes_and_poses(tmp_path):
     box.control_dofs = ("x", "y")
     box.group = 1
     scene.settings = io.SimulationSettings(time_step=0.02, frames=30, contact_stiffness=3e-8, eps=0.7, friction=0.4)
-    scene.task = io.TaskSpec(name="gather", control="pd_targets", horizon=30, receding_horizon=8, learning_rate=0.01, iterations=5)
+    scene.task = io.TaskSpec(
+        name="gather",
+        control="pd_targets",
+        horizon=30,
+        receding_horizon=8,
+        learning_rate=0.01,
+        iterations=5,
+        quick_horizon=12,
+        quick_receding_horizon=0,
+        quick_learning_rate=0.05,
+        quick_iterations=3,
+    )
     io.save_scene(scene, tmp_path / "b.usda")
     again = io.load_scene(tmp_path / "b.usda")
     assert [b.name for b in again.bodies] == [b.name for b in scene.bodies]

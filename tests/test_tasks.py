@@ -128,6 +128,66 @@ def test_task_problem_rejects_scenes_without_task_metadata():
         TaskProblem(scene)
 
 
+def test_quick_uses_the_scene_preset_or_caps_the_paper_settings():
+    scene = space_billiards()
+    scene.task.horizon, scene.task.receding_horizon, scene.task.iterations = 200, 48, 50
+    paper = TaskSettings.from_task(scene)
+    assert (paper.horizon, paper.receding_horizon, paper.iterations, paper.learning_rate) == (200, 48, 50, 0.3)
+    capped = TaskSettings.from_task(scene, quick=True)
+    assert (capped.horizon, capped.receding_horizon, capped.iterations, capped.learning_rate) == (24, 8, 8, 0.3)
+    scene.task.quick_horizon, scene.task.quick_receding_horizon, scene.task.quick_iterations, scene.task.quick_learning_rate = 64, 0, 60, 0.05
+    preset = TaskSettings.from_task(scene, quick=True, iterations=7)
+    assert (preset.horizon, preset.receding_horizon, preset.iterations, preset.learning_rate) == (64, 0, 7, 0.05)
+    scene.task.horizon = 0  # the scene's frame count
+    assert TaskSettings.from_task(scene).horizon == scene.settings.frames
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("iterations", 0, "warpcontact:task:iterations must be >= 1, got 0"),
+        ("learning_rate", -0.1, "warpcontact:task:learningRate must be positive and finite, got -0.1"),
+        ("learning_rate", float("nan"), "warpcontact:task:learningRate must be positive and finite"),
+        ("receding_horizon", -2, "warpcontact:task:recedingHorizon must be >= 0, got -2"),
+        ("quick_learning_rate", 0.0, "warpcontact:task:quick:learningRate must be positive and finite, got 0.0"),
+    ],
+)
+def test_out_of_range_task_settings_are_clear_errors(tmp_path, field, value, message):
+    scene = space_billiards()
+    scene.task.quick_horizon, scene.task.quick_iterations, scene.task.quick_learning_rate = 5, 2, 0.1
+    setattr(scene.task, field, value)
+    path = tmp_path / "bad.usda"
+    io.save_scene(scene, path)
+    with pytest.raises(ValueError, match=f"bad.usda: {message}"):
+        TaskSettings.from_task(io.load_scene(path), quick=field.startswith("quick"))
+
+
+def test_receding_windows_hold_the_last_planned_action():
+    """The row that enters a window starts as a copy of the last planned row (zero would send
+    the PD target back to the start pose at the end of every window)."""
+    scene = space_billiards()
+    scene.bodies[0].control_dofs = ("x", "y")
+    scene.bodies[0].kp_linear = np.full(3, 100.0)
+    scene.task.control = "pd_targets"
+    problem = TaskProblem(scene, settings=TaskSettings(horizon=4, receding_horizon=2, iterations=2, learning_rate=0.05))
+    window_starts = []
+    rollout = problem.rollout
+
+    def recording(values, start, frames, **kwargs):
+        if frames == 2 and (not window_starts or len(window_starts[-1]) == 2):
+            window_starts.append([])
+        if frames == 2:
+            window_starts[-1].append(np.array(values))
+        return rollout(values, start, frames, **kwargs)
+
+    problem.rollout = recording
+    result = problem.optimize()
+    assert len(window_starts) == 4 and np.abs(result.values).max() > 0
+    for first_guess, _ in window_starts[1:]:
+        np.testing.assert_array_equal(first_guess[1], first_guess[0])
+    assert any(np.abs(first_guess).max() > 0 for first_guess, _ in window_starts[1:])
+
+
 def test_cli_run_writes_metrics_plot_and_trajectory(tmp_path):
     scene_path = tmp_path / "space.usda"
     io.save_scene(space_billiards(), scene_path)

@@ -153,18 +153,7 @@ def _load_task(args):
     scene_path = _resolve_scene_path(args.task)
     scene = io.load_scene(scene_path)
     validate_task(scene)
-    t = scene.task
-    settings = TaskSettings(
-        horizon=t.horizon or scene.settings.frames,
-        receding_horizon=t.receding_horizon,
-        iterations=args.iters or t.iterations,
-        learning_rate=t.learning_rate,
-    )
-    if args.quick:
-        # A few minutes on a 2-core CPU: short horizons and windows, few iterations.
-        settings.horizon = min(settings.horizon, 24)
-        settings.receding_horizon = min(settings.receding_horizon, 8) if settings.receding_horizon else 0
-        settings.iterations = min(settings.iterations, args.iters or 8)
+    settings = TaskSettings.from_task(scene, quick=args.quick, iterations=args.iters)
     return scene_path, scene, settings
 
 

@@ -234,11 +234,26 @@ def _billiards_ground() -> BodySpec:
 
 def _push() -> Scene:
     box = _body("box", _box_mesh((0.5, 0.5, 0.5)), (0.0, 0.0, 0.25 + _REST_GAP), density=200.0, target_position=np.array([2.5, 0.0, 0.25]), target_tolerance=0.2)
-    rod = _rod((1.0, 0.0, 0.3 + 0.02), ("x", "y", "z", "rx", "ry", "rz"))
+    # The paper's rod starts "in front of the box" and must go around to its back. Beside
+    # the box (not between it and the target) the long-range force already has a component
+    # along the push; on the box-target line the rod would sit on a saddle of the loss.
+    rod = _rod((0.0, -1.0, 0.3 + 0.02), ("x", "y", "z", "rx", "ry", "rz"))
     return Scene(
         bodies=[grid_ground(8.0, 6.0), box, rod],
         settings=SimulationSettings(time_step=0.04, frames=200, contact_stiffness=1e-6, friction=0.5),
-        task=TaskSpec(name="push", control="pd_targets", horizon=200, receding_horizon=48, learning_rate=1e-2, iterations=50),
+        task=TaskSpec(
+            name="push",
+            control="pd_targets",
+            horizon=200,
+            receding_horizon=48,
+            learning_rate=1e-2,
+            iterations=50,
+            # --quick: one 64-frame window, 100 Adam steps of 5 cm (README, "Task optimisation").
+            quick_horizon=64,
+            quick_receding_horizon=0,
+            quick_learning_rate=5e-2,
+            quick_iterations=100,
+        ),
     )
 
 
@@ -283,7 +298,19 @@ def _ant_push() -> Scene:
         bodies=bodies,
         joints=joints,
         settings=SimulationSettings(time_step=0.02, frames=240, contact_stiffness=1e-8, friction=0.5),
-        task=TaskSpec(name="ant_push", control="joint_sine", horizon=240, receding_horizon=0, learning_rate=3e-2, iterations=100),
+        task=TaskSpec(
+            name="ant_push",
+            control="joint_sine",
+            horizon=240,
+            receding_horizon=0,
+            learning_rate=3e-2,
+            iterations=100,
+            # --quick: the first second (50 frames), 12 Adam steps of 0.1.
+            quick_horizon=50,
+            quick_receding_horizon=0,
+            quick_learning_rate=0.1,
+            quick_iterations=12,
+        ),
     )
 
 

@@ -7,7 +7,8 @@ controlled body whose ``control_dofs`` are the decision variables:
   initial pose and velocity (e.g. x, y, vx, vy);
 - control ``"pd_targets"`` (Push, Sort, Gather): one row per frame of offsets to the PD
   target pose (translations, rotation vector or yaw), optimised over a receding horizon of
-  ``receding_horizon`` frames; the first action is applied and the window shifts;
+  ``receding_horizon`` frames; the first action is applied and the window shifts (the
+  row that enters the window starts as a copy of the last planned one);
 - control ``"joint_sine"`` (Ant-Push): every actuated joint coordinate (one with a PD gain)
   follows its rest value plus ``SINE_WAVES`` accumulated sine waves; the decision variables
   are each wave's amplitude, frequency and phase (after ChainQueen, as in the paper). The
@@ -50,6 +51,12 @@ MODELS = ("ours", "ipc", "sdrs", "gb")
 _BASELINE_CONTACT_MODE = {"ipc": "ipc", "sdrs": "sdrs", "gb": "sdrs"}
 
 
+# The --quick preset of a scene without its own (warpcontact:task:quick:*): caps only.
+GENERIC_QUICK_HORIZON = 24
+GENERIC_QUICK_WINDOW = 8
+GENERIC_QUICK_ITERATIONS = 8
+
+
 @dataclass
 class TaskSettings:
     """Optimisation settings (defaults from the scene's task metadata)."""
@@ -59,6 +66,44 @@ class TaskSettings:
     iterations: int
     learning_rate: float
     betas: tuple = (0.3, 0.5)
+
+    @classmethod
+    def from_task(cls, scene, *, quick: bool = False, iterations: int | None = None) -> TaskSettings:
+        """The settings a scene's task metadata asks for.
+
+        Args:
+            scene: a task ``Scene``; a horizon of 0 means the scene's frame count.
+            quick: the scene's ``--quick`` preset (``warpcontact:task:quick:*``), or, for a
+                scene without one, the paper settings capped at GENERIC_QUICK_HORIZON frames,
+                windows of GENERIC_QUICK_WINDOW and GENERIC_QUICK_ITERATIONS iterations.
+            iterations: overrides the iteration count (per window for receding tasks).
+
+        Raises ValueError naming the attribute when a value is out of range.
+        """
+        t = scene.task
+        if quick and t.quick_horizon:
+            settings = cls(t.quick_horizon, t.quick_receding_horizon, t.quick_iterations, t.quick_learning_rate)
+            prefix = "task:quick:"
+        else:
+            settings = cls(t.horizon or scene.settings.frames, t.receding_horizon, t.iterations, t.learning_rate)
+            prefix = "task:"
+            if quick:
+                settings.horizon = min(settings.horizon, GENERIC_QUICK_HORIZON)
+                settings.receding_horizon = min(settings.receding_horizon, GENERIC_QUICK_WINDOW)
+                settings.iterations = min(settings.iterations, GENERIC_QUICK_ITERATIONS)
+        iterations_name = f"warpcontact:{prefix}iterations"
+        if iterations is not None:
+            settings.iterations, iterations_name = iterations, "--iters"
+        source = scene.source or "<scene>"
+        for name, value, rule, ok in (
+            (f"warpcontact:{prefix}horizon", settings.horizon, ">= 1", settings.horizon >= 1),
+            (f"warpcontact:{prefix}recedingHorizon", settings.receding_horizon, ">= 0", settings.receding_horizon >= 0),
+            (iterations_name, settings.iterations, ">= 1", settings.iterations >= 1),
+            (f"warpcontact:{prefix}learningRate", settings.learning_rate, "positive and finite", bool(np.isfinite(settings.learning_rate) and settings.learning_rate > 0)),
+        ):
+            if not ok:
+                raise ValueError(f"{source}: {name} must be {rule}, got {value!r}")
+        return settings
 
 
 @dataclass
@@ -179,12 +224,7 @@ class TaskProblem:
         self.scene = scene
         self.bundle = (bundle or BundleSettings()) if model == "gb" else None
         self.kind = task.control
-        self.settings = settings or TaskSettings(
-            horizon=task.horizon or scene.settings.frames,
-            receding_horizon=task.receding_horizon,
-            iterations=task.iterations,
-            learning_rate=task.learning_rate,
-        )
+        self.settings = settings or TaskSettings.from_task(scene)
         self.model = scene.build_model(device=device)
         self.solver = ImplicitSolver(self.model)
         self.dt = scene.settings.time_step
@@ -303,13 +343,16 @@ class TaskProblem:
 
         # Receding horizon: optimise a window, apply its first action, shift.
         window = s.receding_horizon
-        plan = np.zeros((s.horizon + window, ndof))
+        plan = np.zeros((s.horizon + window + 1, ndof))
         executed = [q0]
         current = (q0, q0)
         for t in range(s.horizon):
             values = plan[t : t + window].copy()
             best = _descend(self._objective(current, window, rng), values, s, history, progress, total=s.horizon)
             plan[t : t + window] = best[1]
+            # The row entering the next window holds the last planned action; zero would
+            # send the body's target back to its start pose at the end of every window.
+            plan[t + window] = best[1][-1]
             values = best[1]
             _, _, traj = self.rollout(values[:1], current, 1, gradient=False)
             current = (traj[1], traj[0])
