@@ -345,7 +345,19 @@ def _sort(seed: int = 1) -> Scene:
     return Scene(
         bodies=[grid_ground(10.0, 7.0), *cubes, _rod((0.0, 0.0, 0.3 + 0.02), ("x", "y", "z"))],
         settings=SimulationSettings(time_step=0.04, frames=700, contact_stiffness=3e-8, friction=0.5),
-        task=TaskSpec(name="sort", control="pd_targets", horizon=700, receding_horizon=16, learning_rate=1e-2, iterations=100),
+        task=TaskSpec(
+            name="sort",
+            control="pd_targets",
+            horizon=700,
+            receding_horizon=16,
+            learning_rate=1e-2,
+            iterations=100,
+            # --quick: one 40-frame window, 30 Adam steps of 0.1.
+            quick_horizon=40,
+            quick_receding_horizon=0,
+            quick_learning_rate=0.1,
+            quick_iterations=30,
+        ),
     )
 
 
