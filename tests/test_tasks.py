@@ -309,3 +309,19 @@ def test_ant_push_sine_controls_get_long_range_gradients_and_lower_the_loss():
     assert loss > 0 and np.abs(grad[:, 0::3]).max() > 0
     result = problem.optimize()
     assert result.final_loss < result.initial_loss
+
+
+@pytest.mark.parametrize("name", ["push", "sort"])
+def test_shipped_rod_tasks_lower_the_loss_from_the_trivial_guess(name):
+    """Two Adam steps on an 8-frame window: the rod is far from every object (only the
+    long-range potential links them), yet the second iterate's loss is strictly lower.
+    (Gather's rod starts 2.4 m from its nearest cube: there one step changes the loss by
+    ~1e-15, below the ~1e-12 the implicit solves' tolerance leaves in it.)"""
+    from warpcontact.scenes import build_scene
+
+    scene = build_scene(name)
+    settings = TaskSettings.from_task(scene, quick=True)
+    settings.horizon, settings.receding_horizon, settings.iterations = 8, 0, 2
+    result = TaskProblem(scene, settings=settings).optimize()
+    assert result.loss_history[1] < result.loss_history[0]
+    assert result.final_loss < result.initial_loss
