@@ -241,19 +241,9 @@ def _push() -> Scene:
     return Scene(
         bodies=[grid_ground(8.0, 6.0), box, rod],
         settings=SimulationSettings(time_step=0.04, frames=200, contact_stiffness=1e-6, friction=0.5),
-        task=TaskSpec(
-            name="push",
-            control="pd_targets",
-            horizon=200,
-            receding_horizon=48,
-            learning_rate=1e-2,
-            iterations=50,
-            # --quick: one 64-frame window, 100 Adam steps of 5 cm (README, "Task optimisation").
-            quick_horizon=64,
-            quick_receding_horizon=0,
-            quick_learning_rate=5e-2,
-            quick_iterations=100,
-        ),
+        # --quick: one 64-frame window, 100 Adam steps of 5 cm (README, "Task optimisation").
+        task=TaskSpec(name="push", control="pd_targets", horizon=200, receding_horizon=48, learning_rate=1e-2, iterations=50,
+                      quick_horizon=64, quick_receding_horizon=0, quick_learning_rate=5e-2, quick_iterations=100),
     )
 
 
@@ -298,19 +288,9 @@ def _ant_push() -> Scene:
         bodies=bodies,
         joints=joints,
         settings=SimulationSettings(time_step=0.02, frames=240, contact_stiffness=1e-8, friction=0.5),
-        task=TaskSpec(
-            name="ant_push",
-            control="joint_sine",
-            horizon=240,
-            receding_horizon=0,
-            learning_rate=3e-2,
-            iterations=100,
-            # --quick: the first second (50 frames), 12 Adam steps of 0.1.
-            quick_horizon=50,
-            quick_receding_horizon=0,
-            quick_learning_rate=0.1,
-            quick_iterations=12,
-        ),
+        # --quick: the first second (50 frames), 12 Adam steps of 0.1.
+        task=TaskSpec(name="ant_push", control="joint_sine", horizon=240, receding_horizon=0, learning_rate=3e-2, iterations=100,
+                      quick_horizon=50, quick_receding_horizon=0, quick_learning_rate=0.1, quick_iterations=12),
     )
 
 
@@ -345,19 +325,9 @@ def _sort(seed: int = 1) -> Scene:
     return Scene(
         bodies=[grid_ground(10.0, 7.0), *cubes, _rod((0.0, 0.0, 0.3 + 0.02), ("x", "y", "z"))],
         settings=SimulationSettings(time_step=0.04, frames=700, contact_stiffness=3e-8, friction=0.5),
-        task=TaskSpec(
-            name="sort",
-            control="pd_targets",
-            horizon=700,
-            receding_horizon=16,
-            learning_rate=1e-2,
-            iterations=100,
-            # --quick: one 40-frame window, 30 Adam steps of 0.1.
-            quick_horizon=40,
-            quick_receding_horizon=0,
-            quick_learning_rate=0.1,
-            quick_iterations=30,
-        ),
+        # --quick: one 40-frame window, 30 Adam steps of 0.1.
+        task=TaskSpec(name="sort", control="pd_targets", horizon=700, receding_horizon=16, learning_rate=1e-2, iterations=100,
+                      quick_horizon=40, quick_receding_horizon=0, quick_learning_rate=0.1, quick_iterations=30),
     )
 
 
