@@ -4,7 +4,7 @@ normal forces from each model's own barrier (zero beyond its support) and exact 
 import numpy as np
 import pytest
 import warp as wp
-from test_solver import assert_frictional_gradients, grid_ground, incline_model, rollout
+from test_solver import assert_frictional_gradients, grid_ground, incline_model, position_loss_kernel, record, rollout
 
 import warpcontact as wc
 from warpcontact import scenes
@@ -92,12 +92,6 @@ def test_sdrs_normal_forces_are_the_barrier_forces():
     assert total[2] < 0
 
 
-@wp.kernel
-def _position_loss(q: wp.array(dtype=wp.transformd), target: wp.vec3d, loss: wp.array(dtype=wp.float64)):
-    d = wp.transform_get_translation(q[1]) - target
-    loss[0] = wp.dot(d, d)
-
-
 def sliding_box(mode, *, velocity, friction, mu, start_x=0.0, tape=None, steps=6, dt=0.02):
     """Loss after a box, launched sideways just above the ground, slides and settles for
     ``steps`` steps; wide friction smoothing keeps finite differences well conditioned."""
@@ -116,13 +110,9 @@ def sliding_box(mode, *, velocity, friction, mu, start_x=0.0, tape=None, steps=6
         wc.set_body_velocity(states[0], vel, ang, dt)
         for t in range(steps):
             solver.step(states[t], states[t + 1], None, dt)
-        wp.launch(_position_loss, dim=1, inputs=[states[-1].body_q, wp.vec3d(1.0, 0.5, 0.2)], outputs=[loss])
+        wp.launch(position_loss_kernel, dim=1, inputs=[states[-1].body_q, 1, wp.vec3d(1.0, 0.5, 0.2)], outputs=[loss])
 
-    if tape is None:
-        forward()
-    else:
-        with tape:
-            forward()
+    record(forward, tape)
     return dict(model=model, vel=vel, loss=loss, states=states, solver=solver)
 
 

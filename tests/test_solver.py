@@ -220,6 +220,15 @@ def position_loss_kernel(q: wp.array(dtype=wp.transformd), body: int, target: wp
     loss[0] = wp.dot(d, d)
 
 
+def record(forward, tape):
+    """Run ``forward`` on ``tape`` (or untaped when it is None)."""
+    if tape is None:
+        forward()
+    else:
+        with tape:
+            forward()
+
+
 class Collision:
     """Ball a hits ball b; a pusher (PD-actuated box) nudges b from the side."""
 
@@ -249,11 +258,7 @@ class Collision:
                 solver.step(states[t], states[t + 1], control, self.dt)
             wp.launch(position_loss_kernel, dim=1, inputs=[states[-1].body_q, 1, wp.vec3d(2.5, 1.0, 0.3)], outputs=[loss])
 
-        if tape is None:
-            forward()
-        else:
-            with tape:
-                forward()
+        record(forward, tape)
         return dict(model=model, vel=vel, loss=loss, control=control, states=states)
 
 
