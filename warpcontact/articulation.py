@@ -267,6 +267,13 @@ class ArticulationModel:
             self.body_dofs.append(np.concatenate(path[::-1]) if path else np.zeros(0, dtype=np.int64))
         # Dynamic bodies are those with DOFs; rows of J for static bodies stay zero.
         self.dynamic_bodies = np.flatnonzero([len(d) > 0 for d in self.body_dofs])
+        # Pairs of distinct DOFs of one body's chain that belong to the same ball joint.
+        self._same_group = []
+        for dofs in self.body_dofs:
+            groups = self.dof_group[dofs]
+            same = (groups[:, None] == groups[None, :]) & (groups[:, None] >= 0)
+            np.fill_diagonal(same, False)
+            self._same_group.append(same)
         self.cones = [self._cone(j, joint, poses) for j, joint in enumerate(self.joints) if joint.kind == "ball" and np.isfinite(joint.cone_limit)]
         balls = [(j, joint) for j, joint in enumerate(self.joints) if joint.kind == "ball"]
         self.num_ball_joints = len(balls)
@@ -315,7 +322,7 @@ class ArticulationModel:
             return np.zeros(joint.num_coordinates())
         world_parent, world_child = self._frames(joint, poses)
         where = f"joint {joint.name!r} ({self._link_names(joint)})"
-        q_rel = quat_mul(quat_conjugate(world_parent[3:]), world_child[3:])
+        q_rel = _relative_rotation(world_parent[3:], world_child[3:])
         offset = quat_rotate(quat_conjugate(world_parent[3:]), world_child[:3] - world_parent[:3])
         if joint.kind == "prismatic":
             axis = joint.axes[0]
@@ -549,32 +556,24 @@ class ArticulationModel:
         velocity = np.where(rotating, np.cross(a, p - points[dofs]), a)
         return dofs, omega, velocity
 
-    def jacobian(self, poses: np.ndarray) -> np.ndarray:
-        """J (6 nbodies, m): rigid coordinates (dp, dtheta) of each body per DOF increment."""
-        return self._jacobian(poses, *self.twists(poses))
-
     def curvature(self, poses: np.ndarray, grad: np.ndarray) -> np.ndarray:
         """sum_i g_i . d2(p_i, theta_i)/d delta2 (m, m) for a rigid gradient ``grad`` (nbodies, 6)."""
-        return self._curvature(poses, grad, *self.twists(poses))
+        return self._jacobian_and_curvature(poses, grad)[1]
 
     def reduce(self, poses: np.ndarray, grad: np.ndarray, hess: np.ndarray):
-        """(J, J^T g, J^T H J + C) for a rigid-coordinate gradient (6 nbodies,) and Hessian."""
-        axes, points = self.twists(poses)
-        J = self._jacobian(poses, axes, points)
-        return J, J.T @ grad, J.T @ hess @ J + self._curvature(poses, grad.reshape(-1, 6), axes, points)
+        """(J, J^T g, J^T H J + C) for a rigid-coordinate gradient (6 nbodies,) and Hessian;
+        J (6 nbodies, m) holds the rigid coordinates (dp, dtheta) of each body per DOF increment."""
+        J, C = self._jacobian_and_curvature(poses, grad.reshape(-1, 6))
+        return J, J.T @ grad, J.T @ hess @ J + C
 
-    def _jacobian(self, poses, axes, points) -> np.ndarray:
+    def _jacobian_and_curvature(self, poses, grad):
+        axes, points = self.twists(poses)
         J = np.zeros((6 * self.num_bodies, self.num_dofs))
+        C = np.zeros((self.num_dofs, self.num_dofs))
         for b in self.dynamic_bodies:
             dofs, omega, velocity = self._body_columns(b, poses[b, :3], axes, points)
             J[6 * b : 6 * b + 3, dofs] = velocity.T
             J[6 * b + 3 : 6 * b + 6, dofs] = omega.T
-        return J
-
-    def _curvature(self, poses, grad, axes, points) -> np.ndarray:
-        C = np.zeros((self.num_dofs, self.num_dofs))
-        for b in self.dynamic_bodies:
-            dofs, omega, velocity = self._body_columns(b, poses[b, :3], axes, points)
             g_p, g_w = grad[b, :3], grad[b, 3:]
             # g_p . (a_k x v_l) = (g_p x a_k) . v_l; zero rows for prismatic k via omega
             M = np.cross(g_p, omega) @ velocity.T
@@ -582,12 +581,10 @@ class ArticulationModel:
             U = M + N
             block = np.triu(U, 1)
             block = block + block.T + np.diag(np.diag(M))
-            groups = self.dof_group[dofs]
-            same = (groups[:, None] == groups[None, :]) & (groups[:, None] >= 0)
-            np.fill_diagonal(same, False)
+            same = self._same_group[b]
             block[same] = (0.5 * (M + M.T))[same]
             C[np.ix_(dofs, dofs)] += block
-        return C
+        return J, C
 
     def retract(self, poses: np.ndarray, step: np.ndarray) -> np.ndarray:
         """Poses moved by the DOF increments ``step`` (m,) (the product of exponentials)."""

@@ -43,7 +43,7 @@ import numpy as np
 import trimesh
 
 from .builder import ModelBuilder
-from .rotation import pose_mul, quat_from_matrix, quat_rotate
+from .rotation import pose_mul, quat_from_matrix, quat_rotate, quat_to_matrix
 
 __all__ = [
     "BodySpec",
@@ -384,7 +384,7 @@ def load_scene(path) -> Scene:
             owner = str(desc.rigidBody) if desc.rigidBody and str(desc.rigidBody) in bodies else ""
             if owner:
                 target = bodies[owner]
-                vertices = np.array([quat_rotate(local_pose[3:], v) for v in vertices]) + local_pose[:3]
+                vertices = quat_rotate(local_pose[3:], vertices) + local_pose[:3]
             else:
                 target = static_bodies.setdefault(
                     str(prim_path),
@@ -562,7 +562,7 @@ def _read_mass(prim, body: BodySpec, UsdPhysics, meters: float, source: str):
         diag = np.asarray(diag_attr.Get(), dtype=np.float64) * meters**2
         axes_attr = api.GetPrincipalAxesAttr()
         q = _quat_xyzw(axes_attr.Get()) if axes_attr and axes_attr.HasAuthoredValue() else np.array([0.0, 0.0, 0.0, 1.0])
-        R = np.column_stack([quat_rotate(q, e) for e in np.eye(3)])
+        R = quat_to_matrix(q)
         if (diag <= 0).any():
             raise ValueError(f"{where}: diagonalInertia must be positive, got {diag}")
         body.inertia = R @ np.diag(diag) @ R.T
@@ -905,9 +905,7 @@ def model_to_scene_poses(scene: Scene, model, body_q) -> np.ndarray:
     out = body_q.copy()
     for i, b in enumerate(scene.bodies):
         com = _scene_body_com(b)
-        u, w = body_q[..., i, 3:6], body_q[..., i, 6:7]
-        rotated = com + 2.0 * np.cross(u, np.cross(u, com) + w * com)
-        out[..., i, :3] = body_q[..., i, :3] - rotated
+        out[..., i, :3] = body_q[..., i, :3] - quat_rotate(body_q[..., i, 3:], com)
     return out
 
 

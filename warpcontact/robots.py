@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rotation import quat_from_rotation_vector
+from .rotation import quat_from_rotation_vector, quat_rotate
 
 __all__ = ["AntSpec", "actuated_coordinates", "add_ant", "ant_description", "ant_standing_height"]
 
@@ -64,10 +64,11 @@ def ant_description(*, position=(0.0, 0.0), yaw: float = 0.0, ground_height: flo
     """
     s = spec
     origin = np.array([position[0], position[1], ground_height + ant_standing_height(s)])
+    turn = quat_from_rotation_vector(np.array([0.0, 0.0, yaw]))
 
     def place(local_centre, heading=0.0):
         rot = quat_from_rotation_vector(np.array([0.0, 0.0, yaw + heading]))
-        return np.array([*(origin + _rotate_z(local_centre, yaw)), *rot])
+        return np.array([*(origin + quat_rotate(turn, local_centre)), *rot])
 
     torso = f"{name}_torso"
     links = [{"name": torso, "extents": tuple(s.torso_size), "pose": place((0.0, 0.0, 0.0))}]
@@ -76,17 +77,17 @@ def ant_description(*, position=(0.0, 0.0), yaw: float = 0.0, ground_height: flo
     w = s.leg_width
     for leg, angle in enumerate(np.pi / 4 + np.pi / 2 * np.arange(4)):
         direction = np.array([np.cos(angle), np.sin(angle), 0.0])
-        side = _rotate_z(np.array([-np.sin(angle), np.cos(angle), 0.0]), yaw)
+        side = quat_rotate(turn, np.array([-np.sin(angle), np.cos(angle), 0.0]))
         hip = hip_radius * direction
         knee = hip + (2 * s.gap + s.upper_length) * direction
         upper, lower = f"{name}_upper{leg}", f"{name}_lower{leg}"
         links.append({"name": upper, "extents": (s.upper_length, w, w), "pose": place(hip + (s.gap + s.upper_length / 2) * direction, angle)})
         links.append({"name": lower, "extents": (w, w, s.lower_length), "pose": place(knee - np.array([0.0, 0.0, s.gap + s.lower_length / 2]), angle)})
         joints.append(
-            {"name": f"{name}_hip{leg}", "kind": "universal", "parent": torso, "child": upper, "anchor": origin + _rotate_z(hip, yaw), "axis": np.array([[0.0, 0.0, 1.0], side]), "limits": s.hip_limits, "kp": s.hip_kp, "kd": s.hip_kd}
+            {"name": f"{name}_hip{leg}", "kind": "universal", "parent": torso, "child": upper, "anchor": origin + quat_rotate(turn, hip), "axis": np.array([[0.0, 0.0, 1.0], side]), "limits": s.hip_limits, "kp": s.hip_kp, "kd": s.hip_kd}
         )
         joints.append(
-            {"name": f"{name}_knee{leg}", "kind": "revolute", "parent": upper, "child": lower, "anchor": origin + _rotate_z(knee, yaw), "axis": side, "limits": [s.knee_limits], "kp": s.knee_kp, "kd": s.knee_kd}
+            {"name": f"{name}_knee{leg}", "kind": "revolute", "parent": upper, "child": lower, "anchor": origin + quat_rotate(turn, knee), "axis": side, "limits": [s.knee_limits], "kp": s.knee_kp, "kd": s.knee_kd}
         )
     return links, joints
 
@@ -115,9 +116,3 @@ def add_ant(builder, *, position=(0.0, 0.0), yaw: float = 0.0, ground_height: fl
         joint_index[j["name"][len(name) + 1 :]] = builder.add_joint(j["kind"], child=index[j["child"]], parent=parent, name=j["name"], **options)
     bodies = {k[len(name) + 1 :]: v for k, v in index.items()}
     return {"bodies": bodies, "joints": joint_index, "actuated": actuated_coordinates(joints)}
-
-
-def _rotate_z(v, yaw: float) -> np.ndarray:
-    c, s = np.cos(yaw), np.sin(yaw)
-    v = np.asarray(v, dtype=np.float64)
-    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]])
