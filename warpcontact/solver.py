@@ -142,10 +142,12 @@ class ImplicitSolver:
             return None
         return model.contact.friction_frame(mu, model.friction, model.friction_smoothing * dt)
 
-    def _evaluate(self, poses: np.ndarray, coords: np.ndarray, step_in: "_StepInputs"):
+    def _evaluate(self, poses: np.ndarray, coords: np.ndarray, step_in: "_StepInputs", contact=None):
         """L, its gradient and Hessian over the reduced coordinates, the contact evaluation and
-        the articulation Jacobian at ``poses`` (None for free bodies only)."""
-        contact = self.model.contact.evaluate(poses)
+        the articulation Jacobian at ``poses`` (None for free bodies only); ``contact``: the
+        contact model's evaluation at ``poses`` when the caller already has it."""
+        if contact is None:
+            contact = self.model.contact.evaluate(poses)
         if not contact.ok:
             return np.inf, None, None, contact, None
         self._trial_q.assign(poses)
@@ -312,7 +314,9 @@ class ImplicitSolver:
         dynamic = self._dynamic
         art = self._articulation
 
-        start = model.contact.evaluate(q_now)
+        q = q_now.copy()
+        q[:, 3:] /= np.linalg.norm(q[:, 3:], axis=1, keepdims=True)
+        start = model.contact.evaluate(q)
         if start.contact_pairs:
             names = ", ".join(f"{a} and {b}" for a, b in start.contact_pairs)
             raise ValueError(f"state_in: bodies intersect or touch at the start of the step: {names}")
@@ -340,10 +344,8 @@ class ImplicitSolver:
         if failed.size:
             raise SolverError(f"rotation prediction failed for {[model.body_names[i] for i in failed]}: rotation per step too large for dt={dt}")
 
-        q = q_now.copy()
-        q[:, 3:] /= np.linalg.norm(q[:, 3:], axis=1, keepdims=True)
         coords = coords_now.copy()
-        value, grad, hess, contact, jacobian = self._evaluate(q, coords, step_in)
+        value, grad, hess, contact, jacobian = self._evaluate(q, coords, step_in, start)
         if not np.isfinite(value):
             raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs}; joint limits reached: {self._limits_reached(coords)})")
         full = np.zeros((model.num_bodies, 6))
@@ -452,7 +454,7 @@ class ImplicitSolver:
             q_next_arr = wp.array(q_next, dtype=wp.transformd)
             q_now_arr = wp.array(q_now, dtype=wp.transformd)
             q_prev_arr = wp.array(q_prev, dtype=wp.transformd)
-            target_arr = wp.array(step_in.body_target.numpy(), dtype=wp.transformd)
+            target_arr = wp.clone(step_in.body_target, requires_grad=False)
             predicted_position = wp.clone(self._predicted_position)
             predicted_rotation = wp.clone(self._predicted_rotation)
             sensitivity = wp.clone(self._prediction_sensitivity)
