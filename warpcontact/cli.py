@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .tasks import MODELS
+from .tasks import IPC_TASK_STIFFNESS, MODELS
 
 __all__ = ["main"]
 
@@ -157,25 +157,14 @@ def _load_task(args):
     return scene_path, scene, settings
 
 
-# IPC's barrier stiffness for task runs. The scenes' contact_stiffness (mu 1e-6 .. 5e-9) is
-# sized for the paper's 1/x potential; on IPC's (unnormalised) log barrier it is so soft
-# that resting bodies sink to gaps of ~1e-8 m and ipctk's CCD takes seconds a step. The
-# default gives gaps of ~1e-4 m on the shipped scenes (README, "Task optimisation").
-IPC_TASK_STIFFNESS = 1e5
-
-
 def _task_problem(scene, settings, model: str, args):
     """The TaskProblem of one model; gb's bundle is seeded by --seed (4 samples with --quick);
     ipc's barrier stiffness is --ipc-stiffness in place of the scene's mu."""
-    import dataclasses
-
     from .bundle import BundleSettings
     from .tasks import TaskProblem
 
     bundle = BundleSettings(samples=4 if args.quick else 8, seed=args.seed) if model == "gb" else None
-    if model == "ipc":
-        scene = dataclasses.replace(scene, settings=dataclasses.replace(scene.settings, contact_stiffness=args.ipc_stiffness))
-    return TaskProblem(scene, device=args.device, settings=settings, model=model, bundle=bundle)
+    return TaskProblem(scene, device=args.device, settings=settings, model=model, bundle=bundle, ipc_stiffness=args.ipc_stiffness)
 
 
 def _progress(label: str):

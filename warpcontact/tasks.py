@@ -39,7 +39,7 @@ from .kernels import task as task_kernels
 from .solver import ImplicitSolver, SolverError
 from .types import State, set_body_velocity
 
-__all__ = ["CONTROL_KINDS", "MODELS", "SINE_WAVES", "TaskProblem", "TaskResult", "TaskSettings", "adam", "validate_task"]
+__all__ = ["CONTROL_KINDS", "IPC_TASK_STIFFNESS", "MODELS", "SINE_WAVES", "TaskProblem", "TaskResult", "TaskSettings", "adam", "validate_task"]
 
 CONTROL_KINDS = ("initial_state", "pd_targets", "joint_sine")
 SINE_WAVES = 4
@@ -49,6 +49,11 @@ MODELS = ("ours", "ipc", "sdrs", "gb")
 # paper reports), but twice differentiable, so every sample's implicit-function-theorem
 # gradient is exact, and it runs on every device; gb vs sdrs isolates the estimator.
 _BASELINE_CONTACT_MODE = {"ipc": "ipc", "sdrs": "sdrs", "gb": "sdrs"}
+# IPC's barrier stiffness for task runs. The scenes' contact_stiffness (mu 1e-6 .. 5e-9) is
+# sized for the paper's 1/x potential; on IPC's (unnormalised) log barrier it is so soft
+# that resting bodies sink to gaps of ~1e-8 m and ipctk's CCD takes seconds a step. The
+# default gives gaps of ~1e-4 m on the shipped scenes (README, "Task optimisation").
+IPC_TASK_STIFFNESS = 1e5
 
 
 # The --quick preset of a scene without its own (warpcontact:task:quick:*): caps only.
@@ -207,11 +212,22 @@ class TaskProblem:
             (``SimulationSettings.contact_mode``, the paper's "bsh" unless the scene says
             otherwise); the baselines replace it.
         bundle: gradient-bundle settings of the ``"gb"`` model (default ``BundleSettings()``).
+        ipc_stiffness: the ``"ipc"`` model's barrier stiffness, in place of the scene's mu.
 
-    Raises ValueError for scenes ``validate_task`` rejects and unknown models.
+    Raises ValueError for scenes ``validate_task`` rejects, unknown models and a
+    non-positive ``ipc_stiffness``.
     """
 
-    def __init__(self, scene, *, device="cpu", settings: TaskSettings | None = None, model: str = "ours", bundle: BundleSettings | None = None):
+    def __init__(
+        self,
+        scene,
+        *,
+        device="cpu",
+        settings: TaskSettings | None = None,
+        model: str = "ours",
+        bundle: BundleSettings | None = None,
+        ipc_stiffness: float = IPC_TASK_STIFFNESS,
+    ):
         source = scene.source or "<scene>"
         task = scene.task
         controlled, targets = validate_task(scene)
@@ -220,7 +236,12 @@ class TaskProblem:
         if bundle is not None and model != "gb":
             raise ValueError(f"bundle: only the gb model uses bundle settings, not {model!r}")
         if model in _BASELINE_CONTACT_MODE:
-            scene = dataclasses.replace(scene, settings=dataclasses.replace(scene.settings, contact_mode=_BASELINE_CONTACT_MODE[model]))
+            overrides = {"contact_mode": _BASELINE_CONTACT_MODE[model]}
+            if model == "ipc":
+                if not (np.isfinite(ipc_stiffness) and ipc_stiffness > 0):
+                    raise ValueError(f"ipc_stiffness: must be positive and finite, got {ipc_stiffness!r}")
+                overrides["contact_stiffness"] = ipc_stiffness
+            scene = dataclasses.replace(scene, settings=dataclasses.replace(scene.settings, **overrides))
         self.scene = scene
         self.bundle = (bundle or BundleSettings()) if model == "gb" else None
         self.kind = task.control
@@ -276,19 +297,19 @@ class TaskProblem:
         """
         device = self.model.device
         values_arr = wp.array(np.atleast_2d(values), dtype=wp.float64, device=device, requires_grad=True)
-        states = [self._state(*start)] + [self._state(start[0], start[0]) for _ in range(frames)]
+        # The solver writes every output state's poses; only the start needs filling.
+        states = [self._state(*start)] + [self.model.state() for _ in range(frames)]
         controls = [self.model.control() for _ in range(frames)] if self.kind != "initial_state" else [None] * frames
         loss = wp.zeros(1, dtype=wp.float64, device=device, requires_grad=True)
         tape = wp.Tape()
+        base = wp.transformd(*map(float, self.base_pose)) if self.kind != "joint_sine" else None
         with tape:
             if self.kind == "initial_state":
-                base = wp.transformd(*map(float, self.base_pose))
                 velocity = wp.zeros(self.model.num_bodies, dtype=wp.vec3d, device=device, requires_grad=True)
                 wp.launch(task_kernels.initial_state_kernel, dim=1, inputs=[self.body, base, self._dof_codes, values_arr], outputs=[states[0].body_q, velocity], device=device)
                 set_body_velocity(states[0], velocity, wp.zeros(self.model.num_bodies, dtype=wp.vec3d, device=device, requires_grad=True), self.dt)
             for f in range(frames):
                 if self.kind == "pd_targets":
-                    base = wp.transformd(*map(float, self.base_pose))
                     wp.launch(task_kernels.pd_target_kernel, dim=1, inputs=[self.body, base, self._dof_codes, values_arr, f], outputs=[controls[f].body_target], device=device)
                 elif self.kind == "joint_sine":
                     wp.launch(
@@ -337,9 +358,8 @@ class TaskProblem:
         extra = {"bundle": dataclasses.asdict(self.bundle)} if self.bundle else {}
         if self.kind != "pd_targets" or not s.receding_horizon or s.receding_horizon >= s.horizon:
             values = self.initial_values(1 if self.kind == "initial_state" else s.horizon)
-            best = _descend(self._objective((q0, q0), s.horizon, rng), values, s, history, progress)
-            final, _, traj = self.rollout(best[1], (q0, q0), s.horizon, gradient=False)
-            return TaskResult(history, history[0], final, final == 0.0, s.iterations, time.perf_counter() - start_time, best[1], traj, extra)
+            final, values, traj = _descend(self._objective((q0, q0), s.horizon, rng), values, s, history, progress)
+            return TaskResult(history, history[0], final, final == 0.0, s.iterations, time.perf_counter() - start_time, values, traj, extra)
 
         # Receding horizon: optimise a window, apply its first action, shift.
         window = s.receding_horizon
@@ -353,8 +373,8 @@ class TaskProblem:
             # The row entering the next window holds the last planned action; zero would
             # send the body's target back to its start pose at the end of every window.
             plan[t + window] = best[1][-1]
-            values = best[1]
-            _, _, traj = self.rollout(values[:1], current, 1, gradient=False)
+            # The applied first action's frame is the best window rollout's first frame.
+            traj = best[2]
             current = (traj[1], traj[0])
             executed.append(traj[1])
             if progress:
