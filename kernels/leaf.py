@@ -417,6 +417,9 @@ def _solve_from(sol: LeafSolution, start: wp.vec4d, max_iterations: int):
     energy = _energy(ta, tb, p, dhat)
     converged = bool(False)
     previous_decrement = wp.float64(wp.inf)
+    # Every exit with converged = True leaves p where hess was taken, so the inverse below
+    # reuses it.
+    hess = wp.mat44d()
     it = int(0)
     while it < max_iterations:
         grad, hess = _derivatives(ta, tb, p, dhat)
@@ -466,7 +469,6 @@ def _solve_from(sol: LeafSolution, start: wp.vec4d, max_iterations: int):
     if not converged:
         sol.status = LEAF_NOT_CONVERGED
         return sol
-    grad, hess = _derivatives(ta, tb, p, dhat)
     inv, inv_ok = spd4_inverse(hess)
     if not inv_ok:
         sol.status = LEAF_NOT_CONVERGED
