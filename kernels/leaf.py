@@ -57,7 +57,6 @@ __all__ = [
     "leaf_hessian_block",
     "leaf_plane_sensitivity",
     "leaf_potential_kernel",
-    "sdrs_potential_kernel",
 ]
 
 LEAF_OK = wp.constant(0)
@@ -606,26 +605,6 @@ def _write_pair(
 
 @wp.kernel
 def leaf_potential_kernel(
-    # Data in:
-    tri_a_in: wp.array(dtype=wp.mat33d),
-    tri_b_in: wp.array(dtype=wp.mat33d),
-    max_iterations: int,
-    compute_derivatives: bool,
-    # Data out:
-    value_out: wp.array(dtype=wp.float64),
-    plane_out: wp.array(dtype=wp.vec4d),
-    status_out: wp.array(dtype=wp.int32),
-    iterations_out: wp.array(dtype=wp.int32),
-    grad_out: wp.array2d(dtype=wp.vec3d),
-    hess_out: wp.array3d(dtype=wp.mat33d),
-):
-    tid = wp.tid()
-    sol = leaf_solve(tri_a_in[tid], tri_b_in[tid], max_iterations)
-    _write_pair(tid, sol, compute_derivatives, value_out, plane_out, status_out, iterations_out, grad_out, hess_out)
-
-
-@wp.kernel
-def sdrs_potential_kernel(
     # Model:
     dhat: wp.float64,
     # Data in:
@@ -641,6 +620,7 @@ def sdrs_potential_kernel(
     grad_out: wp.array2d(dtype=wp.vec3d),
     hess_out: wp.array3d(dtype=wp.mat33d),
 ):
+    """One triangle pair per thread: the paper's potential for dhat <= 0, SDRS's otherwise."""
     tid = wp.tid()
-    sol = sdrs_solve(tri_a_in[tid], tri_b_in[tid], dhat, max_iterations)
+    sol = pair_solve(tri_a_in[tid], tri_b_in[tid], dhat, max_iterations)
     _write_pair(tid, sol, compute_derivatives, value_out, plane_out, status_out, iterations_out, grad_out, hess_out)

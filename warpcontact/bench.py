@@ -122,7 +122,7 @@ def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, s
             wp.launch(
                 leaf_kernels.leaf_potential_kernel,
                 dim=num_pairs,
-                inputs=[tri_a, tri_b, DEFAULT_MAX_ITERATIONS, derivatives],
+                inputs=[0.0, tri_a, tri_b, DEFAULT_MAX_ITERATIONS, derivatives],
                 outputs=[value, plane, status, iterations, grad, hess],
             )
             wp.synchronize_device()

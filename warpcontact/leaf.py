@@ -93,14 +93,10 @@ def triangle_pair_potential(
         grad = wp.zeros((n, ncols), dtype=wp.vec3d)
         hess = wp.zeros((n, ncols, ncols), dtype=wp.mat33d)
         if n:
-            if dhat is None:
-                kernel, inputs = leaf_kernels.leaf_potential_kernel, [tri_a, tri_b]
-            else:
-                kernel, inputs = leaf_kernels.sdrs_potential_kernel, [float(dhat), tri_a, tri_b]
             wp.launch(
-                kernel,
+                leaf_kernels.leaf_potential_kernel,
                 dim=n,
-                inputs=[*inputs, int(max_iterations), bool(derivatives)],
+                inputs=[0.0 if dhat is None else float(dhat), tri_a, tri_b, int(max_iterations), bool(derivatives)],
                 outputs=[value, plane, status, iterations, grad, hess],
             )
     status_np = status.numpy()
