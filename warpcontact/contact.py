@@ -246,6 +246,7 @@ class ContactModel:
             self._triangle_vertices = wp.array(np.concatenate(triangles), dtype=wp.mat33d)
             self._body_dynamic = wp.array((~self.static).astype(np.int32), dtype=wp.int32)
             self._seed_body_pair = wp.array(self.body_pairs, dtype=wp.vec2i)
+            self._pose = wp.empty(self.num_bodies, dtype=wp.transformd)
             self._rotation = wp.empty(self.num_bodies, dtype=wp.mat33d)
             self._position = wp.empty(self.num_bodies, dtype=wp.vec3d)
             # The traversal ends within max_depth + 1 rounds (kernels/traversal.py): one task
@@ -343,9 +344,8 @@ class ContactModel:
         return poses
 
     def _set_poses(self, poses: np.ndarray):
-        with wp.ScopedDevice(self.device):
-            pose = wp.array(poses, dtype=wp.transformd)
-            wp.launch(rigid_kernels.body_transforms_kernel, dim=self.num_bodies, inputs=[pose], outputs=[self._rotation, self._position])
+        self._pose.assign(poses)
+        wp.launch(rigid_kernels.body_transforms_kernel, dim=self.num_bodies, inputs=[self._pose], outputs=[self._rotation, self._position], device=self.device)
 
     def _traverse(self):
         """Fill the BSH term lists for the current poses, growing buffers until they fit.
