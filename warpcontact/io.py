@@ -418,6 +418,21 @@ def load_scene(path) -> Scene:
 _AXES = {"X": np.array([1.0, 0.0, 0.0]), "Y": np.array([0.0, 1.0, 0.0]), "Z": np.array([0.0, 0.0, 1.0])}
 _DEGREE = np.pi / 180.0
 _BALL_DRIVE_AXES = ("RotX", "RotY", "RotZ")  # DriveAPI instances rotX, rotY, rotZ
+# D6 axes (LimitAPI / DriveAPI instance names, capitalised) and the base-joint DOF of each.
+_D6_AXIS_DOF = {"TransX": "x", "TransY": "y", "TransZ": "z", "RotX": "rx", "RotY": "ry", "RotZ": "rz"}
+
+
+def _api_token(axis: str) -> str:
+    """The multiple-apply API instance name of a D6 axis: TransX -> transX."""
+    return axis[0].lower() + axis[1:]
+
+
+def _coordinate_axes(free: list) -> list:
+    """The free D6 axes that are joint coordinates: all, except that three free rotations
+    make a ball, whose rotation is not a coordinate (articulation.Joint.num_coordinates)."""
+    if sum(a.startswith("Rot") for a in free) == 3:
+        return [a for a in free if a.startswith("Trans")]
+    return free
 
 
 def _axis_token(value) -> str:
@@ -472,7 +487,7 @@ def _read_joints(stage, descs, bodies: dict, meters: float, source: str, UsdPhys
                 prim = stage.GetPrimAtPath(prim_path)
                 drives = {}
                 for axis in _BALL_DRIVE_AXES:
-                    token = axis[0].lower() + axis[1:]
+                    token = _api_token(axis)
                     if prim.HasAPI(UsdPhysics.DriveAPI, token):
                         drive = UsdPhysics.DriveAPI(prim, token)
                         drives[axis] = (float(drive.GetStiffnessAttr().Get() or 0.0), float(drive.GetDampingAttr().Get() or 0.0))
@@ -502,15 +517,15 @@ def _read_d6(desc, spec: JointSpec, where: str, meters: float):
     the world with world-aligned axes, which makes a base joint."""
     limits = {str(pair.first).split(".")[-1]: pair.second for pair in desc.jointLimits}
     drives = {str(pair.first).split(".")[-1]: pair.second for pair in desc.jointDrives}
-    free = [axis for axis in ("TransX", "TransY", "TransZ", "RotX", "RotY", "RotZ") if not (axis in limits and limits[axis].enabled and limits[axis].lower > limits[axis].upper)]
+    free = [axis for axis in _D6_AXIS_DOF if not (axis in limits and limits[axis].enabled and limits[axis].lower > limits[axis].upper)]
     translations = [a for a in free if a.startswith("Trans")]
     rotations = [a for a in free if a.startswith("Rot")]
     if translations:
         if spec.parent is not None or abs(abs(spec.parent_frame[6]) - 1.0) > 1e-9:
             raise ValueError(f"{where}: free translations are supported only on a D6 joint from the world (no body0) with world-aligned axes (a base joint)")
         spec.kind = "base"
-        spec.dofs = tuple({"TransX": "x", "TransY": "y", "TransZ": "z", "RotX": "rx", "RotY": "ry", "RotZ": "rz"}[a] for a in free)
-        coordinates = free if len(rotations) < 3 else translations
+        spec.dofs = tuple(_D6_AXIS_DOF[a] for a in free)
+        coordinates = _coordinate_axes(free)
     elif len(rotations) == 3:
         spec.kind = "ball"
         coordinates = []
@@ -802,16 +817,16 @@ def _author_joint(stage, j: JointSpec, Gf, UsdPhysics):
     if j.kind == "ball":
         if len(j.kp) and (j.kp[0] or j.kd[0]):
             for axis in _BALL_DRIVE_AXES:
-                _author_drive(prim, axis[0].lower() + axis[1:], j.kp[0] * _DEGREE, j.kd[0] * _DEGREE, UsdPhysics)
+                _author_drive(prim, _api_token(axis), j.kp[0] * _DEGREE, j.kd[0] * _DEGREE, UsdPhysics)
         return
     if j.kind == "universal":
         free = ["RotX", "RotY"]
     else:
-        names = {"x": "TransX", "y": "TransY", "z": "TransZ", "rx": "RotX", "ry": "RotY", "rz": "RotZ"}
-        free = [names[d] for d in j.dofs]
-    coordinates = free if not (j.kind == "base" and sum(a.startswith("Rot") for a in free) == 3) else [a for a in free if a.startswith("Trans")]
-    for axis in ("TransX", "TransY", "TransZ", "RotX", "RotY", "RotZ"):
-        token = axis[0].lower() + axis[1:]
+        axis_of = {dof: axis for axis, dof in _D6_AXIS_DOF.items()}
+        free = [axis_of[d] for d in j.dofs]
+    coordinates = _coordinate_axes(free)
+    for axis in _D6_AXIS_DOF:
+        token = _api_token(axis)
         if axis not in free:
             limit = UsdPhysics.LimitAPI.Apply(prim, token)
             limit.CreateLowAttr(1.0)
