@@ -190,9 +190,7 @@ class ArticulationModel:
         poses = np.asarray(body_poses, dtype=np.float64)
         parent_joint = {}
         for j, joint in enumerate(joints):
-            if joint.child in parent_joint:
-                other = joints[parent_joint[joint.child]].name
-                raise ValueError(f"joint {joint.name!r}: body {self.body_names[joint.child]!r} already has parent joint {other!r}; articulations must be trees (kinematic loops are not supported)")
+            assert joint.child not in parent_joint, "ModelBuilder.add_joint admits one parent joint per body"
             parent_joint[joint.child] = j
         # Implicit free joints for dynamic bodies without one.
         all_joints = list(joints)
