@@ -187,8 +187,18 @@ def _result_metrics(result) -> dict:
     }
 
 
-def _settings_metrics(settings) -> dict:
-    return {"horizon": settings.horizon, "receding_horizon": settings.receding_horizon, "learning_rate": settings.learning_rate}
+def _settings_metrics(settings, args, models) -> dict:
+    """The optimisation settings of a run or compare, with ipc's stiffness when ipc runs."""
+    return {
+        "horizon": settings.horizon,
+        "receding_horizon": settings.receding_horizon,
+        "learning_rate": settings.learning_rate,
+        **({"ipc_stiffness": args.ipc_stiffness} if "ipc" in models else {}),
+    }
+
+
+def _settings_line(settings) -> str:
+    return f"horizon {settings.horizon}, window {settings.receding_horizon or settings.horizon}, {settings.iterations} iterations, lr {settings.learning_rate}"
 
 
 def _run(args) -> int:
@@ -198,8 +208,7 @@ def _run(args) -> int:
     out = Path(args.out)
     problem = _task_problem(scene, settings, args.model, args)
     t = scene.task
-    print(f"{scene_path}: task {t.name}, model {args.model}, control {t.control} of {problem.dof_names}, horizon {settings.horizon}, "
-          f"window {settings.receding_horizon or settings.horizon}, {settings.iterations} iterations, lr {settings.learning_rate}")
+    print(f"{scene_path}: task {t.name}, model {args.model}, control {t.control} of {problem.dof_names}, {_settings_line(settings)}")
     result = problem.optimize(progress=_progress(""))
     print()
     metrics = {
@@ -209,8 +218,7 @@ def _run(args) -> int:
         "device": str(problem.model.device),
         "seed": args.seed,
         "quick": bool(args.quick),
-        **_settings_metrics(settings),
-        **({"ipc_stiffness": args.ipc_stiffness} if args.model == "ipc" else {}),
+        **_settings_metrics(settings, args, [args.model]),
         **_result_metrics(result),
     }
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
@@ -228,8 +236,7 @@ def _compare(args) -> int:
     if args.frictionless:
         scene.settings.friction = 0.0
     t = scene.task
-    print(f"{scene_path}: task {t.name}, models {', '.join(args.models)}, horizon {settings.horizon}, "
-          f"window {settings.receding_horizon or settings.horizon}, {settings.iterations} iterations, lr {settings.learning_rate}")
+    print(f"{scene_path}: task {t.name}, models {', '.join(args.models)}, {_settings_line(settings)}")
     results = {}
     device = args.device
     for model in args.models:
@@ -253,8 +260,7 @@ def _compare(args) -> int:
         "quick": bool(args.quick),
         "frictionless": bool(args.frictionless),
         "iterations": settings.iterations,
-        **({"ipc_stiffness": args.ipc_stiffness} if "ipc" in args.models else {}),
-        **_settings_metrics(settings),
+        **_settings_metrics(settings, args, args.models),
         "models": results,
     }
     (out / "compare.json").write_text(json.dumps(payload, indent=2) + "\n")
