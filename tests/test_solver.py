@@ -211,6 +211,41 @@ def test_rolling_faceted_ball_takes_ordinary_newton_steps():
     assert max(iterations) < 60 and np.mean(iterations) < 30, iterations
     assert all(model.contact.evaluate(x).ok for x in q)
 
+def test_newton_starts_from_the_constant_velocity_extrapolation():
+    """Coasting bodies are already solved at the warm start: one iteration confirms it (a
+    start at q^t took 3). A box creeping down an incline below the friction angle is nearly
+    solved there: 2 iterations a step (5 from q^t, which had to cross the smoothed Coulomb
+    kink, stiffness lambda N / (v_eps dt), again every step)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e-6)
+    b.add_box((0.5, 0.4, 0.3), density=800.0, pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    b.add_box((0.5, 0.4, 0.3), density=800.0, pose=(0.0, 50.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    dt = 0.01
+    first = model.state(requires_grad=False)
+    wc.set_body_velocity(first, wp.array([[1.0, 0.0, 2.0], [0.0, 0.0, 0.0]], dtype=wp.vec3d), wp.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]], dtype=wp.vec3d), dt)
+    solver = wc.ImplicitSolver(model)
+    rollout(model, 3, dt, solver=solver, first=first)
+    assert solver.last_step.iterations == 1
+
+    model, _ = incline_model(0.3, 0.5)
+    solver = wc.ImplicitSolver(model)
+    q, _ = rollout(model, 40, 0.02, solver=solver)
+    assert solver.last_step.iterations <= 3
+    assert np.linalg.norm(q[-1, 1, :3] - q[20, 1, :3]) < 1e-3  # creeping, not sliding
+
+
+def test_backtracking_lands_on_the_minimiser_of_a_quadratic_line():
+    from warpcontact.solver import _backtrack_factor
+
+    # L(a) = (a - 0.3)^2: slope -0.6 at 0, value 0.49 and slope 1.4 at the rejected trial a = 1.
+    assert _backtrack_factor(0.09, -0.6, 0.49, 1.4, 1.0) == pytest.approx(0.3, rel=1e-12)
+    # The same line seen from a trial at a = 2: the minimiser 0.3 is 0.15 of the trial.
+    assert _backtrack_factor(0.09, -0.6, 2.89, 3.4, 2.0) == pytest.approx(0.15, rel=1e-12)
+    assert _backtrack_factor(1e-4, -0.02, 0.9801, 1.98, 1.0) == 0.1  # minimiser 0.01: at most a tenfold cut
+    assert _backtrack_factor(0.0, -1.0, -0.4, -0.9, 1.0) == 0.5  # no interior minimiser: halve
+    assert _backtrack_factor(0.0, -1.0, np.inf, None, 1.0) == 0.5  # contact at the trial
+
+
 # --- gradients -----------------------------------------------------------------------------
 
 

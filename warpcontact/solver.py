@@ -27,7 +27,7 @@ from .kernels.rigid import vec6d
 from ._runtime import paused_tape
 from .articulation import joint_limit_energy
 from .contact import LaggedFriction
-from .rotation import quat_from_rotation_vector, quat_mul
+from .rotation import quat_conjugate, quat_from_rotation_vector, quat_mul, rotation_vector_from_quat
 from .types import Control, Model, State
 
 __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
@@ -57,6 +57,29 @@ def retract(poses: np.ndarray, step: np.ndarray) -> np.ndarray:
     q = quat_mul(quat_from_rotation_vector(step[:, 3:]), poses[:, 3:])
     out[:, 3:] = q / np.linalg.norm(q, axis=1, keepdims=True)
     return out
+
+
+def _backtrack_factor(value: float, slope: float, t_value: float, t_slope: float | None, alpha: float) -> float:
+    """Factor for the next trial step after a rejected trial at ``alpha``: the minimiser of the
+    cubic through L and its slope along the step at 0 and at the trial (Nocedal & Wright,
+    eq. 3.59), kept within [0.1, 0.5] of the trial; halving where the trial is not finite.
+
+    Rejections come mostly from friction's smoothed Coulomb kink (curvature lambda N / e
+    within e = v_eps dt of sticking, ~0 beyond), which the Newton model overshoots; the
+    cubic lands near the kink in one trial where halving took three or four.
+    """
+    if t_slope is None or not (np.isfinite(t_value) and np.isfinite(t_slope)):
+        return 0.5
+    d1 = slope + t_slope - 3.0 * (t_value - value) / alpha
+    radicand = d1 * d1 - slope * t_slope
+    if radicand < 0.0:
+        return 0.5
+    d2 = np.sqrt(radicand)
+    denominator = t_slope - slope + 2.0 * d2
+    if denominator == 0.0:
+        return 0.5
+    fraction = 1.0 - (t_slope + d2 - d1) / denominator
+    return float(np.clip(fraction, 0.1, 0.5)) if np.isfinite(fraction) else 0.5
 
 
 @dataclass(frozen=True)
@@ -346,6 +369,8 @@ class ImplicitSolver:
 
         coords = coords_now.copy()
         value, grad, hess, contact, jacobian = self._evaluate(q, coords, step_in, start)
+        if art is None and np.isfinite(value):
+            q, value, grad, hess, contact = self._warm_start(q, q_prev, value, grad, hess, contact, coords, step_in)
         if not np.isfinite(value):
             raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs}; joint limits reached: {self._limits_reached(coords)})")
         full = np.zeros((model.num_bodies, 6))
@@ -395,7 +420,7 @@ class ImplicitSolver:
                 if np.isfinite(t_value) and (quadratic_regime or t_value <= value - 1e-4 * alpha * decrement):
                     accepted = True
                     break
-                alpha *= 0.5
+                alpha *= _backtrack_factor(value, -decrement, t_value, None if t_grad is None else float(t_grad @ direction), alpha)
             if not accepted:
                 if step_length <= rounding_step:
                     converged = True  # stalled at the rounding floor of L
@@ -420,6 +445,26 @@ class ImplicitSolver:
             friction.pairs if friction is not None else 0,
         )
         return self.last_step, lambda: self._backward_function(state_in, state_out, control, step_in, hess, jacobian, contact.grad, q, q_now, q_prev)
+
+    def _warm_start(self, q, q_prev, value, grad, hess, contact, coords, step_in):
+        """Start Newton from the constant-velocity extrapolation q^t + (q^t - q^{t-1}), moved
+        only as far as conservative advancement certifies from q^t, when L is lower there."""
+        model = self.model
+        velocity = np.zeros((model.num_bodies, 6))
+        dynamic = self._dynamic
+        velocity[dynamic, :3] = q[dynamic, :3] - q_prev[dynamic, :3]
+        previous = q_prev[dynamic, 3:] / np.linalg.norm(q_prev[dynamic, 3:], axis=1, keepdims=True)
+        relative = quat_mul(q[dynamic, 3:], quat_conjugate(previous))
+        velocity[dynamic, 3:] = rotation_vector_from_quat(relative)
+        if not np.any(velocity):
+            return q, value, grad, hess, contact
+        alpha = model.contact.advancement_limit(velocity, fraction=self.advancement_fraction)
+        trial = retract(q, alpha * velocity)
+        t_value, t_grad, t_hess, t_contact, _ = self._evaluate(trial, coords, step_in)
+        if np.isfinite(t_value) and t_value < value:
+            return trial, t_value, t_grad, t_hess, t_contact
+        model.contact.evaluate(q)  # the term lists of q again, for the first advancement bound
+        return q, value, grad, hess, contact
 
     def _limits_reached(self, coords: np.ndarray) -> list[str]:
         art = self._articulation
