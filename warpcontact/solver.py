@@ -447,8 +447,8 @@ class ImplicitSolver:
         return self.last_step, lambda: self._backward_function(state_in, state_out, control, step_in, hess, jacobian, contact.grad, q, q_now, q_prev)
 
     def _warm_start(self, q, q_prev, value, grad, hess, contact, coords, step_in):
-        """Start Newton from the constant-velocity extrapolation q^t + (q^t - q^{t-1}), moved
-        only as far as conservative advancement certifies from q^t, when L is lower there."""
+        """Start Newton from the constant-velocity extrapolation q^t + (q^t - q^{t-1}) when
+        conservative advancement certifies the whole path to it and L is lower there."""
         model = self.model
         velocity = np.zeros((model.num_bodies, 6))
         dynamic = self._dynamic
@@ -458,8 +458,11 @@ class ImplicitSolver:
         velocity[dynamic, 3:] = rotation_vector_from_quat(relative)
         if not np.any(velocity):
             return q, value, grad, hess, contact
-        alpha = model.contact.advancement_limit(velocity, fraction=self.advancement_fraction)
-        trial = retract(q, alpha * velocity)
+        if model.contact.advancement_limit(velocity, fraction=self.advancement_fraction) < 1.0:
+            # A contact closes within the step: the impact will change the velocities, and a
+            # start pressed against the barrier costs Newton more than it saves.
+            return q, value, grad, hess, contact
+        trial = retract(q, velocity)
         t_value, t_grad, t_hess, t_contact, _ = self._evaluate(trial, coords, step_in)
         if np.isfinite(t_value) and t_value < value:
             return trial, t_value, t_grad, t_hess, t_contact
