@@ -7,8 +7,9 @@ solved by Newton's method over the dynamic bodies' rigid coordinates, with a lin
 that never leaves the intersection-free set: each trial step is first bounded by
 conservative advancement (no point of a body may travel farther than the current
 separation lower bound to any other body allows, so no contact can be skipped between
-samples), then backtracked until L decreases (Armijo); a trial whose contact evaluation
-reports contact or an unsolved leaf is rejected.
+samples), then backtracked until L decreases (Armijo, each cut chosen by a cubic fit); a
+trial whose contact evaluation reports contact or an unsolved leaf is rejected. Newton
+starts from the constant-velocity extrapolation of q^t where that path is certified.
 
 Differentiation: inside ``with wp.Tape()``, each step records its backward with
 ``tape.record_func``. By the implicit function theorem, with H = d2L/dq2 at the solution
