@@ -211,7 +211,7 @@ def test_rolling_faceted_ball_takes_ordinary_newton_steps():
     assert max(iterations) < 60 and np.mean(iterations) < 30, iterations
     assert all(model.contact.evaluate(x).ok for x in q)
 
-def test_newton_starts_from_the_constant_velocity_extrapolation():
+def test_newton_starts_from_the_inertial_prediction():
     """Coasting bodies are already solved at the warm start: one iteration confirms it (a
     start at q^t took 3). A box creeping down an incline below the friction angle is nearly
     solved there: 2 iterations a step (5 from q^t, which had to cross the smoothed Coulomb

@@ -9,7 +9,8 @@ conservative advancement (no point of a body may travel farther than the current
 separation lower bound to any other body allows, so no contact can be skipped between
 samples), then backtracked until L decreases (Armijo, each cut chosen by a cubic fit); a
 trial whose contact evaluation reports contact or an unsolved leaf is rejected. Newton
-starts from the constant-velocity extrapolation of q^t where that path is certified.
+starts from the inertial prediction (where the bodies would coast to) where that path is
+certified.
 
 Differentiation: inside ``with wp.Tape()``, each step records its backward with
 ``tape.record_func``. By the implicit function theorem, with H = d2L/dq2 at the solution
@@ -28,7 +29,7 @@ from .kernels.rigid import vec6d
 from ._runtime import paused_tape
 from .articulation import joint_limit_energy
 from .contact import LaggedFriction
-from .rotation import quat_conjugate, quat_from_rotation_vector, quat_mul, rotation_vector_from_quat
+from .rotation import quat_conjugate, quat_from_matrix, quat_from_rotation_vector, quat_mul, rotation_vector_from_quat
 from .types import Control, Model, State
 
 __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
@@ -371,7 +372,7 @@ class ImplicitSolver:
         coords = coords_now.copy()
         value, grad, hess, contact, jacobian = self._evaluate(q, coords, step_in, start)
         if art is None and np.isfinite(value):
-            q, value, grad, hess, contact = self._warm_start(q, q_prev, value, grad, hess, contact, coords, step_in)
+            q, value, grad, hess, contact = self._warm_start(q, value, grad, hess, contact, coords, step_in)
         if not np.isfinite(value):
             raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs}; joint limits reached: {self._limits_reached(coords)})")
         full = np.zeros((model.num_bodies, 6))
@@ -447,16 +448,18 @@ class ImplicitSolver:
         )
         return self.last_step, lambda: self._backward_function(state_in, state_out, control, step_in, hess, jacobian, contact.grad, q, q_now, q_prev)
 
-    def _warm_start(self, q, q_prev, value, grad, hess, contact, coords, step_in):
-        """Start Newton from the constant-velocity extrapolation q^t + (q^t - q^{t-1}) when
-        conservative advancement certifies the whole path to it and L is lower there."""
+    def _warm_start(self, q, value, grad, hess, contact, coords, step_in):
+        """Start Newton from the inertial prediction (``predict_kernel``: where each body would
+        coast to, the minimiser of the inertia term) when conservative advancement certifies
+        the whole path to it and L is lower there."""
         model = self.model
+        dynamic = np.flatnonzero(self._dynamic)
+        position = self._predicted_position.numpy()
+        rotation = self._predicted_rotation.numpy()
         velocity = np.zeros((model.num_bodies, 6))
-        dynamic = self._dynamic
-        velocity[dynamic, :3] = q[dynamic, :3] - q_prev[dynamic, :3]
-        previous = q_prev[dynamic, 3:] / np.linalg.norm(q_prev[dynamic, 3:], axis=1, keepdims=True)
-        relative = quat_mul(q[dynamic, 3:], quat_conjugate(previous))
-        velocity[dynamic, 3:] = rotation_vector_from_quat(relative)
+        velocity[dynamic, :3] = position[dynamic] - q[dynamic, :3]
+        predicted = np.array([quat_from_matrix(rotation[b]) for b in dynamic]).reshape(-1, 4)
+        velocity[dynamic, 3:] = rotation_vector_from_quat(quat_mul(predicted, quat_conjugate(q[dynamic, 3:])))
         if not np.any(velocity):
             return q, value, grad, hess, contact
         if model.contact.advancement_limit(velocity, fraction=self.advancement_fraction) < 1.0:
