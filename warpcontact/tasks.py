@@ -155,7 +155,9 @@ def _descend(rollout, values, settings, history, progress=None, total=None):
     """Adam iterations on ``values`` (in place); returns (best loss, best values, its trajectory).
 
     An update that makes the rollout infeasible (bodies intersecting at the start, or a step
-    that fails) is undone and the learning rate halved: the loss is +inf there.
+    that fails) is undone and the learning rate halved: the loss is +inf there. A zero loss
+    stops the descent: every target is within its tolerance (success), and further Adam
+    steps, carried by momentum alone, could only move the solution off it.
     """
     step = adam(settings.betas, settings.learning_rate)
     best = (np.inf, values.copy(), None)
@@ -176,6 +178,8 @@ def _descend(rollout, values, settings, history, progress=None, total=None):
             best = (loss, values.copy(), trajectory)
         if progress and total is None:
             progress(it + 1, settings.iterations, loss)
+        if loss == 0.0:
+            break
         step(values, grad)
     return best
 
@@ -359,7 +363,7 @@ class TaskProblem:
         if self.kind != "pd_targets" or not s.receding_horizon or s.receding_horizon >= s.horizon:
             values = self.initial_values(1 if self.kind == "initial_state" else s.horizon)
             final, values, traj = _descend(self._objective((q0, q0), s.horizon, rng), values, s, history, progress)
-            return TaskResult(history, history[0], final, final == 0.0, s.iterations, time.perf_counter() - start_time, values, traj, extra)
+            return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, values, traj, extra)
 
         # Receding horizon: optimise a window, apply its first action, shift.
         window = s.receding_horizon
