@@ -110,6 +110,19 @@ def test_gradient_descent_finds_the_shot_from_rest():
     assert result.trajectory.shape == (16, 2, 7)
 
 
+def test_descent_stops_at_success():
+    """A zero loss puts every target within its tolerance: Adam's momentum alone would only
+    carry the solution off it, so the descent ends there."""
+    scene = space_billiards()
+    scene.bodies[0].control_dofs = ("vx", "vy")
+    scene.bodies[1].target_tolerance = 1.2  # reachable within a few steps
+    settings = TaskSettings(horizon=15, receding_horizon=0, iterations=10, learning_rate=1.0)
+    result = TaskProblem(scene, settings=settings).optimize()
+    assert result.success and result.final_loss == 0.0
+    assert result.loss_history[-1] == 0.0 and min(result.loss_history[:-1]) > 0.0
+    assert result.iterations == len(result.loss_history) < 10
+
+
 def test_infeasible_updates_are_undone():
     """Position offsets can push the cue ball into the target ball; such steps are rejected."""
     result = TaskProblem(space_billiards()).optimize()
