@@ -53,7 +53,9 @@ __all__ = [
     "sdrs_solve",
     "pair_solve",
     "leaf_vertex",
+    "leaf_vertex_barrier",
     "leaf_vertex_gradient",
+    "leaf_mixed_block",
     "leaf_hessian_block",
     "leaf_plane_sensitivity",
     "leaf_potential_kernel",
@@ -145,7 +147,7 @@ def leaf_vertex(sol: LeafSolution, k: int):
 
 
 @wp.func
-def _vertex_barrier(sol: LeafSolution, k: int):
+def leaf_vertex_barrier(sol: LeafSolution, k: int):
     """b'(g_k) and b''(g_k) of vertex k."""
     if k < 3:
         return sol.slope_a[k], sol.curv_a[k]
@@ -534,15 +536,15 @@ def pair_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64, max_i
 def leaf_vertex_gradient(sol: LeafSolution, k: int):
     """dP/dx_k (the contact force on vertex k is its negative)."""
     _x, sigma, _g = leaf_vertex(sol, k)
-    b1, _b2 = _vertex_barrier(sol, k)
+    b1, _b2 = leaf_vertex_barrier(sol, k)
     return (sigma * b1) * sol.n
 
 
 @wp.func
-def _mixed_block(sol: LeafSolution, k: int):
+def leaf_mixed_block(sol: LeafSolution, k: int):
     """B_k = d2L / dx_k dp (3x4)."""
     x, sigma, _g = leaf_vertex(sol, k)
-    b1, b2 = _vertex_barrier(sol, k)
+    b1, b2 = leaf_vertex_barrier(sol, k)
     m = mat34d()
     for i in range(3):
         for j in range(3):
@@ -555,11 +557,11 @@ def _mixed_block(sol: LeafSolution, k: int):
 @wp.func
 def leaf_hessian_block(sol: LeafSolution, k: int, l: int):
     """d2P / dx_k dx_l (3x3)."""
-    bk = _mixed_block(sol, k)
-    bl = _mixed_block(sol, l)
+    bk = leaf_mixed_block(sol, k)
+    bl = leaf_mixed_block(sol, l)
     block = -(bk * sol.lpp_inv * wp.transpose(bl))
     if k == l:
-        _b1, b2 = _vertex_barrier(sol, k)
+        _b1, b2 = leaf_vertex_barrier(sol, k)
         block = block + b2 * wp.outer(sol.n, sol.n)
     return block
 
@@ -570,7 +572,7 @@ mat43d = wp.types.matrix(shape=(4, 3), dtype=wp.float64)
 @wp.func
 def leaf_plane_sensitivity(sol: LeafSolution, k: int):
     """d p* / d x_k (4x3) of the optimal local plane p* = (n, d): -L_pp^-1 B_k^T."""
-    return -(sol.lpp_inv * wp.transpose(_mixed_block(sol, k)))
+    return -(sol.lpp_inv * wp.transpose(leaf_mixed_block(sol, k)))
 
 
 @wp.func

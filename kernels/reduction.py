@@ -3,8 +3,10 @@
 Every term of a body pair (a, b) is differentiated with respect to the 12 coordinates
 (dp_a, dtheta_a, dp_b, dtheta_b) and added to its target: the accumulator of its enclosing
 blend record, or, at top level, the scene totals (value, (nbodies, 6) gradient and dense
-(6 nbodies)^2 Hessian; static bodies receive nothing). Blend records are then resolved from
-the deepest nesting level up, each applying
+(6 nbodies)^2 Hessian; static bodies receive nothing). A static body's Hessian blocks are
+not even formed: entry (i, j) of every formula below reads only entries i and j, so a
+static row or column only ever flows into static rows and columns. Blend records are then
+resolved from the deepest nesting level up, each applying
 
     B       = (1 - phi) S + phi P_c
     grad B  = (1 - phi) grad S + phi grad P_c + (P_c - S) grad phi
@@ -22,7 +24,7 @@ SDRS barrier (``dhat`` > 0).
 import warp as wp
 
 from .blend import centered_potential, quintic_blend
-from .leaf import LEAF_OK, leaf_hessian_block, leaf_vertex_gradient, pair_solve
+from .leaf import LEAF_OK, LeafSolution, leaf_mixed_block, leaf_vertex_barrier, leaf_vertex_gradient, pair_solve
 from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
 
 wp.set_module_options({"enable_backward": False})
@@ -158,10 +160,56 @@ def far_term_kernel(
     _add_value(targets, parent, value)
     _add_gradient(targets, parent, pair, 0, first * ga)
     _add_gradient(targets, parent, pair, 1, first * gb)
-    _add_hessian_block(targets, parent, pair, 0, 0, second * wp.outer(ga, ga) + first * haa)
-    _add_hessian_block(targets, parent, pair, 0, 1, second * wp.outer(ga, gb) + first * hab)
-    _add_hessian_block(targets, parent, pair, 1, 0, second * wp.outer(gb, ga) + first * wp.transpose(hab))
-    _add_hessian_block(targets, parent, pair, 1, 1, second * wp.outer(gb, gb) + first * hbb)
+    dynamic_a = targets.body_dynamic[pair[0]] != 0
+    dynamic_b = targets.body_dynamic[pair[1]] != 0
+    if dynamic_a:
+        _add_hessian_block(targets, parent, pair, 0, 0, second * wp.outer(ga, ga) + first * haa)
+    if dynamic_a and dynamic_b:
+        cross = second * wp.outer(ga, gb) + first * hab
+        _add_hessian_block(targets, parent, pair, 0, 1, cross)
+        _add_hessian_block(targets, parent, pair, 1, 0, wp.transpose(cross))
+    if dynamic_b:
+        _add_hessian_block(targets, parent, pair, 1, 1, second * wp.outer(gb, gb) + first * hbb)
+
+
+mat64d = wp.types.matrix(shape=(6, 4), dtype=wp.float64)
+
+
+@wp.func
+def _leaf_rigid_side(sol: LeafSolution, side: int, triangle: wp.mat33d, position: wp.vec3d):
+    """One triangle's leaf derivatives in its body's rigid coordinates.
+
+    With J_k the rigid Jacobian of vertex k (offset r_k = x_k - p), the leaf Hessian
+    delta_kl b''_k n n^T - B_k L_pp^-1 B_l^T projects to the body blocks
+
+        H_ss' = delta_ss' D_s - C_s L_pp^-1 C_s'^T,  C_s = sum_k J_k^T B_k (6x4),
+        D_s = sum_k b''_k (J_k^T n)(J_k^T n)^T + the exponential map's curvature,
+
+    so each vertex's mixed block is formed once, instead of once per vertex pair.
+    Returns the gradient (6), C_s and D_s.
+    """
+    g = vec6d()
+    coupling = mat64d()
+    own = mat66d()
+    curvature = wp.mat33d()
+    for m in range(3):
+        k = 3 * side + m
+        r = triangle[m] - position
+        gk = leaf_vertex_gradient(sol, k)
+        g += rigid_point_gradient(gk, r)
+        curvature += rigid_point_curvature(gk, r)
+        _b1, b2 = leaf_vertex_barrier(sol, k)
+        u = rigid_point_gradient(sol.n, r)
+        own += b2 * wp.outer(u, u)
+        bk = leaf_mixed_block(sol, k)
+        for j in range(4):
+            column = rigid_point_gradient(wp.vec3d(bk[0, j], bk[1, j], bk[2, j]), r)
+            for i in range(6):
+                coupling[i, j] = coupling[i, j] + column[i]
+    for i in range(3):
+        for j in range(3):
+            own[3 + i, 3 + j] = own[3 + i, 3 + j] + curvature[i, j]
+    return g, coupling, own
 
 
 @wp.kernel
@@ -208,37 +256,22 @@ def leaf_term_kernel(
     wp.atomic_min(seed_separation_out, seed, (gap_a + gap_b) / wp.length(sol.n))
     if sol.value == wp.float64(0.0):
         return  # SDRS beyond its support: zero derivatives too
-    # Vertex offsets from their body origins, r = x - p (world axes).
-    offsets_a = wp.mat33d()
-    offsets_b = wp.mat33d()
-    for m in range(3):
-        offsets_a[m] = ta[m] - pos_a
-        offsets_b[m] = tb[m] - pos_b
-    for side in range(2):
-        offsets = offsets_a
-        if side == 1:
-            offsets = offsets_b
-        g = vec6d()
-        curvature = wp.mat33d()
-        for m in range(3):
-            gk = leaf_vertex_gradient(sol, 3 * side + m)
-            g += rigid_point_gradient(gk, offsets[m])
-            curvature += rigid_point_curvature(gk, offsets[m])
-        _add_gradient(targets, parent, pair, side, g)
-        for side_c in range(2):
-            offsets_c = offsets_a
-            if side_c == 1:
-                offsets_c = offsets_b
-            block = mat66d()
-            for m in range(3):
-                for mm in range(3):
-                    h = leaf_hessian_block(sol, 3 * side + m, 3 * side_c + mm)
-                    block += rigid_point_pair_block(h, offsets[m], offsets_c[mm])
-            if side == side_c:
-                for i in range(3):
-                    for j in range(3):
-                        block[3 + i, 3 + j] = block[3 + i, 3 + j] + curvature[i, j]
-            _add_hessian_block(targets, parent, pair, side, side_c, block)
+    dynamic_a = targets.body_dynamic[pair[0]] != 0
+    dynamic_b = targets.body_dynamic[pair[1]] != 0
+    coupling_a = mat64d()
+    coupling_b = mat64d()
+    if dynamic_a:
+        g, coupling_a, own = _leaf_rigid_side(sol, 0, ta, pos_a)
+        _add_gradient(targets, parent, pair, 0, g)
+        _add_hessian_block(targets, parent, pair, 0, 0, own - coupling_a * sol.lpp_inv * wp.transpose(coupling_a))
+    if dynamic_b:
+        g, coupling_b, own = _leaf_rigid_side(sol, 1, tb, pos_b)
+        _add_gradient(targets, parent, pair, 1, g)
+        _add_hessian_block(targets, parent, pair, 1, 1, own - coupling_b * sol.lpp_inv * wp.transpose(coupling_b))
+    if dynamic_a and dynamic_b:
+        cross = -(coupling_a * sol.lpp_inv * wp.transpose(coupling_b))
+        _add_hessian_block(targets, parent, pair, 0, 1, cross)
+        _add_hessian_block(targets, parent, pair, 1, 0, wp.transpose(cross))
 
 
 @wp.kernel
@@ -290,6 +323,8 @@ def blend_level_kernel(
     _add_gradient(targets, parent, pair, 1, gb_out)
     for side_r in range(2):
         for side_c in range(2):
+            if targets.body_dynamic[pair[side_r]] == 0 or targets.body_dynamic[pair[side_c]] == 0:
+                continue
             block = mat66d()
             for ii in range(6):
                 i = 6 * side_r + ii
