@@ -20,12 +20,17 @@ gap of A reaches dhat: no friction acts beyond the barrier's support.
 D is C-infinity in q (a smoothed Coulomb law: the friction force lambda N u / sqrt(|u|^2 + e^2)
 saturates at lambda N once slip speeds exceed v_eps). N and n^ depend on q^t; the adjoint
 kernel differentiates them exactly through the leaf plane's sensitivity dp*/dx.
+
+No leaf pair is solved twice for its plane: the setup reads N and n^ off the optimal planes
+that the contact evaluation at q^t left (``leaf_term_kernel``), and keeps them; the adjoint
+needs the full solution (L_pp^-1) and re-solves from the kept plane, where Newton stops
+after at most one step (``pair_solve_from_plane``).
 """
 
 import warp as wp
 
 from .blend import quintic_blend
-from .leaf import LEAF_OK, leaf_plane_sensitivity, pair_solve
+from .leaf import LEAF_OK, leaf_barrier, leaf_plane_sensitivity, pair_solve_from_plane
 from .rigid import rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
 
 wp.set_module_options({"enable_backward": False})
@@ -40,6 +45,7 @@ class FrictionFrame:
     leaf_items: wp.array(dtype=wp.vec4i)  # (triangle_a, triangle_b, parent, body pair)
     normal_force: wp.array(dtype=wp.float64)  # N (0: no friction from this pair)
     normal: wp.array(dtype=wp.vec3d)  # n^
+    plane: wp.array(dtype=wp.vec4d)  # the leaf's optimal plane (n, d) at q^t, world frame
     point_a: wp.array(dtype=wp.vec3d)  # X_A, body frame of a
     point_b: wp.array(dtype=wp.vec3d)  # X_B, body frame of b
     offset: wp.array(dtype=wp.vec3d)  # c_A^t - c_B^t
@@ -73,38 +79,47 @@ def friction_setup_kernel(
     eps: wp.float64,
     dhat: wp.float64,
     mu: wp.float64,
-    max_iterations: int,
     # Data in:
     body_rotation: wp.array(dtype=wp.mat33d),
     body_position: wp.array(dtype=wp.vec3d),
     seed_body_pair: wp.array(dtype=wp.vec2i),
+    leaf_plane: wp.array(dtype=wp.vec4d),
     # Data in (leaf_items) and out (the rest):
     frame: FrictionFrame,
 ):
+    """``leaf_plane``: each leaf pair's optimal plane (n, d) in world coordinates, as the
+    contact evaluation at q^t left it (``leaf_term_kernel``): N needs only the plane's gaps,
+    so the pair is not solved a second time."""
     tid = wp.tid()
     item = frame.leaf_items[tid]
     pair = seed_body_pair[item[3]]
     local_a = triangle_vertices[item[0]]
     local_b = triangle_vertices[item[1]]
-    rot_a = body_rotation[pair[0]]
-    rot_b = body_rotation[pair[1]]
-    ta = world_triangle(local_a, rot_a, body_position[pair[0]])
-    tb = world_triangle(local_b, rot_b, body_position[pair[1]])
+    ta = world_triangle(local_a, body_rotation[pair[0]], body_position[pair[0]])
+    tb = world_triangle(local_b, body_rotation[pair[1]], body_position[pair[1]])
     frame.point_a[tid] = _centroid(local_a)
     frame.point_b[tid] = _centroid(local_b)
     ca = _centroid(ta)
     cb = _centroid(tb)
     frame.offset[tid] = ca - cb
-    sol = pair_solve(ta, tb, dhat, max_iterations)
     frame.normal_force[tid] = wp.float64(0.0)
     frame.normal[tid] = wp.vec3d()
-    if sol.status != LEAF_OK:
+    plane = leaf_plane[tid]
+    frame.plane[tid] = plane
+    n = wp.vec3d(plane[0], plane[1], plane[2])
+    norm = wp.length(n)
+    if not (norm > wp.float64(0.0)):
         return
+    q = wp.float64(0.0)
+    for k in range(3):
+        gap = wp.dot(ta[k], n) + plane[3]
+        if not (gap > wp.float64(0.0)):
+            return
+        _b, b1, _b2 = leaf_barrier(gap, dhat)
+        q -= b1
     weight, _ = _support_weight(ca, cb, _leaf_radius(ta) + _leaf_radius(tb), eps, dhat)
-    q = -(sol.slope_a[0] + sol.slope_a[1] + sol.slope_a[2])
-    norm = wp.length(sol.n)
     frame.normal_force[tid] = mu * weight * norm * q
-    frame.normal[tid] = sol.n / norm
+    frame.normal[tid] = n / norm
 
 
 @wp.func
@@ -247,7 +262,7 @@ def friction_adjoint_kernel(
     pos_b = position_now[pair[1]]
     ta = world_triangle(triangle_vertices[item[0]], rot_a, pos_a)
     tb = world_triangle(triangle_vertices[item[1]], rot_b, pos_b)
-    sol = pair_solve(ta, tb, dhat, max_iterations)
+    sol = pair_solve_from_plane(ta, tb, frame.plane[tid], dhat, max_iterations)
     if sol.status != LEAF_OK:
         return
     ca = _centroid(ta)

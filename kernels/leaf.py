@@ -52,6 +52,7 @@ __all__ = [
     "leaf_solve",
     "sdrs_solve",
     "pair_solve",
+    "pair_solve_from_plane",
     "leaf_vertex",
     "leaf_vertex_barrier",
     "leaf_vertex_gradient",
@@ -529,6 +530,24 @@ def pair_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64, max_i
     """``leaf_solve`` for dhat <= 0 (the paper's model), ``sdrs_solve`` otherwise."""
     if dhat > wp.float64(0.0):
         return sdrs_solve(ta_world, tb_world, dhat, max_iterations)
+    return leaf_solve(ta_world, tb_world, max_iterations)
+
+
+@wp.func
+def pair_solve_from_plane(ta_world: wp.mat33d, tb_world: wp.mat33d, plane: wp.vec4d, dhat: wp.float64, max_iterations: int):
+    """``pair_solve`` started from a plane (n, d) in world coordinates, e.g. this pair's
+    optimum at the same or a nearby configuration, where Newton needs a step or none.
+    The paper's model only, from the usual start if that plane does not separate the
+    triangles strictly inside |n| < 1; SDRS (dhat > 0) solves from its own start."""
+    if dhat > wp.float64(0.0):
+        return sdrs_solve(ta_world, tb_world, dhat, max_iterations)
+    sol, _e = _leaf_start(ta_world, tb_world, dhat)
+    if sol.status != LEAF_OK:
+        return sol
+    n = wp.vec3d(plane[0], plane[1], plane[2])
+    start = wp.vec4d(n[0], n[1], n[2], plane[3] + wp.dot(n, sol.origin))
+    if wp.isfinite(_energy(sol.ta, sol.tb, start, dhat)):
+        return _solve_from(sol, start, max_iterations)
     return leaf_solve(ta_world, tb_world, max_iterations)
 
 

@@ -2,9 +2,11 @@
 
 import numpy as np
 import pytest
+import warp as wp
 from helpers import edge_edge, leaf_fd_errors, parallel_faces, random_separated_pair, vertex_face
 
 import warpcontact as wc
+from warpcontact.kernels import leaf as leaf_kernels
 
 
 def evaluate(A, B, **kw):
@@ -352,3 +354,60 @@ def test_bad_options_raise_clear_error():
         wc.triangle_pair_potential(np.zeros((1, 3, 3)), np.ones((1, 3, 3)), max_iterations=0)
     with pytest.raises(ValueError, match="device"):
         wc.triangle_pair_potential(np.zeros((1, 3, 3)), np.ones((1, 3, 3)), device="tpu:7")
+
+
+# --- warm starts ------------------------------------------------------------------------------
+
+
+@wp.kernel
+def _solve_from_plane_kernel(
+    a: wp.array(dtype=wp.mat33d),
+    b: wp.array(dtype=wp.mat33d),
+    plane: wp.array(dtype=wp.vec4d),
+    value_out: wp.array(dtype=wp.float64),
+    iterations_out: wp.array(dtype=wp.int32),
+    status_out: wp.array(dtype=wp.int32),
+    lpp_inv_out: wp.array(dtype=wp.mat44d),
+):
+    tid = wp.tid()
+    sol = leaf_kernels.pair_solve_from_plane(a[tid], b[tid], plane[tid], wp.float64(0.0), 100)
+    value_out[tid] = sol.value
+    iterations_out[tid] = sol.iterations
+    status_out[tid] = sol.status
+    lpp_inv_out[tid] = sol.lpp_inv
+
+
+def _solve_from_planes(A, B, planes):
+    n = len(A)
+    outs = [wp.zeros(n, dtype=wp.float64), wp.zeros(n, dtype=wp.int32), wp.zeros(n, dtype=wp.int32), wp.zeros(n, dtype=wp.mat44d)]
+    wp.launch(
+        _solve_from_plane_kernel,
+        dim=n,
+        inputs=[wp.array(A, dtype=wp.mat33d), wp.array(B, dtype=wp.mat33d), wp.array(planes, dtype=wp.vec4d)],
+        outputs=outs,
+    )
+    return [o.numpy() for o in outs]
+
+
+def test_solve_from_the_optimal_plane_needs_no_newton_step():
+    """The friction adjoint re-solves each leaf from the plane the forward pass found: the
+    solution must be the cold solve's, at once, and a plane that does not separate the
+    triangles must fall back to the cold start."""
+    rng = np.random.default_rng(7)
+    pairs = [random_separated_pair(rng, offset=o) for o in (0.5, 1.0, 2.5, 10.0)] + [parallel_faces(1e-6), vertex_face(1e-4)]
+    A = np.array([p[0] for p in pairs])
+    B = np.array([p[1] for p in pairs])
+    cold = wc.triangle_pair_potential(A, B)
+    assert cold.ok.all()
+    value, iterations, status, _ = _solve_from_planes(A, B, cold.plane)
+    assert (status == 0).all() and (iterations <= 1).all()
+    np.testing.assert_allclose(value, cold.value, rtol=1e-13)
+    # A plane through A (separating nothing) and one with |n| >= 1: the cold start's results.
+    bad = np.zeros_like(cold.plane)
+    bad[:, 2] = 0.5
+    bad[:, 3] = -0.5 * A[:, :, 2].mean(axis=1)
+    for planes in (bad, cold.plane * 1e3):
+        value, iterations, status, _ = _solve_from_planes(A, B, planes)
+        assert (status == 0).all()
+        np.testing.assert_allclose(value, cold.value, rtol=1e-12)
+        np.testing.assert_array_equal(iterations, cold.iterations)
