@@ -48,6 +48,7 @@ from .rotation import axial, pose_inverse, pose_mul, quat_conjugate, quat_from_r
 
 __all__ = [
     "BASE_DOFS",
+    "JOINT_AXES",
     "JOINT_KINDS",
     "PRISMATIC",
     "REVOLUTE",
@@ -61,6 +62,9 @@ __all__ = [
 PRISMATIC, REVOLUTE, ROTATION = 0, 1, 2
 JOINT_KINDS = ("revolute", "prismatic", "universal", "ball", "base")
 BASE_DOFS = ("x", "y", "z", "rx", "ry", "rz")
+# Axes (= coordinates) of the joint kinds with a fixed count; a ball joint has none, or one
+# for a swing limit's axis, and no coordinates; a base joint has its listed dofs.
+JOINT_AXES = {"revolute": 1, "prismatic": 1, "universal": 2}
 
 _ANCHOR_TOLERANCE = 1e-6  # m, relative to the scene's largest body radius
 _ANGLE_TOLERANCE = 1e-6  # rad

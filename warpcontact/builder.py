@@ -7,7 +7,7 @@ import trimesh
 import warp as wp
 
 from ._runtime import resolve_device
-from .articulation import BASE_DOFS, JOINT_KINDS, ArticulationModel, Joint, frame_in_body
+from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, frame_in_body
 from .contact import ContactModel
 from .rotation import pose_mul, quat_rotate
 from .types import Model
@@ -297,8 +297,7 @@ class ModelBuilder:
             if dofs is not None:
                 raise ValueError(f"{where}: dofs only applies to base joints")
             dofs = ()
-            ball_axes = 0 if axis is None else 1
-            axes = _unit_axes(axis, {"revolute": 1, "prismatic": 1, "universal": 2, "ball": ball_axes}[kind], where)
+            axes = _unit_axes(axis, JOINT_AXES.get(kind, 0 if axis is None else 1), where)
             if anchor is not None:
                 if parent_frame is not None or child_frame is not None:
                     raise ValueError(f"{where}: give an anchor or joint frames, not both")

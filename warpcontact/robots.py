@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .articulation import JOINT_AXES
 from .rotation import quat_from_rotation_vector, quat_rotate
 
 __all__ = ["AntSpec", "actuated_coordinates", "add_ant", "ant_description", "ant_standing_height"]
@@ -94,8 +95,7 @@ def ant_description(*, position=(0.0, 0.0), yaw: float = 0.0, ground_height: flo
 
 def actuated_coordinates(joints) -> list[str]:
     """Names of the actuated joint coordinates (every coordinate of a joint with gains)."""
-    counts = {"revolute": 1, "prismatic": 1, "universal": 2}
-    return [f"{j['name']}:{k}" for j in joints if j.get("kp") for k in range(counts.get(j["kind"], 0))]
+    return [f"{j['name']}:{k}" for j in joints if j.get("kp") for k in range(JOINT_AXES.get(j["kind"], 0))]
 
 
 def add_ant(builder, *, position=(0.0, 0.0), yaw: float = 0.0, ground_height: float = 0.0, spec: AntSpec = AntSpec(), name: str = "ant") -> dict:
