@@ -83,13 +83,11 @@ def friction_setup_kernel(
     body_rotation: wp.array(dtype=wp.mat33d),
     body_position: wp.array(dtype=wp.vec3d),
     seed_body_pair: wp.array(dtype=wp.vec2i),
-    leaf_plane: wp.array(dtype=wp.vec4d),
-    # Data in (leaf_items) and out (the rest):
+    # Data in (leaf_items, plane) and out (the rest):
     frame: FrictionFrame,
 ):
-    """``leaf_plane``: each leaf pair's optimal plane (n, d) in world coordinates, as the
-    contact evaluation at q^t left it (``leaf_term_kernel``): N needs only the plane's gaps,
-    so the pair is not solved a second time."""
+    """N needs only the gaps of the plane that the contact evaluation at q^t found, so the
+    pair is not solved a second time."""
     tid = wp.tid()
     item = frame.leaf_items[tid]
     pair = seed_body_pair[item[3]]
@@ -104,8 +102,7 @@ def friction_setup_kernel(
     frame.offset[tid] = ca - cb
     frame.normal_force[tid] = wp.float64(0.0)
     frame.normal[tid] = wp.vec3d()
-    plane = leaf_plane[tid]
-    frame.plane[tid] = plane
+    plane = frame.plane[tid]
     n = wp.vec3d(plane[0], plane[1], plane[2])
     norm = wp.length(n)
     if not (norm > wp.float64(0.0)):

@@ -485,18 +485,24 @@ def _solve_from(sol: LeafSolution, start: wp.vec4d, max_iterations: int):
 
 
 @wp.func
-def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int):
-    """Solve the leaf plane problem for triangles A, B (rows = vertices, world frame)."""
-    sol, e = _leaf_start(ta_world, tb_world, wp.float64(0.0))
-    if sol.status != LEAF_OK:
-        return sol
-    # Best scale along the start plane: minimise 12/(1-r) + coupling/r.
+def _scaled_bisector(sol: LeafSolution, e: wp.vec3d):
+    """The start plane of ``leaf_solve``: the bisector (normal e through the local origin)
+    at its best scale r, the minimiser of 12/(1-r) + coupling/r along it."""
     coupling = wp.float64(0.0)
     for k in range(3):
         coupling += wp.float64(1.0) / wp.dot(sol.ta[k], e) - wp.float64(1.0) / wp.dot(sol.tb[k], e)
     q = wp.sqrt(coupling / wp.float64(12.0))
     r0 = q / (wp.float64(1.0) + q)
-    return _solve_from(sol, wp.vec4d(r0 * e[0], r0 * e[1], r0 * e[2], wp.float64(0.0)), max_iterations)
+    return wp.vec4d(r0 * e[0], r0 * e[1], r0 * e[2], wp.float64(0.0))
+
+
+@wp.func
+def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int):
+    """Solve the leaf plane problem for triangles A, B (rows = vertices, world frame)."""
+    sol, e = _leaf_start(ta_world, tb_world, wp.float64(0.0))
+    if sol.status != LEAF_OK:
+        return sol
+    return _solve_from(sol, _scaled_bisector(sol, e), max_iterations)
 
 
 @wp.func
@@ -541,14 +547,14 @@ def pair_solve_from_plane(ta_world: wp.mat33d, tb_world: wp.mat33d, plane: wp.ve
     triangles strictly inside |n| < 1; SDRS (dhat > 0) solves from its own start."""
     if dhat > wp.float64(0.0):
         return sdrs_solve(ta_world, tb_world, dhat, max_iterations)
-    sol, _e = _leaf_start(ta_world, tb_world, dhat)
+    sol, e = _leaf_start(ta_world, tb_world, dhat)
     if sol.status != LEAF_OK:
         return sol
     n = wp.vec3d(plane[0], plane[1], plane[2])
     start = wp.vec4d(n[0], n[1], n[2], plane[3] + wp.dot(n, sol.origin))
-    if wp.isfinite(_energy(sol.ta, sol.tb, start, dhat)):
-        return _solve_from(sol, start, max_iterations)
-    return leaf_solve(ta_world, tb_world, max_iterations)
+    if not wp.isfinite(_energy(sol.ta, sol.tb, start, dhat)):
+        start = _scaled_bisector(sol, e)
+    return _solve_from(sol, start, max_iterations)
 
 
 @wp.func

@@ -539,7 +539,7 @@ class ContactModel:
             count = frame.leaf_items.shape[0]
             frame.normal_force = wp.zeros(count, dtype=wp.float64)
             frame.normal = wp.zeros(count, dtype=wp.vec3d)
-            frame.plane = wp.zeros(count, dtype=wp.vec4d)
+            frame.plane = wp.clone(self._leaf_plane[:count])
             frame.point_a = wp.zeros(count, dtype=wp.vec3d)
             frame.point_b = wp.zeros(count, dtype=wp.vec3d)
             frame.offset = wp.zeros(count, dtype=wp.vec3d)
@@ -547,7 +547,7 @@ class ContactModel:
                 wp.launch(
                     friction_kernels.friction_setup_kernel,
                     dim=count,
-                    inputs=[self._triangle_vertices, self.eps, self.dhat, float(mu), self._rotation, self._position, self._seed_body_pair, self._leaf_plane],
+                    inputs=[self._triangle_vertices, self.eps, self.dhat, float(mu), self._rotation, self._position, self._seed_body_pair],
                     outputs=[frame],
                 )
         return LaggedFriction(pairs=count, mu=float(mu), friction=friction, slip_smoothing=float(slip_smoothing), data=frame)
