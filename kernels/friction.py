@@ -31,7 +31,7 @@ import warp as wp
 
 from .blend import quintic_blend
 from .leaf import LEAF_OK, leaf_barrier, leaf_plane_sensitivity, pair_solve_from_plane
-from .rigid import rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
+from .rigid import add_upper_block, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
 
 wp.set_module_options({"enable_backward": False})
 
@@ -179,7 +179,7 @@ def friction_energy_kernel(
         gs = rigid_point_gradient(sign * g, r)
         for i in range(6):
             wp.atomic_add(grad_out, body, i, gs[i])
-        for side_c in range(2):
+        for side_c in range(side, 2):
             body_c = pair[side_c]
             if body_dynamic[body_c] == 0:
                 continue
@@ -194,9 +194,7 @@ def friction_energy_kernel(
                 for i in range(3):
                     for j in range(3):
                         block[3 + i, 3 + j] = block[3 + i, 3 + j] + curv[i, j]
-            for i in range(6):
-                for j in range(6):
-                    wp.atomic_add(hess_out, 6 * body + i, 6 * body_c + j, block[i, j])
+            add_upper_block(hess_out, body, body_c, block)
 
 
 @wp.kernel

@@ -33,7 +33,7 @@ from ._validate import as_float64_array
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus
 from .sphere_tree import SphereTree, build_sphere_tree
 
-__all__ = ["ContactEvaluation", "ContactModel", "CONTACT_MODES", "LaggedFriction", "QUATERNION_TOLERANCE", "TermLists"]
+__all__ = ["ContactEvaluation", "ContactModel", "CONTACT_MODES", "LaggedFriction", "QUATERNION_TOLERANCE", "TermLists", "symmetric_from_upper"]
 
 CONTACT_MODES = ("bsh", "brute", "sdrs")
 
@@ -129,6 +129,15 @@ class TermLists:
     blend: np.ndarray
     blend_level: np.ndarray
     leaf: np.ndarray
+
+
+def symmetric_from_upper(upper: wp.array) -> np.ndarray:
+    """The symmetric matrix whose upper triangle the term kernels accumulated (they add one
+    of each pair of mirrored entries: ``kernels/rigid.py``, ``add_upper_block``), on the host."""
+    h = upper.numpy()
+    full = h + h.T
+    full[np.diag_indices_from(full)] = np.diag(h)
+    return full
 
 
 def contact_body_pairs(static: np.ndarray, exclude_pairs=()) -> np.ndarray:
@@ -458,7 +467,7 @@ class ContactModel:
         return ContactEvaluation(
             value=value,
             grad=self._total_grad.numpy().copy(),
-            hessian=self._total_hess.numpy().copy(),
+            hessian=symmetric_from_upper(self._total_hess),
             num_far=num_far,
             num_blend=num_blend,
             num_leaf=num_leaf,
@@ -565,7 +574,7 @@ class ContactModel:
                 outputs=[self._friction_value, self._friction_grad, self._friction_hess],
                 device=self.device,
             )
-        return float(self._friction_value.numpy()[0]), self._friction_grad.numpy().reshape(-1), self._friction_hess.numpy()
+        return float(self._friction_value.numpy()[0]), self._friction_grad.numpy().reshape(-1), symmetric_from_upper(self._friction_hess)
 
     def friction_adjoint(self, lagged: LaggedFriction, q_next: np.ndarray, q_now: np.ndarray, multiplier: np.ndarray):
         """lambda^T d(grad_q D)/dy of the step's friction D at its solution q_next, for y = q^t
