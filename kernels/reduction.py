@@ -1,9 +1,10 @@
 """Term evaluation and the bottom-up blend reduction of P_BSH, in rigid-body coordinates.
 
 Every term of a body pair (a, b) is differentiated with respect to the 12 coordinates
-(dp_a, dtheta_a, dp_b, dtheta_b) and added to its target: the accumulator of its enclosing
-blend record, or, at top level, the scene totals (value, (nbodies, 6) gradient and dense
-(6 nbodies)^2 Hessian; static bodies receive nothing). A static body's Hessian blocks are
+(dp_a, dtheta_a, dp_b, dtheta_b) and added to its record (``Targets``): the accumulator of
+its enclosing blend record, or, at top level, one of its body pair's replicated top-level
+records, which ``top_level_kernel`` finally sums into the scene totals (value, (nbodies, 6)
+gradient and dense (6 nbodies)^2 Hessian; static bodies receive nothing). A static body's Hessian blocks are
 not even formed: entry (i, j) of every formula below reads only entries i and j, so a
 static row or column only ever flows into static rows and columns. Hessians are symmetric,
 so only their upper triangles are accumulated (78 of 144 atomic adds per term; atomic
@@ -29,56 +30,61 @@ import warp as wp
 
 from .blend import centered_potential, quintic_blend
 from .leaf import LEAF_OK, LeafSolution, leaf_mixed_block, leaf_vertex_barrier, leaf_vertex_gradient, pair_solve
-from .rigid import add_upper_block, mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
+from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, upper_entry, vec6d, world_triangle
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["far_term_kernel", "leaf_term_kernel", "blend_level_kernel", "advancement_kernel"]
+__all__ = ["RECORD_ENTRIES", "Targets", "far_term_kernel", "leaf_term_kernel", "blend_level_kernel", "top_level_kernel", "advancement_kernel"]
 
 
 @wp.struct
 class Targets:
-    """Where terms land: blend accumulators (by record) or scene totals (by body)."""
+    """Accumulator records that terms add to. Records below ``top_record`` are the blend
+    records (same index as the blend list); from ``top_record`` on, each body pair (seed)
+    owns ``top_replicas`` records for its top-level terms, which ``top_level_kernel`` sums
+    into the scene totals. Replicas spread the atomic adds of a body pair's top-level terms
+    (e.g. 113k top-level blend records over 136 body pairs at 6,208 triangles), which would
+    otherwise all contend for the same few hundred addresses on a GPU."""
 
-    blend_value: wp.array(dtype=wp.float64)
-    blend_grad: wp.array2d(dtype=wp.float64)
-    blend_hess: wp.array3d(dtype=wp.float64)
-    total_value: wp.array(dtype=wp.float64)
-    total_grad: wp.array2d(dtype=wp.float64)
-    total_hess: wp.array2d(dtype=wp.float64)
+    record_value: wp.array(dtype=wp.float64)
+    record_grad: wp.array2d(dtype=wp.float64)
+    record_hess: wp.array3d(dtype=wp.float64)
+    top_record: int
+    top_replicas: int
     body_dynamic: wp.array(dtype=wp.int32)
 
 
 @wp.func
-def _add_value(t: Targets, parent: int, value: wp.float64):
+def _target_record(t: Targets, parent: int, seed: int, tid: int):
+    """The record a term adds to: its enclosing blend record, or one of its body pair's
+    top-level replicas (chosen by thread, so neighbouring threads use different ones)."""
     if parent >= 0:
-        wp.atomic_add(t.blend_value, parent, value)
-    else:
-        wp.atomic_add(t.total_value, 0, value)
+        return parent
+    return t.top_record + seed * t.top_replicas + tid % t.top_replicas
 
 
 @wp.func
-def _add_gradient(t: Targets, parent: int, pair: wp.vec2i, side: int, g: vec6d):
-    if parent >= 0:
-        for i in range(6):
-            wp.atomic_add(t.blend_grad, parent, 6 * side + i, g[i])
-    elif t.body_dynamic[pair[side]] != 0:
-        for i in range(6):
-            wp.atomic_add(t.total_grad, pair[side], i, g[i])
+def _add_value(t: Targets, record: int, value: wp.float64):
+    wp.atomic_add(t.record_value, record, value)
 
 
 @wp.func
-def _add_hessian_block(t: Targets, parent: int, pair: wp.vec2i, side_r: int, side_c: int, h: mat66d):
+def _add_gradient(t: Targets, record: int, pair: wp.vec2i, side: int, g: vec6d):
+    """Adds a side's gradient; a static side's is never read, so it is not added."""
+    if t.body_dynamic[pair[side]] != 0:
+        for i in range(6):
+            wp.atomic_add(t.record_grad, record, 6 * side + i, g[i])
+
+
+@wp.func
+def _add_hessian_block(t: Targets, record: int, side_r: int, side_c: int, h: mat66d):
     """Adds block (side_r, side_c) of a term's symmetric 12x12 Hessian to the upper triangle
-    of its target. Callers pass the diagonal blocks (only their upper triangles are added)
-    and block (0, 1); block (1, 0) is its transpose and is never added."""
-    if parent >= 0:
-        for i in range(6):
-            for j in range(6):
-                if j >= i or side_r != side_c:
-                    wp.atomic_add(t.blend_hess, parent, 6 * side_r + i, 6 * side_c + j, h[i, j])
-    elif t.body_dynamic[pair[side_r]] != 0 and t.body_dynamic[pair[side_c]] != 0:
-        add_upper_block(t.total_hess, pair[side_r], pair[side_c], h)
+    of its record. Callers pass the dynamic sides' diagonal blocks (only their upper
+    triangles are added) and block (0, 1); block (1, 0) is its transpose and is never added."""
+    for i in range(6):
+        for j in range(6):
+            if j >= i or side_r != side_c:
+                wp.atomic_add(t.record_hess, record, 6 * side_r + i, 6 * side_c + j, h[i, j])
 
 
 @wp.func
@@ -159,19 +165,19 @@ def far_term_kernel(
         return
     dist, ga, gb, haa, hab, hbb = _centre_distance_derivatives(ci, cj, body_position[pair[0]], body_position[pair[1]])
     value, first, second = centered_potential(dist)
-    parent = item[2]
-    _add_value(targets, parent, value)
-    _add_gradient(targets, parent, pair, 0, first * ga)
-    _add_gradient(targets, parent, pair, 1, first * gb)
+    record = _target_record(targets, item[2], item[3], wp.tid())
+    _add_value(targets, record, value)
+    _add_gradient(targets, record, pair, 0, first * ga)
+    _add_gradient(targets, record, pair, 1, first * gb)
     dynamic_a = targets.body_dynamic[pair[0]] != 0
     dynamic_b = targets.body_dynamic[pair[1]] != 0
     if dynamic_a:
-        _add_hessian_block(targets, parent, pair, 0, 0, second * wp.outer(ga, ga) + first * haa)
+        _add_hessian_block(targets, record, 0, 0, second * wp.outer(ga, ga) + first * haa)
     if dynamic_a and dynamic_b:
         cross = second * wp.outer(ga, gb) + first * hab
-        _add_hessian_block(targets, parent, pair, 0, 1, cross)
+        _add_hessian_block(targets, record, 0, 1, cross)
     if dynamic_b:
-        _add_hessian_block(targets, parent, pair, 1, 1, second * wp.outer(gb, gb) + first * hbb)
+        _add_hessian_block(targets, record, 1, 1, second * wp.outer(gb, gb) + first * hbb)
 
 
 mat64d = wp.types.matrix(shape=(6, 4), dtype=wp.float64)
@@ -245,13 +251,13 @@ def leaf_term_kernel(
     sol = pair_solve(ta, tb, dhat, max_iterations)
     leaf_iterations_out[tid] = sol.iterations
     leaf_plane_out[tid] = wp.vec4d(sol.n[0], sol.n[1], sol.n[2], sol.d - wp.dot(sol.n, sol.origin))
-    parent = item[2]
+    record = _target_record(targets, item[2], seed, tid)
     if sol.status != LEAF_OK:
         wp.atomic_max(seed_status_out, seed, sol.status)
         wp.atomic_min(seed_separation_out, seed, wp.float64(0.0))
-        _add_value(targets, parent, wp.float64(wp.inf))
+        _add_value(targets, record, wp.float64(wp.inf))
         return
-    _add_value(targets, parent, sol.value)
+    _add_value(targets, record, sol.value)
     # The optimal plane separates the triangles; each lies at least min gap / |n| from it.
     gap_a = wp.min(wp.min(sol.gap_a[0], sol.gap_a[1]), sol.gap_a[2])
     gap_b = wp.min(wp.min(sol.gap_b[0], sol.gap_b[1]), sol.gap_b[2])
@@ -264,14 +270,14 @@ def leaf_term_kernel(
     coupling_b = mat64d()
     if dynamic_a:
         g, coupling_a, own = _leaf_rigid_side(sol, 0, ta, pos_a)
-        _add_gradient(targets, parent, pair, 0, g)
-        _add_hessian_block(targets, parent, pair, 0, 0, own - coupling_a * sol.lpp_inv * wp.transpose(coupling_a))
+        _add_gradient(targets, record, pair, 0, g)
+        _add_hessian_block(targets, record, 0, 0, own - coupling_a * sol.lpp_inv * wp.transpose(coupling_a))
     if dynamic_b:
         g, coupling_b, own = _leaf_rigid_side(sol, 1, tb, pos_b)
-        _add_gradient(targets, parent, pair, 1, g)
-        _add_hessian_block(targets, parent, pair, 1, 1, own - coupling_b * sol.lpp_inv * wp.transpose(coupling_b))
+        _add_gradient(targets, record, pair, 1, g)
+        _add_hessian_block(targets, record, 1, 1, own - coupling_b * sol.lpp_inv * wp.transpose(coupling_b))
     if dynamic_a and dynamic_b:
-        _add_hessian_block(targets, parent, pair, 0, 1, -(coupling_a * sol.lpp_inv * wp.transpose(coupling_b)))
+        _add_hessian_block(targets, record, 0, 1, -(coupling_a * sol.lpp_inv * wp.transpose(coupling_b)))
 
 
 @wp.kernel
@@ -303,24 +309,24 @@ def blend_level_kernel(
     phi, dphi, ddphi = quintic_blend((dist - d1) / width)
     phi1 = dphi / width
     phi2 = ddphi / (width * width)
-    s = targets.blend_value[record]
-    parent = item[2]
+    s = targets.record_value[record]
+    target = _target_record(targets, item[2], item[3], record)
     one = wp.float64(1.0)
-    _add_value(targets, parent, (one - phi) * s + phi * pc)
+    _add_value(targets, target, (one - phi) * s + phi * pc)
     if not wp.isfinite(s):
         return
     ga_out = vec6d()
     gb_out = vec6d()
     for i in range(12):
         gd = _pick12(ga, gb, i)
-        gs = targets.blend_grad[record, i]
+        gs = targets.record_grad[record, i]
         gi = (one - phi) * gs + phi * pc1 * gd + (pc - s) * phi1 * gd
         if i < 6:
             ga_out[i] = gi
         else:
             gb_out[i - 6] = gi
-    _add_gradient(targets, parent, pair, 0, ga_out)
-    _add_gradient(targets, parent, pair, 1, gb_out)
+    _add_gradient(targets, target, pair, 0, ga_out)
+    _add_gradient(targets, target, pair, 1, gb_out)
     for side_r in range(2):
         for side_c in range(side_r, 2):
             if targets.body_dynamic[pair[side_r]] == 0 or targets.body_dynamic[pair[side_c]] == 0:
@@ -329,21 +335,69 @@ def blend_level_kernel(
             for ii in range(6):
                 i = 6 * side_r + ii
                 gdi = _pick12(ga, gb, i)
-                dgi = pc1 * gdi - targets.blend_grad[record, i]
+                dgi = pc1 * gdi - targets.record_grad[record, i]
                 for jj in range(6):
                     if side_r == side_c and jj < ii:
                         continue  # the lower triangle of a diagonal block is not added
                     j = 6 * side_c + jj
                     gdj = _pick12(ga, gb, j)
-                    dgj = pc1 * gdj - targets.blend_grad[record, j]
+                    dgj = pc1 * gdj - targets.record_grad[record, j]
                     hd = _pick1212(haa, hab, hbb, i, j)
                     block[ii, jj] = (
-                        (one - phi) * targets.blend_hess[record, i, j]
+                        (one - phi) * targets.record_hess[record, i, j]
                         + phi * (pc2 * gdi * gdj + pc1 * hd)
                         + phi1 * (gdi * dgj + dgi * gdj)
                         + (pc - s) * (phi2 * gdi * gdj + phi1 * hd)
                     )
-            _add_hessian_block(targets, parent, pair, side_r, side_c, block)
+            _add_hessian_block(targets, target, side_r, side_c, block)
+
+
+# Entries of an accumulator record: the value, 12 gradient entries, the 12x12 Hessian.
+RECORD_ENTRIES = 1 + 12 + 144
+
+
+@wp.kernel
+def top_level_kernel(
+    # Model:
+    seed_body_pair: wp.array(dtype=wp.vec2i),
+    # Data in:
+    targets: Targets,
+    # Data out:
+    total_value_out: wp.array(dtype=wp.float64),
+    total_grad_out: wp.array2d(dtype=wp.float64),
+    total_hess_out: wp.array2d(dtype=wp.float64),
+):
+    """Sums entry ``entry`` (< RECORD_ENTRIES) of a body pair's top-level replicas into the
+    scene totals (value, (nbodies, 6) gradient, upper triangle of the (6 nbodies)^2
+    Hessian); static bodies' entries are dropped. Launched over (body pairs, RECORD_ENTRIES)."""
+    seed, entry = wp.tid()
+    pair = seed_body_pair[seed]
+    first = targets.top_record + seed * targets.top_replicas
+    total = wp.float64(0.0)
+    if entry == 0:
+        for r in range(targets.top_replicas):
+            total += targets.record_value[first + r]
+        wp.atomic_add(total_value_out, 0, total)
+        return
+    if entry <= 12:
+        i = entry - 1
+        body = pair[i / 6]
+        if targets.body_dynamic[body] == 0:
+            return
+        for r in range(targets.top_replicas):
+            total += targets.record_grad[first + r, i]
+        wp.atomic_add(total_grad_out, body, i % 6, total)
+        return
+    i = (entry - 13) / 12
+    j = (entry - 13) % 12
+    body_r = pair[i / 6]
+    body_c = pair[j / 6]
+    if j < i or targets.body_dynamic[body_r] == 0 or targets.body_dynamic[body_c] == 0:
+        return  # records hold upper triangles only
+    for r in range(targets.top_replicas):
+        total += targets.record_hess[first + r, i, j]
+    row, col = upper_entry(body_r, body_c, i % 6, j % 6)
+    wp.atomic_add(total_hess_out, row, col, total)
 
 
 _ADVANCEMENT_BISECTIONS = wp.constant(40)

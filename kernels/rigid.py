@@ -21,6 +21,7 @@ __all__ = [
     "rigid_point_gradient",
     "rigid_point_pair_block",
     "rigid_point_curvature",
+    "upper_entry",
     "add_upper_block",
     "world_triangle",
 ]
@@ -61,22 +62,29 @@ def rigid_point_curvature(g: wp.vec3d, r: wp.vec3d):
 
 
 @wp.func
+def upper_entry(body_r: int, body_c: int, i: int, j: int):
+    """Where entry (i, j) of block (body_r, body_c) of a symmetric (6 nbodies)^2 Hessian is
+    kept in its upper triangle: (row, column), or (-1, -1) for the lower triangle of a
+    diagonal block, which is not kept (its mirror is)."""
+    row = 6 * body_r + i
+    col = 6 * body_c + j
+    if body_r == body_c and j < i:
+        return -1, -1
+    if row > col:
+        return col, row
+    return row, col
+
+
+@wp.func
 def add_upper_block(hess: wp.array2d(dtype=wp.float64), body_r: int, body_c: int, h: mat66d):
     """Adds the 6x6 block (body_r, body_c) of a symmetric (6 nbodies)^2 Hessian to the upper
-    triangle that ``hess`` holds: for body_r == body_c its upper triangle, otherwise all of
-    it, transposed into place when body_r > body_c. Callers add one of each pair of mirrored
+    triangle that ``hess`` holds (``upper_entry``). Callers add one of each pair of mirrored
     blocks; the reader mirrors the upper triangle (``warpcontact.contact.symmetric_from_upper``)."""
-    row = 6 * body_r
-    col = 6 * body_c
     for i in range(6):
         for j in range(6):
-            if body_r == body_c:
-                if j >= i:
-                    wp.atomic_add(hess, row + i, col + j, h[i, j])
-            elif body_r < body_c:
-                wp.atomic_add(hess, row + i, col + j, h[i, j])
-            else:
-                wp.atomic_add(hess, col + j, row + i, h[i, j])
+            row, col = upper_entry(body_r, body_c, i, j)
+            if row >= 0:
+                wp.atomic_add(hess, row, col, h[i, j])
 
 
 @wp.func

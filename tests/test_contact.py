@@ -206,6 +206,27 @@ def test_static_bodies_have_no_degrees_of_freedom(gap):
     assert grad_err < 1e-6 and hess_err < 1e-5
 
 
+@pytest.mark.parametrize("mode", ["bsh", "brute"])
+def test_top_level_replicas_give_the_same_result(mode):
+    # GPUs spread each body pair's top-level adds over replicated records (CPU default: 1);
+    # any count must give the same totals, static rows stay empty, and the near gap puts
+    # far, blend and leaf terms at top level and nested.
+    meshes = [box((4.0, 4.0, 0.2)), icosphere(1), icosphere(0)]
+    poses = identity_poses([[0, 0, 0], [0.1, 0.0, 0.602], [0.3, 4.0, 0.9]])
+    reference = wc.ContactModel(meshes, mode=mode, static=[True, False, False]).evaluate(poses)
+    model = wc.ContactModel(meshes, mode=mode, static=[True, False, False], top_replicas=7)
+    res = model.evaluate(poses)
+    if mode == "bsh":
+        lists = model.term_lists(poses)
+        for items in (lists.far, lists.blend, lists.leaf):
+            assert np.any(items[:, 2] < 0) and np.any(items[:, 2] >= 0)
+    assert res.value == pytest.approx(reference.value, rel=1e-13)
+    np.testing.assert_allclose(res.grad, reference.grad, rtol=1e-12, atol=1e-13 * np.abs(reference.grad).max())
+    np.testing.assert_allclose(res.hessian, reference.hessian, rtol=1e-12, atol=1e-13 * np.abs(reference.hessian).max())
+    assert np.all(res.grad[0] == 0) and np.all(res.hessian[:6] == 0) and np.all(res.hessian[:, :6] == 0)
+    np.testing.assert_array_equal(res.hessian, res.hessian.T)
+
+
 # --- buffers ----------------------------------------------------------------------------------
 
 
@@ -361,6 +382,8 @@ def test_bad_model_input_raises_clear_errors():
         wc.ContactModel([icosphere(0)], eps=0.0)
     with pytest.raises(ValueError, match="mode"):
         wc.ContactModel([icosphere(0)], mode="ipc-typo")
+    with pytest.raises(ValueError, match="top_replicas"):
+        wc.ContactModel([icosphere(0)], top_replicas=0)
     with pytest.raises(ValueError, match="static"):
         wc.ContactModel([icosphere(0), box()], static=[True])
     with pytest.raises(ValueError, match=r"meshes\[1\]"):

@@ -173,6 +173,10 @@ class ContactModel:
             a joint); they are never visited.
         device: Warp device.
         max_leaf_iterations: Newton iteration cap of each leaf solve.
+        top_replicas: accumulator records per body pair for its top-level terms (None: 1 on
+            a CPU; on a GPU up to 32, capped at ~32 MB, which spreads the atomic adds that
+            all of a body pair's top-level terms would make to the same addresses). Any
+            value gives the same result up to summation order.
     """
 
     def __init__(
@@ -187,6 +191,7 @@ class ContactModel:
         exclude_pairs=(),
         device="cpu",
         max_leaf_iterations: int = DEFAULT_MAX_ITERATIONS,
+        top_replicas: int | None = None,
     ):
         if mode not in CONTACT_MODES:
             raise ValueError(f"mode: {mode!r} is not one of {CONTACT_MODES}")
@@ -196,6 +201,8 @@ class ContactModel:
             raise ValueError(f"dhat: must be a positive finite distance (m), got {dhat}")
         if int(max_leaf_iterations) < 1:
             raise ValueError(f"max_leaf_iterations: must be >= 1, got {max_leaf_iterations}")
+        if top_replicas is not None and int(top_replicas) < 1:
+            raise ValueError(f"top_replicas: must be >= 1, got {top_replicas}")
         meshes = list(meshes)
         if len(meshes) < 1:
             raise ValueError("meshes: need at least one body")
@@ -229,6 +236,10 @@ class ContactModel:
         self.node_offset = np.cumsum([0] + [t.num_nodes for t in trees])[:-1].astype(np.int32)
         self.triangle_offset = np.cumsum([0] + [t.num_triangles for t in trees])[:-1].astype(np.int32)
         self.body_pairs = contact_body_pairs(static_flags, exclude_pairs)
+        if top_replicas is None:
+            # A CPU thread never contends.
+            top_replicas = 1 if self.device.is_cpu else max(1, min(32, (1 << 22) // (reduction_kernels.RECORD_ENTRIES * max(1, len(self.body_pairs)))))
+        self._top_replicas = int(top_replicas)
         self._upload_model(trees, triangles)
 
     # --- set-up ---------------------------------------------------------------------------
@@ -277,7 +288,7 @@ class ContactModel:
         self._tasks = self._task_seeds = None
         self._leaf_iterations = self._leaf_plane = None
         self._alpha = wp.zeros(1, dtype=wp.float64, device=self.device)
-        self._blend_value = self._blend_grad = self._blend_hess = None
+        self._record_value = self._record_grad = self._record_hess = None
         if self.mode == "brute":
             self._set_brute_leaf_list()
         else:
@@ -329,10 +340,14 @@ class ContactModel:
                 self._task_seeds = [wp.zeros(count, dtype=wp.int32) for _ in range(2)]
 
     def _reserve_blend_accumulators(self, count: int):
+        """Accumulator records (``kernels/reduction.py``, ``Targets``): ``count`` blend
+        records, then the body pairs' top-level replicas."""
+        records = count + len(self.body_pairs) * self._top_replicas
         with wp.ScopedDevice(self.device):
-            self._blend_value = wp.zeros(count, dtype=wp.float64)
-            self._blend_grad = wp.zeros((count, 12), dtype=wp.float64)
-            self._blend_hess = wp.zeros((count, 12, 12), dtype=wp.float64)
+            self._record_value = wp.zeros(records, dtype=wp.float64)
+            self._record_grad = wp.zeros((records, 12), dtype=wp.float64)
+            self._record_hess = wp.zeros((records, 12, 12), dtype=wp.float64)
+        self._top_record = count
 
     # --- evaluation -------------------------------------------------------------------------
 
@@ -407,18 +422,17 @@ class ContactModel:
 
     def _targets(self):
         t = reduction_kernels.Targets()
-        t.blend_value = self._blend_value
-        t.blend_grad = self._blend_grad
-        t.blend_hess = self._blend_hess
-        t.total_value = self._total_value
-        t.total_grad = self._total_grad
-        t.total_hess = self._total_hess
+        t.record_value = self._record_value
+        t.record_grad = self._record_grad
+        t.record_hess = self._record_hess
+        t.top_record = self._top_record
+        t.top_replicas = self._top_replicas
         t.body_dynamic = self._body_dynamic
         return t
 
     def _reduce(self):
         num_far, num_blend, num_leaf, max_level = self._counts
-        for arr in (self._blend_value, self._blend_grad, self._blend_hess, self._total_value, self._total_grad, self._total_hess, self._seed_status):
+        for arr in (self._record_value, self._record_grad, self._record_hess, self._total_value, self._total_grad, self._total_hess, self._seed_status):
             arr.zero_()
         self._seed_separation.fill_(np.inf)
         targets = self._targets()
@@ -444,6 +458,13 @@ class ContactModel:
                     dim=num_blend,
                     inputs=[self._node_center, self._node_radius, self.eps, level, *common, self._blend, self._blend_level],
                     outputs=[targets],
+                )
+            if len(self.body_pairs):
+                wp.launch(
+                    reduction_kernels.top_level_kernel,
+                    dim=(len(self.body_pairs), reduction_kernels.RECORD_ENTRIES),
+                    inputs=[self._seed_body_pair, targets],
+                    outputs=[self._total_value, self._total_grad, self._total_hess],
                 )
 
     def evaluate(self, poses) -> ContactEvaluation:
