@@ -79,12 +79,14 @@ def _add_gradient(t: Targets, record: int, pair: wp.vec2i, side: int, g: vec6d):
 @wp.func
 def _add_hessian_block(t: Targets, record: int, side_r: int, side_c: int, h: mat66d):
     """Adds block (side_r, side_c) of a term's symmetric 12x12 Hessian to the upper triangle
-    of its record. Callers pass the dynamic sides' diagonal blocks (only their upper
-    triangles are added) and block (0, 1); block (1, 0) is its transpose and is never added."""
+    of its record (``upper_entry``, the two sides in place of bodies). Callers pass the
+    dynamic sides' diagonal blocks and block (0, 1); block (1, 0) is its transpose and is
+    never added."""
     for i in range(6):
         for j in range(6):
-            if j >= i or side_r != side_c:
-                wp.atomic_add(t.record_hess, record, 6 * side_r + i, 6 * side_c + j, h[i, j])
+            row, col = upper_entry(side_r, side_c, i, j)
+            if row >= 0:
+                wp.atomic_add(t.record_hess, record, row, col, h[i, j])
 
 
 @wp.func

@@ -317,7 +317,7 @@ class ContactModel:
             self._leaf_iterations = wp.zeros(len(leaf), dtype=wp.int32)
             self._leaf_plane = wp.zeros(len(leaf), dtype=wp.vec4d)
         self._counts = (0, 0, len(leaf), -1)
-        self._reserve_blend_accumulators(0)
+        self._reserve_records(0)
 
     def _reserve_lists(self, *, far: int, blend: int, leaf: int):
         with wp.ScopedDevice(self.device):
@@ -326,7 +326,7 @@ class ContactModel:
             if self._blend is None or self._blend.shape[0] < blend:
                 self._blend = wp.zeros(blend, dtype=wp.vec4i)
                 self._blend_level = wp.zeros(blend, dtype=wp.int32)
-                self._reserve_blend_accumulators(blend)
+                self._reserve_records(blend)
             if self._leaf is None or self._leaf.shape[0] < leaf:
                 self._leaf = wp.zeros(leaf, dtype=wp.vec4i)
                 self._leaf_iterations = wp.zeros(leaf, dtype=wp.int32)
@@ -339,7 +339,7 @@ class ContactModel:
                 self._tasks = [wp.zeros(count, dtype=wp.vec4i) for _ in range(2)]
                 self._task_seeds = [wp.zeros(count, dtype=wp.int32) for _ in range(2)]
 
-    def _reserve_blend_accumulators(self, count: int):
+    def _reserve_records(self, count: int):
         """Accumulator records (``kernels/reduction.py``, ``Targets``): ``count`` blend
         records, then the body pairs' top-level replicas."""
         records = count + len(self.body_pairs) * self._top_replicas
