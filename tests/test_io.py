@@ -99,10 +99,12 @@ def test_round_trip_preserves_bodies_masses_meshes_and_poses(tmp_path):
         receding_horizon=8,
         learning_rate=0.01,
         iterations=5,
+        receding_stride=4,
         quick_horizon=12,
         quick_receding_horizon=0,
         quick_learning_rate=0.05,
         quick_iterations=3,
+        quick_receding_stride=2,
     )
     io.save_scene(scene, tmp_path / "b.usda")
     again = io.load_scene(tmp_path / "b.usda")

@@ -145,12 +145,13 @@ def test_quick_uses_the_scene_preset_or_caps_the_paper_settings():
     scene = space_billiards()
     scene.task.horizon, scene.task.receding_horizon, scene.task.iterations = 200, 48, 50
     paper = TaskSettings.from_task(scene)
-    assert (paper.horizon, paper.receding_horizon, paper.iterations, paper.learning_rate) == (200, 48, 50, 0.3)
+    assert (paper.horizon, paper.receding_horizon, paper.iterations, paper.learning_rate, paper.receding_stride) == (200, 48, 50, 0.3, 1)
     capped = TaskSettings.from_task(scene, quick=True)
     assert (capped.horizon, capped.receding_horizon, capped.iterations, capped.learning_rate) == (24, 8, 8, 0.3)
-    scene.task.quick_horizon, scene.task.quick_receding_horizon, scene.task.quick_iterations, scene.task.quick_learning_rate = 64, 0, 60, 0.05
+    scene.task.quick_horizon, scene.task.quick_receding_horizon, scene.task.quick_iterations, scene.task.quick_learning_rate = 64, 16, 60, 0.05
+    scene.task.quick_receding_stride = 4
     preset = TaskSettings.from_task(scene, quick=True, iterations=7)
-    assert (preset.horizon, preset.receding_horizon, preset.iterations, preset.learning_rate) == (64, 0, 7, 0.05)
+    assert (preset.horizon, preset.receding_horizon, preset.iterations, preset.learning_rate, preset.receding_stride) == (64, 16, 7, 0.05, 4)
     scene.task.horizon = 0  # the scene's frame count
     assert TaskSettings.from_task(scene).horizon == scene.settings.frames
 
@@ -162,6 +163,8 @@ def test_quick_uses_the_scene_preset_or_caps_the_paper_settings():
         ("learning_rate", -0.1, "warpcontact:task:learningRate must be positive and finite, got -0.1"),
         ("learning_rate", float("nan"), "warpcontact:task:learningRate must be positive and finite"),
         ("receding_horizon", -2, "warpcontact:task:recedingHorizon must be >= 0, got -2"),
+        ("receding_stride", 0, r"warpcontact:task:recedingStride must be >= 1 and at most the window \(15\), got 0"),
+        ("receding_stride", 16, r"warpcontact:task:recedingStride must be >= 1 and at most the window \(15\), got 16"),
         ("quick_learning_rate", 0.0, "warpcontact:task:quick:learningRate must be positive and finite, got 0.0"),
     ],
 )
@@ -175,30 +178,39 @@ def test_out_of_range_task_settings_are_clear_errors(tmp_path, field, value, mes
         TaskSettings.from_task(io.load_scene(path), quick=field.startswith("quick"))
 
 
-def test_receding_windows_hold_the_last_planned_action():
-    """The row that enters a window starts as a copy of the last planned row (zero would send
-    the PD target back to the start pose at the end of every window)."""
+@pytest.mark.parametrize("stride", [1, 2])
+def test_receding_windows_execute_their_first_frames_and_hold_the_last_planned_action(stride):
+    """Each window executes its first ``stride`` frames, then the window shifts; the rows that
+    enter a window start as copies of the last planned row (zero would send the PD target
+    back to the start pose at the end of every window)."""
     scene = space_billiards()
     scene.bodies[0].control_dofs = ("x", "y")
     scene.bodies[0].kp_linear = np.full(3, 100.0)
     scene.task.control = "pd_targets"
-    problem = TaskProblem(scene, settings=TaskSettings(horizon=4, receding_horizon=2, iterations=2, learning_rate=0.05))
-    window_starts = []
+    problem = TaskProblem(scene, settings=TaskSettings(horizon=5, receding_horizon=2, iterations=2, learning_rate=0.05, receding_stride=stride))
+    windows = []
     rollout = problem.rollout
 
     def recording(values, start, frames, **kwargs):
-        if frames == 2 and (not window_starts or len(window_starts[-1]) == 2):
-            window_starts.append([])
-        if frames == 2:
-            window_starts[-1].append(np.array(values))
-        return rollout(values, start, frames, **kwargs)
+        if frames == 2 and (not windows or len(windows[-1]) == 2):
+            windows.append([])
+        loss, grad, trajectory = rollout(values, start, frames, **kwargs)
+        windows[-1].append((np.array(values), start[0].copy(), trajectory))
+        return loss, grad, trajectory
 
     problem.rollout = recording
     result = problem.optimize()
-    assert len(window_starts) == 4 and np.abs(result.values).max() > 0
-    for first_guess, _ in window_starts[1:]:
+    assert len(windows) == -(-5 // stride) and np.abs(result.values).max() > 0
+    assert result.trajectory.shape[0] == 6
+    for (first_guess, _, _), _ in windows[1:]:
         np.testing.assert_array_equal(first_guess[1], first_guess[0])
-    assert any(np.abs(first_guess).max() > 0 for first_guess, _ in window_starts[1:])
+    assert any(np.abs(first_guess).max() > 0 for (first_guess, _, _), _ in windows[1:])
+    # Each window starts where the previous one's executed frames ended.
+    frame = 0
+    for w, attempts in enumerate(windows):
+        start = attempts[0][1]
+        np.testing.assert_array_equal(start, result.trajectory[frame])
+        frame = min(frame + stride, 5)
 
 
 def test_cli_run_writes_metrics_plot_and_trajectory(tmp_path):

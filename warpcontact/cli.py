@@ -192,13 +192,16 @@ def _settings_metrics(settings, args, models) -> dict:
     return {
         "horizon": settings.horizon,
         "receding_horizon": settings.receding_horizon,
+        "receding_stride": settings.receding_stride,
         "learning_rate": settings.learning_rate,
         **({"ipc_stiffness": args.ipc_stiffness} if "ipc" in models else {}),
     }
 
 
 def _settings_line(settings) -> str:
-    return f"horizon {settings.horizon}, window {settings.receding_horizon or settings.horizon}, {settings.iterations} iterations, lr {settings.learning_rate}"
+    receding = settings.receding_horizon and settings.receding_horizon < settings.horizon
+    stride = f" executed {settings.receding_stride} frame(s) at a time" if receding else ""
+    return f"horizon {settings.horizon}, window {settings.receding_horizon if receding else settings.horizon}{stride}, {settings.iterations} iterations, lr {settings.learning_rate}"
 
 
 def _run(args) -> int:

@@ -14,8 +14,10 @@ warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``Body
         warpcontact:task:name (string)            warpcontact:task:control (token)
         warpcontact:task:horizon (int)            warpcontact:task:recedingHorizon (int)
         warpcontact:task:learningRate (double)    warpcontact:task:iterations (int)
+        warpcontact:task:recedingStride (int: frames executed per window, default 1)
         warpcontact:task:quick:horizon (int)      warpcontact:task:quick:recedingHorizon (int)
         warpcontact:task:quick:learningRate (double)  warpcontact:task:quick:iterations (int)
+        warpcontact:task:quick:recedingStride (int)
             (the ``--quick`` preset: minutes on a 2-core CPU; horizon 0 = no preset)
     on a rigid-body prim
         warpcontact:target:position (double3, m)  warpcontact:target:tolerance (double, m)
@@ -87,11 +89,14 @@ class TaskSpec:
     receding_horizon: int = 0
     learning_rate: float = 0.0
     iterations: int = 0
+    # Frames executed from each optimised window before the next (the paper's is 1).
+    receding_stride: int = 1
     # The ``--quick`` preset (tasks.TaskSettings.from_task); quick_horizon 0: none.
     quick_horizon: int = 0
     quick_receding_horizon: int = 0
     quick_learning_rate: float = 0.0
     quick_iterations: int = 0
+    quick_receding_stride: int = 1
 
 
 @dataclass
@@ -625,10 +630,12 @@ def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: s
         "task:recedingHorizon": ("receding_horizon", int),
         "task:learningRate": ("learning_rate", float),
         "task:iterations": ("iterations", int),
+        "task:recedingStride": ("receding_stride", int),
         "task:quick:horizon": ("quick_horizon", int),
         "task:quick:recedingHorizon": ("quick_receding_horizon", int),
         "task:quick:learningRate": ("quick_learning_rate", float),
         "task:quick:iterations": ("quick_iterations", int),
+        "task:quick:recedingStride": ("quick_receding_stride", int),
     }
     for attr_name, (field_name, cast) in task_casts.items():
         value = _attr(prim, _NS + attr_name)
@@ -723,10 +730,12 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
                 ("task:recedingHorizon", t.receding_horizon, Sdf.ValueTypeNames.Int),
                 ("task:learningRate", t.learning_rate, Sdf.ValueTypeNames.Double),
                 ("task:iterations", t.iterations, Sdf.ValueTypeNames.Int),
+                ("task:recedingStride", t.receding_stride, Sdf.ValueTypeNames.Int),
                 ("task:quick:horizon", t.quick_horizon, Sdf.ValueTypeNames.Int),
                 ("task:quick:recedingHorizon", t.quick_receding_horizon, Sdf.ValueTypeNames.Int),
                 ("task:quick:learningRate", t.quick_learning_rate, Sdf.ValueTypeNames.Double),
                 ("task:quick:iterations", t.quick_iterations, Sdf.ValueTypeNames.Int),
+                ("task:quick:recedingStride", t.quick_receding_stride, Sdf.ValueTypeNames.Int),
             ):
                 prim.CreateAttribute(_NS + name, kind).Set(value)
         for b in scene.bodies:

@@ -7,8 +7,9 @@ controlled body whose ``control_dofs`` are the decision variables:
   initial pose and velocity (e.g. x, y, vx, vy);
 - control ``"pd_targets"`` (Push, Sort, Gather): one row per frame of offsets to the PD
   target pose (translations, rotation vector or yaw), optimised over a receding horizon of
-  ``receding_horizon`` frames; the first action is applied and the window shifts (the
-  row that enters the window starts as a copy of the last planned one);
+  ``receding_horizon`` frames; the first ``receding_stride`` actions (the paper: 1) are
+  applied and the window shifts by as many frames (the rows that enter the window start
+  as copies of the last planned one);
 - control ``"joint_sine"`` (Ant-Push): every actuated joint coordinate (one with a PD gain)
   follows its rest value plus ``SINE_WAVES`` accumulated sine waves; the decision variables
   are each wave's amplitude, frequency and phase (after ChainQueen, as in the paper). The
@@ -70,6 +71,7 @@ class TaskSettings:
     receding_horizon: int
     iterations: int
     learning_rate: float
+    receding_stride: int = 1
     betas: tuple = (0.3, 0.5)
 
     @classmethod
@@ -87,10 +89,10 @@ class TaskSettings:
         """
         t = scene.task
         if quick and t.quick_horizon:
-            settings = cls(t.quick_horizon, t.quick_receding_horizon, t.quick_iterations, t.quick_learning_rate)
+            settings = cls(t.quick_horizon, t.quick_receding_horizon, t.quick_iterations, t.quick_learning_rate, t.quick_receding_stride)
             prefix = "task:quick:"
         else:
-            settings = cls(t.horizon or scene.settings.frames, t.receding_horizon, t.iterations, t.learning_rate)
+            settings = cls(t.horizon or scene.settings.frames, t.receding_horizon, t.iterations, t.learning_rate, t.receding_stride)
             prefix = "task:"
             if quick:
                 settings.horizon = min(settings.horizon, GENERIC_QUICK_HORIZON)
@@ -103,6 +105,7 @@ class TaskSettings:
         for name, value, rule, ok in (
             (f"warpcontact:{prefix}horizon", settings.horizon, ">= 1", settings.horizon >= 1),
             (f"warpcontact:{prefix}recedingHorizon", settings.receding_horizon, ">= 0", settings.receding_horizon >= 0),
+            (f"warpcontact:{prefix}recedingStride", settings.receding_stride, f">= 1 and at most the window ({settings.receding_horizon or settings.horizon})", 1 <= settings.receding_stride <= (settings.receding_horizon or settings.horizon)),
             (iterations_name, settings.iterations, ">= 1", settings.iterations >= 1),
             (f"warpcontact:{prefix}learningRate", settings.learning_rate, "positive and finite", bool(np.isfinite(settings.learning_rate) and settings.learning_rate > 0)),
         ):
@@ -365,24 +368,27 @@ class TaskProblem:
             final, values, traj = _descend(self._objective((q0, q0), s.horizon, rng), values, s, history, progress)
             return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, values, traj, extra)
 
-        # Receding horizon: optimise a window, apply its first action, shift.
-        window = s.receding_horizon
-        plan = np.zeros((s.horizon + window + 1, ndof))
+        # Receding horizon: optimise a window, apply its first actions, shift.
+        window, stride = s.receding_horizon, s.receding_stride
+        plan = np.zeros((s.horizon + window + stride, ndof))
         executed = [q0]
         current = (q0, q0)
-        for t in range(s.horizon):
+        t = 0
+        while t < s.horizon:
             values = plan[t : t + window].copy()
             best = _descend(self._objective(current, window, rng), values, s, history, progress, total=s.horizon)
             plan[t : t + window] = best[1]
-            # The row entering the next window holds the last planned action; zero would
+            # The rows entering the next window hold the last planned action; zero would
             # send the body's target back to its start pose at the end of every window.
-            plan[t + window] = best[1][-1]
-            # The applied first action's frame is the best window rollout's first frame.
+            plan[t + window : t + window + stride] = best[1][-1]
+            # The applied actions' frames are the best window rollout's first frames.
             traj = best[2]
-            current = (traj[1], traj[0])
-            executed.append(traj[1])
+            applied = min(stride, s.horizon - t)
+            current = (traj[applied], traj[applied - 1])
+            executed.extend(traj[1 : applied + 1])
+            t += applied
             if progress:
-                progress(t + 1, s.horizon, history[-1])
+                progress(t, s.horizon, history[-1])
         trajectory = np.array(executed)
         final = self._loss_at(trajectory[-1])
         return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, plan[: s.horizon], trajectory, extra)
