@@ -213,6 +213,17 @@ def test_receding_windows_execute_their_first_frames_and_hold_the_last_planned_a
         frame = min(frame + stride, 5)
 
 
+def test_cli_run_says_when_it_cannot_plot(tmp_path, monkeypatch, capsys):
+    import warpcontact.bench
+
+    monkeypatch.setattr(warpcontact.bench, "optional_pyplot", lambda: None)
+    scene_path = tmp_path / "space.usda"
+    io.save_scene(space_billiards(), scene_path)
+    assert main(["run", str(scene_path), "--iters", "1", "--out", str(tmp_path / "out")]) == 0
+    assert "not convergence.png (matplotlib is not installed" in capsys.readouterr().out
+    assert not (tmp_path / "out" / "convergence.png").exists() and (tmp_path / "out" / "metrics.json").exists()
+
+
 def test_cli_run_writes_metrics_plot_and_trajectory(tmp_path):
     scene_path = tmp_path / "space.usda"
     io.save_scene(space_billiards(), scene_path)

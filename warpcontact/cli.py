@@ -225,9 +225,9 @@ def _run(args) -> int:
         **_result_metrics(result),
     }
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
-    _plot_convergence({args.model: result.loss_history}, out / "convergence.png", title=f"{t.name} ({args.model})")
+    plotted = _plot_convergence({args.model: result.loss_history}, out / "convergence.png", title=f"{t.name} ({args.model})")
     io.export_trajectory(scene, io.model_to_scene_poses(scene, problem.model, result.trajectory), out / "trajectory.usda", overwrite=True)
-    print(f"loss {result.initial_loss:.6g} -> {result.final_loss:.6g}, success {result.success}, {result.seconds:.1f} s; wrote {out}/metrics.json, convergence.png, trajectory.usda")
+    print(f"loss {result.initial_loss:.6g} -> {result.final_loss:.6g}, success {result.success}, {result.seconds:.1f} s; wrote {out}/metrics.json, trajectory.usda, {_plot_name('convergence.png', plotted)}")
     return 0
 
 
@@ -268,18 +268,23 @@ def _compare(args) -> int:
     }
     (out / "compare.json").write_text(json.dumps(payload, indent=2) + "\n")
     ran = {m: r["loss_history"] for m, r in results.items() if "error" not in r}
-    _plot_convergence(ran, out / "compare.png", title=f"{t.name}: loss from the same initial guess")
+    plotted = _plot_convergence(ran, out / "compare.png", title=f"{t.name}: loss from the same initial guess")
     print(f"{'model':>6} {'initial loss':>13} {'final loss':>13} {'success':>8} {'seconds':>8}")
     for model, r in results.items():
         if "error" in r:
             print(f"{model:>6} {'skipped (see compare.json)':>44}")
         else:
             print(f"{model:>6} {r['initial_loss']:13.6g} {r['final_loss']:13.6g} {r['success']!s:>8} {r['seconds']:8.1f}")
-    print(f"wrote {out}/compare.json, compare.png")
+    print(f"wrote {out}/compare.json, {_plot_name('compare.png', plotted)}")
     if not ran:
         print("error: no model could run this scene", file=sys.stderr)
         return 1
     return 0
+
+
+def _plot_name(name: str, plotted: bool) -> str:
+    """A plot's name in a "wrote ..." line, or why it was not written."""
+    return name if plotted else f"not {name} (matplotlib is not installed: pip install 'warpcontact[plot]')"
 
 
 def _plot_convergence(histories: dict, path: Path, *, title: str) -> bool:
