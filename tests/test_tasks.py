@@ -152,6 +152,9 @@ def test_quick_uses_the_scene_preset_or_caps_the_paper_settings():
     scene.task.quick_receding_stride = 4
     preset = TaskSettings.from_task(scene, quick=True, iterations=7)
     assert (preset.horizon, preset.receding_horizon, preset.iterations, preset.learning_rate, preset.receding_stride) == (64, 16, 7, 0.05, 4)
+    assert (paper.window, capped.window, preset.window) == (48, 8, 16)
+    assert TaskSettings(horizon=10, receding_horizon=0, iterations=1, learning_rate=0.1).window == 10
+    assert TaskSettings(horizon=10, receding_horizon=12, iterations=1, learning_rate=0.1).window == 10
     scene.task.horizon = 0  # the scene's frame count
     assert TaskSettings.from_task(scene).horizon == scene.settings.frames
 

@@ -199,9 +199,8 @@ def _settings_metrics(settings, args, models) -> dict:
 
 
 def _settings_line(settings) -> str:
-    receding = settings.receding_horizon and settings.receding_horizon < settings.horizon
-    stride = f" executed {settings.receding_stride} frame(s) at a time" if receding else ""
-    return f"horizon {settings.horizon}, window {settings.receding_horizon if receding else settings.horizon}{stride}, {settings.iterations} iterations, lr {settings.learning_rate}"
+    stride = f" executed {settings.receding_stride} frame(s) at a time" if settings.window < settings.horizon else ""
+    return f"horizon {settings.horizon}, window {settings.window}{stride}, {settings.iterations} iterations, lr {settings.learning_rate}"
 
 
 def _run(args) -> int:

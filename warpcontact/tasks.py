@@ -74,6 +74,12 @@ class TaskSettings:
     receding_stride: int = 1
     betas: tuple = (0.3, 0.5)
 
+    @property
+    def window(self) -> int:
+        """Frames per optimised window: ``receding_horizon`` when it is shorter than the
+        horizon, otherwise the whole horizon (one window)."""
+        return self.receding_horizon if 0 < self.receding_horizon < self.horizon else self.horizon
+
     @classmethod
     def from_task(cls, scene, *, quick: bool = False, iterations: int | None = None) -> TaskSettings:
         """The settings a scene's task metadata asks for.
@@ -105,7 +111,7 @@ class TaskSettings:
         for name, value, rule, ok in (
             (f"warpcontact:{prefix}horizon", settings.horizon, ">= 1", settings.horizon >= 1),
             (f"warpcontact:{prefix}recedingHorizon", settings.receding_horizon, ">= 0", settings.receding_horizon >= 0),
-            (f"warpcontact:{prefix}recedingStride", settings.receding_stride, f">= 1 and at most the window ({settings.receding_horizon or settings.horizon})", 1 <= settings.receding_stride <= (settings.receding_horizon or settings.horizon)),
+            (f"warpcontact:{prefix}recedingStride", settings.receding_stride, f">= 1 and at most the window ({settings.window})", 1 <= settings.receding_stride <= settings.window),
             (iterations_name, settings.iterations, ">= 1", settings.iterations >= 1),
             (f"warpcontact:{prefix}learningRate", settings.learning_rate, "positive and finite", bool(np.isfinite(settings.learning_rate) and settings.learning_rate > 0)),
         ):
@@ -363,13 +369,13 @@ class TaskProblem:
         history = []
         rng = np.random.default_rng(self.bundle.seed) if self.bundle else None
         extra = {"bundle": dataclasses.asdict(self.bundle)} if self.bundle else {}
-        if self.kind != "pd_targets" or not s.receding_horizon or s.receding_horizon >= s.horizon:
+        if self.kind != "pd_targets" or s.window == s.horizon:
             values = self.initial_values(1 if self.kind == "initial_state" else s.horizon)
             final, values, traj = _descend(self._objective((q0, q0), s.horizon, rng), values, s, history, progress)
             return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, values, traj, extra)
 
         # Receding horizon: optimise a window, apply its first actions, shift.
-        window, stride = s.receding_horizon, s.receding_stride
+        window, stride = s.window, s.receding_stride
         plan = np.zeros((s.horizon + window + stride, ndof))
         executed = [q0]
         current = (q0, q0)
