@@ -20,6 +20,12 @@ resolved from the deepest nesting level up, each applying
 
 to the exact sum S of its children, and adding B to its own target.
 
+Centred weights: every centred term (a far term, or P_c inside a blend) of the node pair
+(I, J) is multiplied by ``node_weight[I] * node_weight[J]``. The paper's model uses weight 1
+for every node; ``ContactModel(centred_weight="pairs")`` uses the number of triangles under
+each node, so that a centred term stands for as many leaf pairs as the exact sum it replaces
+(docs/architecture.md, "Centred weights").
+
 Locally supported models (SDRS) have no far or blend terms: their far list holds the
 cluster pairs the traversal pruned, which contribute only their separation bound
 (``far_term_kernel`` with ``potential`` off), and their leaf terms use ``pair_solve``'s
@@ -143,11 +149,20 @@ def _world_centres(
     return ci, cj
 
 
+@wp.func
+def _weighted_centred_potential(node_weight: wp.array(dtype=wp.float64), ni: int, nj: int, dist: wp.float64):
+    """w_I w_J P_c(r) and its first two r-derivatives (module docstring, "Centred weights")."""
+    w = node_weight[ni] * node_weight[nj]
+    value, first, second = centered_potential(dist)
+    return w * value, w * first, w * second
+
+
 @wp.kernel
 def far_term_kernel(
     # Model:
     node_center: wp.array(dtype=wp.vec3d),
     node_radius: wp.array(dtype=wp.float64),
+    node_weight: wp.array(dtype=wp.float64),
     potential: bool,
     # Data in:
     body_rotation: wp.array(dtype=wp.mat33d),
@@ -166,7 +181,7 @@ def far_term_kernel(
     if not potential:
         return
     dist, ga, gb, haa, hab, hbb = _centre_distance_derivatives(ci, cj, body_position[pair[0]], body_position[pair[1]])
-    value, first, second = centered_potential(dist)
+    value, first, second = _weighted_centred_potential(node_weight, item[0], item[1], dist)
     record = _target_record(targets, item[2], item[3], wp.tid())
     _add_value(targets, record, value)
     _add_gradient(targets, record, pair, 0, first * ga)
@@ -287,6 +302,7 @@ def blend_level_kernel(
     # Model:
     node_center: wp.array(dtype=wp.vec3d),
     node_radius: wp.array(dtype=wp.float64),
+    node_weight: wp.array(dtype=wp.float64),
     eps: wp.float64,
     level: int,
     # Data in:
@@ -307,7 +323,7 @@ def blend_level_kernel(
     dist, ga, gb, haa, hab, hbb = _centre_distance_derivatives(ci, cj, body_position[pair[0]], body_position[pair[1]])
     d1 = node_radius[item[0]] + node_radius[item[1]]
     width = eps * d1
-    pc, pc1, pc2 = centered_potential(dist)
+    pc, pc1, pc2 = _weighted_centred_potential(node_weight, item[0], item[1], dist)
     phi, dphi, ddphi = quintic_blend((dist - d1) / width)
     phi1 = dphi / width
     phi2 = ddphi / (width * width)

@@ -98,12 +98,60 @@ def test_every_triangle_pair_is_covered_exactly_once(eps):
         assert max(counts.values()) == 1, key
 
 
+def test_pair_weighted_centred_terms_approximate_the_brute_force_sum():
+    """Weighing a far cluster pair's centred term by its triangle pairs makes P_BSH an estimate
+    of the brute-force sum (the paper's unweighted P_c counts a cluster pair once), with the
+    same term lists; measured on 80-triangle spheres 0.3 m apart and a 4-ball row."""
+    ball = icosphere(1)
+    poses = identity_poses([[0, 0, 0], [1.3, 0.1, 0.0], [2.6, -0.1, 0.05], [1.3, 1.3, 0.0]])
+    poses[1, 3:] = quat([1, 2, 3], 0.7)
+    brute = wc.ContactModel([ball] * 4, mode="brute").evaluate(poses)
+    paper = wc.ContactModel([ball] * 4, eps=0.5).evaluate(poses)
+    pairs = wc.ContactModel([ball] * 4, eps=0.5, centred_weight="pairs").evaluate(poses)
+    assert (paper.num_far, paper.num_blend, paper.num_leaf) == (pairs.num_far, pairs.num_blend, pairs.num_leaf)
+    assert pairs.num_far > 0 and pairs.num_blend > 0
+    assert abs(pairs.value / brute.value - 1) < 0.02
+    assert paper.value < 0.2 * brute.value  # every far cluster pair counted once
+    force, ref = -pairs.grad[:, :3], -brute.grad[:, :3]
+    error = np.linalg.norm(force - ref, axis=1).max() / np.linalg.norm(ref, axis=1).max()
+    cosine = np.einsum("ij,ij->i", force, ref) / (np.linalg.norm(force, axis=1) * np.linalg.norm(ref, axis=1))
+    paper_force = -paper.grad[:, :3]
+    paper_error = np.linalg.norm(paper_force - ref, axis=1).max() / np.linalg.norm(ref, axis=1).max()
+    assert error < 0.1 and cosine.min() > 0.999
+    assert paper_error > 3 * error
+
+
+def test_pair_weighted_far_force_decays_like_brute_force_across_shells():
+    """A rod (0.1 x 0.1 x 0.6 m) moved away from a 0.3 m cube, across every blend shell out
+    to 2.5 m (Gather's bodies): with pair weights the force on the cube stays within 11% of
+    brute force and decays monotonically; with the paper's unweighted centred terms it
+    rises and falls through the shells (up to ~4x brute force) and ends ~1/144 of it
+    beyond the root shell, which is what traps Gather's rod (docs/architecture.md)."""
+    meshes = [box((0.3, 0.3, 0.3)), box((0.1, 0.1, 0.6))]
+    xs = np.linspace(0.35, 2.5, 44)
+    force = {}
+    for name, options in (("brute", dict(mode="brute")), ("paper", dict(eps=0.5)), ("pairs", dict(eps=0.5, centred_weight="pairs"))):
+        model = wc.ContactModel(meshes, **options)
+        force[name] = np.array([-model.evaluate(identity_poses([[0, 0, 0], [x, 0.0, 0.17]])).grad[0, 0] for x in xs])
+    assert (force["brute"] < 0).all() and (np.diff(force["brute"]) > 0).all()  # pushed away, decaying
+    assert (np.diff(force["pairs"]) > 0).all()
+    assert np.abs(force["pairs"] / force["brute"] - 1).max() < 0.11
+    paper = force["paper"] / force["brute"]
+    assert paper.max() > 3 and paper[-1] < 0.02 and (np.diff(force["paper"]) < 0).any()
+
+
+def test_centred_weight_is_validated():
+    with pytest.raises(ValueError, match="centred_weight"):
+        wc.ContactModel([icosphere(0), icosphere(0)], centred_weight="count")
+
+
 # --- smoothness across blend shells (Property B) -----------------------------------------------
 
 
-def test_derivatives_match_finite_differences_along_paths_crossing_shells():
+@pytest.mark.parametrize("weight", wc.CENTRED_WEIGHTS)
+def test_derivatives_match_finite_differences_along_paths_crossing_shells(weight):
     meshes = [icosphere(1), box((0.8, 0.5, 0.3))]
-    model = wc.ContactModel(meshes, eps=0.5)
+    model = wc.ContactModel(meshes, eps=0.5, centred_weight=weight)
     rng = np.random.default_rng(5)
     seen_counts = set()
     for t in np.linspace(0.0, 1.0, 9):
@@ -118,10 +166,11 @@ def test_derivatives_match_finite_differences_along_paths_crossing_shells():
     assert len(seen_counts) >= 5
 
 
-def test_potential_continuous_across_a_single_shell():
+@pytest.mark.parametrize("weight", wc.CENTRED_WEIGHTS)
+def test_potential_continuous_across_a_single_shell(weight):
     """Sweep one body through the d1 and d2 shells of the root pair in fine steps."""
     meshes = [icosphere(0), icosphere(0)]
-    model = wc.ContactModel(meshes, eps=0.5)
+    model = wc.ContactModel(meshes, eps=0.5, centred_weight=weight)
     d1 = model.trees[0].radii[0] + model.trees[1].radii[0]
     xs = np.linspace(0.95 * d1, 1.55 * d1, 241)
     values, grads = [], []
@@ -154,10 +203,11 @@ def test_contact_is_infinite_and_names_bodies():
     assert np.isfinite(hit.grad).all() and np.isfinite(hit.hessian).all()
 
 
+@pytest.mark.parametrize("weight", wc.CENTRED_WEIGHTS)
 @pytest.mark.parametrize("distance", [1e3, 1e6])
-def test_forces_do_not_vanish_far_away(distance):
+def test_forces_do_not_vanish_far_away(distance, weight):
     meshes = [icosphere(1), box()]
-    model = wc.ContactModel(meshes)
+    model = wc.ContactModel(meshes, centred_weight=weight)
     res = model.evaluate(identity_poses([[0, 0, 0], [distance, 0, 0]]))
     assert res.ok and res.value > 12
     force_on_b = -res.grad[1, :3]
@@ -166,9 +216,10 @@ def test_forces_do_not_vanish_far_away(distance):
     np.testing.assert_allclose(res.grad[0, :3], -res.grad[1, :3], rtol=1e-9)  # internal force
 
 
-def test_net_forces_push_bodies_apart():
+@pytest.mark.parametrize("weight", wc.CENTRED_WEIGHTS)
+def test_net_forces_push_bodies_apart(weight):
     meshes = [icosphere(1), icosphere(1, radius=0.3)]
-    model = wc.ContactModel(meshes, eps=0.5)
+    model = wc.ContactModel(meshes, eps=0.5, centred_weight=weight)
     rng = np.random.default_rng(9)
     for _ in range(20):
         direction = rng.normal(size=3)
@@ -408,14 +459,15 @@ def test_pair_separation_is_a_lower_bound_on_surface_distance():
     assert hit.pair_separation[0] == 0.0
 
 
-def test_blend_zone_terms_push_apart():
+@pytest.mark.parametrize("weight", wc.CENTRED_WEIGHTS)
+def test_blend_zone_terms_push_apart(weight):
     """Root pair inside its blend shell (d1 < r < d2): the single blended term still pushes apart.
 
     Its force has the product-rule part (S - P_c) grad(phi) besides the blended ones; the paper's
     Lemma (assumption P_c <= S) makes every part point from one cluster to the other.
     """
     meshes = [icosphere(1), icosphere(1, radius=0.3)]
-    model = wc.ContactModel(meshes, eps=2.0)
+    model = wc.ContactModel(meshes, eps=2.0, centred_weight=weight)
     d1 = model.trees[0].radii[0] + model.trees[1].radii[0]
     rng = np.random.default_rng(4)
     for s in np.linspace(0.05, 0.95, 7):

@@ -6,7 +6,7 @@ Model with Long-range Influence"). See docs/architecture.md for the pipeline.
 """
 
 from .builder import ModelBuilder
-from .contact import CONTACT_MODES, ContactEvaluation, ContactModel, TermLists
+from .contact import CENTRED_WEIGHTS, CONTACT_MODES, ContactEvaluation, ContactModel, TermLists
 from .leaf import (
     LeafStatus,
     TrianglePairPotential,
@@ -27,6 +27,7 @@ __all__ = [
     "centered_potential",
     "quintic_blend",
     "triangle_pair_potential",
+    "CENTRED_WEIGHTS",
     "CONTACT_MODES",
     "ContactEvaluation",
     "ContactModel",

@@ -33,9 +33,11 @@ from ._validate import as_float64_array
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus
 from .sphere_tree import SphereTree, build_sphere_tree
 
-__all__ = ["ContactEvaluation", "ContactModel", "CONTACT_MODES", "LaggedFriction", "QUATERNION_TOLERANCE", "TermLists", "symmetric_from_upper"]
+__all__ = ["CENTRED_WEIGHTS", "ContactEvaluation", "ContactModel", "CONTACT_MODES", "LaggedFriction", "QUATERNION_TOLERANCE", "TermLists", "symmetric_from_upper"]
 
 CONTACT_MODES = ("bsh", "brute", "sdrs")
+# How a cluster pair's centred term counts (ContactModel, centred_weight).
+CENTRED_WEIGHTS = ("paper", "pairs")
 
 # Quaternions within this distance of unit norm are normalised; others are rejected as
 # almost certainly not rotations (e.g. an unnormalised optimiser step or a wrong layout).
@@ -164,6 +166,10 @@ class ContactModel:
         eps: blend margin epsilon > 0 of P_BSH (d2 = (1 + eps) d1); larger is closer to the
             brute-force sum and costlier.
         mode: ``"bsh"``, ``"brute"`` or ``"sdrs"``.
+        centred_weight: ``"paper"`` (default): a cluster pair's centred term is the paper's
+            P_c; ``"pairs"``: it is weighed by the triangle pairs it stands for, |I| |J| P_c,
+            so the blend joins two estimates of the same sum (docs/architecture.md,
+            "Centred weights").
         dhat: barrier support (m) of ``"sdrs"``: vertex-to-plane gaps below it are
             penalised, so triangles interact below 2 dhat; unused by the other modes.
         static: optional (nbodies,) booleans; static bodies have no degrees of freedom and
@@ -185,6 +191,7 @@ class ContactModel:
         *,
         eps: float = 0.5,
         mode: str = "bsh",
+        centred_weight: str = "paper",
         dhat: float = 1e-2,
         static=None,
         names=None,
@@ -195,6 +202,8 @@ class ContactModel:
     ):
         if mode not in CONTACT_MODES:
             raise ValueError(f"mode: {mode!r} is not one of {CONTACT_MODES}")
+        if centred_weight not in CENTRED_WEIGHTS:
+            raise ValueError(f"centred_weight: {centred_weight!r} is not one of {CENTRED_WEIGHTS}")
         if not np.isfinite(eps) or eps <= 0:
             raise ValueError(f"eps: must be a positive finite number, got {eps}")
         if not np.isfinite(dhat) or dhat <= 0:
@@ -215,6 +224,7 @@ class ContactModel:
             raise ValueError(f"static: expected {num_bodies} flags, got shape {static_flags.shape}")
 
         self.mode = mode
+        self.centred_weight = centred_weight
         self.eps = float(eps)
         # The leaf kernels read dhat = 0 as the paper's barrier.
         self.dhat = float(dhat) if mode == "sdrs" else 0.0
@@ -255,6 +265,8 @@ class ContactModel:
         with wp.ScopedDevice(self.device):
             self._node_center = wp.array(np.concatenate([t.centers for t in trees]), dtype=wp.vec3d)
             self._node_radius = wp.array(np.concatenate([t.radii for t in trees]), dtype=wp.float64)
+            weights = [t.triangle_count if self.centred_weight == "pairs" else np.ones(t.num_nodes) for t in trees]
+            self._node_weight = wp.array(np.concatenate(weights).astype(np.float64), dtype=wp.float64)
             self._node_left = wp.array(left, dtype=wp.int32)
             self._node_right = wp.array(right, dtype=wp.int32)
             self._node_triangle = wp.array(tri, dtype=wp.int32)
@@ -442,7 +454,7 @@ class ContactModel:
                 wp.launch(
                     reduction_kernels.far_term_kernel,
                     dim=num_far,
-                    inputs=[self._node_center, self._node_radius, self.mode != "sdrs", *common, self._far],
+                    inputs=[self._node_center, self._node_radius, self._node_weight, self.mode != "sdrs", *common, self._far],
                     outputs=[targets, self._seed_separation],
                 )
             if num_leaf:
@@ -456,7 +468,7 @@ class ContactModel:
                 wp.launch(
                     reduction_kernels.blend_level_kernel,
                     dim=num_blend,
-                    inputs=[self._node_center, self._node_radius, self.eps, level, *common, self._blend, self._blend_level],
+                    inputs=[self._node_center, self._node_radius, self._node_weight, self.eps, level, *common, self._blend, self._blend_level],
                     outputs=[targets],
                 )
             if len(self.body_pairs):

@@ -58,6 +58,16 @@ class SphereTree:
         return (self.num_nodes + 1) // 2
 
     @property
+    def triangle_count(self) -> np.ndarray:
+        """(M,) float64 number of triangles (leaves) under each node."""
+        count = np.zeros(self.num_nodes)
+        count[self.left < 0] = 1.0
+        # Pre-order: children have larger indices than their parent.
+        for node in np.flatnonzero(self.left >= 0)[::-1]:
+            count[node] = count[self.left[node]] + count[self.right[node]]
+        return count
+
+    @property
     def max_depth(self) -> int:
         """Depth of the deepest leaf (0 for a single-triangle mesh)."""
         return int(self.depth.max())
