@@ -91,7 +91,7 @@ def test_round_trip_preserves_bodies_masses_meshes_and_poses(tmp_path):
     box.kp_linear = np.array([10.0, 10.0, 0.0])
     box.control_dofs = ("x", "y")
     box.group = 1
-    scene.settings = io.SimulationSettings(time_step=0.02, frames=30, contact_stiffness=3e-8, eps=0.7, friction=0.4)
+    scene.settings = io.SimulationSettings(time_step=0.02, frames=30, contact_stiffness=3e-8, eps=0.7, centred_weight="pairs", friction=0.4)
     scene.task = io.TaskSpec(
         name="gather",
         control="pd_targets",
@@ -124,6 +124,7 @@ def test_round_trip_preserves_bodies_masses_meshes_and_poses(tmp_path):
     np.testing.assert_allclose(b1.kp_linear, box.kp_linear)
     assert again.settings == scene.settings and again.task == scene.task
     m0, m1 = scene.build_model(), again.build_model()
+    assert m1.contact.centred_weight == "pairs"
     np.testing.assert_allclose(m1.body_mass.numpy(), m0.body_mass.numpy())
     np.testing.assert_allclose(m1.initial_q, m0.initial_q, atol=1e-12)
 
@@ -171,6 +172,18 @@ def test_trajectory_export_opens_with_time_samples(tmp_path):
 def test_bad_scenes_name_the_prim_and_problem(tmp_path, kwargs, match):
     with pytest.raises(ValueError, match=match):
         io.load_scene(write_physics_scene(tmp_path / "bad.usda", **kwargs)).build_model()
+
+
+def test_unknown_centred_weight_names_the_file_prim_and_attribute(tmp_path):
+    from pxr import Sdf, Usd
+
+    path = write_physics_scene(tmp_path / "w.usda")
+    stage = Usd.Stage.Open(str(path))
+    scene_prim = next(p for p in stage.Traverse() if p.GetTypeName() == "PhysicsScene")
+    scene_prim.CreateAttribute("warpcontact:centredWeight", Sdf.ValueTypeNames.Token).Set("count")
+    stage.Save()
+    with pytest.raises(ValueError, match=r"w\.usda: prim .*warpcontact:centredWeight must be one of \('paper', 'pairs'\), got 'count'"):
+        io.load_scene(path)
 
 
 def test_non_finite_points_missing_files_and_empty_stages(tmp_path):

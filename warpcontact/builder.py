@@ -71,6 +71,8 @@ class ModelBuilder:
         friction: friction coefficient; 0 disables friction (and all its work).
         friction_smoothing: slip speed (m/s) below which the friction law is smoothed.
         eps: blend margin of the hierarchical contact potential.
+        centred_weight: ``"paper"`` or ``"pairs"``: how a far cluster pair's centred term
+            counts in the hierarchical potential (``ContactModel``).
         contact_mode: ``"bsh"``, ``"brute"`` (the paper's model, hierarchical or exact),
             ``"ipc"`` (the IPC baseline through ipctk, with IPC's lagged friction; CPU only)
             or ``"sdrs"`` (the SDRS baseline: locally supported log barrier on separating
@@ -82,7 +84,7 @@ class ModelBuilder:
             (default: all pairs except a joint's parent and child), ``"all"`` or ``"none"``.
     """
 
-    def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, friction_smoothing: float = 1e-4, eps: float = 0.5, contact_mode: str = "bsh", ipc_dhat: float = 1e-2, sdrs_dhat: float = 1e-2, articulation_contact: str = "nonadjacent"):
+    def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, friction_smoothing: float = 1e-4, eps: float = 0.5, centred_weight: str = "paper", contact_mode: str = "bsh", ipc_dhat: float = 1e-2, sdrs_dhat: float = 1e-2, articulation_contact: str = "nonadjacent"):
         gravity = np.asarray(gravity, dtype=np.float64)
         if gravity.shape != (3,) or not np.isfinite(gravity).all():
             raise ValueError(f"gravity: expected 3 finite numbers, got {gravity}")
@@ -97,6 +99,7 @@ class ModelBuilder:
         self.friction = float(friction)
         self.friction_smoothing = float(friction_smoothing)
         self.eps = eps
+        self.centred_weight = centred_weight
         self.contact_mode = contact_mode
         self.ipc_dhat = ipc_dhat
         if articulation_contact not in _ARTICULATION_CONTACT:
@@ -387,7 +390,7 @@ class ModelBuilder:
 
             contact = IpcContactModel(meshes, dhat=self.ipc_dhat, static=static, names=names, device=dev, exclude_pairs=exclude)
         else:
-            contact = ContactModel(meshes, eps=self.eps, mode=self.contact_mode, dhat=self.sdrs_dhat, static=static, names=names, device=dev, exclude_pairs=exclude)
+            contact = ContactModel(meshes, eps=self.eps, centred_weight=self.centred_weight, mode=self.contact_mode, dhat=self.sdrs_dhat, static=static, names=names, device=dev, exclude_pairs=exclude)
         with wp.ScopedDevice(dev):
             return Model(
                 body_names=names,

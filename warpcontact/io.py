@@ -10,7 +10,8 @@ warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``Body
         warpcontact:timeStep (double, s)          warpcontact:frames (int)
         warpcontact:contactStiffness (double)     warpcontact:eps (double)
         warpcontact:friction (double)             warpcontact:frictionSmoothing (double, m/s)
-        warpcontact:contactMode (token: bsh | brute | ipc)
+        warpcontact:contactMode (token: bsh | brute | ipc | sdrs)
+        warpcontact:centredWeight (token: paper | pairs)
         warpcontact:task:name (string)            warpcontact:task:control (token)
         warpcontact:task:horizon (int)            warpcontact:task:recedingHorizon (int)
         warpcontact:task:learningRate (double)    warpcontact:task:iterations (int)
@@ -45,6 +46,7 @@ import numpy as np
 import trimesh
 
 from .builder import ModelBuilder
+from .contact import CENTRED_WEIGHTS
 from .rotation import pose_mul, quat_from_matrix, quat_rotate, quat_to_matrix
 
 __all__ = [
@@ -74,6 +76,7 @@ class SimulationSettings:
     frames: int = 100
     contact_stiffness: float = 1e-6
     eps: float = 0.5
+    centred_weight: str = "paper"
     friction: float = 0.0
     friction_smoothing: float = 1e-4
     contact_mode: str = "bsh"
@@ -176,6 +179,7 @@ class Scene:
             friction=s.friction,
             friction_smoothing=s.friction_smoothing,
             eps=s.eps,
+            centred_weight=s.centred_weight,
             contact_mode=s.contact_mode,
         )
         for b in self.bodies:
@@ -611,6 +615,7 @@ def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: s
         "frames": ("frames", int),
         "contactStiffness": ("contact_stiffness", float),
         "eps": ("eps", float),
+        "centredWeight": ("centred_weight", str),
         "friction": ("friction", float),
         "frictionSmoothing": ("friction_smoothing", float),
         "contactMode": ("contact_mode", str),
@@ -623,6 +628,8 @@ def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: s
         raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:timeStep must be positive, got {settings.time_step}")
     if settings.frames < 1:
         raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:frames must be >= 1, got {settings.frames}")
+    if settings.centred_weight not in CENTRED_WEIGHTS:
+        raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:centredWeight must be one of {CENTRED_WEIGHTS}, got {settings.centred_weight!r}")
     task_casts = {
         "task:name": ("name", str),
         "task:control": ("control", str),
@@ -717,6 +724,7 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
             ("frames", s.frames, Sdf.ValueTypeNames.Int),
             ("contactStiffness", s.contact_stiffness, Sdf.ValueTypeNames.Double),
             ("eps", s.eps, Sdf.ValueTypeNames.Double),
+            ("centredWeight", s.centred_weight, Sdf.ValueTypeNames.Token),
             ("friction", s.friction, Sdf.ValueTypeNames.Double),
             ("frictionSmoothing", s.friction_smoothing, Sdf.ValueTypeNames.Double),
             ("contactMode", s.contact_mode, Sdf.ValueTypeNames.Token),
