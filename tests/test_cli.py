@@ -31,11 +31,16 @@ def test_bench_leaf_writes_results(tmp_path):
 
 
 def test_bench_contact_writes_results_and_plot(tmp_path):
-    args = ["bench", "contact", "--eps", "0.5", "--gaps", "0.1", "--subdivisions", "0", "--repeats", "1", "--out", str(tmp_path)]
+    args = ["bench", "contact", "--eps", "0.5", "--gaps", "0.1", "--subdivisions", "0", "--repeats", "1", "--centred-weights", "paper", "pairs", "--out", str(tmp_path)]
     assert main(args) == 0
     data = json.loads((tmp_path / "contact.json").read_text())
     rows = data["rows"]
-    assert {(r["scene"], r["mode"]) for r in rows} == {(s, m) for s in ("two_icospheres", "rack16") for m in ("brute", "bsh", "ipc")}
+    assert {(r["scene"], r["mode"], r["centred_weight"]) for r in rows} == {
+        (s, m, w) for s in ("two_icospheres", "rack16") for m, w in (("brute", None), ("ipc", None), ("bsh", "paper"), ("bsh", "pairs"))
+    }
+    for scene in ("two_icospheres", "rack16"):  # pair-weighted centred terms estimate the brute-force sum
+        ratio = {r["centred_weight"]: r["value_ratio"] for r in rows if r["scene"] == scene and r["mode"] == "bsh"}
+        assert abs(ratio["pairs"] - 1) < 0.05 < abs(ratio["paper"] - 1)
     for r in rows:
         assert r["median_seconds"] > 0
         if r["mode"] == "ipc":  # ipctk side by side on the same geometry; no error vs brute force

@@ -211,9 +211,12 @@ def _force_errors(grad: np.ndarray, reference: np.ndarray, body_radius: np.ndarr
 
 
 def run_contact_benchmark(
-    *, eps_values, gaps, subdivisions: int, repeats: int, device, out_dir: Path, ipc_dhat: float | None = 1e-2
+    *, eps_values, gaps, subdivisions: int, repeats: int, device, out_dir: Path, ipc_dhat: float | None = 1e-2, centred_weights=("paper",)
 ) -> list[dict]:
     """Time per evaluate (value + gradient + Hessian) and force/torque error against brute force.
+
+    ``bsh`` rows run for every eps and every centred weight (``ContactModel``,
+    ``centred_weight``); ``value_ratio`` is each row's potential over brute force's.
 
     With ``ipc_dhat`` on the CPU, each scene also gets an ``ipc`` row timing, side by side on
     the same geometry, the IPC Toolkit's collision build + barrier value, gradient and
@@ -228,8 +231,8 @@ def run_contact_benchmark(
         if ipc_dhat is not None and dev.is_cpu:
             rows.append(_ipc_contact_row(scene, ipc_dhat, repeats))
         reference = None
-        for mode, eps in [("brute", None)] + [("bsh", e) for e in eps_values]:
-            model = ContactModel(scene["meshes"], mode=mode, eps=eps or 1.0, device=dev)
+        for mode, eps, weight in [("brute", None, None)] + [("bsh", e, w) for w in centred_weights for e in eps_values]:
+            model = ContactModel(scene["meshes"], mode=mode, eps=eps or 1.0, centred_weight=weight or "paper", device=dev)
             result = model.evaluate(scene["poses"])  # warm-up: compile and size buffers
             seconds = _median_seconds(lambda: model.evaluate(scene["poses"]), repeats)
             if reference is None:
@@ -242,7 +245,9 @@ def run_contact_benchmark(
                     "triangles": int(sum(len(f) for _, f in scene["meshes"])),
                     "mode": mode,
                     "eps": eps,
+                    "centred_weight": weight,
                     "median_seconds": seconds,
+                    "value_ratio": result.value / reference.value,
                     "num_far": result.num_far,
                     "num_blend": result.num_blend,
                     "num_leaf": result.num_leaf,
@@ -267,8 +272,10 @@ def _ipc_contact_row(scene: dict, dhat: float, repeats: int) -> dict:
         "triangles": int(sum(len(f) for _, f in scene["meshes"])),
         "mode": "ipc",
         "eps": None,
+        "centred_weight": None,
         "ipc_dhat": dhat,
         "median_seconds": _median_seconds(lambda: model.vertex_terms(poses), repeats),
+        "value_ratio": None,
         "median_seconds_rigid": _median_seconds(lambda: model.evaluate(poses), repeats),
         "num_far": 0,
         "num_blend": 0,
@@ -288,13 +295,14 @@ def _plot_contact_benchmark(rows: list[dict], path: Path) -> bool:
     fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.5), squeeze=False)
     for ax, scene in zip(axes[0], scenes):
         for gap in sorted({r["gap"] for r in rows}):
-            sel = [r for r in rows if r["scene"] == scene and r["gap"] == gap and r["mode"] == "bsh"]
             brute = next(r for r in rows if r["scene"] == scene and r["gap"] == gap and r["mode"] == "brute")
-            errors = [max(r["force_error_max"], 1e-16) for r in sel]
-            times = [r["median_seconds"] / brute["median_seconds"] for r in sel]
-            ax.loglog(times, errors, "o-", label=f"gap {gap:g} m")
-            for r, t, e in zip(sel, times, errors):
-                ax.annotate(f"{r['eps']:g}", (t, e), fontsize=7)
+            for weight in sorted({r["centred_weight"] for r in rows if r["mode"] == "bsh"}):
+                sel = [r for r in rows if r["scene"] == scene and r["gap"] == gap and r["mode"] == "bsh" and r["centred_weight"] == weight]
+                errors = [max(r["force_error_max"], 1e-16) for r in sel]
+                times = [r["median_seconds"] / brute["median_seconds"] for r in sel]
+                ax.loglog(times, errors, "o-" if weight == "paper" else "s--", label=f"gap {gap:g} m, {weight}")
+                for r, t, e in zip(sel, times, errors):
+                    ax.annotate(f"{r['eps']:g}", (t, e), fontsize=7)
         ax.set_xlabel("time per evaluate / brute force")
         ax.set_ylabel("max per-body force error / max brute force")
         ax.set_title(f"{scene}: eps sweep (labels)")
@@ -600,7 +608,7 @@ def _contact_only_row(model, poses: list, *, mode: str, dev) -> dict:
     bodies at given configurations (its body-frame poses)."""
     from .contact import ContactModel
 
-    contact = ContactModel(model.body_meshes, eps=model.contact.eps, mode=mode, static=model.static, device=dev)
+    contact = ContactModel(model.body_meshes, eps=model.contact.eps, centred_weight=model.contact.centred_weight, mode=mode, static=model.static, device=dev)
     contact.evaluate(poses[0])  # warm-up: buffers and kernels
     times, leaves = [], []
     for q in poses:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .contact import CENTRED_WEIGHTS
 from .tasks import IPC_TASK_STIFFNESS, MODELS
 
 __all__ = ["main"]
@@ -354,12 +355,13 @@ def _bench_contact(args) -> int:
         device=args.device,
         out_dir=Path(args.out),
         ipc_dhat=args.ipc_dhat or None,
+        centred_weights=args.centred_weights,
     )
-    print(f"{'scene':>15} {'gap':>8} {'mode':>6} {'eps':>6} {'seconds':>9} {'far':>7} {'blend':>7} {'leaf':>7} {'F err med':>10} {'F err max':>10} {'F cos min':>10} {'T err max':>10}")
+    print(f"{'scene':>15} {'gap':>8} {'mode':>6} {'weight':>6} {'eps':>6} {'seconds':>9} {'value/brute':>11} {'far':>7} {'blend':>7} {'leaf':>7} {'F err med':>10} {'F err max':>10} {'F cos min':>10} {'T err max':>10}")
     for r in rows:
         eps = "-" if r["eps"] is None else f"{r['eps']:g}"
         print(
-            f"{r['scene']:>15} {r['gap']:8.0e} {r['mode']:>6} {eps:>6} {r['median_seconds']:9.4f} {r['num_far']:7d} {r['num_blend']:7d} "
+            f"{r['scene']:>15} {r['gap']:8.0e} {r['mode']:>6} {r['centred_weight'] or '-':>6} {eps:>6} {r['median_seconds']:9.4f} {_fmt(r['value_ratio'], '11.4f')} {r['num_far']:7d} {r['num_blend']:7d} "
             f"{r['num_leaf']:7d} {_fmt(r['force_error_median'], '10.2e')} {_fmt(r['force_error_max'], '10.2e')} {_fmt(r['force_cosine_min'], '10.6f')} {_fmt(r['torque_error_max'], '10.2e')}"
         )
     print(f"wrote {Path(args.out) / 'contact.json'}, contact.csv (ipc rows: median_seconds is ipctk's collision build + barrier value/gradient/Hessian)")
@@ -537,6 +539,7 @@ def build_parser() -> argparse.ArgumentParser:
     contact.add_argument("--subdivisions", type=int, default=1, choices=range(0, 4))
     contact.add_argument("--repeats", type=_positive_int, default=3)
     contact.add_argument("--ipc-dhat", type=float, default=1e-2, help="IPC Toolkit barrier support (m) for the side-by-side ipc rows (CPU); 0 skips them")
+    contact.add_argument("--centred-weights", nargs="+", choices=CENTRED_WEIGHTS, default=["paper"], help="centred-term weights of the bsh rows (docs/architecture.md, 'Centred weights')")
     contact.add_argument("--device", default="cpu")
     contact.add_argument("--out", default="outputs/bench")
     contact.set_defaults(func=_bench_contact)
