@@ -12,7 +12,7 @@ import trimesh
 
 from warpcontact.sphere_tree import SphereTree, build_sphere_tree
 
-ARRAY_FIELDS = ("centers", "radii", "left", "right", "parent", "triangle", "depth", "vertex_count")
+ARRAY_FIELDS = ("centers", "radii", "left", "right", "parent", "triangle", "depth", "vertex_count", "triangle_count")
 
 
 def _random_soup(seed: int = 7, num_triangles: int = 157) -> tuple[np.ndarray, np.ndarray]:
@@ -83,9 +83,9 @@ def test_shapes_dtypes_and_counts(built):
     assert tree.num_nodes == 2 * num_triangles - 1
     assert tree.centers.shape == (tree.num_nodes, 3) and tree.centers.dtype == np.float64
     assert tree.radii.dtype == np.float64
-    for field in ("radii", "left", "right", "parent", "triangle", "depth", "vertex_count"):
+    for field in ("radii", "left", "right", "parent", "triangle", "depth", "vertex_count", "triangle_count"):
         assert getattr(tree, field).shape == (tree.num_nodes,), field
-    for field in ("left", "right", "parent", "triangle", "depth", "vertex_count"):
+    for field in ("left", "right", "parent", "triangle", "depth", "vertex_count", "triangle_count"):
         assert getattr(tree, field).dtype == np.int32, field
     assert np.all(np.isfinite(tree.centers)) and np.all(np.isfinite(tree.radii)) and np.all(tree.radii >= 0)
 
@@ -122,6 +122,8 @@ def test_balanced_depth_bound(built):
     _, faces, tree = built
     num_triangles = faces.shape[0]
     assert tree.max_depth <= math.ceil(math.log2(num_triangles)) + 1
+    for node in range(tree.num_nodes):
+        assert tree.triangle_count[node] == len(_subtree_triangles(tree, node))
     for node in np.flatnonzero(tree.left >= 0):
         left_count = len(_subtree_triangles(tree, tree.left[node]))
         right_count = len(_subtree_triangles(tree, tree.right[node]))

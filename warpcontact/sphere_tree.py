@@ -36,6 +36,7 @@ class SphereTree:
         triangle: (M,) int32 face index at leaves, -1 at internal nodes.
         depth: (M,) int32 depth, root 0.
         vertex_count: (M,) int32 number of unique vertex indices under the node.
+        triangle_count: (M,) int32 number of triangles (leaves) under the node.
     """
 
     centers: np.ndarray
@@ -46,6 +47,7 @@ class SphereTree:
     triangle: np.ndarray
     depth: np.ndarray
     vertex_count: np.ndarray
+    triangle_count: np.ndarray
 
     @property
     def num_nodes(self) -> int:
@@ -56,16 +58,6 @@ class SphereTree:
     def num_triangles(self) -> int:
         """Number of triangles T (= number of leaves)."""
         return (self.num_nodes + 1) // 2
-
-    @property
-    def triangle_count(self) -> np.ndarray:
-        """(M,) float64 number of triangles (leaves) under each node."""
-        count = np.zeros(self.num_nodes)
-        count[self.left < 0] = 1.0
-        # Pre-order: children have larger indices than their parent.
-        for node in np.flatnonzero(self.left >= 0)[::-1]:
-            count[node] = count[self.left[node]] + count[self.right[node]]
-        return count
 
     @property
     def max_depth(self) -> int:
@@ -110,6 +102,7 @@ def build_sphere_tree(vertices, faces, *, name: str = "mesh") -> SphereTree:
     triangle = np.full(num_nodes, -1, dtype=np.int32)
     depth = np.empty(num_nodes, dtype=np.int32)
     vertex_count = np.empty(num_nodes, dtype=np.int32)
+    triangle_count = np.empty(num_nodes, dtype=np.int32)
 
     # Each node owns a contiguous run of `triangle_order`; splitting only reorders inside runs.
     triangle_order = np.arange(num_triangles)
@@ -120,6 +113,7 @@ def build_sphere_tree(vertices, faces, *, name: str = "mesh") -> SphereTree:
     level_depth = 0
     while level_node.size:
         depth[level_node] = level_depth
+        triangle_count[level_node] = level_size
         is_leaf = level_size == 1
 
         leaf_nodes = level_node[is_leaf]
@@ -190,6 +184,7 @@ def build_sphere_tree(vertices, faces, *, name: str = "mesh") -> SphereTree:
         triangle=triangle,
         depth=depth,
         vertex_count=vertex_count,
+        triangle_count=triangle_count,
     )
 
 
