@@ -464,7 +464,8 @@ def test_blend_zone_terms_push_apart(weight):
     """Root pair inside its blend shell (d1 < r < d2): the single blended term still pushes apart.
 
     Its force has the product-rule part (S - P_c) grad(phi) besides the blended ones; the paper's
-    Lemma (assumption P_c <= S) makes every part point from one cluster to the other.
+    Lemma (assumption P_c <= S) makes every part point from one cluster to the other. Pair
+    weights need not satisfy that assumption, so for them this is the check.
     """
     meshes = [icosphere(1), icosphere(1, radius=0.3)]
     model = wc.ContactModel(meshes, eps=2.0, centred_weight=weight)
