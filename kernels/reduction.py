@@ -37,6 +37,7 @@ import warp as wp
 from .blend import centered_potential, quintic_blend
 from .leaf import LEAF_OK, LeafSolution, leaf_mixed_block, leaf_vertex_barrier, leaf_vertex_gradient, pair_solve
 from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, upper_entry, vec6d, world_triangle
+from .traversal import COUNTER_BLEND, COUNTER_FAR, COUNTER_LEAF, listed
 
 wp.set_module_options({"enable_backward": False})
 
@@ -67,6 +68,13 @@ def _target_record(t: Targets, parent: int, seed: int, tid: int):
     if parent >= 0:
         return parent
     return t.top_record + seed * t.top_replicas + tid % t.top_replicas
+
+
+@wp.func
+def _record_dropped(t: Targets, parent: int):
+    """True for a term whose blend record did not fit the blend list (the traversal
+    overflowed; the host grows the lists and evaluates again, discarding this pass)."""
+    return parent >= t.top_record
 
 
 @wp.func
@@ -169,11 +177,16 @@ def far_term_kernel(
     body_position: wp.array(dtype=wp.vec3d),
     seed_body_pair: wp.array(dtype=wp.vec2i),
     far_items: wp.array(dtype=wp.vec4i),
+    counters: wp.array(dtype=wp.int32),
     # Data out:
     targets: Targets,
     seed_separation_out: wp.array(dtype=wp.float64),
 ):
+    if wp.tid() >= listed(counters, COUNTER_FAR, far_items.shape[0]):
+        return
     item = far_items[wp.tid()]
+    if _record_dropped(targets, item[2]):
+        return
     pair = seed_body_pair[item[3]]
     ci, cj = _world_centres(node_center, item[0], item[1], pair, body_rotation, body_position)
     # The clusters lie inside their spheres, which are this far apart at least.
@@ -248,6 +261,7 @@ def leaf_term_kernel(
     body_position: wp.array(dtype=wp.vec3d),
     seed_body_pair: wp.array(dtype=wp.vec2i),
     leaf_items: wp.array(dtype=wp.vec4i),
+    counters: wp.array(dtype=wp.int32),
     # Data out:
     targets: Targets,
     seed_status_out: wp.array(dtype=wp.int32),
@@ -256,7 +270,11 @@ def leaf_term_kernel(
     leaf_plane_out: wp.array(dtype=wp.vec4d),
 ):
     tid = wp.tid()
+    if tid >= listed(counters, COUNTER_LEAF, leaf_items.shape[0]):
+        return
     item = leaf_items[tid]
+    if _record_dropped(targets, item[2]):
+        return
     seed = item[3]
     pair = seed_body_pair[seed]
     rot_a = body_rotation[pair[0]]
@@ -311,10 +329,13 @@ def blend_level_kernel(
     seed_body_pair: wp.array(dtype=wp.vec2i),
     blend_items: wp.array(dtype=wp.vec4i),
     blend_level: wp.array(dtype=wp.int32),
+    counters: wp.array(dtype=wp.int32),
     # Data out:
     targets: Targets,
 ):
     record = wp.tid()
+    if record >= listed(counters, COUNTER_BLEND, blend_items.shape[0]):
+        return
     if blend_level[record] != level:
         return
     item = blend_items[record]

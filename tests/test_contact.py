@@ -281,11 +281,12 @@ def test_top_level_replicas_give_the_same_result(mode):
 # --- buffers ----------------------------------------------------------------------------------
 
 
-def test_undersized_buffers_are_grown_and_give_the_same_result():
+@pytest.mark.parametrize("sync_free", [False, True])
+def test_undersized_buffers_are_grown_and_give_the_same_result(sync_free):
     meshes = [icosphere(1), icosphere(1)]
     poses = identity_poses([[0, 0, 0], [1.05, 0.1, 0.0]])
     reference = wc.ContactModel(meshes).evaluate(poses)
-    model = wc.ContactModel(meshes)
+    model = wc.ContactModel(meshes, sync_free=sync_free)
     model._visit_budget = 2  # many rounds, each handing on many tasks
     model._far = model._blend = model._leaf = model._tasks = None
     model._reserve_lists(far=1, blend=1, leaf=1)
@@ -294,6 +295,31 @@ def test_undersized_buffers_are_grown_and_give_the_same_result():
     assert model._traversal_rounds > 3 and model._tasks[0].shape[0] > 1 and model._leaf.shape[0] >= res.num_leaf
     assert res.value == pytest.approx(reference.value, rel=1e-12)
     np.testing.assert_allclose(res.hessian, reference.hessian, rtol=1e-10, atol=1e-12 * np.abs(reference.hessian).max())
+
+
+@pytest.mark.parametrize("mode", ["bsh", "brute", "sdrs"])
+def test_sync_free_launches_give_the_host_sized_launches_results_bit_for_bit(mode):
+    # Sync-free launches run every round and term kernel over its list's whole capacity;
+    # the idle threads must change nothing, down to the last bit on a CPU (one thread).
+    meshes, poses = _rack_meshes_and_poses(0.02)
+    static = [False] * (len(meshes) - 1) + [True]
+    host = wc.ContactModel(meshes, mode=mode, dhat=0.05, static=static, sync_free=False)
+    free = wc.ContactModel(meshes, mode=mode, dhat=0.05, static=static, sync_free=True)
+    assert free._visit_budget < host._visit_budget  # sync-free rounds are shorter by default
+    free._visit_budget = host._visit_budget  # same walk split, same list order, same sums
+    assert not host.sync_free and free.sync_free and not wc.ContactModel(meshes).sync_free  # CPU default
+    for shift in (0.0, 0.3, -0.01):  # the second and third reuse the grown buffers
+        moved = poses.copy()
+        moved[0, 0] += shift
+        a, b = host.evaluate(moved), free.evaluate(moved)
+        assert (a.num_far, a.num_blend, a.num_leaf) == (b.num_far, b.num_blend, b.num_leaf)
+        assert a.value == b.value and a.mean_leaf_iterations == b.mean_leaf_iterations
+        np.testing.assert_array_equal(a.grad, b.grad)
+        np.testing.assert_array_equal(a.hessian, b.hessian)
+        np.testing.assert_array_equal(a.pair_separation, b.pair_separation)
+    assert host._traversal_rounds == free._traversal_rounds
+    if mode != "brute":
+        assert free._far.shape[0] > a.num_far or free._leaf.shape[0] > a.num_leaf  # idle threads ran
 
 
 # --- traversal rounds give the lists of one serial walk -----------------------------------------
@@ -375,10 +401,11 @@ def test_traversal_rounds_emit_the_serial_walks_items(scene, eps):
     assert _with_parent_identities(lists) == _serial_walk(model, eps, 0.0)
 
 
+@pytest.mark.parametrize("sync_free", [False, True])
 @pytest.mark.parametrize("budget", [1, 3])
-def test_traversal_rounds_regrow_buffers_and_still_emit_the_serial_walks_items(budget):
+def test_traversal_rounds_regrow_buffers_and_still_emit_the_serial_walks_items(budget, sync_free):
     meshes, poses = _rack_meshes_and_poses(0.05)
-    model = wc.ContactModel(meshes, eps=0.5, static=[False] * (len(meshes) - 1) + [True])
+    model = wc.ContactModel(meshes, eps=0.5, static=[False] * (len(meshes) - 1) + [True], sync_free=sync_free)
     model._visit_budget = budget
     model._far = model._blend = model._leaf = model._tasks = None
     model._reserve_lists(far=1, blend=1, leaf=1)

@@ -183,6 +183,11 @@ class ContactModel:
             a CPU; on a GPU up to 32, capped at ~32 MB, which spreads the atomic adds that
             all of a body pair's top-level terms would make to the same addresses). Any
             value gives the same result up to summation order.
+        sync_free: launch the traversal rounds and term kernels over their lists' whole
+            capacity, the kernels reading the list lengths on the device, so that one
+            evaluation waits for the host only once, at its end (None: on a GPU; on a CPU
+            each launch is sized by the counted items, which the host reads for free). The
+            results are the same.
     """
 
     def __init__(
@@ -199,6 +204,7 @@ class ContactModel:
         device="cpu",
         max_leaf_iterations: int = DEFAULT_MAX_ITERATIONS,
         top_replicas: int | None = None,
+        sync_free: bool | None = None,
     ):
         if mode not in CONTACT_MODES:
             raise ValueError(f"mode: {mode!r} is not one of {CONTACT_MODES}")
@@ -232,6 +238,7 @@ class ContactModel:
         self.num_bodies = num_bodies
         self.static = static_flags
         self.device = resolve_device(device)
+        self.sync_free = (not self.device.is_cpu) if sync_free is None else bool(sync_free)
 
         trees, triangles = [], []
         for i, mesh in enumerate(meshes):
@@ -262,6 +269,7 @@ class ContactModel:
         right = np.concatenate([shifted(t.right, o) for t, o in zip(trees, self.node_offset)])
         tri = np.concatenate([shifted(t.triangle, o) for t, o in zip(trees, self.triangle_offset)])
         max_depth = max(t.max_depth for t in trees)
+        self._max_rounds = max_depth + 1  # the traversal's bound (kernels/traversal.py)
         with wp.ScopedDevice(self.device):
             self._node_center = wp.array(np.concatenate([t.centers for t in trees]), dtype=wp.vec3d)
             self._node_radius = wp.array(np.concatenate([t.radii for t in trees]), dtype=wp.float64)
@@ -294,8 +302,9 @@ class ContactModel:
             self._friction_hess = wp.zeros((6 * self.num_bodies, 6 * self.num_bodies), dtype=wp.float64)
         # Node pairs one traversal thread visits per round; the kernel's local stack is sized
         # for MAX_VISIT_BUDGET, so only smaller values are valid (tests use them to force rounds).
-        self._visit_budget = traversal_kernels.MAX_VISIT_BUDGET
+        self._visit_budget = traversal_kernels.SYNC_FREE_VISIT_BUDGET if self.sync_free else traversal_kernels.MAX_VISIT_BUDGET
         self._traversal_rounds = 0
+        self._graph = None
         self._far = self._blend = self._leaf = self._blend_level = None
         self._tasks = self._task_seeds = None
         self._leaf_iterations = self._leaf_plane = None
@@ -328,10 +337,15 @@ class ContactModel:
             self._blend_level = wp.zeros(0, dtype=wp.int32)
             self._leaf_iterations = wp.zeros(len(leaf), dtype=wp.int32)
             self._leaf_plane = wp.zeros(len(leaf), dtype=wp.vec4d)
+        # The list never changes: its counter is set once and never cleared.
+        counters = np.zeros(self._counters.shape[0], dtype=np.int32)
+        counters[int(traversal_kernels.COUNTER_LEAF)] = len(leaf)
+        self._counters.assign(counters)
         self._counts = (0, 0, len(leaf), -1)
         self._reserve_records(0)
 
     def _reserve_lists(self, *, far: int, blend: int, leaf: int):
+        self._graph = None
         with wp.ScopedDevice(self.device):
             if self._far is None or self._far.shape[0] < far:
                 self._far = wp.zeros(far, dtype=wp.vec4i)
@@ -346,6 +360,7 @@ class ContactModel:
 
     def _reserve_tasks(self, count: int):
         """Two task lists of at least ``count``: traversal rounds read one and fill the other."""
+        self._graph = None
         if self._tasks is None or self._tasks[0].shape[0] < count:
             with wp.ScopedDevice(self.device):
                 self._tasks = [wp.zeros(count, dtype=wp.vec4i) for _ in range(2)]
@@ -354,6 +369,7 @@ class ContactModel:
     def _reserve_records(self, count: int):
         """Accumulator records (``kernels/reduction.py``, ``Targets``): ``count`` blend
         records, then the body pairs' top-level replicas."""
+        self._graph = None
         records = count + len(self.body_pairs) * self._top_replicas
         with wp.ScopedDevice(self.device):
             self._record_value = wp.zeros(records, dtype=wp.float64)
@@ -383,54 +399,109 @@ class ContactModel:
         self._pose.assign(poses)
         wp.launch(rigid_kernels.body_transforms_kernel, dim=self.num_bodies, inputs=[self._pose], outputs=[self._rotation, self._position], device=self.device)
 
-    def _traverse(self):
-        """Fill the BSH term lists for the current poses, growing buffers until they fit.
+    def _launch_rounds(self):
+        """Traversal rounds (``kernels/traversal.py``) at the current poses into the term lists.
 
-        Runs traversal rounds (``kernels/traversal.py``) until no task is left; the host
-        reads the counters once per round to size the next launch."""
-        for _ in range(_MAX_TRAVERSAL_ATTEMPTS):
-            self._counters.zero_()
-            tasks, task_seeds, num_tasks = self._root_task, self._root_task_seed, len(self.body_pairs)
-            rounds, counters = 0, np.zeros(4, dtype=np.int32)
-            while num_tasks:
-                slot = int(traversal_kernels.COUNTER_ROUND_TASKS) + rounds
-                next_tasks, next_task_seeds = self._tasks[rounds % 2], self._task_seeds[rounds % 2]
-                wp.launch(
-                    traversal_kernels.traverse_round_kernel,
-                    dim=num_tasks,
-                    inputs=[
-                        self._node_center,
-                        self._node_radius,
-                        self._node_left,
-                        self._node_right,
-                        self._node_triangle,
-                        self.eps,
-                        2.0 * self.dhat,
-                        self._visit_budget,
-                        self._rotation,
-                        self._position,
-                        self._seed_body_pair,
-                        tasks,
-                        task_seeds,
-                        slot,
-                    ],
-                    outputs=[self._counters, self._far, self._blend, self._blend_level, self._leaf, next_tasks, next_task_seeds],
-                    device=self.device,
-                )
-                counters = self._counters.numpy()
-                rounds += 1
-                tasks, task_seeds, num_tasks = next_tasks, next_task_seeds, int(counters[slot])
+        Host-sized: the host reads each round's task count to size the next round and stops
+        when none is left or the next task list overflowed. Sync-free: all max_depth + 1
+        rounds the walk can need, each over its task list's capacity, counts read on the
+        device; nothing waits for the host."""
+        self._counters.zero_()
+        tasks, task_seeds, num_tasks, task_slot = self._root_task, self._root_task_seed, len(self.body_pairs), -1
+        for rounds in range(self._max_rounds):
+            if num_tasks == 0:
+                break
+            slot = int(traversal_kernels.COUNTER_ROUND_TASKS) + rounds
+            next_tasks, next_task_seeds = self._tasks[rounds % 2], self._task_seeds[rounds % 2]
+            wp.launch(
+                traversal_kernels.traverse_round_kernel,
+                dim=num_tasks,
+                inputs=[
+                    self._node_center,
+                    self._node_radius,
+                    self._node_left,
+                    self._node_right,
+                    self._node_triangle,
+                    self.eps,
+                    2.0 * self.dhat,
+                    self._visit_budget,
+                    self._rotation,
+                    self._position,
+                    self._seed_body_pair,
+                    tasks,
+                    task_seeds,
+                    task_slot,
+                    slot,
+                ],
+                outputs=[self._counters, self._far, self._blend, self._blend_level, self._leaf, next_tasks, next_task_seeds],
+                device=self.device,
+            )
+            tasks, task_seeds, task_slot = next_tasks, next_task_seeds, slot
+            if self.sync_free:
+                num_tasks = next_tasks.shape[0]
+            else:
+                num_tasks = int(self._counters.numpy()[slot])
                 if num_tasks > next_tasks.shape[0]:
-                    break  # tasks were dropped: grow the task lists and start over
-            far, blend, leaf, max_level = (int(c) for c in counters[:4])
-            fits = far <= self._far.shape[0] and blend <= self._blend.shape[0] and leaf <= self._leaf.shape[0]
-            if fits and num_tasks == 0:
-                self._counts = (far, blend, leaf, max_level if blend else -1)
-                self._traversal_rounds = rounds
+                    break  # tasks were dropped: the lists get grown and the traversal rerun
+
+    def _launch_sizes(self) -> tuple[int, int, int, int]:
+        """Threads for the far, blend and leaf kernels and the deepest blend level to reduce:
+        the list capacities and the deepest possible level when sync-free (the kernels read
+        the counts), else the counted items."""
+        if self.sync_free:
+            return self._far.shape[0], self._blend.shape[0], self._leaf.shape[0], self._max_rounds - 1
+        counters = self._counters.numpy()
+        far, blend, leaf, max_level = (int(c) for c in counters[:4])
+        return min(far, self._far.shape[0]), min(blend, self._blend.shape[0]), min(leaf, self._leaf.shape[0]), max_level if blend else -1
+
+    def _lists_fit(self, counters: np.ndarray) -> bool:
+        far, blend, leaf = (int(c) for c in counters[:3])
+        round_tasks = counters[int(traversal_kernels.COUNTER_ROUND_TASKS) :]
+        task_capacity = self._tasks[0].shape[0] if self._tasks is not None else 0
+        return far <= self._far.shape[0] and blend <= self._blend.shape[0] and leaf <= self._leaf.shape[0] and int(round_tasks.max(initial=0)) <= task_capacity
+
+    def _launch_evaluation(self, *, reduce: bool):
+        if self.mode != "brute" and len(self.body_pairs):
+            self._launch_rounds()
+        if reduce and (self.sync_free or self._lists_fit(self._counters.numpy())):
+            self._reduce()
+
+    def _fill_lists(self, *, reduce: bool):
+        """Term lists at the current poses (and, with ``reduce``, the potential from them),
+        growing the buffers and starting over until they fit; then records the counts.
+
+        Sync-free on a GPU, the launches of an evaluation that fitted its buffers are
+        captured into a CUDA graph, which later evaluations replay while the buffers stay
+        the same (any growth drops it): one graph launch instead of ~30 kernel launches."""
+        if reduce and self._graph is not None:
+            wp.capture_launch(self._graph)
+            if self._take_counts(self._counters.numpy()):
                 return
-            self._reserve_tasks(int(num_tasks * 1.25) + 16)
+        for _ in range(_MAX_TRAVERSAL_ATTEMPTS):
+            self._launch_evaluation(reduce=reduce)
+            counters = self._counters.numpy()
+            if self._take_counts(counters):
+                if reduce and self.sync_free and self.device.is_cuda and self._graph is None:
+                    with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                        self._launch_evaluation(reduce=True)
+                    self._graph = capture.graph
+                return
+            far, blend, leaf = (int(c) for c in counters[:3])
+            tasks = int(counters[int(traversal_kernels.COUNTER_ROUND_TASKS) :].max(initial=0))
+            self._reserve_tasks(int(tasks * 1.25) + 16)
             self._reserve_lists(far=int(far * 1.25) + 16, blend=int(blend * 1.25) + 16, leaf=int(leaf * 1.25) + 16)
         raise RuntimeError(f"sphere-tree traversal did not fit its buffers after {_MAX_TRAVERSAL_ATTEMPTS} attempts")
+
+    def _take_counts(self, counters: np.ndarray) -> bool:
+        """Records the term counts and rounds of a traversal whose lists fit; False otherwise."""
+        if not self._lists_fit(counters):
+            return False
+        if counters[int(traversal_kernels.COUNTER_ROUND_TASKS) + self._max_rounds - 1]:
+            raise RuntimeError("sphere-tree traversal: tasks left after max_depth + 1 rounds (a broken tree)")
+        far, blend, leaf, max_level = (int(c) for c in counters[:4])
+        self._counts = (far, blend, leaf, max_level if blend else -1)
+        self._traversal_rounds = 1 + int(np.count_nonzero(counters[int(traversal_kernels.COUNTER_ROUND_TASKS) :]))
+        return True
 
     def _targets(self):
         t = reduction_kernels.Targets()
@@ -443,7 +514,7 @@ class ContactModel:
         return t
 
     def _reduce(self):
-        num_far, num_blend, num_leaf, max_level = self._counts
+        num_far, num_blend, num_leaf, max_level = self._launch_sizes()
         for arr in (self._record_value, self._record_grad, self._record_hess, self._total_value, self._total_grad, self._total_hess, self._seed_status):
             arr.zero_()
         self._seed_separation.fill_(np.inf)
@@ -454,21 +525,21 @@ class ContactModel:
                 wp.launch(
                     reduction_kernels.far_term_kernel,
                     dim=num_far,
-                    inputs=[self._node_center, self._node_radius, self._node_weight, self.mode != "sdrs", *common, self._far],
+                    inputs=[self._node_center, self._node_radius, self._node_weight, self.mode != "sdrs", *common, self._far, self._counters],
                     outputs=[targets, self._seed_separation],
                 )
             if num_leaf:
                 wp.launch(
                     reduction_kernels.leaf_term_kernel,
                     dim=num_leaf,
-                    inputs=[self._triangle_vertices, self.dhat, self.max_leaf_iterations, *common, self._leaf],
+                    inputs=[self._triangle_vertices, self.dhat, self.max_leaf_iterations, *common, self._leaf, self._counters],
                     outputs=[targets, self._seed_status, self._seed_separation, self._leaf_iterations, self._leaf_plane],
                 )
-            for level in range(max_level, -1, -1):
+            for level in range(max_level if num_blend else -1, -1, -1):
                 wp.launch(
                     reduction_kernels.blend_level_kernel,
                     dim=num_blend,
-                    inputs=[self._node_center, self._node_radius, self._node_weight, self.eps, level, *common, self._blend, self._blend_level],
+                    inputs=[self._node_center, self._node_radius, self._node_weight, self.eps, level, *common, self._blend, self._blend_level, self._counters],
                     outputs=[targets],
                 )
             if len(self.body_pairs):
@@ -486,9 +557,7 @@ class ContactModel:
         ValueError naming the body.
         """
         self._set_poses(self._validated_poses(poses))
-        if self.mode != "brute":
-            self._traverse()
-        self._reduce()
+        self._fill_lists(reduce=True)
         num_far, num_blend, num_leaf, _ = self._counts
         status = self._seed_status.numpy()
         contact = [tuple(self.names[i] for i in self.body_pairs[s]) for s in np.flatnonzero(status == LeafStatus.CONTACT)]
@@ -679,8 +748,7 @@ class ContactModel:
     def term_lists(self, poses) -> TermLists:
         """The far / blend / leaf term lists at ``poses`` (for inspection and tests)."""
         self._set_poses(self._validated_poses(poses))
-        if self.mode != "brute":
-            self._traverse()
+        self._fill_lists(reduce=False)
         num_far, num_blend, num_leaf, _ = self._counts
         return TermLists(
             far=self._far.numpy()[:num_far].view(np.int32).reshape(-1, 4).copy(),
