@@ -51,6 +51,8 @@ on a GPU). Launched over exactly the counted items instead (the default on a CPU
 reading a counter costs nothing and idle threads run serially), the kernels do the same.
 """
 
+import functools
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
@@ -61,7 +63,7 @@ __all__ = [
     "COUNTER_LEAF",
     "COUNTER_MAX_LEVEL",
     "COUNTER_ROUND_TASKS",
-    "MAX_VISIT_BUDGET",
+    "HOST_SIZED_VISIT_BUDGET",
     "SYNC_FREE_VISIT_BUDGET",
     "listed",
     "traverse_round_kernel",
@@ -74,15 +76,14 @@ COUNTER_MAX_LEVEL = wp.constant(3)
 # Slot COUNTER_ROUND_TASKS + r counts the tasks round r hands on to round r + 1.
 COUNTER_ROUND_TASKS = wp.constant(4)
 
-# Node pairs one thread visits per round, at most. Larger means fewer rounds (one host read
-# each, when launches are host-sized) but fewer, longer threads and a larger
-# zero-initialised local stack.
-MAX_VISIT_BUDGET = 32
+# Node pairs one thread visits per round, at most (host-sized launches). Larger means fewer
+# rounds (one host read each) but fewer, longer threads with a larger zero-initialised
+# local stack.
+HOST_SIZED_VISIT_BUDGET = 32
 # Sync-free rounds cost no host read, so shorter threads pay: on an NVIDIA H200 a contact
-# evaluation (billiards_512 / billiards_6208 / gather) took 1.39 / 2.40 / 1.06 ms at 32 and
-# 1.20 / 2.33 / 0.91 ms at 8 (4 and 2: no faster at 6,208 triangles).
-SYNC_FREE_VISIT_BUDGET = 8
-_STACK_CAPACITY = wp.constant(3 * MAX_VISIT_BUDGET + 1)
+# evaluation (billiards_512 / billiards_6208 / gather) took 1.23 / 2.29 / 0.94 ms at 16,
+# 1.08 / 2.04 / 0.83 ms at 8 and 1.06 / 2.01 / 0.77 ms at 4 (stacks sized per budget).
+SYNC_FREE_VISIT_BUDGET = 4
 
 
 @wp.func
@@ -100,108 +101,122 @@ def _emit(counters: wp.array(dtype=wp.int32), slot: int, items: wp.array(dtype=w
     return index
 
 
-@wp.kernel
-def traverse_round_kernel(
-    # Model:
-    node_center: wp.array(dtype=wp.vec3d),
-    node_radius: wp.array(dtype=wp.float64),
-    node_left: wp.array(dtype=wp.int32),
-    node_right: wp.array(dtype=wp.int32),
-    node_triangle: wp.array(dtype=wp.int32),
-    eps: wp.float64,
-    support: wp.float64,
-    visit_budget: int,
-    # Data in:
-    body_rotation: wp.array(dtype=wp.mat33d),
-    body_position: wp.array(dtype=wp.vec3d),
-    seed_body_pair: wp.array(dtype=wp.vec2i),
-    task: wp.array(dtype=wp.vec4i),
-    task_seed: wp.array(dtype=wp.int32),
-    task_slot: int,
-    round_slot: int,
-    # Data out:
-    counters_out: wp.array(dtype=wp.int32),
-    far_out: wp.array(dtype=wp.vec4i),
-    blend_out: wp.array(dtype=wp.vec4i),
-    blend_level_out: wp.array(dtype=wp.int32),
-    leaf_out: wp.array(dtype=wp.vec4i),
-    next_task_out: wp.array(dtype=wp.vec4i),
-    next_task_seed_out: wp.array(dtype=wp.int32),
-):
-    t = wp.tid()
-    # Round 0 reads the root tasks (task_slot -1), later rounds the tasks counted in task_slot.
-    if task_slot >= 0:
-        if t >= listed(counters_out, task_slot, task.shape[0]):
-            return
-    seed = task_seed[t]
-    pair = seed_body_pair[seed]
-    rot_a = body_rotation[pair[0]]
-    pos_a = body_position[pair[0]]
-    rot_b = body_rotation[pair[1]]
-    pos_b = body_position[pair[1]]
-    # (node on A, node on B, enclosing blend record, nesting level)
-    stack = wp.zeros(shape=(_STACK_CAPACITY,), dtype=wp.vec4i)
-    stack[0] = task[t]
-    top = int(1)
-    visits = int(0)
-    while top > 0 and visits < visit_budget:
-        visits += 1
-        top -= 1
-        entry = stack[top]
-        ni = entry[0]
-        nj = entry[1]
-        parent = entry[2]
-        level = entry[3]
-        ci = rot_a * node_center[ni] + pos_a
-        cj = rot_b * node_center[nj] + pos_b
-        dist = wp.length(ci - cj)
-        d1 = node_radius[ni] + node_radius[nj]
-        d2 = (wp.float64(1.0) + eps) * d1
-        local = support > wp.float64(0.0)
-        far = dist >= d2
-        if local:
-            far = dist - d1 >= support
-        if far:
-            _emit(counters_out, COUNTER_FAR, far_out, wp.vec4i(ni, nj, parent, seed))
-            continue
-        if dist > d1 and not local:
-            record = _emit(counters_out, COUNTER_BLEND, blend_out, wp.vec4i(ni, nj, parent, seed))
-            if record < blend_level_out.shape[0]:
-                blend_level_out[record] = level
-            wp.atomic_max(counters_out, COUNTER_MAX_LEVEL, level)
-            parent = record
-            level = level + 1
-        leaf_i = node_left[ni] < 0
-        leaf_j = node_left[nj] < 0
-        if leaf_i and leaf_j:
-            _emit(counters_out, COUNTER_LEAF, leaf_out, wp.vec4i(node_triangle[ni], node_triangle[nj], parent, seed))
-            continue
-        # Children sets: C(I) = {I_l, I_r} for internal nodes, {I} for leaves.
-        li = ni
-        ri = ni
-        if not leaf_i:
-            li = node_left[ni]
-            ri = node_right[ni]
-        lj = nj
-        rj = nj
-        if not leaf_j:
-            lj = node_left[nj]
-            rj = node_right[nj]
-        stack[top] = wp.vec4i(li, lj, parent, level)
-        top += 1
-        if not leaf_j:
-            stack[top] = wp.vec4i(li, rj, parent, level)
-            top += 1
-        if not leaf_i:
-            stack[top] = wp.vec4i(ri, lj, parent, level)
+@functools.cache
+def traverse_round_kernel(visit_budget: int):
+    """The traversal round kernel whose threads visit at most ``visit_budget`` node pairs.
+
+    A visit pops one stack entry and pushes at most four, so the thread's local stack needs
+    3 visit_budget + 1 entries; it is zero-initialised per thread, so it is sized per budget
+    (one compiled kernel each) rather than for the largest.
+    """
+    visit_budget = int(visit_budget)
+    if visit_budget < 1:
+        raise ValueError(f"visit_budget: must be >= 1, got {visit_budget}")
+    stack_capacity = 3 * visit_budget + 1
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def traverse_round(
+        # Model:
+        node_center: wp.array(dtype=wp.vec3d),
+        node_radius: wp.array(dtype=wp.float64),
+        node_left: wp.array(dtype=wp.int32),
+        node_right: wp.array(dtype=wp.int32),
+        node_triangle: wp.array(dtype=wp.int32),
+        eps: wp.float64,
+        support: wp.float64,
+        # Data in:
+        body_rotation: wp.array(dtype=wp.mat33d),
+        body_position: wp.array(dtype=wp.vec3d),
+        seed_body_pair: wp.array(dtype=wp.vec2i),
+        task: wp.array(dtype=wp.vec4i),
+        task_seed: wp.array(dtype=wp.int32),
+        task_slot: int,
+        round_slot: int,
+        # Data out:
+        counters_out: wp.array(dtype=wp.int32),
+        far_out: wp.array(dtype=wp.vec4i),
+        blend_out: wp.array(dtype=wp.vec4i),
+        blend_level_out: wp.array(dtype=wp.int32),
+        leaf_out: wp.array(dtype=wp.vec4i),
+        next_task_out: wp.array(dtype=wp.vec4i),
+        next_task_seed_out: wp.array(dtype=wp.int32),
+    ):
+        t = wp.tid()
+        # Round 0 reads the root tasks (task_slot -1), later rounds the tasks counted in task_slot.
+        if task_slot >= 0:
+            if t >= listed(counters_out, task_slot, task.shape[0]):
+                return
+        seed = task_seed[t]
+        pair = seed_body_pair[seed]
+        rot_a = body_rotation[pair[0]]
+        pos_a = body_position[pair[0]]
+        rot_b = body_rotation[pair[1]]
+        pos_b = body_position[pair[1]]
+        # (node on A, node on B, enclosing blend record, nesting level)
+        stack = wp.zeros(shape=(stack_capacity,), dtype=wp.vec4i)
+        stack[0] = task[t]
+        top = int(1)
+        visits = int(0)
+        while top > 0 and visits < visit_budget:
+            visits += 1
+            top -= 1
+            entry = stack[top]
+            ni = entry[0]
+            nj = entry[1]
+            parent = entry[2]
+            level = entry[3]
+            ci = rot_a * node_center[ni] + pos_a
+            cj = rot_b * node_center[nj] + pos_b
+            dist = wp.length(ci - cj)
+            d1 = node_radius[ni] + node_radius[nj]
+            d2 = (wp.float64(1.0) + eps) * d1
+            local = support > wp.float64(0.0)
+            far = dist >= d2
+            if local:
+                far = dist - d1 >= support
+            if far:
+                _emit(counters_out, COUNTER_FAR, far_out, wp.vec4i(ni, nj, parent, seed))
+                continue
+            if dist > d1 and not local:
+                record = _emit(counters_out, COUNTER_BLEND, blend_out, wp.vec4i(ni, nj, parent, seed))
+                if record < blend_level_out.shape[0]:
+                    blend_level_out[record] = level
+                wp.atomic_max(counters_out, COUNTER_MAX_LEVEL, level)
+                parent = record
+                level = level + 1
+            leaf_i = node_left[ni] < 0
+            leaf_j = node_left[nj] < 0
+            if leaf_i and leaf_j:
+                _emit(counters_out, COUNTER_LEAF, leaf_out, wp.vec4i(node_triangle[ni], node_triangle[nj], parent, seed))
+                continue
+            # Children sets: C(I) = {I_l, I_r} for internal nodes, {I} for leaves.
+            li = ni
+            ri = ni
+            if not leaf_i:
+                li = node_left[ni]
+                ri = node_right[ni]
+            lj = nj
+            rj = nj
+            if not leaf_j:
+                lj = node_left[nj]
+                rj = node_right[nj]
+            stack[top] = wp.vec4i(li, lj, parent, level)
             top += 1
             if not leaf_j:
-                stack[top] = wp.vec4i(ri, rj, parent, level)
+                stack[top] = wp.vec4i(li, rj, parent, level)
                 top += 1
-    if top > 0:
-        # Budget spent: hand the pending node pairs on as the next round's tasks.
-        first = wp.atomic_add(counters_out, round_slot, top)
-        for k in range(top):
-            if first + k < next_task_out.shape[0]:
-                next_task_out[first + k] = stack[k]
-                next_task_seed_out[first + k] = seed
+            if not leaf_i:
+                stack[top] = wp.vec4i(ri, lj, parent, level)
+                top += 1
+                if not leaf_j:
+                    stack[top] = wp.vec4i(ri, rj, parent, level)
+                    top += 1
+        if top > 0:
+            # Budget spent: hand the pending node pairs on as the next round's tasks.
+            first = wp.atomic_add(counters_out, round_slot, top)
+            for k in range(top):
+                if first + k < next_task_out.shape[0]:
+                    next_task_out[first + k] = stack[k]
+                    next_task_seed_out[first + k] = seed
+
+    return traverse_round

@@ -300,9 +300,8 @@ class ContactModel:
             self._friction_value = wp.zeros(1, dtype=wp.float64)
             self._friction_grad = wp.zeros((self.num_bodies, 6), dtype=wp.float64)
             self._friction_hess = wp.zeros((6 * self.num_bodies, 6 * self.num_bodies), dtype=wp.float64)
-        # Node pairs one traversal thread visits per round; the kernel's local stack is sized
-        # for MAX_VISIT_BUDGET, so only smaller values are valid (tests use them to force rounds).
-        self._visit_budget = traversal_kernels.SYNC_FREE_VISIT_BUDGET if self.sync_free else traversal_kernels.MAX_VISIT_BUDGET
+        # Node pairs one traversal thread visits per round (tests lower it to force rounds).
+        self._visit_budget = traversal_kernels.SYNC_FREE_VISIT_BUDGET if self.sync_free else traversal_kernels.HOST_SIZED_VISIT_BUDGET
         self._traversal_rounds = 0
         self._graph = None
         self._far = self._blend = self._leaf = self._blend_level = None
@@ -414,7 +413,7 @@ class ContactModel:
             slot = int(traversal_kernels.COUNTER_ROUND_TASKS) + rounds
             next_tasks, next_task_seeds = self._tasks[rounds % 2], self._task_seeds[rounds % 2]
             wp.launch(
-                traversal_kernels.traverse_round_kernel,
+                traversal_kernels.traverse_round_kernel(self._visit_budget),
                 dim=num_tasks,
                 inputs=[
                     self._node_center,
@@ -424,7 +423,6 @@ class ContactModel:
                     self._node_triangle,
                     self.eps,
                     2.0 * self.dhat,
-                    self._visit_budget,
                     self._rotation,
                     self._position,
                     self._seed_body_pair,
