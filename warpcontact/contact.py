@@ -471,7 +471,7 @@ class ContactModel:
         Sync-free on a GPU, the launches of an evaluation that fitted its buffers are
         captured into a CUDA graph, which later evaluations replay while the buffers stay
         the same (any growth drops it): one graph launch instead of ~30 kernel launches."""
-        if reduce and self._graph is not None:
+        if reduce and self.sync_free and self._graph is not None:
             wp.capture_launch(self._graph)
             if self._take_counts(self._counters.numpy()):
                 return
