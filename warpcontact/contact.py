@@ -44,6 +44,8 @@ CENTRED_WEIGHTS = ("paper", "pairs")
 QUATERNION_TOLERANCE = 1e-6
 
 _MAX_TRAVERSAL_ATTEMPTS = 8
+# Counter slot of traversal round 0's handed-on tasks; round r uses the slot r after it.
+_ROUND_SLOT = int(traversal_kernels.COUNTER_ROUND_TASKS)
 
 
 @dataclass(frozen=True)
@@ -291,7 +293,7 @@ class ContactModel:
             self._position = wp.empty(self.num_bodies, dtype=wp.vec3d)
             # The traversal ends within max_depth + 1 rounds (kernels/traversal.py): one task
             # counter per round.
-            self._counters = wp.zeros(int(traversal_kernels.COUNTER_ROUND_TASKS) + max_depth + 1, dtype=wp.int32)
+            self._counters = wp.zeros(_ROUND_SLOT + max_depth + 1, dtype=wp.int32)
             self._seed_status = wp.zeros(len(self.body_pairs), dtype=wp.int32)
             self._seed_separation = wp.zeros(len(self.body_pairs), dtype=wp.float64)
             self._total_value = wp.zeros(1, dtype=wp.float64)
@@ -410,7 +412,7 @@ class ContactModel:
         for rounds in range(self._max_rounds):
             if num_tasks == 0:
                 break
-            slot = int(traversal_kernels.COUNTER_ROUND_TASKS) + rounds
+            slot = _ROUND_SLOT + rounds
             next_tasks, next_task_seeds = self._tasks[rounds % 2], self._task_seeds[rounds % 2]
             wp.launch(
                 traversal_kernels.traverse_round_kernel(self._visit_budget),
@@ -442,27 +444,32 @@ class ContactModel:
                 if num_tasks > next_tasks.shape[0]:
                     break  # tasks were dropped: the lists get grown and the traversal rerun
 
-    def _launch_sizes(self) -> tuple[int, int, int, int]:
+    def _launch_sizes(self, counters: np.ndarray | None) -> tuple[int, int, int, int]:
         """Threads for the far, blend and leaf kernels and the deepest blend level to reduce:
-        the list capacities and the deepest possible level when sync-free (the kernels read
-        the counts), else the counted items."""
-        if self.sync_free:
+        from the host's read of the ``counters`` (host-sized), or, without one (sync-free),
+        the list capacities and the deepest possible level (the kernels read the counts)."""
+        if counters is None:
             return self._far.shape[0], self._blend.shape[0], self._leaf.shape[0], self._max_rounds - 1
-        counters = self._counters.numpy()
         far, blend, leaf, max_level = (int(c) for c in counters[:4])
         return min(far, self._far.shape[0]), min(blend, self._blend.shape[0]), min(leaf, self._leaf.shape[0]), max_level if blend else -1
 
     def _lists_fit(self, counters: np.ndarray) -> bool:
         far, blend, leaf = (int(c) for c in counters[:3])
-        round_tasks = counters[int(traversal_kernels.COUNTER_ROUND_TASKS) :]
+        round_tasks = counters[_ROUND_SLOT:]
         task_capacity = self._tasks[0].shape[0] if self._tasks is not None else 0
         return far <= self._far.shape[0] and blend <= self._blend.shape[0] and leaf <= self._leaf.shape[0] and int(round_tasks.max(initial=0)) <= task_capacity
 
     def _launch_evaluation(self, *, reduce: bool):
         if self.mode != "brute" and len(self.body_pairs):
             self._launch_rounds()
-        if reduce and (self.sync_free or self._lists_fit(self._counters.numpy())):
-            self._reduce()
+        if not reduce:
+            return
+        if self.sync_free:
+            self._reduce(self._launch_sizes(None))
+            return
+        counters = self._counters.numpy()
+        if self._lists_fit(counters):  # host-sized: an overflowed traversal is not reduced
+            self._reduce(self._launch_sizes(counters))
 
     def _fill_lists(self, *, reduce: bool):
         """Term lists at the current poses (and, with ``reduce``, the potential from them),
@@ -485,7 +492,7 @@ class ContactModel:
                     self._graph = capture.graph
                 return
             far, blend, leaf = (int(c) for c in counters[:3])
-            tasks = int(counters[int(traversal_kernels.COUNTER_ROUND_TASKS) :].max(initial=0))
+            tasks = int(counters[_ROUND_SLOT:].max(initial=0))
             self._reserve_tasks(int(tasks * 1.25) + 16)
             self._reserve_lists(far=int(far * 1.25) + 16, blend=int(blend * 1.25) + 16, leaf=int(leaf * 1.25) + 16)
         raise RuntimeError(f"sphere-tree traversal did not fit its buffers after {_MAX_TRAVERSAL_ATTEMPTS} attempts")
@@ -494,11 +501,11 @@ class ContactModel:
         """Records the term counts and rounds of a traversal whose lists fit; False otherwise."""
         if not self._lists_fit(counters):
             return False
-        if counters[int(traversal_kernels.COUNTER_ROUND_TASKS) + self._max_rounds - 1]:
+        if counters[_ROUND_SLOT + self._max_rounds - 1]:
             raise RuntimeError("sphere-tree traversal: tasks left after max_depth + 1 rounds (a broken tree)")
         far, blend, leaf, max_level = (int(c) for c in counters[:4])
         self._counts = (far, blend, leaf, max_level if blend else -1)
-        self._traversal_rounds = 1 + int(np.count_nonzero(counters[int(traversal_kernels.COUNTER_ROUND_TASKS) :]))
+        self._traversal_rounds = 1 + int(np.count_nonzero(counters[_ROUND_SLOT:]))
         return True
 
     def _targets(self):
@@ -511,8 +518,8 @@ class ContactModel:
         t.body_dynamic = self._body_dynamic
         return t
 
-    def _reduce(self):
-        num_far, num_blend, num_leaf, max_level = self._launch_sizes()
+    def _reduce(self, sizes: tuple[int, int, int, int]):
+        num_far, num_blend, num_leaf, max_level = sizes
         for arr in (self._record_value, self._record_grad, self._record_hess, self._total_value, self._total_grad, self._total_hess, self._seed_status):
             arr.zero_()
         self._seed_separation.fill_(np.inf)
