@@ -13,6 +13,7 @@ from .contact import ContactModel
 from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
 from .leaf import DEFAULT_MAX_ITERATIONS
+from .rotation import quat_rotate
 
 __all__ = [
     "leaf_benchmark_pairs",
@@ -450,9 +451,7 @@ def frame_scene(spec: str, *, scene_dir: Path = Path("scenes"), peer_meshes: Pat
 
 def _horizontal_radius(body) -> float:
     """Largest horizontal distance of a body's vertices from its prim origin (m)."""
-    from scipy.spatial.transform import Rotation
-
-    world = Rotation.from_quat(body.pose[3:]).apply(body.vertices)
+    world = quat_rotate(body.pose[3:], body.vertices)
     return float(np.linalg.norm(world[:, :2], axis=1).max())
 
 
