@@ -31,7 +31,8 @@ import warp as wp
 
 from .blend import quintic_blend
 from .leaf import LEAF_OK, leaf_barrier, leaf_plane_sensitivity, pair_solve_from_plane
-from .rigid import add_upper_block, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
+from .reduction import Targets, add_record_gradient, add_record_hessian_block, add_record_value, target_record
+from .rigid import rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
 
 wp.set_module_options({"enable_backward": False})
 
@@ -146,42 +147,39 @@ def friction_energy_kernel(
     # Data in:
     body_rotation: wp.array(dtype=wp.mat33d),
     body_position: wp.array(dtype=wp.vec3d),
-    body_dynamic: wp.array(dtype=wp.int32),
     seed_body_pair: wp.array(dtype=wp.vec2i),
     frame: FrictionFrame,
     # Data out:
-    value_out: wp.array(dtype=wp.float64),
-    grad_out: wp.array2d(dtype=wp.float64),
-    hess_out: wp.array2d(dtype=wp.float64),
+    targets: Targets,
 ):
+    """D of one lagged pair, its gradient and Hessian, added to one of its body pair's
+    records (``targets`` holds top-level records only); ``top_level_kernel`` sums them."""
     tid = wp.tid()
     coeff = friction[0] * frame.normal_force[tid]
     if coeff == wp.float64(0.0):
         return
-    pair = seed_body_pair[frame.leaf_items[tid][3]]
+    seed = frame.leaf_items[tid][3]
+    pair = seed_body_pair[seed]
+    record = target_record(targets, -1, seed, tid)
     nrm = frame.normal[tid]
     ra, rb, w, u = _slip(nrm, frame.point_a[tid], frame.point_b[tid], frame.offset[tid], body_rotation[pair[0]], body_position[pair[0]], body_rotation[pair[1]], body_position[pair[1]])
     root = wp.sqrt(wp.dot(u, u) + smoothing * smoothing)
-    wp.atomic_add(value_out, 0, coeff * (root - smoothing))
+    add_record_value(targets, record, coeff * (root - smoothing))
     tangent = wp.identity(n=3, dtype=wp.float64) - wp.outer(nrm, nrm)
     g = (coeff / root) * u  # dD/dx_a at the material point (u is tangent)
     f2 = (wp.identity(n=3, dtype=wp.float64) - wp.outer(u, u) / (root * root)) / root
     h = coeff * (tangent * f2 * tangent)
     for side in range(2):
-        body = pair[side]
-        if body_dynamic[body] == 0:
+        if targets.body_dynamic[pair[side]] == 0:
             continue
         sign = wp.float64(1.0)
         r = ra
         if side == 1:
             sign = wp.float64(-1.0)
             r = rb
-        gs = rigid_point_gradient(sign * g, r)
-        for i in range(6):
-            wp.atomic_add(grad_out, body, i, gs[i])
+        add_record_gradient(targets, record, pair, side, rigid_point_gradient(sign * g, r))
         for side_c in range(side, 2):
-            body_c = pair[side_c]
-            if body_dynamic[body_c] == 0:
+            if targets.body_dynamic[pair[side_c]] == 0:
                 continue
             sign_c = wp.float64(1.0)
             rc = ra
@@ -194,7 +192,7 @@ def friction_energy_kernel(
                 for i in range(3):
                     for j in range(3):
                         block[3 + i, 3 + j] = block[3 + i, 3 + j] + curv[i, j]
-            add_upper_block(hess_out, body, body_c, block)
+            add_record_hessian_block(targets, record, side, side_c, block)
 
 
 @wp.kernel

@@ -41,7 +41,7 @@ from .traversal import COUNTER_BLEND, COUNTER_FAR, COUNTER_LEAF, listed
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["RECORD_ENTRIES", "Targets", "far_term_kernel", "leaf_term_kernel", "blend_level_kernel", "top_level_kernel", "advancement_kernel"]
+__all__ = ["RECORD_ENTRIES", "Targets", "add_record_gradient", "add_record_hessian_block", "add_record_value", "target_record", "far_term_kernel", "leaf_term_kernel", "blend_level_kernel", "top_level_kernel", "advancement_kernel"]
 
 
 @wp.struct
@@ -62,7 +62,7 @@ class Targets:
 
 
 @wp.func
-def _target_record(t: Targets, parent: int, seed: int, tid: int):
+def target_record(t: Targets, parent: int, seed: int, tid: int):
     """The record a term adds to: its enclosing blend record, or one of its body pair's
     top-level replicas (chosen by thread, so neighbouring threads use different ones)."""
     if parent >= 0:
@@ -78,12 +78,12 @@ def _record_dropped(t: Targets, parent: int):
 
 
 @wp.func
-def _add_value(t: Targets, record: int, value: wp.float64):
+def add_record_value(t: Targets, record: int, value: wp.float64):
     wp.atomic_add(t.record_value, record, value)
 
 
 @wp.func
-def _add_gradient(t: Targets, record: int, pair: wp.vec2i, side: int, g: vec6d):
+def add_record_gradient(t: Targets, record: int, pair: wp.vec2i, side: int, g: vec6d):
     """Adds a side's gradient; a static side's is never read, so it is not added."""
     if t.body_dynamic[pair[side]] != 0:
         for i in range(6):
@@ -91,7 +91,7 @@ def _add_gradient(t: Targets, record: int, pair: wp.vec2i, side: int, g: vec6d):
 
 
 @wp.func
-def _add_hessian_block(t: Targets, record: int, side_r: int, side_c: int, h: mat66d):
+def add_record_hessian_block(t: Targets, record: int, side_r: int, side_c: int, h: mat66d):
     """Adds block (side_r, side_c) of a term's symmetric 12x12 Hessian to the upper triangle
     of its record (``upper_entry``, the two sides in place of bodies). Callers pass the
     dynamic sides' diagonal blocks and block (0, 1); block (1, 0) is its transpose and is
@@ -195,19 +195,19 @@ def far_term_kernel(
         return
     dist, ga, gb, haa, hab, hbb = _centre_distance_derivatives(ci, cj, body_position[pair[0]], body_position[pair[1]])
     value, first, second = _weighted_centred_potential(node_weight, item[0], item[1], dist)
-    record = _target_record(targets, item[2], item[3], wp.tid())
-    _add_value(targets, record, value)
-    _add_gradient(targets, record, pair, 0, first * ga)
-    _add_gradient(targets, record, pair, 1, first * gb)
+    record = target_record(targets, item[2], item[3], wp.tid())
+    add_record_value(targets, record, value)
+    add_record_gradient(targets, record, pair, 0, first * ga)
+    add_record_gradient(targets, record, pair, 1, first * gb)
     dynamic_a = targets.body_dynamic[pair[0]] != 0
     dynamic_b = targets.body_dynamic[pair[1]] != 0
     if dynamic_a:
-        _add_hessian_block(targets, record, 0, 0, second * wp.outer(ga, ga) + first * haa)
+        add_record_hessian_block(targets, record, 0, 0, second * wp.outer(ga, ga) + first * haa)
     if dynamic_a and dynamic_b:
         cross = second * wp.outer(ga, gb) + first * hab
-        _add_hessian_block(targets, record, 0, 1, cross)
+        add_record_hessian_block(targets, record, 0, 1, cross)
     if dynamic_b:
-        _add_hessian_block(targets, record, 1, 1, second * wp.outer(gb, gb) + first * hbb)
+        add_record_hessian_block(targets, record, 1, 1, second * wp.outer(gb, gb) + first * hbb)
 
 
 mat64d = wp.types.matrix(shape=(6, 4), dtype=wp.float64)
@@ -286,13 +286,13 @@ def leaf_term_kernel(
     sol = pair_solve(ta, tb, dhat, max_iterations)
     leaf_iterations_out[tid] = sol.iterations
     leaf_plane_out[tid] = wp.vec4d(sol.n[0], sol.n[1], sol.n[2], sol.d - wp.dot(sol.n, sol.origin))
-    record = _target_record(targets, item[2], seed, tid)
+    record = target_record(targets, item[2], seed, tid)
     if sol.status != LEAF_OK:
         wp.atomic_max(seed_status_out, seed, sol.status)
         wp.atomic_min(seed_separation_out, seed, wp.float64(0.0))
-        _add_value(targets, record, wp.float64(wp.inf))
+        add_record_value(targets, record, wp.float64(wp.inf))
         return
-    _add_value(targets, record, sol.value)
+    add_record_value(targets, record, sol.value)
     # The optimal plane separates the triangles; each lies at least min gap / |n| from it.
     gap_a = wp.min(wp.min(sol.gap_a[0], sol.gap_a[1]), sol.gap_a[2])
     gap_b = wp.min(wp.min(sol.gap_b[0], sol.gap_b[1]), sol.gap_b[2])
@@ -305,14 +305,14 @@ def leaf_term_kernel(
     coupling_b = mat64d()
     if dynamic_a:
         g, coupling_a, own = _leaf_rigid_side(sol, 0, ta, pos_a)
-        _add_gradient(targets, record, pair, 0, g)
-        _add_hessian_block(targets, record, 0, 0, own - coupling_a * sol.lpp_inv * wp.transpose(coupling_a))
+        add_record_gradient(targets, record, pair, 0, g)
+        add_record_hessian_block(targets, record, 0, 0, own - coupling_a * sol.lpp_inv * wp.transpose(coupling_a))
     if dynamic_b:
         g, coupling_b, own = _leaf_rigid_side(sol, 1, tb, pos_b)
-        _add_gradient(targets, record, pair, 1, g)
-        _add_hessian_block(targets, record, 1, 1, own - coupling_b * sol.lpp_inv * wp.transpose(coupling_b))
+        add_record_gradient(targets, record, pair, 1, g)
+        add_record_hessian_block(targets, record, 1, 1, own - coupling_b * sol.lpp_inv * wp.transpose(coupling_b))
     if dynamic_a and dynamic_b:
-        _add_hessian_block(targets, record, 0, 1, -(coupling_a * sol.lpp_inv * wp.transpose(coupling_b)))
+        add_record_hessian_block(targets, record, 0, 1, -(coupling_a * sol.lpp_inv * wp.transpose(coupling_b)))
 
 
 @wp.kernel
@@ -349,9 +349,9 @@ def blend_level_kernel(
     phi1 = dphi / width
     phi2 = ddphi / (width * width)
     s = targets.record_value[record]
-    target = _target_record(targets, item[2], item[3], record)
+    target = target_record(targets, item[2], item[3], record)
     one = wp.float64(1.0)
-    _add_value(targets, target, (one - phi) * s + phi * pc)
+    add_record_value(targets, target, (one - phi) * s + phi * pc)
     if not wp.isfinite(s):
         return
     ga_out = vec6d()
@@ -364,8 +364,8 @@ def blend_level_kernel(
             ga_out[i] = gi
         else:
             gb_out[i - 6] = gi
-    _add_gradient(targets, target, pair, 0, ga_out)
-    _add_gradient(targets, target, pair, 1, gb_out)
+    add_record_gradient(targets, target, pair, 0, ga_out)
+    add_record_gradient(targets, target, pair, 1, gb_out)
     for side_r in range(2):
         for side_c in range(side_r, 2):
             if targets.body_dynamic[pair[side_r]] == 0 or targets.body_dynamic[pair[side_c]] == 0:
@@ -388,7 +388,7 @@ def blend_level_kernel(
                         + phi1 * (gdi * dgj + dgi * gdj)
                         + (pc - s) * (phi2 * gdi * gdj + phi1 * hd)
                     )
-            _add_hessian_block(targets, target, side_r, side_c, block)
+            add_record_hessian_block(targets, target, side_r, side_c, block)
 
 
 # Entries of an accumulator record: the value, 12 gradient entries, the 12x12 Hessian.

@@ -22,7 +22,6 @@ __all__ = [
     "rigid_point_pair_block",
     "rigid_point_curvature",
     "upper_entry",
-    "add_upper_block",
     "world_triangle",
 ]
 
@@ -73,18 +72,6 @@ def upper_entry(body_r: int, body_c: int, i: int, j: int):
     if row > col:
         return col, row
     return row, col
-
-
-@wp.func
-def add_upper_block(hess: wp.array2d(dtype=wp.float64), body_r: int, body_c: int, h: mat66d):
-    """Adds the 6x6 block (body_r, body_c) of a symmetric (6 nbodies)^2 Hessian to the upper
-    triangle that ``hess`` holds (``upper_entry``). Callers add one of each pair of mirrored
-    blocks; the reader mirrors the upper triangle (``warpcontact.contact.symmetric_from_upper``)."""
-    for i in range(6):
-        for j in range(6):
-            row, col = upper_entry(body_r, body_c, i, j)
-            if row >= 0:
-                wp.atomic_add(hess, row, col, h[i, j])
 
 
 @wp.func

@@ -4,6 +4,7 @@ normal forces from each model's own barrier (zero beyond its support) and exact 
 import numpy as np
 import pytest
 import warp as wp
+from helpers_rigid import box
 from test_solver import assert_frictional_gradients, grid_ground, incline_model, position_loss_kernel, record, rollout
 
 import warpcontact as wc
@@ -76,6 +77,30 @@ def test_no_friction_beyond_the_support_and_friction_inside(mode, dhat):
             assert value == 0.0 and np.all(grad == 0.0)
             if mode == "sdrs":  # listed by the broad phase, yet no normal force
                 assert lagged.pairs > 0 and np.all(lagged.data.normal_force.numpy() == 0.0)
+
+
+@pytest.mark.parametrize("mode", ["bsh", "sdrs"])
+def test_friction_replicas_give_the_same_terms(mode):
+    # GPUs spread each body pair's friction adds over replicated records, as they do the
+    # potential's top-level terms (CPU default: 1); any count gives the same terms, with
+    # empty static rows and an exactly symmetric Hessian.
+    meshes = [grid_ground(2.0, 0.5), box((0.4, 0.4, 0.4))]
+    poses = np.array([[0.03, 0.07, 0.0, 0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.204, 0.0, 0.0, np.sin(0.15), np.cos(0.15)]])
+    friction = wp.array([0.5], dtype=wp.float64)
+    terms = []
+    for replicas in (1, 5):
+        contact = wc.ContactModel(meshes, mode=mode, static=[True, False], top_replicas=replicas)
+        contact.evaluate(poses)
+        lagged = contact.friction_frame(1e-6, friction, 1e-4)
+        contact.evaluate(slid(poses, 0.01))
+        terms.append(contact.friction_terms(lagged))
+    (ref_value, ref_grad, ref_hess), (value, grad, hess) = terms
+    assert lagged.pairs > 0 and ref_value > 0
+    assert value == pytest.approx(ref_value, rel=1e-13)
+    np.testing.assert_allclose(grad, ref_grad, rtol=1e-12, atol=1e-13 * np.abs(ref_grad).max())
+    np.testing.assert_allclose(hess, ref_hess, rtol=1e-12, atol=1e-13 * np.abs(ref_hess).max())
+    assert np.all(grad[:6] == 0) and np.all(hess[:6] == 0) and np.all(hess[:, :6] == 0)
+    np.testing.assert_array_equal(hess, hess.T)
 
 
 def test_sdrs_normal_forces_are_the_barrier_forces():

@@ -4,9 +4,10 @@ import contextlib
 import functools
 import logging
 
+import numpy as np
 import warp as wp
 
-__all__ = ["paused_tape", "resolve_device"]
+__all__ = ["HostReadback", "host_buffer", "paused_tape", "resolve_device"]
 
 
 @functools.cache
@@ -24,6 +25,49 @@ def resolve_device(device) -> wp.Device:
     except Exception as exc:
         available = ", ".join(str(d) for d in wp.get_devices())
         raise ValueError(f"device: {device!r} is not available (available: {available}); {exc}") from None
+
+
+def host_buffer(shape, dtype, device: wp.Device) -> wp.array:
+    """A host array to upload from: pinned for a GPU, so that the copy to the device is
+    asynchronous and a CUDA graph can capture it. Write it only while no copy from it is in
+    flight (after a synchronisation)."""
+    return wp.empty(shape, dtype=dtype, device="cpu", pinned=device.is_cuda)
+
+
+class HostReadback:
+    """Host copies of device arrays, read after one synchronisation.
+
+    On a GPU, ``enqueue`` copies each array into its pinned host twin on the device's stream
+    (asynchronously, so a CUDA graph can capture the copies) and ``wait`` synchronises once;
+    ``read`` then returns a numpy view of the twin, valid until the next ``enqueue`` of that
+    name. On a CPU the arrays are read in place: nothing is copied and ``wait`` is free.
+    A twin is reallocated when its array's shape changes; a graph that captured the old
+    twin must not be replayed after that (the owners drop their graphs whenever they
+    reallocate a captured array).
+    """
+
+    def __init__(self, device: wp.Device):
+        self.device = device
+        self._twins: dict[str, wp.array] = {}
+
+    def enqueue(self, **arrays: wp.array):
+        for name, array in arrays.items():
+            if self.device.is_cpu:
+                self._twins[name] = array
+                continue
+            twin = self._twins.get(name)
+            if twin is None or twin.shape != array.shape or twin.dtype != array.dtype:
+                twin = self._twins[name] = host_buffer(array.shape, array.dtype, self.device)
+            wp.copy(twin, array)
+
+    def wait(self):
+        if not self.device.is_cpu:
+            wp.synchronize_stream(self.device.stream)
+
+    def read(self, name: str) -> np.ndarray:
+        """The values of the array last enqueued under ``name``, as of that ``enqueue``
+        (call ``wait`` in between)."""
+        return self._twins[name].numpy()
 
 
 @contextlib.contextmanager

@@ -28,7 +28,7 @@ from .kernels import friction as friction_kernels
 from .kernels import reduction as reduction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels import traversal as traversal_kernels
-from ._runtime import resolve_device
+from ._runtime import HostReadback, host_buffer, resolve_device
 from ._validate import as_float64_array
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus
 from .sphere_tree import SphereTree, build_sphere_tree
@@ -135,10 +135,10 @@ class TermLists:
     leaf: np.ndarray
 
 
-def symmetric_from_upper(upper: wp.array) -> np.ndarray:
+def symmetric_from_upper(upper: np.ndarray) -> np.ndarray:
     """The symmetric matrix whose upper triangle the term kernels accumulated (they add one
-    of each pair of mirrored entries: ``kernels/rigid.py``, ``add_upper_block``), on the host."""
-    h = upper.numpy()
+    of each pair of mirrored entries: ``kernels/rigid.py``, ``upper_entry``)."""
+    h = upper
     full = h + h.T
     full[np.diag_indices_from(full)] = np.diag(h)
     return full
@@ -289,6 +289,7 @@ class ContactModel:
             self._body_dynamic = wp.array((~self.static).astype(np.int32), dtype=wp.int32)
             self._seed_body_pair = wp.array(self.body_pairs, dtype=wp.vec2i)
             self._pose = wp.empty(self.num_bodies, dtype=wp.transformd)
+            self._step = wp.empty(self.num_bodies, dtype=rigid_kernels.vec6d)
             self._rotation = wp.empty(self.num_bodies, dtype=wp.mat33d)
             self._position = wp.empty(self.num_bodies, dtype=wp.vec3d)
             # The traversal ends within max_depth + 1 rounds (kernels/traversal.py): one task
@@ -299,9 +300,11 @@ class ContactModel:
             self._total_value = wp.zeros(1, dtype=wp.float64)
             self._total_grad = wp.zeros((self.num_bodies, 6), dtype=wp.float64)
             self._total_hess = wp.zeros((6 * self.num_bodies, 6 * self.num_bodies), dtype=wp.float64)
-            self._friction_value = wp.zeros(1, dtype=wp.float64)
-            self._friction_grad = wp.zeros((self.num_bodies, 6), dtype=wp.float64)
-            self._friction_hess = wp.zeros((6 * self.num_bodies, 6 * self.num_bodies), dtype=wp.float64)
+        # Uploads go through host buffers and results come back through one readback, so
+        # an evaluation waits for the device once (and a CUDA graph holds the copies).
+        self._pose_host = host_buffer(self.num_bodies, wp.transformd, self.device)
+        self._step_host = host_buffer(self.num_bodies, rigid_kernels.vec6d, self.device)
+        self._readback = HostReadback(self.device)
         # Node pairs one traversal thread visits per round (tests lower it to force rounds).
         self._visit_budget = traversal_kernels.SYNC_FREE_VISIT_BUDGET if self.sync_free else traversal_kernels.HOST_SIZED_VISIT_BUDGET
         self._traversal_rounds = 0
@@ -311,6 +314,7 @@ class ContactModel:
         self._leaf_iterations = self._leaf_plane = None
         self._alpha = wp.zeros(1, dtype=wp.float64, device=self.device)
         self._record_value = self._record_grad = self._record_hess = None
+        self._friction_targets = None  # allocated by the first friction_terms
         if self.mode == "brute":
             self._set_brute_leaf_list()
         else:
@@ -397,7 +401,11 @@ class ContactModel:
         return poses
 
     def _set_poses(self, poses: np.ndarray):
-        self._pose.assign(poses)
+        """Stages ``poses`` for the next ``_launch_evaluation`` (which uploads them)."""
+        self._pose_host.numpy()[:] = poses
+
+    def _launch_transforms(self):
+        wp.copy(self._pose, self._pose_host)
         wp.launch(rigid_kernels.body_transforms_kernel, dim=self.num_bodies, inputs=[self._pose], outputs=[self._rotation, self._position], device=self.device)
 
     def _launch_rounds(self):
@@ -460,16 +468,31 @@ class ContactModel:
         return far <= self._far.shape[0] and blend <= self._blend.shape[0] and leaf <= self._leaf.shape[0] and int(round_tasks.max(initial=0)) <= task_capacity
 
     def _launch_evaluation(self, *, reduce: bool):
+        """Uploads the staged poses, fills the term lists and, with ``reduce``, sums the
+        potential; enqueues the counters (and the sums) for readback."""
+        self._launch_transforms()
         if self.mode != "brute" and len(self.body_pairs):
             self._launch_rounds()
-        if not reduce:
-            return
-        if self.sync_free:
-            self._reduce(self._launch_sizes(None))
-            return
-        counters = self._counters.numpy()
-        if self._lists_fit(counters):  # host-sized: an overflowed traversal is not reduced
-            self._reduce(self._launch_sizes(counters))
+        if reduce:
+            if self.sync_free:
+                self._reduce(self._launch_sizes(None))
+            else:
+                counters = self._counters.numpy()
+                if self._lists_fit(counters):  # host-sized: an overflowed traversal is not reduced
+                    self._reduce(self._launch_sizes(counters))
+            self._readback.enqueue(
+                status=self._seed_status,
+                value=self._total_value,
+                grad=self._total_grad,
+                hess=self._total_hess,
+                separation=self._seed_separation,
+                leaf_iterations=self._leaf_iterations,
+            )
+        self._readback.enqueue(counters=self._counters)
+
+    def _read_counters(self) -> np.ndarray:
+        self._readback.wait()
+        return self._readback.read("counters")
 
     def _fill_lists(self, *, reduce: bool):
         """Term lists at the current poses (and, with ``reduce``, the potential from them),
@@ -480,11 +503,11 @@ class ContactModel:
         the same (any growth drops it): one graph launch instead of ~30 kernel launches."""
         if reduce and self.sync_free and self._graph is not None:
             wp.capture_launch(self._graph)
-            if self._take_counts(self._counters.numpy()):
+            if self._take_counts(self._read_counters()):
                 return
         for _ in range(_MAX_TRAVERSAL_ATTEMPTS):
             self._launch_evaluation(reduce=reduce)
-            counters = self._counters.numpy()
+            counters = self._read_counters()
             if self._take_counts(counters):
                 if reduce and self.sync_free and self.device.is_cuda and self._graph is None:
                     with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
@@ -564,24 +587,25 @@ class ContactModel:
         self._set_poses(self._validated_poses(poses))
         self._fill_lists(reduce=True)
         num_far, num_blend, num_leaf, _ = self._counts
-        status = self._seed_status.numpy()
+        read = self._readback.read
+        status = read("status")
         contact = [tuple(self.names[i] for i in self.body_pairs[s]) for s in np.flatnonzero(status == LeafStatus.CONTACT)]
         unsolved = [tuple(self.names[i] for i in self.body_pairs[s]) for s in np.flatnonzero(status > LeafStatus.CONTACT)]
-        value = float(self._total_value.numpy()[0])
+        value = float(read("value")[0])
         if contact or unsolved:
             value = float("inf")
-        iterations = self._leaf_iterations.numpy()[:num_leaf]
+        iterations = read("leaf_iterations")[:num_leaf]
         return ContactEvaluation(
             value=value,
-            grad=self._total_grad.numpy().copy(),
-            hessian=symmetric_from_upper(self._total_hess),
+            grad=read("grad").copy(),
+            hessian=symmetric_from_upper(read("hess")),
             num_far=num_far,
             num_blend=num_blend,
             num_leaf=num_leaf,
             contact_pairs=contact,
             unsolved_pairs=unsolved,
             mean_leaf_iterations=float(iterations.mean()) if num_leaf else 0.0,
-            pair_separation=self._seed_separation.numpy().copy(),
+            pair_separation=read("separation").copy(),
         )
 
     def advancement_frame(self) -> "AdvancementFrame":
@@ -621,6 +645,8 @@ class ContactModel:
         num_far, num_leaf = frame.num_far, frame.num_leaf
         self._alpha.fill_(1.0)
         if num_far + num_leaf:
+            self._step_host.numpy()[:] = step
+            wp.copy(self._step, self._step_host)
             wp.launch(
                 reduction_kernels.advancement_kernel,
                 dim=num_far + num_leaf,
@@ -636,12 +662,14 @@ class ContactModel:
                     num_far,
                     frame.leaf,
                     frame.leaf_plane,
-                    wp.array(step, dtype=rigid_kernels.vec6d, device=self.device),
+                    self._step,
                 ],
                 outputs=[self._alpha],
                 device=self.device,
             )
-        return float(self._alpha.numpy()[0])
+        self._readback.enqueue(alpha=self._alpha)
+        self._readback.wait()
+        return float(self._readback.read("alpha")[0])
 
     # --- friction -----------------------------------------------------------------------
 
@@ -670,18 +698,50 @@ class ContactModel:
 
     def friction_terms(self, lagged: LaggedFriction):
         """Friction value, (6 nbodies,) gradient and dense Hessian in rigid coordinates at the
-        last evaluated poses."""
-        for arr in (self._friction_value, self._friction_grad, self._friction_hess):
+        last evaluated poses.
+
+        Each lagged pair adds to one of its body pair's ``top_replicas`` records, which
+        ``top_level_kernel`` sums, as for the contact potential's top-level terms: on a GPU
+        all of a body pair's lagged pairs would otherwise contend for the same addresses."""
+        if self._friction_targets is None:
+            self._friction_targets = self._friction_records()
+        targets, (value, grad, hess) = self._friction_targets
+        for arr in (targets.record_value, targets.record_grad, targets.record_hess, value, grad, hess):
             arr.zero_()
-        if lagged.pairs:
-            wp.launch(
-                friction_kernels.friction_energy_kernel,
-                dim=lagged.pairs,
-                inputs=[lagged.friction, lagged.slip_smoothing, self._rotation, self._position, self._body_dynamic, self._seed_body_pair, lagged.data],
-                outputs=[self._friction_value, self._friction_grad, self._friction_hess],
-                device=self.device,
-            )
-        return float(self._friction_value.numpy()[0]), self._friction_grad.numpy().reshape(-1), symmetric_from_upper(self._friction_hess)
+        with wp.ScopedDevice(self.device):
+            if lagged.pairs:
+                wp.launch(
+                    friction_kernels.friction_energy_kernel,
+                    dim=lagged.pairs,
+                    inputs=[lagged.friction, lagged.slip_smoothing, self._rotation, self._position, self._seed_body_pair, lagged.data],
+                    outputs=[targets],
+                )
+                wp.launch(
+                    reduction_kernels.top_level_kernel,
+                    dim=(len(self.body_pairs), reduction_kernels.RECORD_ENTRIES),
+                    inputs=[self._seed_body_pair, targets],
+                    outputs=[value, grad, hess],
+                )
+        self._readback.enqueue(friction_value=value, friction_grad=grad, friction_hess=hess)
+        self._readback.wait()
+        read = self._readback.read
+        return float(read("friction_value")[0]), read("friction_grad").reshape(-1).copy(), symmetric_from_upper(read("friction_hess"))
+
+    def _friction_records(self):
+        """Top-level accumulator records for friction (``top_replicas`` per body pair) and
+        its (value, gradient, upper-triangle Hessian) totals."""
+        n = self.num_bodies
+        records = len(self.body_pairs) * self._top_replicas
+        with wp.ScopedDevice(self.device):
+            targets = reduction_kernels.Targets()
+            targets.record_value = wp.zeros(records, dtype=wp.float64)
+            targets.record_grad = wp.zeros((records, 12), dtype=wp.float64)
+            targets.record_hess = wp.zeros((records, 12, 12), dtype=wp.float64)
+            targets.top_record = 0
+            targets.top_replicas = self._top_replicas
+            targets.body_dynamic = self._body_dynamic
+            totals = (wp.zeros(1, dtype=wp.float64), wp.zeros((n, 6), dtype=wp.float64), wp.zeros((6 * n, 6 * n), dtype=wp.float64))
+        return targets, totals
 
     def friction_adjoint(self, lagged: LaggedFriction, q_next: np.ndarray, q_now: np.ndarray, multiplier: np.ndarray):
         """lambda^T d(grad_q D)/dy of the step's friction D at its solution q_next, for y = q^t

@@ -26,7 +26,7 @@ import warp as wp
 
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
-from ._runtime import paused_tape
+from ._runtime import HostReadback, host_buffer, paused_tape
 from .articulation import joint_limit_energy
 from .contact import LaggedFriction
 from .rotation import quat_conjugate, quat_from_matrix, quat_from_rotation_vector, quat_mul, rotation_vector_from_quat
@@ -142,6 +142,8 @@ class ImplicitSolver:
             self._energy = wp.zeros(n, dtype=wp.float64)
             self._energy_grad = wp.zeros(n, dtype=vec6d)
             self._energy_hess = wp.zeros(n, dtype=dynamics_kernels.mat66d)
+        self._trial_q_host = host_buffer(n, wp.transformd, model.device)
+        self._readback = HostReadback(model.device)
 
     # --- forward ------------------------------------------------------------------------------
 
@@ -171,11 +173,9 @@ class ImplicitSolver:
         """L, its gradient and Hessian over the reduced coordinates, the contact evaluation and
         the articulation Jacobian at ``poses`` (None for free bodies only); ``contact``: the
         contact model's evaluation at ``poses`` when the caller already has it."""
-        if contact is None:
-            contact = self.model.contact.evaluate(poses)
-        if not contact.ok:
-            return np.inf, None, None, contact, None
-        self._trial_q.assign(poses)
+        # The body terms are launched first, so that the contact evaluation's wait covers them.
+        self._trial_q_host.numpy()[:] = poses
+        wp.copy(self._trial_q, self._trial_q_host)
         wp.launch(
             dynamics_kernels.body_energy_kernel,
             dim=self.model.num_bodies,
@@ -183,16 +183,23 @@ class ImplicitSolver:
             outputs=[self._energy, self._energy_grad, self._energy_hess],
             device=self.model.device,
         )
+        self._readback.enqueue(energy=self._energy, energy_grad=self._energy_grad, energy_hess=self._energy_hess)
+        if contact is None:
+            contact = self.model.contact.evaluate(poses)
+        self._readback.wait()
+        if not contact.ok:
+            return np.inf, None, None, contact, None
+        read = self._readback.read
         mu = step_in.mu
-        value = float(self._energy.numpy().sum()) + mu * contact.value
-        grad = self._energy_grad.numpy().reshape(-1) + mu * contact.grad.reshape(-1)
+        value = float(read("energy").sum()) + mu * contact.value
+        grad = read("energy_grad").reshape(-1) + mu * contact.grad.reshape(-1)
         hess = mu * contact.hessian
         if step_in.friction is not None:
             f_value, f_grad, f_hess = self.model.contact.friction_terms(step_in.friction)
             value += f_value
             grad += f_grad
             hess += f_hess
-        blocks = self._energy_hess.numpy()
+        blocks = read("energy_hess")
         for b in np.flatnonzero(self._dynamic):
             hess[6 * b : 6 * b + 6, 6 * b : 6 * b + 6] += blocks[b]
         art = self._articulation
