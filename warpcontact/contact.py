@@ -138,9 +138,8 @@ class TermLists:
 def symmetric_from_upper(upper: np.ndarray) -> np.ndarray:
     """The symmetric matrix whose upper triangle the term kernels accumulated (they add one
     of each pair of mirrored entries: ``kernels/rigid.py``, ``upper_entry``)."""
-    h = upper
-    full = h + h.T
-    full[np.diag_indices_from(full)] = np.diag(h)
+    full = upper + upper.T
+    full[np.diag_indices_from(full)] = np.diag(upper)
     return full
 
 
@@ -706,10 +705,12 @@ class ContactModel:
         if self._friction_targets is None:
             self._friction_targets = self._friction_records()
         targets, (value, grad, hess) = self._friction_targets
-        for arr in (targets.record_value, targets.record_grad, targets.record_hess, value, grad, hess):
+        for arr in (value, grad, hess):
             arr.zero_()
         with wp.ScopedDevice(self.device):
             if lagged.pairs:
+                for arr in (targets.record_value, targets.record_grad, targets.record_hess):
+                    arr.zero_()
                 wp.launch(
                     friction_kernels.friction_energy_kernel,
                     dim=lagged.pairs,
