@@ -312,8 +312,8 @@ class ContactModel:
         self._tasks = self._task_seeds = None
         self._leaf_iterations = self._leaf_plane = None
         self._alpha = wp.zeros(1, dtype=wp.float64, device=self.device)
-        self._record_value = self._record_grad = self._record_hess = None
-        self._friction_targets = None  # allocated by the first friction_terms
+        self._records = None
+        self._friction_records = None  # (records, totals), allocated by the first friction_terms
         if self.mode == "brute":
             self._set_brute_leaf_list()
         else:
@@ -374,12 +374,33 @@ class ContactModel:
         """Accumulator records (``kernels/reduction.py``, ``Targets``): ``count`` blend
         records, then the body pairs' top-level replicas."""
         self._graph = None
-        records = count + len(self.body_pairs) * self._top_replicas
+        self._records = self._new_records(count)
+
+    def _new_records(self, blend_records: int) -> reduction_kernels.Targets:
+        """``blend_records`` blend records, then ``top_replicas`` top-level records per body
+        pair, zeroed."""
+        records = blend_records + len(self.body_pairs) * self._top_replicas
+        t = reduction_kernels.Targets()
         with wp.ScopedDevice(self.device):
-            self._record_value = wp.zeros(records, dtype=wp.float64)
-            self._record_grad = wp.zeros((records, 12), dtype=wp.float64)
-            self._record_hess = wp.zeros((records, 12, 12), dtype=wp.float64)
-        self._top_record = count
+            t.record_value = wp.zeros(records, dtype=wp.float64)
+            t.record_grad = wp.zeros((records, 12), dtype=wp.float64)
+            t.record_hess = wp.zeros((records, 12, 12), dtype=wp.float64)
+        t.top_record = blend_records
+        t.top_replicas = self._top_replicas
+        t.body_dynamic = self._body_dynamic
+        return t
+
+    def _launch_top_level_sum(self, records: reduction_kernels.Targets, totals_out):
+        """Sums the body pairs' top-level records into ``totals_out`` (value, gradient,
+        upper-triangle Hessian), which the caller has zeroed."""
+        if len(self.body_pairs):
+            wp.launch(
+                reduction_kernels.top_level_kernel,
+                dim=(len(self.body_pairs), reduction_kernels.RECORD_ENTRIES),
+                inputs=[self._seed_body_pair, records],
+                outputs=list(totals_out),
+                device=self.device,
+            )
 
     # --- evaluation -------------------------------------------------------------------------
 
@@ -530,22 +551,12 @@ class ContactModel:
         self._traversal_rounds = 1 + int(np.count_nonzero(counters[_ROUND_SLOT:]))
         return True
 
-    def _targets(self):
-        t = reduction_kernels.Targets()
-        t.record_value = self._record_value
-        t.record_grad = self._record_grad
-        t.record_hess = self._record_hess
-        t.top_record = self._top_record
-        t.top_replicas = self._top_replicas
-        t.body_dynamic = self._body_dynamic
-        return t
-
     def _reduce(self, sizes: tuple[int, int, int, int]):
         num_far, num_blend, num_leaf, max_level = sizes
-        for arr in (self._record_value, self._record_grad, self._record_hess, self._total_value, self._total_grad, self._total_hess, self._seed_status):
+        targets = self._records
+        for arr in (targets.record_value, targets.record_grad, targets.record_hess, self._total_value, self._total_grad, self._total_hess, self._seed_status):
             arr.zero_()
         self._seed_separation.fill_(np.inf)
-        targets = self._targets()
         common = [self._rotation, self._position, self._seed_body_pair]
         with wp.ScopedDevice(self.device):
             if num_far:
@@ -569,13 +580,7 @@ class ContactModel:
                     inputs=[self._node_center, self._node_radius, self._node_weight, self.eps, level, *common, self._blend, self._blend_level, self._counters],
                     outputs=[targets],
                 )
-            if len(self.body_pairs):
-                wp.launch(
-                    reduction_kernels.top_level_kernel,
-                    dim=(len(self.body_pairs), reduction_kernels.RECORD_ENTRIES),
-                    inputs=[self._seed_body_pair, targets],
-                    outputs=[self._total_value, self._total_grad, self._total_hess],
-                )
+        self._launch_top_level_sum(targets, (self._total_value, self._total_grad, self._total_hess))
 
     def evaluate(self, poses) -> ContactEvaluation:
         """Potential, gradient and Hessian at ``poses`` (nbodies, 7) = (px, py, pz, qx, qy, qz, qw).
@@ -702,47 +707,29 @@ class ContactModel:
         Each lagged pair adds to one of its body pair's ``top_replicas`` records, which
         ``top_level_kernel`` sums, as for the contact potential's top-level terms: on a GPU
         all of a body pair's lagged pairs would otherwise contend for the same addresses."""
-        if self._friction_targets is None:
-            self._friction_targets = self._friction_records()
-        targets, (value, grad, hess) = self._friction_targets
+        if self._friction_records is None:
+            n = self.num_bodies
+            with wp.ScopedDevice(self.device):
+                totals = (wp.zeros(1, dtype=wp.float64), wp.zeros((n, 6), dtype=wp.float64), wp.zeros((6 * n, 6 * n), dtype=wp.float64))
+            self._friction_records = (self._new_records(0), totals)
+        targets, (value, grad, hess) = self._friction_records
         for arr in (value, grad, hess):
             arr.zero_()
-        with wp.ScopedDevice(self.device):
-            if lagged.pairs:
-                for arr in (targets.record_value, targets.record_grad, targets.record_hess):
-                    arr.zero_()
-                wp.launch(
-                    friction_kernels.friction_energy_kernel,
-                    dim=lagged.pairs,
-                    inputs=[lagged.friction, lagged.slip_smoothing, self._rotation, self._position, self._seed_body_pair, lagged.data],
-                    outputs=[targets],
-                )
-                wp.launch(
-                    reduction_kernels.top_level_kernel,
-                    dim=(len(self.body_pairs), reduction_kernels.RECORD_ENTRIES),
-                    inputs=[self._seed_body_pair, targets],
-                    outputs=[value, grad, hess],
-                )
+        if lagged.pairs:
+            for arr in (targets.record_value, targets.record_grad, targets.record_hess):
+                arr.zero_()
+            wp.launch(
+                friction_kernels.friction_energy_kernel,
+                dim=lagged.pairs,
+                inputs=[lagged.friction, lagged.slip_smoothing, self._rotation, self._position, self._seed_body_pair, lagged.data],
+                outputs=[targets],
+                device=self.device,
+            )
+            self._launch_top_level_sum(targets, (value, grad, hess))
         self._readback.enqueue(friction_value=value, friction_grad=grad, friction_hess=hess)
         self._readback.wait()
         read = self._readback.read
         return float(read("friction_value")[0]), read("friction_grad").reshape(-1).copy(), symmetric_from_upper(read("friction_hess"))
-
-    def _friction_records(self):
-        """Top-level accumulator records for friction (``top_replicas`` per body pair) and
-        its (value, gradient, upper-triangle Hessian) totals."""
-        n = self.num_bodies
-        records = len(self.body_pairs) * self._top_replicas
-        with wp.ScopedDevice(self.device):
-            targets = reduction_kernels.Targets()
-            targets.record_value = wp.zeros(records, dtype=wp.float64)
-            targets.record_grad = wp.zeros((records, 12), dtype=wp.float64)
-            targets.record_hess = wp.zeros((records, 12, 12), dtype=wp.float64)
-            targets.top_record = 0
-            targets.top_replicas = self._top_replicas
-            targets.body_dynamic = self._body_dynamic
-            totals = (wp.zeros(1, dtype=wp.float64), wp.zeros((n, 6), dtype=wp.float64), wp.zeros((6 * n, 6 * n), dtype=wp.float64))
-        return targets, totals
 
     def friction_adjoint(self, lagged: LaggedFriction, q_next: np.ndarray, q_now: np.ndarray, multiplier: np.ndarray):
         """lambda^T d(grad_q D)/dy of the step's friction D at its solution q_next, for y = q^t
