@@ -557,22 +557,60 @@ def test_advancement_lets_a_face_tilt_about_its_resting_edge():
     assert _along_path_ok(model, poses, step, alpha)
 
 
-def test_advancement_keeps_random_steps_apart():
-    """Random rigid steps, large against the gap: every configuration on the bounded path is
-    intersection free and the bound is not vacuous."""
+def test_advancement_clips_a_long_face_to_what_lies_below_it():
+    """A 2 m plank lies 1e-4 m above a 0.1 m cube with its near end over the cube; a step
+    turning it about its centre lowers its far end by 5 cm and raises the end over the cube.
+    Only the part over the cube can touch it, and that part rises, so the whole step is
+    admissible; unclipped, the far end's descent held the step to alpha ~ 0.004."""
+    cube, plank = box((0.1, 0.1, 0.1)), box((2.0, 0.1, 0.1))
+    poses = identity_poses([[0, 0, 0], [0.95, 0, 0.1 + 1e-4]])
+    model = wc.ContactModel([cube, plank], static=[True, False])
+    step = np.zeros((2, 6))
+    step[1, 4] = 0.05  # about +y: the far end (+x) goes down
+    assert model.evaluate(poses).ok
+    alpha = model.advancement_limit(step)
+    assert alpha == 1.0
+    assert _along_path_ok(model, poses, step, alpha)
+    step[1, 4] = -0.05  # the end over the cube goes down: 0.9 of the gap over 5 cm of descent
+    model.evaluate(poses)
+    alpha = model.advancement_limit(step)
+    assert 0.5e-3 < alpha < 2e-3
+    assert _along_path_ok(model, poses, step, alpha)
+
+
+def _place_apart(model, poses, gap):
+    """Moves body 1 along +x (bisection) to where the pair's separation is about ``gap``."""
+    near, far = poses[1, 0], poses[1, 0] + 4.0
+    for _ in range(50):
+        poses[1, 0] = 0.5 * (near + far)
+        result = model.evaluate(poses)
+        if result.ok and result.pair_separation[0] >= gap:
+            far = poses[1, 0]
+        else:
+            near = poses[1, 0]
+    poses[1, 0] = far
+    return poses
+
+
+@pytest.mark.parametrize("shapes", ["sphere-box", "plank-cube"])
+def test_advancement_keeps_random_steps_apart(shapes):
+    """Random rigid steps of random size (up to large against the gap): every configuration on
+    the bounded path is intersection free and the bound is not vacuous. The plank's 2 m slivers
+    next to a 0.1 m cube exercise the clipping of each triangle to what the other can reach."""
     rng = np.random.default_rng(7)
-    model = wc.ContactModel([icosphere(1), box()])
-    for trial in range(6):
+    meshes = [icosphere(1), box()] if shapes == "sphere-box" else [box((0.1, 0.1, 0.1)), box((2.0, 0.1, 0.05))]
+    model = wc.ContactModel(meshes)
+    for trial in range(8):
         gap = 10.0 ** rng.uniform(-4, -1)
-        poses = identity_poses([[0, 0, 0], [1.0 + gap, 0.1, 0.0]])
+        poses = identity_poses([[0, 0, 0], [0.0, 0.1, 0.0]])
         poses[1, 3:] = quat(rng.normal(size=3), rng.uniform(0, np.pi))
-        while not model.evaluate(poses).ok or model.evaluate(poses).pair_separation[0] < 0.5 * gap:
-            poses[1, 0] += gap
+        _place_apart(model, poses, gap)
         step = np.zeros((2, 6))
         step[:, :3] = rng.normal(size=(2, 3)) * 0.2
         step[:, 3:] = rng.normal(size=(2, 3)) * 0.5
         step[0, :3] += [0.3, 0, 0]
         step[1, :3] -= [0.3, 0, 0]  # towards each other
+        step *= 10.0 ** rng.uniform(-3, 0)
         model.evaluate(poses)
         alpha = model.advancement_limit(step)
         assert 0 < alpha <= 1, trial
