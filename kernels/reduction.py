@@ -441,7 +441,7 @@ def top_level_kernel(
 
 _ADVANCEMENT_HALVINGS = wp.constant(60)
 _ADVANCEMENT_BISECTIONS = wp.constant(30)
-_MAX_CORNERS = wp.constant(19)  # 3 vertices + 3 edges x 4 box sides + 4 box edges
+# Candidate corners of a triangle clipped to a box: 3 vertices + 3 edges x 4 sides + 4 box edges.
 corners19 = wp.types.matrix(shape=(19, 3), dtype=wp.float64)
 
 
