@@ -557,6 +557,24 @@ def _front_reach(corners: corners19, count: int, pos: wp.vec3d, direction: wp.ve
 
 
 @wp.func
+def _fronts_reach(
+    corners_a: corners19,
+    count_a: int,
+    pos_a: wp.vec3d,
+    step_a: vec6d,
+    corners_b: corners19,
+    count_b: int,
+    pos_b: wp.vec3d,
+    step_b: vec6d,
+    normal: wp.vec3d,
+    alpha: wp.float64,
+):
+    """Sum of both parts' ``_front_reach`` towards each other (A on the positive side of
+    ``normal``): the fronts stay apart while it stays negative."""
+    return _front_reach(corners_a, count_a, pos_a, -normal, step_a, alpha) + _front_reach(corners_b, count_b, pos_b, normal, step_b, alpha)
+
+
+@wp.func
 def _path_reach(tri: wp.mat33d, pos: wp.vec3d, step: vec6d):
     """Upper bound on how far any point of the triangle moves along the whole rigid step
     (alpha <= 1): |dp| + |dtheta| max |r| (a rotation's chord is at most its arc)."""
@@ -616,17 +634,13 @@ def _axis_advancement(
     corners_b, count_b = _clipped_corners(tb, normal, u, w, _lateral_box(ta, u, w, margin))
     if count_a == 0 or count_b == 0:
         return one  # no point of one triangle can reach the other
-    lead_a = wp.float64(-1.0e308)
-    for i in range(count_a):
-        lead_a = wp.max(lead_a, -wp.dot(corners_a[i], normal))
-    lead_b = wp.float64(-1.0e308)
-    for i in range(count_b):
-        lead_b = wp.max(lead_b, wp.dot(corners_b[i], normal))
-    # The gap is -lead_a - lead_b; the closure at alpha is what the two fronts advance.
+    # Each front's height now (its reach at alpha = 0); the gap is what separates them.
+    lead_a = _front_reach(corners_a, count_a, pos_a, -normal, step_a, zero)
+    lead_b = _front_reach(corners_b, count_b, pos_b, normal, step_b, zero)
     room = fraction * (-lead_a - lead_b) + lead_a + lead_b
     if not (-lead_a - lead_b > zero):
         return zero
-    if _front_reach(corners_a, count_a, pos_a, -normal, step_a, one) + _front_reach(corners_b, count_b, pos_b, normal, step_b, one) <= room:
+    if _fronts_reach(corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, one) <= room:
         return one
     # Halve until the closure fits, then refine by bisection to within 1e-9 of alpha. A coarser
     # alpha (1%) was cheaper, but it made the Newton path, and with it the converged state
@@ -637,7 +651,7 @@ def _axis_advancement(
     for _it in range(_ADVANCEMENT_HALVINGS):
         if lo == zero:
             mid = wp.float64(0.5) * hi
-            if _front_reach(corners_a, count_a, pos_a, -normal, step_a, mid) + _front_reach(corners_b, count_b, pos_b, normal, step_b, mid) <= room:
+            if _fronts_reach(corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, mid) <= room:
                 lo = mid
             else:
                 hi = mid
@@ -645,7 +659,7 @@ def _axis_advancement(
         return zero
     for _it in range(_ADVANCEMENT_BISECTIONS):
         mid = wp.float64(0.5) * (lo + hi)
-        if _front_reach(corners_a, count_a, pos_a, -normal, step_a, mid) + _front_reach(corners_b, count_b, pos_b, normal, step_b, mid) <= room:
+        if _fronts_reach(corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, mid) <= room:
             lo = mid
         else:
             hi = mid
