@@ -103,6 +103,26 @@ def test_friction_replicas_give_the_same_terms(mode):
     np.testing.assert_array_equal(hess, hess.T)
 
 
+@pytest.mark.parametrize("mode", ["bsh", "sdrs", "ipc"])
+def test_friction_terms_at_given_poses_leave_the_last_evaluation_alone(mode):
+    # The solver's friction-exact Newton model evaluates friction at trial poses between
+    # contact evaluations; later advancement bounds and friction terms still need q's.
+    model = box_on_ground(mode, gap=0.004)
+    poses = model.initial_q
+    lagged = lagged_friction(model, poses)
+    contact = model.contact
+    contact.evaluate(slid(poses, 0.01))
+    at_evaluation = contact.friction_terms(lagged)
+    elsewhere = contact.friction_terms(lagged, poses=slid(poses, 0.02))
+    after = contact.friction_terms(lagged)
+    contact.evaluate(slid(poses, 0.02))
+    evaluated_there = contact.friction_terms(lagged)
+    assert lagged.pairs > 0 and 0 < at_evaluation[0] < elsewhere[0]
+    # ipctk sums on worker threads: its last bits vary from call to call.
+    for a, b in (*zip(at_evaluation, after), *zip(elsewhere, evaluated_there)):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-13 * np.abs(b).max())
+
+
 def test_sdrs_normal_forces_are_the_barrier_forces():
     model = box_on_ground("sdrs", gap=0.004)
     poses = model.initial_q

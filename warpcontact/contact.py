@@ -291,6 +291,9 @@ class ContactModel:
             self._step = wp.empty(self.num_bodies, dtype=rigid_kernels.vec6d)
             self._rotation = wp.empty(self.num_bodies, dtype=wp.mat33d)
             self._position = wp.empty(self.num_bodies, dtype=wp.vec3d)
+            self._friction_pose = wp.empty(self.num_bodies, dtype=wp.transformd)
+            self._friction_rotation = wp.empty(self.num_bodies, dtype=wp.mat33d)
+            self._friction_position = wp.empty(self.num_bodies, dtype=wp.vec3d)
             # The traversal ends within max_depth + 1 rounds (kernels/traversal.py): one task
             # counter per round.
             self._counters = wp.zeros(_ROUND_SLOT + max_depth + 1, dtype=wp.int32)
@@ -302,6 +305,7 @@ class ContactModel:
         # Uploads go through host buffers and results come back through one readback, so
         # an evaluation waits for the device once (and a CUDA graph holds the copies).
         self._pose_host = host_buffer(self.num_bodies, wp.transformd, self.device)
+        self._friction_pose_host = host_buffer(self.num_bodies, wp.transformd, self.device)
         self._step_host = host_buffer(self.num_bodies, rigid_kernels.vec6d, self.device)
         self._readback = HostReadback(self.device)
         # Node pairs one traversal thread visits per round (tests lower it to force rounds).
@@ -314,6 +318,7 @@ class ContactModel:
         self._alpha = wp.zeros(1, dtype=wp.float64, device=self.device)
         self._records = None
         self._friction_records = None  # (records, totals), allocated by the first friction_terms
+        self._friction_graphs = (None, {})  # (the lagged frame they belong to, {at_poses: graph})
         if self.mode == "brute":
             self._set_brute_leaf_list()
         else:
@@ -700,36 +705,61 @@ class ContactModel:
                 )
         return LaggedFriction(pairs=count, mu=float(mu), friction=friction, slip_smoothing=float(slip_smoothing), data=frame)
 
-    def friction_terms(self, lagged: LaggedFriction):
+    def friction_terms(self, lagged: LaggedFriction, *, poses: np.ndarray | None = None):
         """Friction value, (6 nbodies,) gradient and dense Hessian in rigid coordinates at the
-        last evaluated poses.
+        last evaluated poses, or at ``poses`` (nbodies, 7), which leaves the term lists and
+        transforms of the last evaluation untouched.
 
         Each lagged pair adds to one of its body pair's ``top_replicas`` records, which
         ``top_level_kernel`` sums, as for the contact potential's top-level terms: on a GPU
-        all of a body pair's lagged pairs would otherwise contend for the same addresses."""
+        all of a body pair's lagged pairs would otherwise contend for the same addresses.
+        Sync-free on a GPU, the launches are captured into a CUDA graph per lagged frame and
+        kind of call, which its later calls replay: a step with friction calls this once per
+        trial and per iteration of the solver's friction-exact model."""
         if self._friction_records is None:
             n = self.num_bodies
             with wp.ScopedDevice(self.device):
                 totals = (wp.zeros(1, dtype=wp.float64), wp.zeros((n, 6), dtype=wp.float64), wp.zeros((6 * n, 6 * n), dtype=wp.float64))
             self._friction_records = (self._new_records(0), totals)
+        at_poses = poses is not None
+        if at_poses:
+            self._friction_pose_host.numpy()[:] = poses
+        if self._friction_graphs[0] is not lagged.data:
+            self._friction_graphs = (lagged.data, {})
+        graphs = self._friction_graphs[1]
+        if at_poses in graphs:
+            wp.capture_launch(graphs[at_poses])
+        else:
+            self._launch_friction_terms(lagged, at_poses)
+            if self.sync_free and self.device.is_cuda:
+                with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                    self._launch_friction_terms(lagged, at_poses)
+                graphs[at_poses] = capture.graph
+        self._readback.wait()
+        read = self._readback.read
+        return float(read("friction_value")[0]), read("friction_grad").reshape(-1).copy(), symmetric_from_upper(read("friction_hess"))
+
+    def _launch_friction_terms(self, lagged: LaggedFriction, at_poses: bool):
         targets, (value, grad, hess) = self._friction_records
         for arr in (value, grad, hess):
             arr.zero_()
+        rotation, position = self._rotation, self._position
+        if at_poses:
+            rotation, position = self._friction_rotation, self._friction_position
+            wp.copy(self._friction_pose, self._friction_pose_host)
+            wp.launch(rigid_kernels.body_transforms_kernel, dim=self.num_bodies, inputs=[self._friction_pose], outputs=[rotation, position], device=self.device)
         if lagged.pairs:
             for arr in (targets.record_value, targets.record_grad, targets.record_hess):
                 arr.zero_()
             wp.launch(
                 friction_kernels.friction_energy_kernel,
                 dim=lagged.pairs,
-                inputs=[lagged.friction, lagged.slip_smoothing, self._rotation, self._position, self._seed_body_pair, lagged.data],
+                inputs=[lagged.friction, lagged.slip_smoothing, rotation, position, self._seed_body_pair, lagged.data],
                 outputs=[targets],
                 device=self.device,
             )
             self._launch_top_level_sum(targets, (value, grad, hess))
         self._readback.enqueue(friction_value=value, friction_grad=grad, friction_hess=hess)
-        self._readback.wait()
-        read = self._readback.read
-        return float(read("friction_value")[0]), read("friction_grad").reshape(-1).copy(), symmetric_from_upper(read("friction_hess"))
 
     def friction_adjoint(self, lagged: LaggedFriction, q_next: np.ndarray, q_now: np.ndarray, multiplier: np.ndarray):
         """lambda^T d(grad_q D)/dy of the step's friction D at its solution q_next, for y = q^t

@@ -193,18 +193,19 @@ class IpcContactModel:
         data = _IpcLaggedFriction(collisions, self._world.copy(), normal_potential, ipctk.FrictionPotential(float(slip_smoothing)))
         return LaggedFriction(pairs=len(collisions), mu=float(mu), friction=friction, slip_smoothing=float(slip_smoothing), data=data)
 
-    def friction_terms(self, lagged: LaggedFriction):
+    def friction_terms(self, lagged: LaggedFriction, *, poses: np.ndarray | None = None):
         """Friction value, (6 nbodies,) gradient and dense Hessian in rigid coordinates at the
-        last evaluated poses."""
+        last evaluated poses, or at ``poses`` (see ``ContactModel.friction_terms``)."""
         n = self.num_bodies
         data = lagged.data
         if not lagged.pairs:
             return 0.0, np.zeros(6 * n), np.zeros((6 * n, 6 * n))
-        slip = self._world - data.lagged_vertices
+        world, positions = (self._world, self._positions) if poses is None else (self._world_vertices(poses), poses[:, :3])
+        slip = world - data.lagged_vertices
         value = float(data.potential(data.collisions, self._mesh, slip))
         g = data.potential.gradient(data.collisions, self._mesh, slip).reshape(-1, 3)
         H = data.potential.hessian(data.collisions, self._mesh, slip)
-        grad, hess = self._rigid_terms(self._world, self._positions, g, H)
+        grad, hess = self._rigid_terms(world, positions, g, H)
         return value, grad.reshape(-1), hess
 
     def friction_adjoint(self, lagged: LaggedFriction, q_next: np.ndarray, q_now: np.ndarray, multiplier: np.ndarray):
