@@ -211,6 +211,37 @@ def test_rolling_faceted_ball_takes_ordinary_newton_steps():
     assert max(iterations) < 60 and np.mean(iterations) < 30, iterations
     assert all(model.contact.evaluate(x).ok for x in q)
 
+def test_friction_exact_newton_steps_reach_the_same_solution_in_fewer_iterations():
+    """A box and a ball slide on a grid and brake to a stop: slips cross the smoothing length
+    v_eps dt, where the friction term's quadratic model overshoots. Directions that minimise
+    a model with the friction term exact converge to the same steps (within the solver's
+    tolerance) in about two thirds of the Newton iterations (measured: 206 -> 132)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-6, friction=0.5)
+    b.add_body(grid_ground(4.0), static=True, name="ground")
+    b.add_box((0.4, 0.4, 0.4), density=500.0, name="box", pose=(-0.5, 0.1, 0.201, 0.0, 0.0, 0.0, 1.0))
+    b.add_sphere(0.2, subdivisions=1, density=300.0, name="ball", pose=(0.5, -0.3, 0.203, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    dt = 0.02
+    first = model.state(requires_grad=False)
+    wc.set_body_velocity(first, wp.array([[0.0, 0.0, 0.0], [1.2, 0.3, 0.0], [-1.0, 0.5, 0.0]], dtype=wp.vec3d), wp.zeros(3, dtype=wp.vec3d), dt)
+    assert wc.ImplicitSolver(model).exact_friction_steps  # the CPU default
+    runs = {}
+    for exact in (False, True):
+        solver = wc.ImplicitSolver(model, exact_friction_steps=exact)
+        states, iterations = [first], []
+        for _ in range(16):
+            states.append(model.state(requires_grad=False))
+            solver.step(states[-2], states[-1], None, dt)
+            iterations.append(solver.last_step.iterations)
+        runs[exact] = (np.array([s.body_q.numpy() for s in states]), iterations)
+        assert solver.last_step.friction_pairs > 0
+    (plain, plain_iterations), (exact, exact_iterations) = runs[False], runs[True]
+    assert np.linalg.norm(plain[-1, 1, :3] - plain[0, 1, :3]) > 0.1  # it slid
+    assert np.linalg.norm(plain[-1, 1, :3] - plain[-2, 1, :3]) < 1e-4  # and stopped
+    np.testing.assert_allclose(exact, plain, rtol=0, atol=1e-8)
+    assert sum(exact_iterations) < 0.8 * sum(plain_iterations), (exact_iterations, plain_iterations)
+
+
 def test_newton_starts_from_the_inertial_prediction():
     """Coasting bodies are already solved at the warm start: one iteration confirms it (a
     start at q^t took 3). A box creeping down an incline below the friction angle is nearly
