@@ -172,6 +172,8 @@ class ImplicitSolver:
             self._energy_hess = wp.zeros(n, dtype=dynamics_kernels.mat66d)
         self._trial_q_host = host_buffer(n, wp.transformd, model.device)
         self._readback = HostReadback(model.device)
+        # (poses, value, gradient, Hessian) of the friction term at the last evaluation.
+        self._friction_at_evaluation = None
 
     # --- forward ------------------------------------------------------------------------------
 
