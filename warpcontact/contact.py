@@ -429,9 +429,10 @@ class ContactModel:
         """Stages ``poses`` for the next ``_launch_evaluation`` (which uploads them)."""
         self._pose_host.numpy()[:] = poses
 
-    def _launch_transforms(self):
-        wp.copy(self._pose, self._pose_host)
-        wp.launch(rigid_kernels.body_transforms_kernel, dim=self.num_bodies, inputs=[self._pose], outputs=[self._rotation, self._position], device=self.device)
+    def _launch_transforms(self, pose_host: wp.array, pose: wp.array, rotation_out: wp.array, position_out: wp.array):
+        """Uploads staged poses and computes the bodies' rotations and positions from them."""
+        wp.copy(pose, pose_host)
+        wp.launch(rigid_kernels.body_transforms_kernel, dim=self.num_bodies, inputs=[pose], outputs=[rotation_out, position_out], device=self.device)
 
     def _launch_rounds(self):
         """Traversal rounds (``kernels/traversal.py``) at the current poses into the term lists.
@@ -495,7 +496,7 @@ class ContactModel:
     def _launch_evaluation(self, *, reduce: bool):
         """Uploads the staged poses, fills the term lists and, with ``reduce``, sums the
         potential; enqueues the counters (and the sums) for readback."""
-        self._launch_transforms()
+        self._launch_transforms(self._pose_host, self._pose, self._rotation, self._position)
         if self.mode != "brute" and len(self.body_pairs):
             self._launch_rounds()
         if reduce:
@@ -746,8 +747,7 @@ class ContactModel:
         rotation, position = self._rotation, self._position
         if at_poses:
             rotation, position = self._friction_rotation, self._friction_position
-            wp.copy(self._friction_pose, self._friction_pose_host)
-            wp.launch(rigid_kernels.body_transforms_kernel, dim=self.num_bodies, inputs=[self._friction_pose], outputs=[rotation, position], device=self.device)
+            self._launch_transforms(self._friction_pose_host, self._friction_pose, rotation, position)
         if lagged.pairs:
             for arr in (targets.record_value, targets.record_grad, targets.record_hess):
                 arr.zero_()
