@@ -7,14 +7,14 @@ regenerate them. Shapes are made here, not downloaded:
 - balls: convex hulls of N Fibonacci points on a sphere of radius 0.5 m (2N - 4 faces),
   the construction of the paper's "sphere meshes with uniformly distributed points":
   N = 18, 42, 82, 196 give 32, 80, 160, 388 faces, i.e. 512, 1280, 2560, 6208 triangles for
-  16 balls; each ball rests on a face (``rest_on_face``), 1 mm above the ground;
+  16 balls; each ball rests on its most stable face (``rest_on_face``), 1 mm above the
+  ground;
 - the bunny: warp-lang's bundled ``bunny.usd`` (12,200 triangles), scaled to 0.3 m,
   decimated by vertex clustering (``decimate``) to about 270 triangles; its mass
   properties come from the original closed mesh;
 - grounds: static grids of 0.5 m squares (a coarse ground lets the plane potential push
-  bodies sideways; docs/architecture.md).
-
-Ant-Push needs articulated bodies (the articulations issue) and is not built yet.
+  bodies sideways; docs/architecture.md);
+- the ant (Ant-Push): ``robots.ant_description``.
 """
 
 from __future__ import annotations
@@ -79,16 +79,41 @@ def fibonacci_ball(num_points: int, radius: float = 0.5) -> tuple[np.ndarray, np
 
 
 def rest_on_face(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float]:
-    """Rotate a convex mesh about its origin so the face most nearly facing down lies flat at
+    """Rotate a closed convex mesh about its origin so that its most stable face lies flat at
     the bottom; returns the rotated vertices and the origin's height above that face.
 
-    A ball resting on a vertex must tip onto a face in its first steps, which costs the
-    implicit solver hundreds of Newton iterations; starting on a face avoids that transient.
+    A face is stable when the centre of mass (uniform density) projects inside it along its
+    normal; the most stable face keeps that projection farthest from its nearest edge. A
+    ball standing on a vertex, or on a face that its centre of mass overhangs, tips over in
+    its first steps: rolling motion the scene did not ask for, and extra Newton iterations.
+    The face most nearly facing down is not always stable: on the Fibonacci balls it is a
+    small triangle near the pole whose edge the centre of mass overhangs by 1-2 cm.
+
+    Args:
+        vertices: (nv, 3) points (m).
+        faces: (nf, 3) outward-oriented triangles of a closed convex surface.
+
+    Raises ValueError for a mesh that is not closed, outward-oriented and convex (every
+    such mesh has a stable face: the one nearest its centre of mass).
     """
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    if not (mesh.is_watertight and mesh.volume > 0):
+        raise ValueError(f"not a closed, outward-oriented surface (watertight: {mesh.is_watertight}, volume {mesh.volume:.3g} m^3)")
     tri = vertices[faces]
     normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    n = normals[np.argmin(normals[:, 2])]
+    height = (vertices[None, :, :] - tri[:, None, 0]) @ normals[:, :, None]
+    if height.max() > 1e-9 * np.ptp(vertices, axis=0).max():
+        raise ValueError(f"not convex: a vertex lies {height.max():.3g} m outside a face's plane")
+    com = mesh.center_mass
+    foot = com - np.einsum("fi,fi->f", com - tri[:, 0], normals)[:, None] * normals
+    margin = np.full(len(faces), np.inf)
+    for k in range(3):
+        edge = tri[:, (k + 1) % 3] - tri[:, k]
+        inward = np.cross(normals, edge)
+        inward /= np.linalg.norm(inward, axis=1, keepdims=True)
+        margin = np.minimum(margin, np.einsum("fi,fi->f", foot - tri[:, k], inward))
+    n = normals[int(np.argmax(margin))]
     down = np.array([0.0, 0.0, -1.0])
     axis = np.cross(n, down)
     sin, cos = np.linalg.norm(axis), float(np.dot(n, down))
