@@ -31,7 +31,7 @@ import warp as wp
 
 from .blend import quintic_blend
 from .leaf import LEAF_OK, leaf_barrier, leaf_plane_sensitivity, pair_solve_from_plane
-from .reduction import Targets, add_record_gradient, add_record_hessian_block, add_record_value, target_record
+from .reduction import Targets, add_record_gradient, add_record_value, add_term_hessian_block, target_record
 from .rigid import rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
 
 wp.set_module_options({"enable_backward": False})
@@ -192,7 +192,7 @@ def friction_energy_kernel(
                 for i in range(3):
                     for j in range(3):
                         block[3 + i, 3 + j] = block[3 + i, 3 + j] + curv[i, j]
-            add_record_hessian_block(targets, record, side, side_c, block)
+            add_term_hessian_block(targets, -1, seed, tid, side, side_c, block)
 
 
 @wp.kernel

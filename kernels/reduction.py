@@ -1,24 +1,29 @@
 """Term evaluation and the bottom-up blend reduction of P_BSH, in rigid-body coordinates.
 
 Every term of a body pair (a, b) is differentiated with respect to the 12 coordinates
-(dp_a, dtheta_a, dp_b, dtheta_b) and added to its record (``Targets``): the accumulator of
-its enclosing blend record, or, at top level, one of its body pair's replicated top-level
-records, which ``top_level_kernel`` finally sums into the scene totals (value, (nbodies, 6)
-gradient and dense (6 nbodies)^2 Hessian; static bodies receive nothing). A static body's Hessian blocks are
-not even formed: entry (i, j) of every formula below reads only entries i and j, so a
-static row or column only ever flows into static rows and columns. Hessians are symmetric,
-so only their upper triangles are accumulated (78 of 144 atomic adds per term; atomic
-adds bound these kernels on a GPU); the reader mirrors the scene total
-(``warpcontact.contact.symmetric_from_upper``), and a blend record reads only the
-upper triangle of its own accumulator. Blend records are then
-resolved from the deepest nesting level up, each applying
+(dp_a, dtheta_a, dp_b, dtheta_b). Its value and gradient are added to its record
+(``Targets``): the accumulator of its enclosing blend record, or, at top level, one of its
+body pair's replicated top-level records, which ``top_level_kernel`` finally sums into the
+scene totals (value, (nbodies, 6) gradient and dense (6 nbodies)^2 Hessian; static bodies
+receive nothing). Blend records are resolved from the deepest nesting level up, each
+applying
 
     B       = (1 - phi) S + phi P_c
     grad B  = (1 - phi) grad S + phi grad P_c + (P_c - S) grad phi
     hess B  = (1 - phi) hess S + phi hess P_c + grad phi (grad P_c - grad S)^T
               + (grad P_c - grad S) grad phi^T + (P_c - S) hess phi
 
-to the exact sum S of its children, and adding B to its own target.
+to the exact sum S of its children, and adding B to its own target. hess B is linear in
+hess S, so Hessians skip the blend records: a term's Hessian reaches the total multiplied
+by the product of (1 - phi) over its enclosing blend records (``blend_weight_kernel``,
+``record_weight``), and each blend record adds the rest of hess B (its own terms) with its
+parent's weight. Every Hessian therefore goes straight into a top-level record, and blend
+records carry 13 numbers instead of 157. A static body's Hessian blocks are not even
+formed: entry (i, j) of every formula above reads only entries i and j, so a static row or
+column only ever flows into static rows and columns. Hessians are symmetric, so only their
+upper triangles are accumulated (78 of 144 atomic adds per term; atomic adds bound these
+kernels on a GPU); the reader mirrors the scene total
+(``warpcontact.contact.symmetric_from_upper``).
 
 Centred weights: every centred term (a far term, or P_c inside a blend) of the node pair
 (I, J) is multiplied by ``node_weight[I] * node_weight[J]``. The paper's model uses weight 1
@@ -41,21 +46,25 @@ from .traversal import COUNTER_BLEND, COUNTER_FAR, COUNTER_LEAF, listed
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["RECORD_ENTRIES", "Targets", "add_record_gradient", "add_record_hessian_block", "add_record_value", "target_record", "far_term_kernel", "leaf_term_kernel", "blend_level_kernel", "top_level_kernel", "advancement_kernel"]
+__all__ = ["RECORD_ENTRIES", "Targets", "add_record_gradient", "add_term_hessian_block", "add_record_value", "target_record", "blend_weight_kernel", "far_term_kernel", "leaf_term_kernel", "blend_level_kernel", "top_level_kernel", "advancement_kernel"]
 
 
 @wp.struct
 class Targets:
-    """Accumulator records that terms add to. Records below ``top_record`` are the blend
-    records (same index as the blend list); from ``top_record`` on, each body pair (seed)
-    owns ``top_replicas`` records for its top-level terms, which ``top_level_kernel`` sums
-    into the scene totals. Replicas spread the atomic adds of a body pair's top-level terms
-    (e.g. 113k top-level blend records over 136 body pairs at 6,208 triangles), which would
-    otherwise all contend for the same few hundred addresses on a GPU."""
+    """Accumulator records that terms add to. Value and gradient records below
+    ``top_record`` are the blend records (same index as the blend list); from ``top_record``
+    on, each body pair (seed) owns ``top_replicas`` records for its top-level terms, which
+    ``top_level_kernel`` sums into the scene totals. Hessian records exist at top level only
+    (``record_hess[seed * top_replicas + replica]``); ``record_weight[r]`` is the product of
+    (1 - phi) over blend record r and its enclosing ones. Replicas spread the atomic adds of
+    a body pair's terms (e.g. 113k top-level blend records over 136 body pairs at 6,208
+    triangles), which would otherwise all contend for the same few hundred addresses on a
+    GPU."""
 
     record_value: wp.array(dtype=wp.float64)
     record_grad: wp.array2d(dtype=wp.float64)
     record_hess: wp.array3d(dtype=wp.float64)
+    record_weight: wp.array(dtype=wp.float64)
     top_record: int
     top_replicas: int
     body_dynamic: wp.array(dtype=wp.int32)
@@ -91,16 +100,22 @@ def add_record_gradient(t: Targets, record: int, pair: wp.vec2i, side: int, g: v
 
 
 @wp.func
-def add_record_hessian_block(t: Targets, record: int, side_r: int, side_c: int, h: mat66d):
-    """Adds block (side_r, side_c) of a term's symmetric 12x12 Hessian to the upper triangle
-    of its record (``upper_entry``, the two sides in place of bodies). Callers pass the
-    dynamic sides' diagonal blocks and block (0, 1); block (1, 0) is its transpose and is
-    never added."""
+def add_term_hessian_block(t: Targets, parent: int, seed: int, tid: int, side_r: int, side_c: int, h: mat66d):
+    """Adds block (side_r, side_c) of the symmetric 12x12 Hessian of a term inside blend
+    record ``parent`` (-1: top level), times the weight it keeps up to the top level, to the
+    upper triangle (``upper_entry``, the two sides in place of bodies) of one of its body
+    pair's top-level Hessian records (chosen by thread, as ``target_record``). Callers pass
+    the dynamic sides' diagonal blocks and block (0, 1); block (1, 0) is its transpose and
+    is never added."""
+    weight = wp.float64(1.0)
+    if parent >= 0:
+        weight = t.record_weight[parent]
+    record = seed * t.top_replicas + tid % t.top_replicas
     for i in range(6):
         for j in range(6):
             row, col = upper_entry(side_r, side_c, i, j)
             if row >= 0:
-                wp.atomic_add(t.record_hess, record, row, col, h[i, j])
+                wp.atomic_add(t.record_hess, record, row, col, weight * h[i, j])
 
 
 @wp.func
@@ -202,12 +217,12 @@ def far_term_kernel(
     dynamic_a = targets.body_dynamic[pair[0]] != 0
     dynamic_b = targets.body_dynamic[pair[1]] != 0
     if dynamic_a:
-        add_record_hessian_block(targets, record, 0, 0, second * wp.outer(ga, ga) + first * haa)
+        add_term_hessian_block(targets, item[2], item[3], wp.tid(), 0, 0, second * wp.outer(ga, ga) + first * haa)
     if dynamic_a and dynamic_b:
         cross = second * wp.outer(ga, gb) + first * hab
-        add_record_hessian_block(targets, record, 0, 1, cross)
+        add_term_hessian_block(targets, item[2], item[3], wp.tid(), 0, 1, cross)
     if dynamic_b:
-        add_record_hessian_block(targets, record, 1, 1, second * wp.outer(gb, gb) + first * hbb)
+        add_term_hessian_block(targets, item[2], item[3], wp.tid(), 1, 1, second * wp.outer(gb, gb) + first * hbb)
 
 
 mat64d = wp.types.matrix(shape=(6, 4), dtype=wp.float64)
@@ -306,13 +321,60 @@ def leaf_term_kernel(
     if dynamic_a:
         g, coupling_a, own = _leaf_rigid_side(sol, 0, ta, pos_a)
         add_record_gradient(targets, record, pair, 0, g)
-        add_record_hessian_block(targets, record, 0, 0, own - coupling_a * sol.lpp_inv * wp.transpose(coupling_a))
+        add_term_hessian_block(targets, item[2], seed, tid, 0, 0, own - coupling_a * sol.lpp_inv * wp.transpose(coupling_a))
     if dynamic_b:
         g, coupling_b, own = _leaf_rigid_side(sol, 1, tb, pos_b)
         add_record_gradient(targets, record, pair, 1, g)
-        add_record_hessian_block(targets, record, 1, 1, own - coupling_b * sol.lpp_inv * wp.transpose(coupling_b))
+        add_term_hessian_block(targets, item[2], seed, tid, 1, 1, own - coupling_b * sol.lpp_inv * wp.transpose(coupling_b))
     if dynamic_a and dynamic_b:
-        add_record_hessian_block(targets, record, 0, 1, -(coupling_a * sol.lpp_inv * wp.transpose(coupling_b)))
+        add_term_hessian_block(targets, item[2], seed, tid, 0, 1, -(coupling_a * sol.lpp_inv * wp.transpose(coupling_b)))
+
+
+@wp.func
+def _blend_keep(
+    node_center: wp.array(dtype=wp.vec3d),
+    node_radius: wp.array(dtype=wp.float64),
+    eps: wp.float64,
+    item: wp.vec4i,
+    pair: wp.vec2i,
+    body_rotation: wp.array(dtype=wp.mat33d),
+    body_position: wp.array(dtype=wp.vec3d),
+):
+    """1 - phi of a blend record: the share of its children's sum S that B keeps."""
+    ci, cj = _world_centres(node_center, item[0], item[1], pair, body_rotation, body_position)
+    d1 = node_radius[item[0]] + node_radius[item[1]]
+    phi, _, _ = quintic_blend((wp.length(ci - cj) - d1) / (eps * d1))
+    return wp.float64(1.0) - phi
+
+
+@wp.kernel
+def blend_weight_kernel(
+    # Model:
+    node_center: wp.array(dtype=wp.vec3d),
+    node_radius: wp.array(dtype=wp.float64),
+    eps: wp.float64,
+    # Data in:
+    body_rotation: wp.array(dtype=wp.mat33d),
+    body_position: wp.array(dtype=wp.vec3d),
+    seed_body_pair: wp.array(dtype=wp.vec2i),
+    blend_items: wp.array(dtype=wp.vec4i),
+    counters: wp.array(dtype=wp.int32),
+    # Data out:
+    targets: Targets,
+):
+    """record_weight[r]: the product of 1 - phi over blend record r and the records that
+    enclose it (walked up the parent links; a chain is as long as the blend nesting)."""
+    record = wp.tid()
+    if record >= listed(counters, COUNTER_BLEND, blend_items.shape[0]):
+        return
+    pair = seed_body_pair[blend_items[record][3]]
+    weight = wp.float64(1.0)
+    current = record
+    while current >= 0 and current < targets.top_record:
+        item = blend_items[current]
+        weight *= _blend_keep(node_center, node_radius, eps, item, pair, body_rotation, body_position)
+        current = item[2]
+    targets.record_weight[record] = weight
 
 
 @wp.kernel
@@ -382,13 +444,9 @@ def blend_level_kernel(
                     gdj = _pick12(ga, gb, j)
                     dgj = pc1 * gdj - targets.record_grad[record, j]
                     hd = _pick1212(haa, hab, hbb, i, j)
-                    block[ii, jj] = (
-                        (one - phi) * targets.record_hess[record, i, j]
-                        + phi * (pc2 * gdi * gdj + pc1 * hd)
-                        + phi1 * (gdi * dgj + dgi * gdj)
-                        + (pc - s) * (phi2 * gdi * gdj + phi1 * hd)
-                    )
-            add_record_hessian_block(targets, target, side_r, side_c, block)
+                    # (1 - phi) hess S reached the top level with the children's weights.
+                    block[ii, jj] = phi * (pc2 * gdi * gdj + pc1 * hd) + phi1 * (gdi * dgj + dgi * gdj) + (pc - s) * (phi2 * gdi * gdj + phi1 * hd)
+            add_term_hessian_block(targets, item[2], item[3], record, side_r, side_c, block)
 
 
 # Entries of an accumulator record: the value, 12 gradient entries, the 12x12 Hessian.
@@ -434,7 +492,7 @@ def top_level_kernel(
     if j < i or targets.body_dynamic[body_r] == 0 or targets.body_dynamic[body_c] == 0:
         return  # records hold upper triangles only
     for r in range(targets.top_replicas):
-        total += targets.record_hess[first + r, i, j]
+        total += targets.record_hess[seed * targets.top_replicas + r, i, j]
     row, col = upper_entry(body_r, body_c, i % 6, j % 6)
     wp.atomic_add(total_hess_out, row, col, total)
 

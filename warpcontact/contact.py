@@ -382,14 +382,15 @@ class ContactModel:
         self._records = self._new_records(count)
 
     def _new_records(self, blend_records: int) -> reduction_kernels.Targets:
-        """``blend_records`` blend records, then ``top_replicas`` top-level records per body
-        pair, zeroed."""
-        records = blend_records + len(self.body_pairs) * self._top_replicas
+        """``blend_records`` blend records (value, gradient, weight), then ``top_replicas``
+        top-level records per body pair (value, gradient, Hessian), zeroed."""
+        top = len(self.body_pairs) * self._top_replicas
         t = reduction_kernels.Targets()
         with wp.ScopedDevice(self.device):
-            t.record_value = wp.zeros(records, dtype=wp.float64)
-            t.record_grad = wp.zeros((records, 12), dtype=wp.float64)
-            t.record_hess = wp.zeros((records, 12, 12), dtype=wp.float64)
+            t.record_value = wp.zeros(blend_records + top, dtype=wp.float64)
+            t.record_grad = wp.zeros((blend_records + top, 12), dtype=wp.float64)
+            t.record_hess = wp.zeros((top, 12, 12), dtype=wp.float64)
+            t.record_weight = wp.zeros(blend_records, dtype=wp.float64)
         t.top_record = blend_records
         t.top_replicas = self._top_replicas
         t.body_dynamic = self._body_dynamic
@@ -565,6 +566,13 @@ class ContactModel:
         self._seed_separation.fill_(np.inf)
         common = [self._rotation, self._position, self._seed_body_pair]
         with wp.ScopedDevice(self.device):
+            if num_blend:
+                wp.launch(
+                    reduction_kernels.blend_weight_kernel,
+                    dim=num_blend,
+                    inputs=[self._node_center, self._node_radius, self.eps, *common, self._blend, self._counters],
+                    outputs=[targets],
+                )
             if num_far:
                 wp.launch(
                     reduction_kernels.far_term_kernel,
