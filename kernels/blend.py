@@ -8,7 +8,7 @@ import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["centered_potential", "quintic_blend", "centered_potential_kernel", "quintic_blend_kernel"]
+__all__ = ["centered_potential", "quintic_blend", "shell_blend", "centered_potential_kernel", "quintic_blend_kernel"]
 
 
 @wp.func
@@ -39,6 +39,16 @@ def quintic_blend(s: wp.float64):
     first = wp.float64(30.0) * s2 * (one - s) * (one - s)
     second = wp.float64(60.0) * s * (one - s) * (one - wp.float64(2.0) * s)
     return value, first, second
+
+
+@wp.func
+def shell_blend(dist: wp.float64, d1: wp.float64, eps: wp.float64):
+    """Phi of a node pair whose bounding spheres (radii summing to d1) have centres ``dist``
+    apart, blended across the shell d1 <= dist <= (1 + eps) d1, and its first two
+    derivatives in dist."""
+    width = eps * d1
+    phi, dphi, ddphi = quintic_blend((dist - d1) / width)
+    return phi, dphi / width, ddphi / (width * width)
 
 
 @wp.kernel

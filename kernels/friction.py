@@ -29,7 +29,7 @@ after at most one step (``pair_solve_from_plane``).
 
 import warp as wp
 
-from .blend import quintic_blend
+from .blend import shell_blend
 from .leaf import LEAF_OK, leaf_barrier, leaf_plane_sensitivity, pair_solve_from_plane
 from .reduction import Targets, add_record_gradient, add_record_value, add_term_hessian_block, target_record
 from .rigid import rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
@@ -68,9 +68,8 @@ def _support_weight(ca: wp.vec3d, cb: wp.vec3d, d1: wp.float64, eps: wp.float64,
     """W = 1 - Phi(s) and dW/drho; (1, 0) for SDRS, whose barrier has its own support."""
     if dhat > wp.float64(0.0):
         return wp.float64(1.0), wp.float64(0.0)
-    width = eps * d1
-    phi, dphi, _ = quintic_blend((wp.length(ca - cb) - d1) / width)
-    return wp.float64(1.0) - phi, -dphi / width
+    phi, dphi, _ = shell_blend(wp.length(ca - cb), d1, eps)
+    return wp.float64(1.0) - phi, -dphi
 
 
 @wp.kernel

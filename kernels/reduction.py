@@ -39,7 +39,7 @@ SDRS barrier (``dhat`` > 0).
 
 import warp as wp
 
-from .blend import centered_potential, quintic_blend
+from .blend import centered_potential, shell_blend
 from .leaf import LEAF_OK, LeafSolution, leaf_mixed_block, leaf_vertex_barrier, leaf_vertex_gradient, pair_solve
 from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, upper_entry, vec6d, world_triangle
 from .traversal import COUNTER_BLEND, COUNTER_FAR, COUNTER_LEAF, listed
@@ -342,8 +342,7 @@ def _blend_keep(
 ):
     """1 - phi of a blend record: the share of its children's sum S that B keeps."""
     ci, cj = _world_centres(node_center, item[0], item[1], pair, body_rotation, body_position)
-    d1 = node_radius[item[0]] + node_radius[item[1]]
-    phi, _, _ = quintic_blend((wp.length(ci - cj) - d1) / (eps * d1))
+    phi, _, _ = shell_blend(wp.length(ci - cj), node_radius[item[0]] + node_radius[item[1]], eps)
     return wp.float64(1.0) - phi
 
 
@@ -404,12 +403,8 @@ def blend_level_kernel(
     pair = seed_body_pair[item[3]]
     ci, cj = _world_centres(node_center, item[0], item[1], pair, body_rotation, body_position)
     dist, ga, gb, haa, hab, hbb = _centre_distance_derivatives(ci, cj, body_position[pair[0]], body_position[pair[1]])
-    d1 = node_radius[item[0]] + node_radius[item[1]]
-    width = eps * d1
     pc, pc1, pc2 = _weighted_centred_potential(node_weight, item[0], item[1], dist)
-    phi, dphi, ddphi = quintic_blend((dist - d1) / width)
-    phi1 = dphi / width
-    phi2 = ddphi / (width * width)
+    phi, phi1, phi2 = shell_blend(dist, node_radius[item[0]] + node_radius[item[1]], eps)
     s = targets.record_value[record]
     target = target_record(targets, item[2], item[3], record)
     one = wp.float64(1.0)
