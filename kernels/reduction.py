@@ -701,13 +701,14 @@ def _axis_advancement(
     # checks of task gradients then saw (1.3e-5 relative on the ant's).
     lo = zero
     hi = one
-    for _it in range(_ADVANCEMENT_HALVINGS):
-        if lo == zero:
-            mid = wp.float64(0.5) * hi
-            if _fronts_reach(corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, mid) <= room:
-                lo = mid
-            else:
-                hi = mid
+    halvings = int(0)
+    while lo == zero and halvings < _ADVANCEMENT_HALVINGS:
+        mid = wp.float64(0.5) * hi
+        if _fronts_reach(corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, mid) <= room:
+            lo = mid
+        else:
+            hi = mid
+        halvings += 1
     if lo == zero:
         return zero
     for _it in range(_ADVANCEMENT_BISECTIONS):

@@ -211,6 +211,7 @@ def test_rolling_faceted_ball_takes_ordinary_newton_steps():
     assert max(iterations) < 60 and np.mean(iterations) < 30, iterations
     assert all(model.contact.evaluate(x).ok for x in q)
 
+
 def test_friction_exact_newton_steps_reach_the_same_solution_in_fewer_iterations():
     """A box and a ball slide on a grid and brake to a stop: slips cross the smoothing length
     v_eps dt, where the friction term's quadratic model overshoots. Directions that minimise
