@@ -45,6 +45,14 @@ _FRICTION_MODEL_TOLERANCE = 1e-2
 _FRICTION_MODEL_ITERATIONS = 10
 _FRICTION_MODEL_HALVINGS = 20
 
+# A Newton direction that conservative advancement cuts below this fraction is blocked by a
+# near contact; damped directions (H + lambda diag H) d = -g are then tried, lambda rising
+# from the first value by the factor while their bounded model decrease keeps improving.
+_BLOCKED_ALPHA = 1e-2
+_DAMPING_FIRST = 1e-4
+_DAMPING_FACTOR = 10.0
+_DAMPING_LAST = 1e2
+
 
 class SolverError(RuntimeError):
     """The implicit step did not converge; the message carries the diagnostics."""
@@ -365,6 +373,37 @@ class ImplicitSolver:
             step = self._newton_direction(h_other + t_hess, model_grad)
         return d if float(grad @ d) < 0.0 else direction
 
+    def _unblocked_direction(self, grad: np.ndarray, hess: np.ndarray, direction: np.ndarray, alpha: float) -> tuple[np.ndarray, float]:
+        """A direction and its advancement bound for a Newton step that a near contact blocks.
+
+        A body struck from almost touching can be asked to turn or slide far in one step;
+        conservative advancement then admits ~1e-3 of the Newton direction per iteration, the
+        pose hardly changes, and Newton proposes the same direction again (hundreds of
+        iterations). Levenberg-Marquardt directions (H + lambda diag H) d = -g shorten and
+        turn the step towards -g; each is cut by its own advancement bound, and the one whose
+        bounded step lowers the quadratic model of L most is taken (the Newton direction
+        itself when none does better). Rigid bodies only (joints keep plain Newton).
+        """
+
+        def model_change(d: np.ndarray, a: float) -> float:
+            return a * float(grad @ d) + 0.5 * a * a * float(d @ hess @ d)
+
+        best_change, best_direction, best_alpha = model_change(direction, alpha), direction, alpha
+        scaling = np.diag(np.maximum(np.diag(hess), np.finfo(float).tiny))
+        full = np.zeros((self.model.num_bodies, 6))
+        damping = _DAMPING_FIRST
+        while damping <= _DAMPING_LAST:
+            d = self._newton_direction(hess + damping * scaling, grad)
+            full.reshape(-1)[self._dofs] = d
+            a = self.model.contact.advancement_limit(full, fraction=self.advancement_fraction)
+            change = model_change(d, a)
+            if change < best_change:
+                best_change, best_direction, best_alpha = change, d, a
+            elif best_direction is not direction:
+                break  # past the best damping
+            damping *= _DAMPING_FACTOR
+        return best_direction, best_alpha
+
     def _body_travel(self, step: np.ndarray) -> np.ndarray:
         """Upper bound on how far any point of each body moves under ``step`` (nbodies, 6)."""
         return np.linalg.norm(step[:, :3], axis=1) + np.linalg.norm(step[:, 3:], axis=1) * self.model.body_radius
@@ -504,6 +543,13 @@ class ImplicitSolver:
             # The contact model still holds the term lists of q: trials come after this.
             frame = model.contact.advancement_frame() if art is not None else None
             alpha = min(model.contact.advancement_limit(full, fraction=self.advancement_fraction, frame=frame), self._limit_step(q, coords, direction))
+            if art is None and alpha < _BLOCKED_ALPHA:
+                direction, alpha = self._unblocked_direction(grad, hess, direction, alpha)
+                full[:] = 0.0
+                full.reshape(-1)[self._dofs] = direction
+                travel = self._body_travel(full)
+                step_length = float(travel.max())
+                decrement = -float(grad @ direction)
             # L's rounding scales with its terms, not with L, which is ~0 in free flight under
             # a locally supported contact model (ipc, sdrs): short steps are taken in full.
             quadratic_regime = (decrement <= 1e-10 * max(abs(value), 1e-300) or step_length <= rounding_step) and alpha == 1.0
