@@ -130,6 +130,44 @@ def test_infeasible_updates_are_undone():
     assert np.isfinite(result.loss_history).all()
 
 
+def test_infeasible_updates_are_halved_back_without_slowing_later_steps():
+    """A wall at x = 3 that the loss first pulls towards, then away from: updates into it are
+    halved back towards the last feasible x, the learning rate is kept (the steps away from
+    the wall are full ones), and no rollout is repeated. Pressed against the wall for good,
+    the descent stops; an infeasible start is an error."""
+    from warpcontact.tasks import TaskSettings, _descend
+
+    def wall_problem(turn):
+        feasible = []
+
+        def rollout(values):
+            x = float(values[0, 0])
+            if x > 3.0:
+                raise ValueError("state_in: bodies intersect at the start")
+            feasible.append(x)
+            goal = 5.0 if len(feasible) <= turn else -5.0
+            return (x - goal) ** 2, np.array([[2.0 * (x - goal)]]), None
+
+        return rollout, feasible
+
+    settings = TaskSettings(horizon=1, receding_horizon=0, iterations=40, learning_rate=0.5)
+    rollout, feasible = wall_problem(turn=9)
+    history = []
+    best = _descend(rollout, np.zeros((1, 1)), settings, history)
+    assert len(history) == len(feasible) == 40 and len(set(feasible)) == 40
+    assert 2.9 < max(feasible) <= 3.0 and best[0] == min(history)
+    steps = np.diff(feasible)
+    assert np.all(steps[7:9] < 0.02)  # halved back at the wall
+    assert np.all(steps[10:20] < -0.45)  # then full steps away from it (lr 0.5, not halved)
+
+    rollout, feasible = wall_problem(turn=10**6)
+    history = []
+    _descend(rollout, np.zeros((1, 1)), settings, history)
+    assert len(history) == len(feasible) < 40 and max(feasible) > 3.0 - 1e-5  # stopped at the wall
+    with pytest.raises(ValueError, match="intersect"):
+        _descend(rollout, np.full((1, 1), 4.0), settings, [])
+
+
 def test_task_problem_rejects_scenes_without_task_metadata():
     scene = space_billiards()
     scene.task = io.TaskSpec()

@@ -139,6 +139,10 @@ class TaskResult:
 ADAM_EPS = 1e-30
 
 
+# Halvings of an Adam update that makes the rollout infeasible before the descent stops.
+FEASIBLE_HALVINGS = 20
+
+
 def adam(betas, learning_rate):
     """Adam step function with state: update(x, g) -> x (in place); ``update.learning_rate``
     may be changed between steps."""
@@ -164,32 +168,37 @@ def _descend(rollout, values, settings, history, progress=None, total=None):
     """Adam iterations on ``values`` (in place); returns (best loss, best values, its trajectory).
 
     An update that makes the rollout infeasible (bodies intersecting at the start, or a step
-    that fails) is undone and the learning rate halved: the loss is +inf there. A zero loss
-    stops the descent: every target is within its tolerance (success), and further Adam
-    steps, carried by momentum alone, could only move the solution off it.
+    that fails) is halved back towards the last feasible values, up to FEASIBLE_HALVINGS
+    times, and the descent stops if none is feasible; the learning rate is kept, so one
+    infeasible neighbourhood does not slow every later step. A zero loss stops the descent:
+    every target is within its tolerance (success), and further Adam steps, carried by
+    momentum alone, could only move the solution off it.
     """
     step = adam(settings.betas, settings.learning_rate)
     best = (np.inf, values.copy(), None)
-    feasible = values.copy()
+    result = rollout(values)  # the trivial guess must be feasible: its errors propagate
     for it in range(settings.iterations):
-        try:
-            loss, grad, trajectory = rollout(values)
-        except (ValueError, SolverError):
-            if not np.isfinite(best[0]):
-                raise
-            values[:] = feasible
-            step.learning_rate *= 0.5
-            history.append(history[-1])
-            continue
-        feasible = values.copy()
+        loss, grad, trajectory = result
         history.append(loss)
         if loss < best[0]:
             best = (loss, values.copy(), trajectory)
         if progress and total is None:
             progress(it + 1, settings.iterations, loss)
-        if loss == 0.0:
+        if loss == 0.0 or it + 1 == settings.iterations:
             break
+        feasible = values.copy()
         step(values, grad)
+        move = values - feasible
+        for _ in range(FEASIBLE_HALVINGS):
+            try:
+                result = rollout(values)
+                break
+            except (ValueError, SolverError):
+                move *= 0.5
+                values[:] = feasible + move
+        else:
+            values[:] = feasible
+            break
     return best
 
 
