@@ -720,17 +720,35 @@ def _axis_advancement(
     return lo
 
 
+@wp.func
+def _pair_keeps_clear(step_a: vec6d, step_b: vec6d, reach_a: wp.float64, reach_b: wp.float64, separation: wp.float64, fraction: wp.float64):
+    """True when two bodies' whole travel along the step is at most half of ``fraction`` of
+    the separation of their closest term (sphere gap or gap along a leaf plane).
+
+    No point of a body moves farther than |dp| + |dtheta| reach (a chord is shorter than its
+    arc), so no term of the pair closes more than that sum, and each term's own bound
+    (far: sphere separation over approach; leaf: the same along its plane normal, the first
+    axis tried) is then at least 1. The factor 2 keeps the skip clear of those bounds'
+    rounding, so skipped terms are exactly those that would not lower alpha.
+    """
+    travel_a = wp.length(wp.vec3d(step_a[0], step_a[1], step_a[2])) + wp.length(wp.vec3d(step_a[3], step_a[4], step_a[5])) * reach_a
+    travel_b = wp.length(wp.vec3d(step_b[0], step_b[1], step_b[2])) + wp.length(wp.vec3d(step_b[3], step_b[4], step_b[5])) * reach_b
+    return wp.float64(2.0) * (travel_a + travel_b) <= fraction * separation
+
+
 @wp.kernel
 def advancement_kernel(
     # Model:
     node_center: wp.array(dtype=wp.vec3d),
     node_radius: wp.array(dtype=wp.float64),
     triangle_vertices: wp.array(dtype=wp.mat33d),
+    body_reach: wp.array(dtype=wp.float64),
     fraction: wp.float64,
     # Data in:
     body_rotation: wp.array(dtype=wp.mat33d),
     body_position: wp.array(dtype=wp.vec3d),
     seed_body_pair: wp.array(dtype=wp.vec2i),
+    seed_separation: wp.array(dtype=wp.float64),
     far_items: wp.array(dtype=wp.vec4i),
     num_far: int,
     leaf_items: wp.array(dtype=wp.vec4i),
@@ -747,6 +765,8 @@ def advancement_kernel(
     at most ``fraction`` of their gap along a fixed axis, so a plane normal to it keeps
     separating them along the whole path; the axis is the best of the potential's plane normal
     and the two triangles' face normals.
+    Body pairs whose travel is far inside their closest term's separation (``_pair_keeps_clear``)
+    are skipped: none of their terms can cut the step.
     """
     tid = wp.tid()
     zero = wp.float64(0.0)
@@ -754,6 +774,8 @@ def advancement_kernel(
     if tid < num_far:
         item = far_items[tid]
         pair = seed_body_pair[item[3]]
+        if _pair_keeps_clear(body_step[pair[0]], body_step[pair[1]], body_reach[pair[0]], body_reach[pair[1]], seed_separation[item[3]], fraction):
+            return
         pos_a = body_position[pair[0]]
         pos_b = body_position[pair[1]]
         ci = body_rotation[pair[0]] * node_center[item[0]] + pos_a
@@ -770,6 +792,8 @@ def advancement_kernel(
         return
     item = leaf_items[tid - num_far]
     pair = seed_body_pair[item[3]]
+    if _pair_keeps_clear(body_step[pair[0]], body_step[pair[1]], body_reach[pair[0]], body_reach[pair[1]], seed_separation[item[3]], fraction):
+        return
     plane = leaf_plane[tid - num_far]
     ta = world_triangle(triangle_vertices[item[0]], body_rotation[pair[0]], body_position[pair[0]])
     tb = world_triangle(triangle_vertices[item[1]], body_rotation[pair[1]], body_position[pair[1]])

@@ -117,6 +117,7 @@ class AdvancementFrame:
     leaf: wp.array
     leaf_plane: wp.array
     num_leaf: int
+    seed_separation: wp.array
 
 
 @dataclass(frozen=True)
@@ -274,6 +275,9 @@ class ContactModel:
         with wp.ScopedDevice(self.device):
             self._node_center = wp.array(np.concatenate([t.centers for t in trees]), dtype=wp.vec3d)
             self._node_radius = wp.array(np.concatenate([t.radii for t in trees]), dtype=wp.float64)
+            # How far from its centre of mass any node sphere of a body reaches (m): child spheres
+            # may stick out of their parents', so the maximum over all nodes.
+            self._body_reach = wp.array([float((np.linalg.norm(t.centers, axis=1) + t.radii).max()) for t in trees], dtype=wp.float64)
             weights = [t.triangle_count if self.centred_weight == "pairs" else np.ones(t.num_nodes) for t in trees]
             self._node_weight = wp.array(np.concatenate(weights).astype(np.float64), dtype=wp.float64)
             self._node_left = wp.array(left, dtype=wp.int32)
@@ -639,6 +643,7 @@ class ContactModel:
                 leaf=wp.clone(self._leaf[: max(num_leaf, 1)]) if self._leaf.shape[0] else wp.zeros(1, dtype=wp.vec4i),
                 leaf_plane=wp.clone(self._leaf_plane[: max(num_leaf, 1)]) if self._leaf_plane.shape[0] else wp.zeros(1, dtype=wp.vec4d),
                 num_leaf=num_leaf,
+                seed_separation=wp.clone(self._seed_separation),
             )
 
     def advancement_limit(self, step, *, fraction: float = 0.9, frame: "AdvancementFrame | None" = None) -> float:
@@ -659,7 +664,7 @@ class ContactModel:
             raise ValueError(f"step: expected {self.num_bodies} rows, got {step.shape[0]}")
         if frame is None:
             num_far, _, num_leaf, _ = self._counts
-            frame = AdvancementFrame(self._rotation, self._position, self._far, num_far, self._leaf, self._leaf_plane, num_leaf)
+            frame = AdvancementFrame(self._rotation, self._position, self._far, num_far, self._leaf, self._leaf_plane, num_leaf, self._seed_separation)
         num_far, num_leaf = frame.num_far, frame.num_leaf
         self._alpha.fill_(1.0)
         if num_far + num_leaf:
@@ -672,10 +677,12 @@ class ContactModel:
                     self._node_center,
                     self._node_radius,
                     self._triangle_vertices,
+                    self._body_reach,
                     float(fraction),
                     frame.rotation,
                     frame.position,
                     self._seed_body_pair,
+                    frame.seed_separation,
                     frame.far,
                     num_far,
                     frame.leaf,
