@@ -108,7 +108,8 @@ class LaggedFriction:
 
 @dataclass(frozen=True)
 class AdvancementFrame:
-    """Body transforms and term lists of one configuration, for conservative advancement."""
+    """Body transforms, term lists and body-pair separations of one configuration, for
+    conservative advancement."""
 
     rotation: wp.array
     position: wp.array
