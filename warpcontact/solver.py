@@ -340,15 +340,12 @@ class ImplicitSolver:
             np.linalg.cholesky(h_other)
         except np.linalg.LinAlgError:
             return direction
-        full = np.zeros((self.model.num_bodies, 6))
 
         def travel(d):
-            full.reshape(-1)[dofs] = d
-            return float(self._body_travel(full).max())
+            return float(self._step_travel(d)[1].max())
 
         def friction_at(d):
-            full.reshape(-1)[dofs] = d
-            value, g, h = contact.friction_terms(friction, poses=retract(q, full))
+            value, g, h = contact.friction_terms(friction, poses=retract(q, self._step_travel(d)[0]))
             return value - f_value, g[dofs], h[np.ix_(dofs, dofs)]
 
         tol = self.tolerance * self._length_scale
@@ -390,12 +387,10 @@ class ImplicitSolver:
 
         best_change, best_direction, best_alpha = model_change(direction, alpha), direction, alpha
         scaling = np.diag(np.maximum(np.diag(hess), np.finfo(float).tiny))
-        full = np.zeros((self.model.num_bodies, 6))
         damping = _DAMPING_FIRST
         while damping <= _DAMPING_LAST:
             d = self._newton_direction(hess + damping * scaling, grad)
-            full.reshape(-1)[self._dofs] = d
-            a = self.model.contact.advancement_limit(full, fraction=self.advancement_fraction)
+            a = self.model.contact.advancement_limit(self._step_travel(d)[0], fraction=self.advancement_fraction)
             change = model_change(d, a)
             if change < best_change:
                 best_change, best_direction, best_alpha = change, d, a
@@ -403,6 +398,16 @@ class ImplicitSolver:
                 break  # past the best damping
             damping *= _DAMPING_FACTOR
         return best_direction, best_alpha
+
+    def _step_travel(self, direction: np.ndarray, jacobian: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The (nbodies, 6) rigid-coordinate step (dp, dtheta) of a Newton direction (over the
+        free bodies' dofs, or mapped by an articulation's ``jacobian``) and its ``_body_travel``."""
+        if jacobian is None:
+            step = np.zeros((self.model.num_bodies, 6))
+            step.reshape(-1)[self._dofs] = direction
+        else:
+            step = (jacobian @ direction).reshape(-1, 6)
+        return step, self._body_travel(step)
 
     def _body_travel(self, step: np.ndarray) -> np.ndarray:
         """Upper bound on how far any point of each body moves under ``step`` (nbodies, 6)."""
@@ -510,7 +515,6 @@ class ImplicitSolver:
             q, value, grad, hess, contact = self._warm_start(q, value, grad, hess, contact, coords, step_in)
         if not np.isfinite(value):
             raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs}; joint limits reached: {self._limits_reached(coords)})")
-        full = np.zeros((model.num_bodies, 6))
         tol = self.tolerance * self._length_scale
         # Steps this short are in Newton's quadratic regime, where Armijo tests only rounding
         # noise; the cap keeps that true for loose tolerances (1e3 x 1e-6 would let full steps
@@ -521,20 +525,14 @@ class ImplicitSolver:
         step_length = np.inf
         for iterations in range(1, self.max_iterations + 1):
             direction = self._newton_direction(hess, grad)
-            if art is None:
-                full[:] = 0.0
-                full.reshape(-1)[self._dofs] = direction
-            else:
-                full = (jacobian @ direction).reshape(-1, 6)
-            travel = self._body_travel(full)
+            full, travel = self._step_travel(direction, None if art is None else jacobian)
             step_length = float(travel.max())
             # Over slips much shorter than the smoothing length the friction term's quadratic
             # model holds, and plain Newton converges quadratically.
             friction = step_in.friction
             if self.exact_friction_steps and art is None and friction is not None and friction.pairs and step_length > friction.slip_smoothing:
                 direction = self._friction_exact_direction(q, grad, hess, direction, friction)
-                full.reshape(-1)[self._dofs] = direction
-                travel = self._body_travel(full)
+                full, travel = self._step_travel(direction)
                 step_length = float(travel.max())
             if step_length <= tol:
                 converged = True
@@ -545,9 +543,7 @@ class ImplicitSolver:
             alpha = min(model.contact.advancement_limit(full, fraction=self.advancement_fraction, frame=frame), self._limit_step(q, coords, direction))
             if art is None and alpha < _BLOCKED_ALPHA:
                 direction, alpha = self._unblocked_direction(grad, hess, direction, alpha)
-                full[:] = 0.0
-                full.reshape(-1)[self._dofs] = direction
-                travel = self._body_travel(full)
+                full, travel = self._step_travel(direction)
                 step_length = float(travel.max())
                 decrement = -float(grad @ direction)
             # L's rounding scales with its terms, not with L, which is ~0 in free flight under
