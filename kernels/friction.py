@@ -148,16 +148,19 @@ def friction_energy_kernel(
     body_position: wp.array(dtype=wp.vec3d),
     seed_body_pair: wp.array(dtype=wp.vec2i),
     frame: FrictionFrame,
+    seed_chunk: wp.array(dtype=wp.int32),
+    chunk: int,
     # Data out:
     targets: Targets,
 ):
     """D of one lagged pair, its gradient and Hessian, added to one of its body pair's
-    records (``targets`` holds top-level records only); ``top_level_kernel`` sums them."""
+    records (``targets`` holds top-level records only); ``top_level_kernel`` sums them.
+    Only the pairs of body pairs in ``chunk`` (``seed_chunk``) are taken."""
     tid = wp.tid()
     coeff = friction[0] * frame.normal_force[tid]
-    if coeff == wp.float64(0.0):
-        return
     seed = frame.leaf_items[tid][3]
+    if coeff == wp.float64(0.0) or seed_chunk[seed] != chunk:
+        return
     pair = seed_body_pair[seed]
     record = target_record(targets, -1, seed, tid)
     nrm = frame.normal[tid]

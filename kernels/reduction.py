@@ -193,6 +193,8 @@ def far_term_kernel(
     seed_body_pair: wp.array(dtype=wp.vec2i),
     far_items: wp.array(dtype=wp.vec4i),
     counters: wp.array(dtype=wp.int32),
+    seed_chunk: wp.array(dtype=wp.int32),
+    chunk: int,
     # Data out:
     targets: Targets,
     seed_separation_out: wp.array(dtype=wp.float64),
@@ -200,7 +202,7 @@ def far_term_kernel(
     if wp.tid() >= listed(counters, COUNTER_FAR, far_items.shape[0]):
         return
     item = far_items[wp.tid()]
-    if _record_dropped(targets, item[2]):
+    if _record_dropped(targets, item[2]) or seed_chunk[item[3]] != chunk:
         return
     pair = seed_body_pair[item[3]]
     ci, cj = _world_centres(node_center, item[0], item[1], pair, body_rotation, body_position)
@@ -277,6 +279,8 @@ def leaf_term_kernel(
     seed_body_pair: wp.array(dtype=wp.vec2i),
     leaf_items: wp.array(dtype=wp.vec4i),
     counters: wp.array(dtype=wp.int32),
+    seed_chunk: wp.array(dtype=wp.int32),
+    chunk: int,
     # Data out:
     targets: Targets,
     seed_status_out: wp.array(dtype=wp.int32),
@@ -288,7 +292,7 @@ def leaf_term_kernel(
     if tid >= listed(counters, COUNTER_LEAF, leaf_items.shape[0]):
         return
     item = leaf_items[tid]
-    if _record_dropped(targets, item[2]):
+    if _record_dropped(targets, item[2]) or seed_chunk[item[3]] != chunk:
         return
     seed = item[3]
     pair = seed_body_pair[seed]
@@ -358,6 +362,8 @@ def blend_weight_kernel(
     seed_body_pair: wp.array(dtype=wp.vec2i),
     blend_items: wp.array(dtype=wp.vec4i),
     counters: wp.array(dtype=wp.int32),
+    seed_chunk: wp.array(dtype=wp.int32),
+    chunk: int,
     # Data out:
     targets: Targets,
 ):
@@ -365,6 +371,8 @@ def blend_weight_kernel(
     enclose it (walked up the parent links; a chain is as long as the blend nesting)."""
     record = wp.tid()
     if record >= listed(counters, COUNTER_BLEND, blend_items.shape[0]):
+        return
+    if seed_chunk[blend_items[record][3]] != chunk:
         return
     pair = seed_body_pair[blend_items[record][3]]
     weight = wp.float64(1.0)
@@ -391,6 +399,8 @@ def blend_level_kernel(
     blend_items: wp.array(dtype=wp.vec4i),
     blend_level: wp.array(dtype=wp.int32),
     counters: wp.array(dtype=wp.int32),
+    seed_chunk: wp.array(dtype=wp.int32),
+    chunk: int,
     # Data out:
     targets: Targets,
 ):
@@ -400,6 +410,8 @@ def blend_level_kernel(
     if blend_level[record] != level:
         return
     item = blend_items[record]
+    if seed_chunk[item[3]] != chunk:
+        return
     pair = seed_body_pair[item[3]]
     ci, cj = _world_centres(node_center, item[0], item[1], pair, body_rotation, body_position)
     dist, ga, gb, haa, hab, hbb = _centre_distance_derivatives(ci, cj, body_position[pair[0]], body_position[pair[1]])

@@ -322,6 +322,67 @@ def test_sync_free_launches_give_the_host_sized_launches_results_bit_for_bit(mod
         assert free._far.shape[0] > a.num_far or free._leaf.shape[0] > a.num_leaf  # idle threads ran
 
 
+@pytest.mark.parametrize("mode", ["bsh", "brute", "sdrs"])
+def test_term_chunks_give_the_unchunked_results_bit_for_bit(mode):
+    # On a CPU the body pairs are dealt out to chunks whose terms run on their own threads;
+    # each record still receives its terms in list order, so nothing may change, not even
+    # the last bit: potential, separations, advancement bounds and friction terms.
+    import warp as wp
+
+    meshes, poses = _rack_meshes_and_poses(0.02)
+    static = [False] * (len(meshes) - 1) + [True]
+    friction = wp.array([0.4], dtype=wp.float64)
+    step = np.random.default_rng(3).normal(scale=0.05, size=(len(meshes), 6))
+    step[-1] = 0.0
+    results = []
+    for chunks in (1, 2, 3):
+        model = wc.ContactModel(meshes, mode=mode, dhat=0.05, static=static, term_chunks=chunks)
+        model._min_chunk_leaf_terms = 1  # the rack is too small to be split by default
+        lagged = None
+        for shift in (0.0, -0.3, 0.01):  # new lists, then other lists in the same buffers
+            moved = poses.copy()
+            moved[0, 0] += shift
+            res = model.evaluate(moved)
+            assert np.isfinite(res.value)
+            if lagged is None:
+                lagged = model.friction_frame(1e-6, friction, 1e-4)
+            results.append((chunks, res, model.advancement_limit(step), model.friction_terms(lagged)))
+        assert model._seed_chunk_count == chunks
+        assert set(model._seed_chunk.numpy()) == set(range(chunks))  # every chunk took body pairs
+    reference = [r for r in results if r[0] == 1]
+    for k, (_, res, alpha, (f_value, f_grad, f_hess)) in enumerate(results):
+        _, ref, ref_alpha, (ref_f_value, ref_f_grad, ref_f_hess) = reference[k % 3]  # same shift
+        assert res.value == ref.value and res.mean_leaf_iterations == ref.mean_leaf_iterations
+        np.testing.assert_array_equal(res.grad, ref.grad)
+        np.testing.assert_array_equal(res.hessian, ref.hessian)
+        np.testing.assert_array_equal(res.pair_separation, ref.pair_separation)
+        assert alpha == ref_alpha and 0 < alpha <= 1
+        assert f_value == ref_f_value and (f_value > 0) == (k % 3 > 0)  # the lagged frame is at shift 0
+        np.testing.assert_array_equal(f_grad, ref_f_grad)
+        np.testing.assert_array_equal(f_hess, ref_f_hess)
+
+
+def test_term_chunks_are_validated():
+    with pytest.raises(ValueError, match="term_chunks"):
+        wc.ContactModel([icosphere(0), icosphere(0)], term_chunks=0)
+
+
+def test_concurrent_tasks_all_run_and_raise_the_first_error():
+    from warpcontact._runtime import run_concurrently
+
+    done = []
+    run_concurrently([lambda i=i: done.append(i) for i in range(5)])
+    assert sorted(done) == list(range(5))
+
+    def fail():
+        raise RuntimeError("chunk 1 failed")
+
+    done.clear()
+    with pytest.raises(RuntimeError, match="chunk 1 failed"):
+        run_concurrently([lambda: done.append(0), fail, lambda: done.append(2)])
+    assert sorted(done) == [0, 2]  # the others still ran to the end
+
+
 # --- traversal rounds give the lists of one serial walk -----------------------------------------
 
 

@@ -1,13 +1,15 @@
 """Warp initialisation and device resolution for the host API."""
 
+import concurrent.futures
 import contextlib
 import functools
 import logging
+import os
 
 import numpy as np
 import warp as wp
 
-__all__ = ["HostReadback", "host_buffer", "paused_tape", "resolve_device"]
+__all__ = ["HostReadback", "host_buffer", "paused_tape", "resolve_device", "run_concurrently"]
 
 
 @functools.cache
@@ -25,6 +27,34 @@ def resolve_device(device) -> wp.Device:
     except Exception as exc:
         available = ", ".join(str(d) for d in wp.get_devices())
         raise ValueError(f"device: {device!r} is not available (available: {available}); {exc}") from None
+
+
+@functools.cache
+def _cpu_workers() -> concurrent.futures.ThreadPoolExecutor | None:
+    workers = (os.cpu_count() or 1) - 1
+    return concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="warpcontact-cpu") if workers else None
+
+
+def run_concurrently(tasks) -> None:
+    """Runs the callables ``tasks`` at once, the first on this thread and the others on a
+    pool of one thread per further CPU core, and returns when all have finished (re-raising
+    the first exception). Warp runs a CPU kernel on the launching thread and releases the
+    GIL while it runs, so launches on disjoint outputs from several threads use several
+    cores. With one core the tasks run in order."""
+    tasks = list(tasks)
+    pool = _cpu_workers()
+    if pool is None or len(tasks) < 2:
+        for task in tasks:
+            task()
+        return
+    futures = [pool.submit(task) for task in tasks[1:]]
+    try:
+        tasks[0]()
+    finally:
+        errors = [f.exception() for f in futures]
+    for error in errors:
+        if error is not None:
+            raise error
 
 
 def host_buffer(shape, dtype, device: wp.Device) -> wp.array:

@@ -19,6 +19,8 @@ Friction (``friction_frame``, ``friction_terms``, ``friction_adjoint``; the law 
 potential, so the modes differ only in the normal contact potential.
 """
 
+import functools
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,7 +30,7 @@ from .kernels import friction as friction_kernels
 from .kernels import reduction as reduction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels import traversal as traversal_kernels
-from ._runtime import HostReadback, host_buffer, resolve_device
+from ._runtime import HostReadback, host_buffer, resolve_device, run_concurrently
 from ._validate import as_float64_array
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus
 from .sphere_tree import SphereTree, build_sphere_tree
@@ -44,6 +46,11 @@ CENTRED_WEIGHTS = ("paper", "pairs")
 QUATERNION_TOLERANCE = 1e-6
 
 _MAX_TRAVERSAL_ATTEMPTS = 8
+# Evaluations with fewer leaf terms than this per chunk are not split (``term_chunks``).
+_MIN_CHUNK_LEAF_TERMS = 1024
+# Relative cost of a leaf, far and blend term on a CPU (measured at 6,208 triangles), by
+# which body pairs are dealt out to chunks.
+_TERM_COSTS = (18.0, 1.0, 2.0)
 # Counter slot of traversal round 0's handed-on tasks; round r uses the slot r after it.
 _ROUND_SLOT = int(traversal_kernels.COUNTER_ROUND_TASKS)
 
@@ -191,6 +198,15 @@ class ContactModel:
             evaluation waits for the host only once, at its end (None: on a GPU; on a CPU
             each launch is sized by the counted items, which the host reads for free). The
             results are the same.
+        term_chunks: on a CPU with host-sized launches, an evaluation with at least
+            ``term_chunks`` x 1,024 leaf terms deals its body pairs out to this many chunks
+            of about equal cost, and each chunk's far, leaf and blend terms are launched
+            from their own thread, one thread per core (Warp runs a CPU launch on its
+            launching thread). A body pair's terms add only into its own records, so the
+            chunks never write to the same memory, and each record receives its terms in
+            the same order as without chunks: results are bit for bit the same for any
+            value and any number of cores (None: the number of cores, at most 8; 1 turns
+            chunks off).
     """
 
     def __init__(
@@ -208,6 +224,7 @@ class ContactModel:
         max_leaf_iterations: int = DEFAULT_MAX_ITERATIONS,
         top_replicas: int | None = None,
         sync_free: bool | None = None,
+        term_chunks: int | None = None,
     ):
         if mode not in CONTACT_MODES:
             raise ValueError(f"mode: {mode!r} is not one of {CONTACT_MODES}")
@@ -221,6 +238,8 @@ class ContactModel:
             raise ValueError(f"max_leaf_iterations: must be >= 1, got {max_leaf_iterations}")
         if top_replicas is not None and int(top_replicas) < 1:
             raise ValueError(f"top_replicas: must be >= 1, got {top_replicas}")
+        if term_chunks is not None and int(term_chunks) < 1:
+            raise ValueError(f"term_chunks: must be >= 1, got {term_chunks}")
         meshes = list(meshes)
         if len(meshes) < 1:
             raise ValueError("meshes: need at least one body")
@@ -242,6 +261,9 @@ class ContactModel:
         self.static = static_flags
         self.device = resolve_device(device)
         self.sync_free = (not self.device.is_cpu) if sync_free is None else bool(sync_free)
+        # Launches sized on the device cannot be split on the host.
+        self._term_chunks = 1 if (self.sync_free or not self.device.is_cpu) else (min(os.cpu_count() or 1, 8) if term_chunks is None else int(term_chunks))
+        self._min_chunk_leaf_terms = _MIN_CHUNK_LEAF_TERMS  # tests lower it to split small scenes
 
         trees, triangles = [], []
         for i, mesh in enumerate(meshes):
@@ -320,7 +342,10 @@ class ContactModel:
         self._far = self._blend = self._leaf = self._blend_level = None
         self._tasks = self._task_seeds = None
         self._leaf_iterations = self._leaf_plane = None
-        self._alpha = wp.zeros(1, dtype=wp.float64, device=self.device)
+        self._alpha = wp.zeros(self._term_chunks, dtype=wp.float64, device=self.device)
+        # Chunk of each body pair (term_chunks) and how many chunks the last evaluation used.
+        self._seed_chunk = wp.zeros(len(self.body_pairs), dtype=wp.int32, device=self.device)
+        self._seed_chunk_count = 1
         self._records = None
         self._friction_records = None  # (records, totals), allocated by the first friction_terms
         self._friction_graphs = (None, {})  # (the lagged frame they belong to, {at_poses: graph})
@@ -563,43 +588,82 @@ class ContactModel:
         self._traversal_rounds = 1 + int(np.count_nonzero(counters[_ROUND_SLOT:]))
         return True
 
+    def _chunk_ranges(self, *counts: int) -> list[list[tuple[int, int]]]:
+        """Per chunk, the (start, stop) range it takes of each list of ``counts`` items, for
+        kernels whose result does not depend on how their items are split (a minimum)."""
+        chunks = self._term_chunks if counts[-1] >= self._term_chunks * self._min_chunk_leaf_terms else 1
+        return [[(n * k // chunks, n * (k + 1) // chunks) for n in counts] for k in range(chunks)]
+
+    def _deal_seed_chunks(self, num_far: int, num_blend: int, num_leaf: int) -> int:
+        """Deals the body pairs out to chunks of about equal cost (largest first, each to the
+        cheapest chunk so far) into ``_seed_chunk``; returns the number of chunks. Host-sized
+        CPU launches only: the lists are read in place."""
+        if self._term_chunks == 1 or num_leaf < self._term_chunks * self._min_chunk_leaf_terms:
+            self._seed_chunk.zero_()
+            self._seed_chunk_count = 1
+            return 1
+        pairs = len(self.body_pairs)
+        cost = np.zeros(pairs)
+        for items, count, unit in zip((self._leaf, self._far, self._blend), (num_leaf, num_far, num_blend), _TERM_COSTS):
+            seeds = items.numpy()[:count].view(np.int32).reshape(-1, 4)[:, 3]
+            cost += unit * np.bincount(seeds, minlength=pairs)
+        load = np.zeros(self._term_chunks)
+        chunk_of = self._seed_chunk.numpy()
+        for seed in np.argsort(-cost, kind="stable"):
+            chunk_of[seed] = int(np.argmin(load))
+            load[chunk_of[seed]] += cost[seed]
+        self._seed_chunk_count = self._term_chunks
+        return self._term_chunks
+
     def _reduce(self, sizes: tuple[int, int, int, int]):
-        num_far, num_blend, num_leaf, max_level = sizes
+        num_far, num_blend, num_leaf, _ = sizes
         targets = self._records
         for arr in (targets.record_value, targets.record_grad, targets.record_hess, self._total_value, self._total_grad, self._total_hess, self._seed_status):
             arr.zero_()
         self._seed_separation.fill_(np.inf)
-        common = [self._rotation, self._position, self._seed_body_pair]
-        with wp.ScopedDevice(self.device):
-            if num_blend:
-                wp.launch(
-                    reduction_kernels.blend_weight_kernel,
-                    dim=num_blend,
-                    inputs=[self._node_center, self._node_radius, self.eps, *common, self._blend, self._counters],
-                    outputs=[targets],
-                )
-            if num_far:
-                wp.launch(
-                    reduction_kernels.far_term_kernel,
-                    dim=num_far,
-                    inputs=[self._node_center, self._node_radius, self._node_weight, self.mode != "sdrs", *common, self._far, self._counters],
-                    outputs=[targets, self._seed_separation],
-                )
-            if num_leaf:
-                wp.launch(
-                    reduction_kernels.leaf_term_kernel,
-                    dim=num_leaf,
-                    inputs=[self._triangle_vertices, self.dhat, self.max_leaf_iterations, *common, self._leaf, self._counters],
-                    outputs=[targets, self._seed_status, self._seed_separation, self._leaf_iterations, self._leaf_plane],
-                )
-            for level in range(max_level if num_blend else -1, -1, -1):
-                wp.launch(
-                    reduction_kernels.blend_level_kernel,
-                    dim=num_blend,
-                    inputs=[self._node_center, self._node_radius, self._node_weight, self.eps, level, *common, self._blend, self._blend_level, self._counters],
-                    outputs=[targets],
-                )
+        chunks = 1 if self.sync_free else self._deal_seed_chunks(num_far, num_blend, num_leaf)
+        run_concurrently(functools.partial(self._launch_chunk_terms, sizes, chunk) for chunk in range(chunks))
         self._launch_top_level_sum(targets, (self._total_value, self._total_grad, self._total_hess))
+
+    def _launch_chunk_terms(self, sizes: tuple[int, int, int, int], chunk: int):
+        """Blend weights, far and leaf terms and the bottom-up blend of the body pairs dealt
+        to ``chunk``: everything they add to is their own."""
+        num_far, num_blend, num_leaf, max_level = sizes
+        targets = self._records
+        common = [self._rotation, self._position, self._seed_body_pair]
+        select = [self._seed_chunk, chunk]
+        if num_blend:
+            wp.launch(
+                reduction_kernels.blend_weight_kernel,
+                dim=num_blend,
+                inputs=[self._node_center, self._node_radius, self.eps, *common, self._blend, self._counters, *select],
+                outputs=[targets],
+                device=self.device,
+            )
+        if num_far:
+            wp.launch(
+                reduction_kernels.far_term_kernel,
+                dim=num_far,
+                inputs=[self._node_center, self._node_radius, self._node_weight, self.mode != "sdrs", *common, self._far, self._counters, *select],
+                outputs=[targets, self._seed_separation],
+                device=self.device,
+            )
+        if num_leaf:
+            wp.launch(
+                reduction_kernels.leaf_term_kernel,
+                dim=num_leaf,
+                inputs=[self._triangle_vertices, self.dhat, self.max_leaf_iterations, *common, self._leaf, self._counters, *select],
+                outputs=[targets, self._seed_status, self._seed_separation, self._leaf_iterations, self._leaf_plane],
+                device=self.device,
+            )
+        for level in range(max_level if num_blend else -1, -1, -1):
+            wp.launch(
+                reduction_kernels.blend_level_kernel,
+                dim=num_blend,
+                inputs=[self._node_center, self._node_radius, self._node_weight, self.eps, level, *common, self._blend, self._blend_level, self._counters, *select],
+                outputs=[targets],
+                device=self.device,
+            )
 
     def evaluate(self, poses) -> ContactEvaluation:
         """Potential, gradient and Hessian at ``poses`` (nbodies, 7) = (px, py, pz, qx, qy, qz, qw).
@@ -666,36 +730,48 @@ class ContactModel:
         if frame is None:
             num_far, _, num_leaf, _ = self._counts
             frame = AdvancementFrame(self._rotation, self._position, self._far, num_far, self._leaf, self._leaf_plane, num_leaf, self._seed_separation)
-        num_far, num_leaf = frame.num_far, frame.num_leaf
         self._alpha.fill_(1.0)
-        if num_far + num_leaf:
+        if frame.num_far + frame.num_leaf:
             self._step_host.numpy()[:] = step
             wp.copy(self._step, self._step_host)
-            wp.launch(
-                reduction_kernels.advancement_kernel,
-                dim=num_far + num_leaf,
-                inputs=[
-                    self._node_center,
-                    self._node_radius,
-                    self._triangle_vertices,
-                    self._body_reach,
-                    float(fraction),
-                    frame.rotation,
-                    frame.position,
-                    self._seed_body_pair,
-                    frame.seed_separation,
-                    frame.far,
-                    num_far,
-                    frame.leaf,
-                    frame.leaf_plane,
-                    self._step,
-                ],
-                outputs=[self._alpha],
-                device=self.device,
-            )
+            chunks = self._chunk_ranges(frame.num_far, frame.num_leaf)
+            run_concurrently(functools.partial(self._launch_advancement, frame, far, leaf, float(fraction), chunk) for chunk, (far, leaf) in enumerate(chunks))
         self._readback.enqueue(alpha=self._alpha)
         self._readback.wait()
-        return float(self._readback.read("alpha")[0])
+        return float(self._readback.read("alpha").min())
+
+    def _launch_advancement(self, frame: "AdvancementFrame", far: tuple[int, int], leaf: tuple[int, int], fraction: float, chunk: int):
+        """The advancement bound of the ``frame``'s list ranges ``far`` and ``leaf`` into alpha slot ``chunk``."""
+        if far[1] - far[0] + leaf[1] - leaf[0] == 0:
+            return
+
+        def rows(array, span):
+            # The kernel reads no row past its range's length, so a range from row 0 (or an
+            # empty one, which Warp cannot slice) needs no view.
+            return array[span[0] : span[1]] if 0 < span[0] < span[1] else array
+
+        wp.launch(
+            reduction_kernels.advancement_kernel,
+            dim=far[1] - far[0] + leaf[1] - leaf[0],
+            inputs=[
+                self._node_center,
+                self._node_radius,
+                self._triangle_vertices,
+                self._body_reach,
+                fraction,
+                frame.rotation,
+                frame.position,
+                self._seed_body_pair,
+                frame.seed_separation,
+                rows(frame.far, far),
+                far[1] - far[0],
+                rows(frame.leaf, leaf),
+                rows(frame.leaf_plane, leaf),
+                self._step,
+            ],
+            outputs=[self._alpha[chunk : chunk + 1] if chunk else self._alpha],
+            device=self.device,
+        )
 
     # --- friction -----------------------------------------------------------------------
 
@@ -767,12 +843,18 @@ class ContactModel:
         if lagged.pairs:
             for arr in (targets.record_value, targets.record_grad, targets.record_hess):
                 arr.zero_()
-            wp.launch(
-                friction_kernels.friction_energy_kernel,
-                dim=lagged.pairs,
-                inputs=[lagged.friction, lagged.slip_smoothing, rotation, position, self._seed_body_pair, lagged.data],
-                outputs=[targets],
-                device=self.device,
+            # The body pairs keep the chunks of the last evaluation (``_deal_seed_chunks``).
+            chunks = self._term_chunks if self._seed_chunk_count > 1 else 1
+            run_concurrently(
+                functools.partial(
+                    wp.launch,
+                    friction_kernels.friction_energy_kernel,
+                    dim=lagged.pairs,
+                    inputs=[lagged.friction, lagged.slip_smoothing, rotation, position, self._seed_body_pair, lagged.data, self._seed_chunk, chunk],
+                    outputs=[targets],
+                    device=self.device,
+                )
+                for chunk in range(chunks)
             )
             self._launch_top_level_sum(targets, (value, grad, hess))
         self._readback.enqueue(friction_value=value, friction_grad=grad, friction_hess=hess)
