@@ -383,6 +383,30 @@ def test_concurrent_tasks_all_run_and_raise_the_first_error():
     assert sorted(done) == [0, 2]  # the others still ran to the end
 
 
+def _run_two_tasks_and_exit():
+    from warpcontact._runtime import run_concurrently
+
+    done = []
+    run_concurrently([lambda: done.append(0), lambda: done.append(1)])
+    raise SystemExit(0 if sorted(done) == [0, 1] else 1)
+
+
+def test_concurrent_tasks_run_in_a_forked_child():
+    # A child forked after the pool started inherits the pool but not its threads.
+    import multiprocessing
+
+    from warpcontact._runtime import run_concurrently
+
+    run_concurrently([lambda: None, lambda: None])
+    child = multiprocessing.get_context("fork").Process(target=_run_two_tasks_and_exit)
+    child.start()
+    child.join(timeout=60)
+    if child.is_alive():
+        child.kill()
+        pytest.fail("run_concurrently hung in a forked child")
+    assert child.exitcode == 0
+
+
 # --- traversal rounds give the lists of one serial walk -----------------------------------------
 
 

@@ -30,7 +30,9 @@ def resolve_device(device) -> wp.Device:
 
 
 @functools.cache
-def _cpu_workers() -> concurrent.futures.ThreadPoolExecutor | None:
+def _cpu_workers(pid: int) -> concurrent.futures.ThreadPoolExecutor | None:
+    """The worker pool of process ``pid``: a forked child inherits its parent's pool object
+    but not its threads, and would wait forever on it."""
     workers = (os.cpu_count() or 1) - 1
     return concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="warpcontact-cpu") if workers else None
 
@@ -42,7 +44,7 @@ def run_concurrently(tasks) -> None:
     GIL while it runs, so launches on disjoint outputs from several threads use several
     cores. With one core the tasks run in order."""
     tasks = list(tasks)
-    pool = _cpu_workers()
+    pool = _cpu_workers(os.getpid())
     if pool is None or len(tasks) < 2:
         for task in tasks:
             task()
