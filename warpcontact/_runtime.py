@@ -37,18 +37,23 @@ def _cpu_workers(pid: int) -> concurrent.futures.ThreadPoolExecutor | None:
     return concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="warpcontact-cpu") if workers else None
 
 
-def run_concurrently(tasks) -> None:
+def run_concurrently(tasks, *, modules=(), device=None) -> None:
     """Runs the callables ``tasks`` at once, the first on this thread and the others on a
     pool of one thread per further CPU core, and returns when all have finished (re-raising
     the first exception). Warp runs a CPU kernel on the launching thread and releases the
     GIL while it runs, so launches on disjoint outputs from several threads use several
-    cores. With one core the tasks run in order."""
+    cores. With one core the tasks run in order.
+
+    Warp loads (compiles) a kernel's module on its first launch, without a lock, so the
+    Warp ``modules`` whose kernels the tasks launch are loaded on ``device`` first."""
     tasks = list(tasks)
     pool = _cpu_workers(os.getpid())
     if pool is None or len(tasks) < 2:
         for task in tasks:
             task()
         return
+    for module in modules:
+        wp.load_module(module, device=device)
     futures = [pool.submit(task) for task in tasks[1:]]
     try:
         tasks[0]()

@@ -588,11 +588,12 @@ class ContactModel:
         self._traversal_rounds = 1 + int(np.count_nonzero(counters[_ROUND_SLOT:]))
         return True
 
-    def _chunk_ranges(self, *counts: int) -> list[list[tuple[int, int]]]:
-        """Per chunk, the (start, stop) range it takes of each list of ``counts`` items, for
-        kernels whose result does not depend on how their items are split (a minimum)."""
-        chunks = self._term_chunks if counts[-1] >= self._term_chunks * self._min_chunk_leaf_terms else 1
-        return [[(n * k // chunks, n * (k + 1) // chunks) for n in counts] for k in range(chunks)]
+    def _split_ranges(self, num_far: int, num_leaf: int) -> list[tuple[tuple[int, int], tuple[int, int]]]:
+        """Per chunk, the (start, stop) ranges it takes of the far and leaf lists, for a
+        kernel whose result does not depend on how its items are split (a minimum); one
+        chunk below ``term_chunks`` x 1,024 leaf terms."""
+        chunks = self._term_chunks if num_leaf >= self._term_chunks * self._min_chunk_leaf_terms else 1
+        return [((num_far * k // chunks, num_far * (k + 1) // chunks), (num_leaf * k // chunks, num_leaf * (k + 1) // chunks)) for k in range(chunks)]
 
     def _deal_seed_chunks(self, num_far: int, num_blend: int, num_leaf: int) -> int:
         """Deals the body pairs out to chunks of about equal cost (largest first, each to the
@@ -622,7 +623,7 @@ class ContactModel:
             arr.zero_()
         self._seed_separation.fill_(np.inf)
         chunks = 1 if self.sync_free else self._deal_seed_chunks(num_far, num_blend, num_leaf)
-        run_concurrently(functools.partial(self._launch_chunk_terms, sizes, chunk) for chunk in range(chunks))
+        run_concurrently((functools.partial(self._launch_chunk_terms, sizes, chunk) for chunk in range(chunks)), modules=[reduction_kernels], device=self.device)
         self._launch_top_level_sum(targets, (self._total_value, self._total_grad, self._total_hess))
 
     def _launch_chunk_terms(self, sizes: tuple[int, int, int, int], chunk: int):
@@ -734,8 +735,8 @@ class ContactModel:
         if frame.num_far + frame.num_leaf:
             self._step_host.numpy()[:] = step
             wp.copy(self._step, self._step_host)
-            chunks = self._chunk_ranges(frame.num_far, frame.num_leaf)
-            run_concurrently(functools.partial(self._launch_advancement, frame, far, leaf, float(fraction), chunk) for chunk, (far, leaf) in enumerate(chunks))
+            chunks = self._split_ranges(frame.num_far, frame.num_leaf)
+            run_concurrently((functools.partial(self._launch_advancement, frame, far, leaf, float(fraction), chunk) for chunk, (far, leaf) in enumerate(chunks)), modules=[reduction_kernels], device=self.device)
         self._readback.enqueue(alpha=self._alpha)
         self._readback.wait()
         return float(self._readback.read("alpha").min())
@@ -846,15 +847,19 @@ class ContactModel:
             # The body pairs keep the chunks of the last evaluation (``_deal_seed_chunks``).
             chunks = self._term_chunks if self._seed_chunk_count > 1 else 1
             run_concurrently(
-                functools.partial(
-                    wp.launch,
-                    friction_kernels.friction_energy_kernel,
-                    dim=lagged.pairs,
-                    inputs=[lagged.friction, lagged.slip_smoothing, rotation, position, self._seed_body_pair, lagged.data, self._seed_chunk, chunk],
-                    outputs=[targets],
-                    device=self.device,
-                )
-                for chunk in range(chunks)
+                (
+                    functools.partial(
+                        wp.launch,
+                        friction_kernels.friction_energy_kernel,
+                        dim=lagged.pairs,
+                        inputs=[lagged.friction, lagged.slip_smoothing, rotation, position, self._seed_body_pair, lagged.data, self._seed_chunk, chunk],
+                        outputs=[targets],
+                        device=self.device,
+                    )
+                    for chunk in range(chunks)
+                ),
+                modules=[friction_kernels],
+                device=self.device,
             )
             self._launch_top_level_sum(targets, (value, grad, hess))
         self._readback.enqueue(friction_value=value, friction_grad=grad, friction_hess=hess)
