@@ -367,46 +367,6 @@ def test_term_chunks_are_validated():
         wc.ContactModel([icosphere(0), icosphere(0)], term_chunks=0)
 
 
-def test_concurrent_tasks_all_run_and_raise_the_first_error():
-    from warpcontact._runtime import run_concurrently
-
-    done = []
-    run_concurrently([lambda i=i: done.append(i) for i in range(5)])
-    assert sorted(done) == list(range(5))
-
-    def fail():
-        raise RuntimeError("chunk 1 failed")
-
-    done.clear()
-    with pytest.raises(RuntimeError, match="chunk 1 failed"):
-        run_concurrently([lambda: done.append(0), fail, lambda: done.append(2)])
-    assert sorted(done) == [0, 2]  # the others still ran to the end
-
-
-def _run_two_tasks_and_exit():
-    from warpcontact._runtime import run_concurrently
-
-    done = []
-    run_concurrently([lambda: done.append(0), lambda: done.append(1)])
-    raise SystemExit(0 if sorted(done) == [0, 1] else 1)
-
-
-def test_concurrent_tasks_run_in_a_forked_child():
-    # A child forked after the pool started inherits the pool but not its threads.
-    import multiprocessing
-
-    from warpcontact._runtime import run_concurrently
-
-    run_concurrently([lambda: None, lambda: None])
-    child = multiprocessing.get_context("fork").Process(target=_run_two_tasks_and_exit)
-    child.start()
-    child.join(timeout=60)
-    if child.is_alive():
-        child.kill()
-        pytest.fail("run_concurrently hung in a forked child")
-    assert child.exitcode == 0
-
-
 # --- traversal rounds give the lists of one serial walk -----------------------------------------
 
 

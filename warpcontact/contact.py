@@ -30,7 +30,7 @@ from .kernels import friction as friction_kernels
 from .kernels import reduction as reduction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels import traversal as traversal_kernels
-from ._runtime import HostReadback, host_buffer, resolve_device, run_concurrently
+from ._runtime import HostReadback, LaunchCache, host_buffer, resolve_device, run_concurrently
 from ._validate import as_float64_array
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus
 from .sphere_tree import SphereTree, build_sphere_tree
@@ -335,6 +335,7 @@ class ContactModel:
         self._friction_pose_host = host_buffer(self.num_bodies, wp.transformd, self.device)
         self._step_host = host_buffer(self.num_bodies, rigid_kernels.vec6d, self.device)
         self._readback = HostReadback(self.device)
+        self._launches = LaunchCache(self.device)
         # Node pairs one traversal thread visits per round (tests lower it to force rounds).
         self._visit_budget = traversal_kernels.SYNC_FREE_VISIT_BUDGET if self.sync_free else traversal_kernels.HOST_SIZED_VISIT_BUDGET
         self._traversal_rounds = 0
@@ -426,16 +427,16 @@ class ContactModel:
         t.body_dynamic = self._body_dynamic
         return t
 
-    def _launch_top_level_sum(self, records: reduction_kernels.Targets, totals_out):
+    def _launch_top_level_sum(self, site: str, records: reduction_kernels.Targets, totals_out):
         """Sums the body pairs' top-level records into ``totals_out`` (value, gradient,
         upper-triangle Hessian), which the caller has zeroed."""
         if len(self.body_pairs):
-            wp.launch(
+            self._launches.launch(
+                site,
                 reduction_kernels.top_level_kernel,
                 dim=(len(self.body_pairs), reduction_kernels.RECORD_ENTRIES),
                 inputs=[self._seed_body_pair, records],
                 outputs=list(totals_out),
-                device=self.device,
             )
 
     # --- evaluation -------------------------------------------------------------------------
@@ -460,10 +461,10 @@ class ContactModel:
         """Stages ``poses`` for the next ``_launch_evaluation`` (which uploads them)."""
         self._pose_host.numpy()[:] = poses
 
-    def _launch_transforms(self, pose_host: wp.array, pose: wp.array, rotation_out: wp.array, position_out: wp.array):
+    def _launch_transforms(self, site: str, pose_host: wp.array, pose: wp.array, rotation_out: wp.array, position_out: wp.array):
         """Uploads staged poses and computes the bodies' rotations and positions from them."""
         wp.copy(pose, pose_host)
-        wp.launch(rigid_kernels.body_transforms_kernel, dim=self.num_bodies, inputs=[pose], outputs=[rotation_out, position_out], device=self.device)
+        self._launches.launch(site, rigid_kernels.body_transforms_kernel, dim=self.num_bodies, inputs=[pose], outputs=[rotation_out, position_out])
 
     def _launch_rounds(self):
         """Traversal rounds (``kernels/traversal.py``) at the current poses into the term lists.
@@ -479,7 +480,9 @@ class ContactModel:
                 break
             slot = _ROUND_SLOT + rounds
             next_tasks, next_task_seeds = self._tasks[rounds % 2], self._task_seeds[rounds % 2]
-            wp.launch(
+            # Rounds after the first alternate between the two task lists: one site each.
+            self._launches.launch(
+                ("round", 0 if rounds == 0 else 1 + rounds % 2),
                 traversal_kernels.traverse_round_kernel(self._visit_budget),
                 dim=num_tasks,
                 inputs=[
@@ -499,7 +502,6 @@ class ContactModel:
                     slot,
                 ],
                 outputs=[self._counters, self._far, self._blend, self._blend_level, self._leaf, next_tasks, next_task_seeds],
-                device=self.device,
             )
             tasks, task_seeds, task_slot = next_tasks, next_task_seeds, slot
             if self.sync_free:
@@ -527,7 +529,7 @@ class ContactModel:
     def _launch_evaluation(self, *, reduce: bool):
         """Uploads the staged poses, fills the term lists and, with ``reduce``, sums the
         potential; enqueues the counters (and the sums) for readback."""
-        self._launch_transforms(self._pose_host, self._pose, self._rotation, self._position)
+        self._launch_transforms("transforms", self._pose_host, self._pose, self._rotation, self._position)
         if self.mode != "brute" and len(self.body_pairs):
             self._launch_rounds()
         if reduce:
@@ -624,7 +626,7 @@ class ContactModel:
         self._seed_separation.fill_(np.inf)
         chunks = 1 if self.sync_free else self._deal_seed_chunks(num_far, num_blend, num_leaf)
         run_concurrently((functools.partial(self._launch_chunk_terms, sizes, chunk) for chunk in range(chunks)), modules=[reduction_kernels], device=self.device)
-        self._launch_top_level_sum(targets, (self._total_value, self._total_grad, self._total_hess))
+        self._launch_top_level_sum("top", targets, (self._total_value, self._total_grad, self._total_hess))
 
     def _launch_chunk_terms(self, sizes: tuple[int, int, int, int], chunk: int):
         """Blend weights, far and leaf terms and the bottom-up blend of the body pairs dealt
@@ -634,36 +636,36 @@ class ContactModel:
         common = [self._rotation, self._position, self._seed_body_pair]
         select = [self._seed_chunk, chunk]
         if num_blend:
-            wp.launch(
+            self._launches.launch(
+                ("weight", chunk),
                 reduction_kernels.blend_weight_kernel,
                 dim=num_blend,
                 inputs=[self._node_center, self._node_radius, self.eps, *common, self._blend, self._counters, *select],
                 outputs=[targets],
-                device=self.device,
             )
         if num_far:
-            wp.launch(
+            self._launches.launch(
+                ("far", chunk),
                 reduction_kernels.far_term_kernel,
                 dim=num_far,
                 inputs=[self._node_center, self._node_radius, self._node_weight, self.mode != "sdrs", *common, self._far, self._counters, *select],
                 outputs=[targets, self._seed_separation],
-                device=self.device,
             )
         if num_leaf:
-            wp.launch(
+            self._launches.launch(
+                ("leaf", chunk),
                 reduction_kernels.leaf_term_kernel,
                 dim=num_leaf,
                 inputs=[self._triangle_vertices, self.dhat, self.max_leaf_iterations, *common, self._leaf, self._counters, *select],
                 outputs=[targets, self._seed_status, self._seed_separation, self._leaf_iterations, self._leaf_plane],
-                device=self.device,
             )
         for level in range(max_level if num_blend else -1, -1, -1):
-            wp.launch(
+            self._launches.launch(
+                ("blend", chunk),
                 reduction_kernels.blend_level_kernel,
                 dim=num_blend,
                 inputs=[self._node_center, self._node_radius, self._node_weight, self.eps, level, *common, self._blend, self._blend_level, self._counters, *select],
                 outputs=[targets],
-                device=self.device,
             )
 
     def evaluate(self, poses) -> ContactEvaluation:
@@ -751,7 +753,8 @@ class ContactModel:
             # empty one, which Warp cannot slice) needs no view.
             return array[span[0] : span[1]] if 0 < span[0] < span[1] else array
 
-        wp.launch(
+        self._launches.launch(
+            ("advancement", chunk),
             reduction_kernels.advancement_kernel,
             dim=far[1] - far[0] + leaf[1] - leaf[0],
             inputs=[
@@ -771,7 +774,6 @@ class ContactModel:
                 self._step,
             ],
             outputs=[self._alpha[chunk : chunk + 1] if chunk else self._alpha],
-            device=self.device,
         )
 
     # --- friction -----------------------------------------------------------------------
@@ -840,7 +842,7 @@ class ContactModel:
         rotation, position = self._rotation, self._position
         if at_poses:
             rotation, position = self._friction_rotation, self._friction_position
-            self._launch_transforms(self._friction_pose_host, self._friction_pose, rotation, position)
+            self._launch_transforms("friction transforms", self._friction_pose_host, self._friction_pose, rotation, position)
         if lagged.pairs:
             for arr in (targets.record_value, targets.record_grad, targets.record_hess):
                 arr.zero_()
@@ -849,19 +851,19 @@ class ContactModel:
             run_concurrently(
                 (
                     functools.partial(
-                        wp.launch,
+                        self._launches.launch,
+                        ("friction", chunk),
                         friction_kernels.friction_energy_kernel,
                         dim=lagged.pairs,
                         inputs=[lagged.friction, lagged.slip_smoothing, rotation, position, self._seed_body_pair, lagged.data, self._seed_chunk, chunk],
                         outputs=[targets],
-                        device=self.device,
                     )
                     for chunk in range(chunks)
                 ),
                 modules=[friction_kernels],
                 device=self.device,
             )
-            self._launch_top_level_sum(targets, (value, grad, hess))
+            self._launch_top_level_sum("friction top", targets, (value, grad, hess))
         self._readback.enqueue(friction_value=value, friction_grad=grad, friction_hess=hess)
 
     def friction_adjoint(self, lagged: LaggedFriction, q_next: np.ndarray, q_now: np.ndarray, multiplier: np.ndarray):

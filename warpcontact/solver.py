@@ -30,7 +30,7 @@ import warp as wp
 
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
-from ._runtime import HostReadback, host_buffer, paused_tape
+from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
 from .articulation import joint_limit_energy
 from .contact import LaggedFriction
 from .rotation import quat_conjugate, quat_from_matrix, quat_from_rotation_vector, quat_mul, rotation_vector_from_quat
@@ -180,6 +180,7 @@ class ImplicitSolver:
             self._energy_hess = wp.zeros(n, dtype=dynamics_kernels.mat66d)
         self._trial_q_host = host_buffer(n, wp.transformd, model.device)
         self._readback = HostReadback(model.device)
+        self._launches = LaunchCache(model.device)
         # (poses, value, gradient, Hessian) of the friction term at the last evaluation.
         self._friction_at_evaluation = None
 
@@ -214,12 +215,12 @@ class ImplicitSolver:
         # The body terms are launched first, so that the contact evaluation's wait covers them.
         self._trial_q_host.numpy()[:] = poses
         wp.copy(self._trial_q, self._trial_q_host)
-        wp.launch(
+        self._launches.launch(
+            "body energy",
             dynamics_kernels.body_energy_kernel,
             dim=self.model.num_bodies,
             inputs=[step_in.bodies, self._trial_q, step_in.body_q, self._predicted_position, self._predicted_rotation, step_in.body_target],
             outputs=[self._energy, self._energy_grad, self._energy_hess],
-            device=self.model.device,
         )
         self._readback.enqueue(energy=self._energy, energy_grad=self._energy_grad, energy_hess=self._energy_hess)
         if contact is None:
