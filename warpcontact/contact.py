@@ -590,18 +590,22 @@ class ContactModel:
         self._traversal_rounds = 1 + int(np.count_nonzero(counters[_ROUND_SLOT:]))
         return True
 
+    def _chunk_count(self, num_leaf: int) -> int:
+        """Chunks for an evaluation with ``num_leaf`` leaf terms: ``term_chunks``, or one
+        below ``term_chunks`` x 1,024 leaf terms."""
+        return self._term_chunks if num_leaf >= self._term_chunks * self._min_chunk_leaf_terms else 1
+
     def _split_ranges(self, num_far: int, num_leaf: int) -> list[tuple[tuple[int, int], tuple[int, int]]]:
         """Per chunk, the (start, stop) ranges it takes of the far and leaf lists, for a
-        kernel whose result does not depend on how its items are split (a minimum); one
-        chunk below ``term_chunks`` x 1,024 leaf terms."""
-        chunks = self._term_chunks if num_leaf >= self._term_chunks * self._min_chunk_leaf_terms else 1
+        kernel whose result does not depend on how its items are split (a minimum)."""
+        chunks = self._chunk_count(num_leaf)
         return [((num_far * k // chunks, num_far * (k + 1) // chunks), (num_leaf * k // chunks, num_leaf * (k + 1) // chunks)) for k in range(chunks)]
 
     def _deal_seed_chunks(self, num_far: int, num_blend: int, num_leaf: int) -> int:
         """Deals the body pairs out to chunks of about equal cost (largest first, each to the
         cheapest chunk so far) into ``_seed_chunk``; returns the number of chunks. Host-sized
         CPU launches only: the lists are read in place."""
-        if self._term_chunks == 1 or num_leaf < self._term_chunks * self._min_chunk_leaf_terms:
+        if self._chunk_count(num_leaf) == 1:
             self._seed_chunk.zero_()
             self._seed_chunk_count = 1
             return 1
@@ -847,7 +851,7 @@ class ContactModel:
             for arr in (targets.record_value, targets.record_grad, targets.record_hess):
                 arr.zero_()
             # The body pairs keep the chunks of the last evaluation (``_deal_seed_chunks``).
-            chunks = self._term_chunks if self._seed_chunk_count > 1 else 1
+            chunks = self._seed_chunk_count
             run_concurrently(
                 (
                     functools.partial(
