@@ -350,7 +350,7 @@ def _sort(seed: int = 1) -> Scene:
     return Scene(
         bodies=[grid_ground(10.0, 7.0), *cubes, _rod((0.0, 0.0, 0.3 + 0.02), ("x", "y", "z"))],
         # Pair-weighted centred terms, as in Gather: with the paper's, Gather's preset leaves
-        # the rod hovering 0.45 m from where it starts (README, "Task optimisation").
+        # the rod hovering about 0.46 m from where it starts (README, "Task optimisation").
         # --quick: Gather's preset, 64 frames in 24-frame windows each executing 8 frames, 16
         # Adam steps of 5 cm.
         settings=SimulationSettings(time_step=0.04, frames=700, contact_stiffness=3e-8, friction=0.5, centred_weight="pairs"),
