@@ -606,8 +606,9 @@ class ContactModel:
         cheapest chunk so far) into ``_seed_chunk``; returns the number of chunks. Host-sized
         CPU launches only: the lists are read in place."""
         if self._chunk_count(num_leaf) == 1:
-            self._seed_chunk.zero_()
-            self._seed_chunk_count = 1
+            if self._seed_chunk_count != 1:  # all zeros already unless the last evaluation split
+                self._seed_chunk.zero_()
+                self._seed_chunk_count = 1
             return 1
         pairs = len(self.body_pairs)
         cost = np.zeros(pairs)
