@@ -640,11 +640,151 @@ def _fronts_reach(
 
 
 @wp.func
+def _relative_front_reach(corners: corners19, count: int, pos_a: wp.vec3d, pos_b: wp.vec3d, direction: wp.vec3d, step_a: vec6d, step_b: vec6d, alpha: wp.float64):
+    """Upper bound on the largest height along ``direction`` that any point of body B's convex
+    polygon ``corners[:count]`` reaches in body A's frame (A held at its start pose) under
+    alpha' <= alpha of both bodies' rigid steps.
+
+    With E = exp(alpha [dtheta]), dp = dp_b - dp_a, s = x - p_a and r = x - p_b, B's point x
+    moves in A's frame by (E_a^T - I) s + (E_b - I) r + alpha dp + alpha (E_a^T - I) dp
+    + (E_a^T - I)(E_b - I) r. The first two are bounded by ``_path_travel`` (A's rotation
+    reversed, B's rotation), the last two by alpha phi_a |dp| and phi_a phi_b |r|, phi =
+    alpha |dtheta| (a rotation's chord is at most its arc). Each bound is convex in alpha and
+    in x and zero at alpha = 0, so the maximum is at a corner. Bodies turning together then
+    close only what their centres' paths differ by, where the world-frame bound adds up
+    each body's own swing across the whole face.
+    """
+    dp = wp.vec3d(step_b[0] - step_a[0], step_b[1] - step_a[1], step_b[2] - step_a[2])
+    theta_a = wp.vec3d(step_a[3], step_a[4], step_a[5])
+    theta_b = wp.vec3d(step_b[3], step_b[4], step_b[5])
+    spin_a = wp.length(theta_a)
+    spin_b = wp.length(theta_b)
+    k_a = wp.vec3d()
+    if spin_a > wp.float64(0.0):
+        k_a = -theta_a / spin_a
+    k_b = wp.vec3d()
+    if spin_b > wp.float64(0.0):
+        k_b = theta_b / spin_b
+    still = wp.vec3d()
+    phi_a = alpha * spin_a
+    phi_b = alpha * spin_b
+    shared = alpha * wp.dot(dp, direction) + alpha * phi_a * wp.length(dp)
+    reach = wp.float64(-1.0e308)
+    for i in range(count):
+        x = corners[i]
+        r = x - pos_b
+        travel = _path_travel(x - pos_a, direction, still, k_a, alpha, phi_a) + _path_travel(r, direction, still, k_b, alpha, phi_b) + phi_a * phi_b * wp.length(r)
+        reach = wp.max(reach, wp.dot(x, direction) + travel)
+    return reach + shared
+
+
+@wp.func
+def _closing_reach(
+    in_frame_of_a: bool,
+    corners_a: corners19,
+    count_a: int,
+    pos_a: wp.vec3d,
+    step_a: vec6d,
+    corners_b: corners19,
+    count_b: int,
+    pos_b: wp.vec3d,
+    step_b: vec6d,
+    normal: wp.vec3d,
+    lead_a: wp.float64,
+    alpha: wp.float64,
+):
+    """Bound on what the parts' fronts reach towards each other at alpha (they stay apart
+    while it stays below their gap): along a world axis (``_fronts_reach``), or along an
+    axis fixed in A, where A's front stays at its height ``lead_a`` now."""
+    if in_frame_of_a:
+        return lead_a + _relative_front_reach(corners_b, count_b, pos_a, pos_b, normal, step_a, step_b, alpha)
+    return _fronts_reach(corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, alpha)
+
+
+@wp.func
+def _admissible_alpha(
+    in_frame_of_a: bool,
+    corners_a: corners19,
+    count_a: int,
+    pos_a: wp.vec3d,
+    step_a: vec6d,
+    corners_b: corners19,
+    count_b: int,
+    pos_b: wp.vec3d,
+    step_b: vec6d,
+    normal: wp.vec3d,
+    lead_a: wp.float64,
+    room: wp.float64,
+):
+    """Largest alpha in [0, 1] (to within 1e-9 of it) whose ``_closing_reach`` stays within
+    ``room``; the reach is convex in alpha, so the admissible alphas are an interval."""
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    if _closing_reach(in_frame_of_a, corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, lead_a, one) <= room:
+        return one
+    # Halve until the closure fits, then refine by bisection to within 1e-9 of alpha. A coarser
+    # alpha (1%) was cheaper, but it made the Newton path, and with it the converged state
+    # within its tolerance, jump with the simulation's parameters, which finite-difference
+    # checks of task gradients then saw (1.3e-5 relative on the ant's).
+    lo = zero
+    hi = one
+    halvings = int(0)
+    while lo == zero and halvings < _ADVANCEMENT_HALVINGS:
+        mid = wp.float64(0.5) * hi
+        if _closing_reach(in_frame_of_a, corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, lead_a, mid) <= room:
+            lo = mid
+        else:
+            hi = mid
+        halvings += 1
+    if lo == zero:
+        return zero
+    for _it in range(_ADVANCEMENT_BISECTIONS):
+        mid = wp.float64(0.5) * (lo + hi)
+        if _closing_reach(in_frame_of_a, corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, lead_a, mid) <= room:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+@wp.func
 def _path_reach(tri: wp.mat33d, pos: wp.vec3d, step: vec6d):
     """Upper bound on how far any point of the triangle moves along the whole rigid step
     (alpha <= 1): |dp| + |dtheta| max |r| (a rotation's chord is at most its arc)."""
     lever = wp.max(wp.max(wp.length(tri[0] - pos), wp.length(tri[1] - pos)), wp.length(tri[2] - pos))
     return wp.length(wp.vec3d(step[0], step[1], step[2])) + wp.length(wp.vec3d(step[3], step[4], step[5])) * lever
+
+
+@wp.func
+def _clipped_advancement(
+    in_frame_of_a: bool,
+    ta: wp.mat33d,
+    tb: wp.mat33d,
+    pos_a: wp.vec3d,
+    pos_b: wp.vec3d,
+    step_a: vec6d,
+    step_b: vec6d,
+    normal: wp.vec3d,
+    u: wp.vec3d,
+    w: wp.vec3d,
+    margin: wp.float64,
+    fraction: wp.float64,
+):
+    """``_axis_advancement`` along ``normal`` (A on its positive side; u, w across it) in the
+    world or in A's frame, with each triangle cut to the other's extents widened by ``margin``,
+    the most a point can move against the other triangle in that frame."""
+    zero = wp.float64(0.0)
+    corners_a, count_a = _clipped_corners(ta, normal, u, w, _lateral_box(tb, u, w, margin))
+    corners_b, count_b = _clipped_corners(tb, normal, u, w, _lateral_box(ta, u, w, margin))
+    if count_a == 0 or count_b == 0:
+        return wp.float64(1.0)  # no point of one triangle can reach the other
+    # Each front's height now (its reach at alpha = 0); the gap is what separates them.
+    lead_a = _front_reach(corners_a, count_a, pos_a, -normal, step_a, zero)
+    lead_b = _front_reach(corners_b, count_b, pos_b, normal, step_b, zero)
+    if not (-lead_a - lead_b > zero):
+        return zero
+    room = fraction * (-lead_a - lead_b) + lead_a + lead_b
+    return _admissible_alpha(in_frame_of_a, corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, lead_a, room)
 
 
 @wp.func
@@ -663,15 +803,17 @@ def _axis_advancement(
     those parts' extents along it overlap now.
 
     While that gap stays positive no point of one triangle meets a point of the other. Two
-    points can only meet if they start within both triangles' travel of each other across
+    points can only meet if they start within their relative travel of each other across
     ``axis``, so each triangle is cut to the other's extents across it, widened by that travel
     (at alpha = 1, so the parts do not depend on alpha): a long face resting on a small one is
     held back by the motion of its part above the small face, not by its far end's swing. The
     gap is bounded by what both parts close, each corner credited with how far behind its
     part's leading corner it starts, so it is the relative motion that counts: bodies moving
     together are not held back, a static side takes none of the room, and a face may tilt
-    about a vertex or edge resting close to the other triangle. The closure is convex in
-    alpha, so the admissible alphas are an interval.
+    about a vertex or edge resting close to the other triangle. Where the world axis holds
+    the step back, the axis is also tried fixed in A (``_relative_front_reach``): a pair in
+    face contact turning together (a pusher and what it pushes) then closes only what the
+    turn moves the faces apart, not each face's swing about its own centre.
     """
     zero = wp.float64(0.0)
     one = wp.float64(1.0)
@@ -694,42 +836,13 @@ def _axis_advancement(
         return zero
     u = wp.normalize(longest)
     w = wp.cross(normal, u)
-    margin = _path_reach(ta, pos_a, step_a) + _path_reach(tb, pos_b, step_b)
-    corners_a, count_a = _clipped_corners(ta, normal, u, w, _lateral_box(tb, u, w, margin))
-    corners_b, count_b = _clipped_corners(tb, normal, u, w, _lateral_box(ta, u, w, margin))
-    if count_a == 0 or count_b == 0:
-        return one  # no point of one triangle can reach the other
-    # Each front's height now (its reach at alpha = 0); the gap is what separates them.
-    lead_a = _front_reach(corners_a, count_a, pos_a, -normal, step_a, zero)
-    lead_b = _front_reach(corners_b, count_b, pos_b, normal, step_b, zero)
-    room = fraction * (-lead_a - lead_b) + lead_a + lead_b
-    if not (-lead_a - lead_b > zero):
-        return zero
-    if _fronts_reach(corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, one) <= room:
-        return one
-    # Halve until the closure fits, then refine by bisection to within 1e-9 of alpha. A coarser
-    # alpha (1%) was cheaper, but it made the Newton path, and with it the converged state
-    # within its tolerance, jump with the simulation's parameters, which finite-difference
-    # checks of task gradients then saw (1.3e-5 relative on the ant's).
-    lo = zero
-    hi = one
-    halvings = int(0)
-    while lo == zero and halvings < _ADVANCEMENT_HALVINGS:
-        mid = wp.float64(0.5) * hi
-        if _fronts_reach(corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, mid) <= room:
-            lo = mid
-        else:
-            hi = mid
-        halvings += 1
-    if lo == zero:
-        return zero
-    for _it in range(_ADVANCEMENT_BISECTIONS):
-        mid = wp.float64(0.5) * (lo + hi)
-        if _fronts_reach(corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, mid) <= room:
-            lo = mid
-        else:
-            hi = mid
-    return lo
+    alpha = _clipped_advancement(False, ta, tb, pos_a, pos_b, step_a, step_b, normal, u, w, _path_reach(ta, pos_a, step_a) + _path_reach(tb, pos_b, step_b), fraction)
+    if alpha < one:
+        # In A's frame B's points also carry A's motion reversed: at most |dp_a| + |dtheta_a| |x - p_a|.
+        lever = wp.max(wp.max(wp.length(tb[0] - pos_a), wp.length(tb[1] - pos_a)), wp.length(tb[2] - pos_a))
+        margin = _path_reach(tb, pos_b, step_b) + wp.length(wp.vec3d(step_a[0], step_a[1], step_a[2])) + wp.length(wp.vec3d(step_a[3], step_a[4], step_a[5])) * lever
+        alpha = wp.max(alpha, _clipped_advancement(True, ta, tb, pos_a, pos_b, step_a, step_b, normal, u, w, margin, fraction))
+    return alpha
 
 
 @wp.func

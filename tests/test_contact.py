@@ -623,6 +623,36 @@ def test_advancement_clips_a_long_face_to_what_lies_below_it():
     assert _along_path_ok(model, poses, step, alpha)
 
 
+def _turning_together(spin, pivot, poses):
+    """Rows (dp, dtheta) that turn every body by ``spin`` about ``pivot`` (to first order)."""
+    step = np.zeros((len(poses), 6))
+    step[:, 3:] = spin
+    step[:, :3] = np.cross(spin, poses[:, :3] - pivot)
+    return step
+
+
+def test_advancement_lets_a_pusher_and_its_box_turn_together():
+    """A 0.1 m rod presses 1e-4 m from the 0.3 m face of a cube, both free, and the step
+    turns both by 0.01 rad about a vertical axis through the contact, as a pusher steering
+    what it pushes does. Each face swings ~1e-3 m about its own centre, so along a world axis
+    the step was held to alpha ~ 0.05; in the cube's frame the faces hardly move, and the
+    whole step is admissible."""
+    cube, rod = box((0.3, 0.3, 0.3)), box((0.1, 0.1, 0.6))
+    poses = identity_poses([[0, 0, 0.15], [0.15 + 0.05 + 1e-4, 0.05, 0.35]])
+    model = wc.ContactModel([cube, rod])
+    step = _turning_together(np.array([0.0, 0.0, 0.01]), np.array([0.15, 0.05, 0.2]), poses)
+    step[:, :3] += [-0.02, 0.0, 0.0]  # pushing along -x
+    assert model.evaluate(poses).ok
+    alpha = model.advancement_limit(step)
+    assert alpha == 1.0
+    assert _along_path_ok(model, poses, step, alpha)
+    step[1, 5] += 0.02  # the rod also turns against the cube: its edge closes 1e-3 m
+    model.evaluate(poses)
+    alpha = model.advancement_limit(step)
+    assert 0.02 < alpha < 0.2
+    assert _along_path_ok(model, poses, step, alpha)
+
+
 def _place_apart(model, poses, gap):
     """Moves body 1 along +x (bisection) to where the pair's separation is about ``gap``."""
     near, far = poses[1, 0], poses[1, 0] + 4.0
@@ -637,11 +667,14 @@ def _place_apart(model, poses, gap):
     return poses
 
 
+@pytest.mark.parametrize("together", [False, True], ids=["apart", "together"])
 @pytest.mark.parametrize("shapes", ["sphere-box", "plank-cube"])
-def test_advancement_keeps_random_steps_apart(shapes):
+def test_advancement_keeps_random_steps_apart(shapes, together):
     """Random rigid steps of random size (up to large against the gap): every configuration on
     the bounded path is intersection free and the bound is not vacuous. The plank's 2 m slivers
-    next to a 0.1 m cube exercise the clipping of each triangle to what the other can reach."""
+    next to a 0.1 m cube exercise the clipping of each triangle to what the other can reach.
+    "together": both bodies turn about a common pivot, with a random relative step of up to
+    1 % of it on top, where the bound in the first body's frame admits more than the world's."""
     rng = np.random.default_rng(7)
     meshes = [icosphere(1), box()] if shapes == "sphere-box" else [box((0.1, 0.1, 0.1)), box((2.0, 0.1, 0.05))]
     model = wc.ContactModel(meshes)
@@ -655,6 +688,8 @@ def test_advancement_keeps_random_steps_apart(shapes):
         step[:, 3:] = rng.normal(size=(2, 3)) * 0.5
         step[0, :3] += [0.3, 0, 0]
         step[1, :3] -= [0.3, 0, 0]  # towards each other
+        if together:
+            step = 0.01 * step + _turning_together(rng.normal(size=3) * 0.5, rng.normal(size=3) * 0.5, poses)
         step *= 10.0 ** rng.uniform(-3, 0)
         model.evaluate(poses)
         alpha = model.advancement_limit(step)
