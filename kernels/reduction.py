@@ -640,40 +640,40 @@ def _fronts_reach(
 
 
 @wp.func
-def _relative_front_reach(corners: corners19, count: int, pos_a: wp.vec3d, pos_b: wp.vec3d, direction: wp.vec3d, step_a: vec6d, step_b: vec6d, alpha: wp.float64):
-    """Upper bound on the largest height along ``direction`` that any point of body B's convex
-    polygon ``corners[:count]`` reaches in body A's frame (A held at its start pose) under
-    alpha' <= alpha of both bodies' rigid steps.
+def _relative_front_reach(corners: corners19, count: int, pos: wp.vec3d, step: vec6d, frame_pos: wp.vec3d, frame_step: vec6d, direction: wp.vec3d, alpha: wp.float64):
+    """Upper bound on the largest height along ``direction`` that any point of a body's convex
+    polygon ``corners[:count]`` reaches in the frame of another body (held at its start pose)
+    under alpha' <= alpha of both bodies' rigid steps.
 
-    With E = exp(alpha [dtheta]), dp = dp_b - dp_a, s = x - p_a and r = x - p_b, B's point x
-    moves in A's frame by (E_a^T - I) s + (E_b - I) r + alpha dp + alpha (E_a^T - I) dp
-    + (E_a^T - I)(E_b - I) r. The first two are bounded by ``_path_travel`` (A's rotation
-    reversed, B's rotation), the last two by alpha phi_a |dp| and phi_a phi_b |r|, phi =
+    With E = exp(alpha [dtheta]), F the frame body's, dp = dp - dp_F, s = x - p_F and r = x - p,
+    the point x moves in that frame by (E_F^T - I) s + (E - I) r + alpha dp + alpha (E_F^T - I) dp
+    + (E_F^T - I)(E - I) r. The first two are bounded by ``_path_travel`` (the frame's rotation
+    reversed, the body's rotation), the last two by alpha phi_F |dp| and phi_F phi |r|, phi =
     alpha |dtheta| (a rotation's chord is at most its arc). Each bound is convex in alpha and
     in x and zero at alpha = 0, so the maximum is at a corner. Bodies turning together then
     close only what their centres' paths differ by, where the world-frame bound adds up
     each body's own swing across the whole face.
     """
-    dp = wp.vec3d(step_b[0] - step_a[0], step_b[1] - step_a[1], step_b[2] - step_a[2])
-    theta_a = wp.vec3d(step_a[3], step_a[4], step_a[5])
-    theta_b = wp.vec3d(step_b[3], step_b[4], step_b[5])
-    spin_a = wp.length(theta_a)
-    spin_b = wp.length(theta_b)
-    k_a = wp.vec3d()
-    if spin_a > wp.float64(0.0):
-        k_a = -theta_a / spin_a
-    k_b = wp.vec3d()
-    if spin_b > wp.float64(0.0):
-        k_b = theta_b / spin_b
+    dp = wp.vec3d(step[0] - frame_step[0], step[1] - frame_step[1], step[2] - frame_step[2])
+    theta = wp.vec3d(step[3], step[4], step[5])
+    frame_theta = wp.vec3d(frame_step[3], frame_step[4], frame_step[5])
+    spin = wp.length(theta)
+    frame_spin = wp.length(frame_theta)
+    k = wp.vec3d()
+    if spin > wp.float64(0.0):
+        k = theta / spin
+    frame_k = wp.vec3d()
+    if frame_spin > wp.float64(0.0):
+        frame_k = -frame_theta / frame_spin
     still = wp.vec3d()
-    phi_a = alpha * spin_a
-    phi_b = alpha * spin_b
-    shared = alpha * wp.dot(dp, direction) + alpha * phi_a * wp.length(dp)
+    phi = alpha * spin
+    frame_phi = alpha * frame_spin
+    shared = alpha * wp.dot(dp, direction) + alpha * frame_phi * wp.length(dp)
     reach = wp.float64(-1.0e308)
     for i in range(count):
         x = corners[i]
-        r = x - pos_b
-        travel = _path_travel(x - pos_a, direction, still, k_a, alpha, phi_a) + _path_travel(r, direction, still, k_b, alpha, phi_b) + phi_a * phi_b * wp.length(r)
+        r = x - pos
+        travel = _path_travel(x - frame_pos, direction, still, frame_k, alpha, frame_phi) + _path_travel(r, direction, still, k, alpha, phi) + frame_phi * phi * wp.length(r)
         reach = wp.max(reach, wp.dot(x, direction) + travel)
     return reach + shared
 
@@ -697,7 +697,7 @@ def _closing_reach(
     while it stays below their gap): along a world axis (``_fronts_reach``), or along an
     axis fixed in A, where A's front stays at its height ``lead_a`` now."""
     if in_frame_of_a:
-        return lead_a + _relative_front_reach(corners_b, count_b, pos_a, pos_b, normal, step_a, step_b, alpha)
+        return lead_a + _relative_front_reach(corners_b, count_b, pos_b, step_b, pos_a, step_a, normal, alpha)
     return _fronts_reach(corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, alpha)
 
 
@@ -750,7 +750,8 @@ def _admissible_alpha(
 @wp.func
 def _path_reach(tri: wp.mat33d, pos: wp.vec3d, step: vec6d):
     """Upper bound on how far any point of the triangle moves along the whole rigid step
-    (alpha <= 1): |dp| + |dtheta| max |r| (a rotation's chord is at most its arc)."""
+    (alpha <= 1) of a body centred at ``pos``: |dp| + |dtheta| max |r| (a rotation's chord is
+    at most its arc)."""
     lever = wp.max(wp.max(wp.length(tri[0] - pos), wp.length(tri[1] - pos)), wp.length(tri[2] - pos))
     return wp.length(wp.vec3d(step[0], step[1], step[2])) + wp.length(wp.vec3d(step[3], step[4], step[5])) * lever
 
@@ -811,9 +812,10 @@ def _axis_advancement(
     part's leading corner it starts, so it is the relative motion that counts: bodies moving
     together are not held back, a static side takes none of the room, and a face may tilt
     about a vertex or edge resting close to the other triangle. Where the world axis holds
-    the step back, the axis is also tried fixed in A (``_relative_front_reach``): a pair in
-    face contact turning together (a pusher and what it pushes) then closes only what the
-    turn moves the faces apart, not each face's swing about its own centre.
+    the step back, the axis is also tried fixed in either body (``_relative_front_reach``): a
+    pair in face contact turning together (a pusher and what it pushes, a struck cube spun
+    off the striker's face) then closes only what the turn moves the faces apart, not each
+    face's swing about its own centre.
     """
     zero = wp.float64(0.0)
     one = wp.float64(1.0)
@@ -837,11 +839,12 @@ def _axis_advancement(
     u = wp.normalize(longest)
     w = wp.cross(normal, u)
     alpha = _clipped_advancement(False, ta, tb, pos_a, pos_b, step_a, step_b, normal, u, w, _path_reach(ta, pos_a, step_a) + _path_reach(tb, pos_b, step_b), fraction)
+    # The same axis fixed in either body: in the frame of the one that turns more, the other's
+    # points move least.
     if alpha < one:
-        # In A's frame B's points also carry A's motion reversed: at most |dp_a| + |dtheta_a| |x - p_a|.
-        lever = wp.max(wp.max(wp.length(tb[0] - pos_a), wp.length(tb[1] - pos_a)), wp.length(tb[2] - pos_a))
-        margin = _path_reach(tb, pos_b, step_b) + wp.length(wp.vec3d(step_a[0], step_a[1], step_a[2])) + wp.length(wp.vec3d(step_a[3], step_a[4], step_a[5])) * lever
-        alpha = wp.max(alpha, _clipped_advancement(True, ta, tb, pos_a, pos_b, step_a, step_b, normal, u, w, margin, fraction))
+        alpha = wp.max(alpha, _clipped_advancement(True, ta, tb, pos_a, pos_b, step_a, step_b, normal, u, w, _path_reach(tb, pos_b, step_b) + _path_reach(tb, pos_a, step_a), fraction))
+    if alpha < one:
+        alpha = wp.max(alpha, _clipped_advancement(True, tb, ta, pos_b, pos_a, step_b, step_a, -normal, u, w, _path_reach(ta, pos_a, step_a) + _path_reach(ta, pos_b, step_b), fraction))
     return alpha
 
 

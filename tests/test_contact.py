@@ -674,10 +674,12 @@ def test_advancement_keeps_random_steps_apart(shapes, together):
     the bounded path is intersection free and the bound is not vacuous. The plank's 2 m slivers
     next to a 0.1 m cube exercise the clipping of each triangle to what the other can reach.
     "together": both bodies turn about a common pivot, with a random relative step of up to
-    1 % of it on top, where the bound in the first body's frame admits more than the world's."""
+    1 % of it on top, where the bound in either body's frame admits more than the world's; the
+    bound then does not depend on which body is listed first."""
     rng = np.random.default_rng(7)
     meshes = [icosphere(1), box()] if shapes == "sphere-box" else [box((0.1, 0.1, 0.1)), box((2.0, 0.1, 0.05))]
     model = wc.ContactModel(meshes)
+    swapped = wc.ContactModel(meshes[::-1])
     for trial in range(8):
         gap = 10.0 ** rng.uniform(-4, -1)
         poses = identity_poses([[0, 0, 0], [0.0, 0.1, 0.0]])
@@ -695,3 +697,6 @@ def test_advancement_keeps_random_steps_apart(shapes, together):
         alpha = model.advancement_limit(step)
         assert 0 < alpha <= 1, trial
         assert _along_path_ok(model, poses, step, alpha), trial
+        if together:
+            swapped.evaluate(poses[::-1].copy())
+            assert swapped.advancement_limit(step[::-1].copy()) == pytest.approx(alpha, rel=1e-6), trial
