@@ -702,52 +702,6 @@ def _closing_reach(
 
 
 @wp.func
-def _admissible_alpha(
-    in_frame_of_a: bool,
-    corners_a: corners19,
-    count_a: int,
-    pos_a: wp.vec3d,
-    step_a: vec6d,
-    corners_b: corners19,
-    count_b: int,
-    pos_b: wp.vec3d,
-    step_b: vec6d,
-    normal: wp.vec3d,
-    lead_a: wp.float64,
-    room: wp.float64,
-):
-    """Largest alpha in [0, 1] (to within 1e-9 of it) whose ``_closing_reach`` stays within
-    ``room``; the reach is convex in alpha, so the admissible alphas are an interval."""
-    zero = wp.float64(0.0)
-    one = wp.float64(1.0)
-    if _closing_reach(in_frame_of_a, corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, lead_a, one) <= room:
-        return one
-    # Halve until the closure fits, then refine by bisection to within 1e-9 of alpha. A coarser
-    # alpha (1%) was cheaper, but it made the Newton path, and with it the converged state
-    # within its tolerance, jump with the simulation's parameters, which finite-difference
-    # checks of task gradients then saw (1.3e-5 relative on the ant's).
-    lo = zero
-    hi = one
-    halvings = int(0)
-    while lo == zero and halvings < _ADVANCEMENT_HALVINGS:
-        mid = wp.float64(0.5) * hi
-        if _closing_reach(in_frame_of_a, corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, lead_a, mid) <= room:
-            lo = mid
-        else:
-            hi = mid
-        halvings += 1
-    if lo == zero:
-        return zero
-    for _it in range(_ADVANCEMENT_BISECTIONS):
-        mid = wp.float64(0.5) * (lo + hi)
-        if _closing_reach(in_frame_of_a, corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, lead_a, mid) <= room:
-            lo = mid
-        else:
-            hi = mid
-    return lo
-
-
-@wp.func
 def _path_reach(tri: wp.mat33d, pos: wp.vec3d, step: vec6d):
     """Upper bound on how far any point of the triangle moves along the whole rigid step
     (alpha <= 1) of a body centred at ``pos``: |dp| + |dtheta| max |r| (a rotation's chord is
@@ -773,19 +727,46 @@ def _clipped_advancement(
 ):
     """``_axis_advancement`` along ``normal`` (A on its positive side; u, w across it) in the
     world or in A's frame, with each triangle cut to the other's extents widened by ``margin``,
-    the most a point can move against the other triangle in that frame."""
+    the most a point can move against the other triangle in that frame: the largest alpha in
+    [0, 1] (to within 1e-9 of it) whose ``_closing_reach`` stays within ``fraction`` of the gap."""
     zero = wp.float64(0.0)
+    one = wp.float64(1.0)
     corners_a, count_a = _clipped_corners(ta, normal, u, w, _lateral_box(tb, u, w, margin))
     corners_b, count_b = _clipped_corners(tb, normal, u, w, _lateral_box(ta, u, w, margin))
     if count_a == 0 or count_b == 0:
-        return wp.float64(1.0)  # no point of one triangle can reach the other
+        return one  # no point of one triangle can reach the other
     # Each front's height now (its reach at alpha = 0); the gap is what separates them.
     lead_a = _front_reach(corners_a, count_a, pos_a, -normal, step_a, zero)
     lead_b = _front_reach(corners_b, count_b, pos_b, normal, step_b, zero)
     if not (-lead_a - lead_b > zero):
         return zero
     room = fraction * (-lead_a - lead_b) + lead_a + lead_b
-    return _admissible_alpha(in_frame_of_a, corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, lead_a, room)
+    # The reach is convex in alpha, so the admissible alphas are an interval.
+    if _closing_reach(in_frame_of_a, corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, lead_a, one) <= room:
+        return one
+    # Halve until the closure fits, then refine by bisection to within 1e-9 of alpha. A coarser
+    # alpha (1%) was cheaper, but it made the Newton path, and with it the converged state
+    # within its tolerance, jump with the simulation's parameters, which finite-difference
+    # checks of task gradients then saw (1.3e-5 relative on the ant's).
+    lo = zero
+    hi = one
+    halvings = int(0)
+    while lo == zero and halvings < _ADVANCEMENT_HALVINGS:
+        mid = wp.float64(0.5) * hi
+        if _closing_reach(in_frame_of_a, corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, lead_a, mid) <= room:
+            lo = mid
+        else:
+            hi = mid
+        halvings += 1
+    if lo == zero:
+        return zero
+    for _it in range(_ADVANCEMENT_BISECTIONS):
+        mid = wp.float64(0.5) * (lo + hi)
+        if _closing_reach(in_frame_of_a, corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, lead_a, mid) <= room:
+            lo = mid
+        else:
+            hi = mid
+    return lo
 
 
 @wp.func
