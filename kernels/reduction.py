@@ -645,8 +645,8 @@ def _relative_front_reach(corners: corners19, count: int, pos: wp.vec3d, step: v
     polygon ``corners[:count]`` reaches in the frame of another body (held at its start pose)
     under alpha' <= alpha of both bodies' rigid steps.
 
-    With E = exp(alpha [dtheta]), F the frame body's, dp = dp - dp_F, s = x - p_F and r = x - p,
-    the point x moves in that frame by (E_F^T - I) s + (E - I) r + alpha dp + alpha (E_F^T - I) dp
+    With E = exp(alpha [dtheta]), subscript F for the frame body, dp the translation step less
+    the frame body's, s = x - p_F and r = x - p, the point x moves in that frame by (E_F^T - I) s + (E - I) r + alpha dp + alpha (E_F^T - I) dp
     + (E_F^T - I)(E - I) r. The first two are bounded by ``_path_travel`` (the frame's rotation
     reversed, the body's rotation), the last two by alpha phi_F |dp| and phi_F phi |r|, phi =
     alpha |dtheta| (a rotation's chord is at most its arc). Each bound is convex in alpha and
