@@ -622,24 +622,6 @@ def _front_reach(corners: corners19, count: int, pos: wp.vec3d, direction: wp.ve
 
 
 @wp.func
-def _fronts_reach(
-    corners_a: corners19,
-    count_a: int,
-    pos_a: wp.vec3d,
-    step_a: vec6d,
-    corners_b: corners19,
-    count_b: int,
-    pos_b: wp.vec3d,
-    step_b: vec6d,
-    normal: wp.vec3d,
-    alpha: wp.float64,
-):
-    """Sum of both parts' ``_front_reach`` towards each other (A on the positive side of
-    ``normal``): the fronts stay apart while it stays negative."""
-    return _front_reach(corners_a, count_a, pos_a, -normal, step_a, alpha) + _front_reach(corners_b, count_b, pos_b, normal, step_b, alpha)
-
-
-@wp.func
 def _relative_front_reach(corners: corners19, count: int, pos: wp.vec3d, step: vec6d, frame_pos: wp.vec3d, frame_step: vec6d, direction: wp.vec3d, alpha: wp.float64):
     """Upper bound on the largest height along ``direction`` that any point of a body's convex
     polygon ``corners[:count]`` reaches in the frame of another body (held at its start pose)
@@ -693,12 +675,13 @@ def _closing_reach(
     lead_a: wp.float64,
     alpha: wp.float64,
 ):
-    """Bound on what the parts' fronts reach towards each other at alpha (they stay apart
-    while it stays below their gap): along a world axis (``_fronts_reach``), or along an
-    axis fixed in A, where A's front stays at its height ``lead_a`` now."""
+    """Bound on what the parts' fronts reach towards each other at alpha, A on the positive
+    side of ``normal`` (they stay apart while it stays below their gap): along a world axis,
+    the sum of both parts' ``_front_reach``, or along an axis fixed in A, where A's front
+    stays at its height ``lead_a`` now."""
     if in_frame_of_a:
         return lead_a + _relative_front_reach(corners_b, count_b, pos_b, step_b, pos_a, step_a, normal, alpha)
-    return _fronts_reach(corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, alpha)
+    return _front_reach(corners_a, count_a, pos_a, -normal, step_a, alpha) + _front_reach(corners_b, count_b, pos_b, normal, step_b, alpha)
 
 
 @wp.func
