@@ -628,10 +628,11 @@ def _relative_front_reach(corners: corners19, count: int, pos: wp.vec3d, step: v
     under alpha' <= alpha of both bodies' rigid steps.
 
     With E = exp(alpha [dtheta]), subscript F for the frame body, dp the translation step less
-    the frame body's, s = x - p_F and r = x - p, the point x moves in that frame by (E_F^T - I) s + (E - I) r + alpha dp + alpha (E_F^T - I) dp
-    + (E_F^T - I)(E - I) r. The first two are bounded by ``_path_travel`` (the frame's rotation
-    reversed, the body's rotation), the last two by alpha phi_F |dp| and phi_F phi |r|, phi =
-    alpha |dtheta| (a rotation's chord is at most its arc). Each bound is convex in alpha and
+    the frame body's, s = x - p_F and r = x - p, the point x moves in that frame by
+    (E_F^T - I) s + (E - I) r + alpha dp + alpha (E_F^T - I) dp + (E_F^T - I)(E - I) r. The
+    first two are bounded by ``_path_travel`` (the frame's rotation reversed, the body's
+    rotation), the last two by alpha phi_F |dp| and phi_F phi |r|, phi = alpha |dtheta| (a
+    rotation's chord is at most its arc). Each bound is convex in alpha and
     in x and zero at alpha = 0, so the maximum is at a corner. Bodies turning together then
     close only what their centres' paths differ by, where the world-frame bound adds up
     each body's own swing across the whole face.
@@ -802,13 +803,15 @@ def _axis_advancement(
         return zero
     u = wp.normalize(longest)
     w = wp.cross(normal, u)
-    alpha = _clipped_advancement(False, ta, tb, pos_a, pos_b, step_a, step_b, normal, u, w, _path_reach(ta, pos_a, step_a) + _path_reach(tb, pos_b, step_b), fraction)
+    reach_a = _path_reach(ta, pos_a, step_a)
+    reach_b = _path_reach(tb, pos_b, step_b)
+    alpha = _clipped_advancement(False, ta, tb, pos_a, pos_b, step_a, step_b, normal, u, w, reach_a + reach_b, fraction)
     # The same axis fixed in either body: in the frame of the one that turns more, the other's
-    # points move least.
+    # points move least. There a triangle's points also carry the frame body's motion reversed.
     if alpha < one:
-        alpha = wp.max(alpha, _clipped_advancement(True, ta, tb, pos_a, pos_b, step_a, step_b, normal, u, w, _path_reach(tb, pos_b, step_b) + _path_reach(tb, pos_a, step_a), fraction))
+        alpha = wp.max(alpha, _clipped_advancement(True, ta, tb, pos_a, pos_b, step_a, step_b, normal, u, w, reach_b + _path_reach(tb, pos_a, step_a), fraction))
     if alpha < one:
-        alpha = wp.max(alpha, _clipped_advancement(True, tb, ta, pos_b, pos_a, step_b, step_a, -normal, u, w, _path_reach(ta, pos_a, step_a) + _path_reach(ta, pos_b, step_b), fraction))
+        alpha = wp.max(alpha, _clipped_advancement(True, tb, ta, pos_b, pos_a, step_b, step_a, -normal, u, w, reach_a + _path_reach(ta, pos_b, step_b), fraction))
     return alpha
 
 
