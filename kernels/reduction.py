@@ -604,16 +604,22 @@ def _clipped_corners(tri: wp.mat33d, direction: wp.vec3d, u: wp.vec3d, w: wp.vec
 
 
 @wp.func
+def _spin_axis(step: vec6d):
+    """Unit axis (zero without rotation) and angle |dtheta| of a rigid step's rotation."""
+    dtheta = wp.vec3d(step[3], step[4], step[5])
+    spin = wp.length(dtheta)
+    if spin > wp.float64(0.0):
+        return dtheta / spin, spin
+    return wp.vec3d(), spin
+
+
+@wp.func
 def _front_reach(corners: corners19, count: int, pos: wp.vec3d, direction: wp.vec3d, step: vec6d, alpha: wp.float64):
     """Upper bound on the largest height along ``direction`` that any point of the convex
     polygon ``corners[:count]`` reaches under alpha' <= alpha of its body's rigid step (height
     plus ``_path_travel`` is convex, so the maximum is at a corner)."""
     dp = wp.vec3d(step[0], step[1], step[2])
-    dtheta = wp.vec3d(step[3], step[4], step[5])
-    spin = wp.length(dtheta)
-    k = wp.vec3d()
-    if spin > wp.float64(0.0):
-        k = dtheta / spin
+    k, spin = _spin_axis(step)
     reach = wp.float64(-1.0e308)
     for i in range(count):
         x = corners[i]
@@ -638,16 +644,9 @@ def _relative_front_reach(corners: corners19, count: int, pos: wp.vec3d, step: v
     each body's own swing across the whole face.
     """
     dp = wp.vec3d(step[0] - frame_step[0], step[1] - frame_step[1], step[2] - frame_step[2])
-    theta = wp.vec3d(step[3], step[4], step[5])
-    frame_theta = wp.vec3d(frame_step[3], frame_step[4], frame_step[5])
-    spin = wp.length(theta)
-    frame_spin = wp.length(frame_theta)
-    k = wp.vec3d()
-    if spin > wp.float64(0.0):
-        k = theta / spin
-    frame_k = wp.vec3d()
-    if frame_spin > wp.float64(0.0):
-        frame_k = -frame_theta / frame_spin
+    k, spin = _spin_axis(step)
+    frame_k, frame_spin = _spin_axis(frame_step)
+    frame_k = -frame_k  # the frame's rotation reversed
     still = wp.vec3d()
     phi = alpha * spin
     frame_phi = alpha * frame_spin
