@@ -350,11 +350,11 @@ def _sort(seed: int = 1) -> Scene:
     cubes = _scattered_cubes(rng, 10, _cube_factory("cube"), labels=labels, target_of=lambda b: (regions[b.group], 0.6))
     return Scene(
         bodies=[grid_ground(10.0, 7.0), *cubes, _rod((0.0, 0.0, 0.3 + 0.02), ("x", "y", "z"))],
-        # Pair-weighted centred terms, as in Gather: with the paper's, Gather's preset leaves
+        # Pair-weighted centred terms, as in Gather: with the paper's, the earlier preset left
         # the rod hovering about 0.46 m from where it starts (README, "Task optimisation").
         # --quick: 48 frames in the paper's 16-frame windows, each executing 8 frames after 16
-        # Adam steps of 5 cm; Gather's longer preset sorts the same two cubes at more than twice
-        # the cost (README, "Task optimisation").
+        # Adam steps of 5 cm; the earlier 24-frame windows over 64 frames sorted the same two
+        # cubes at more than twice the cost (README, "Task optimisation").
         settings=SimulationSettings(time_step=0.04, frames=700, contact_stiffness=3e-8, friction=0.5, centred_weight="pairs"),
         task=TaskSpec(name="sort", control="pd_targets", horizon=700, receding_horizon=16, learning_rate=1e-2, iterations=100,
                       quick_horizon=48, quick_receding_horizon=16, quick_receding_stride=8, quick_learning_rate=5e-2, quick_iterations=16),
