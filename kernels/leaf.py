@@ -35,6 +35,8 @@ potential is translation invariant (d absorbs the shift), and the local frame ke
 small gaps g_k free of cancellation when the triangles sit far from the world origin.
 """
 
+from typing import Any
+
 import warp as wp
 
 from .geometry import triangle_closest_points
@@ -77,7 +79,12 @@ _DECREMENT_TOL = wp.constant(wp.float64(1.0e-24))
 _STALL_TOL = wp.constant(wp.float64(1.0e-14))
 # Below this decrement relative to _energy_scale the Newton step is taken in full.
 _FULL_STEP_TOL = wp.constant(wp.float64(1.0e-10))
-_ARMIJO = wp.constant(wp.float64(1.0e-4))
+_ARMIJO = wp.constant(1.0e-4)
+# The same three tests for a plane search in float32 (unit roundoff 6e-8 against 1.1e-16),
+# scaled to its rounding as the float64 ones are to float64's.
+_DECREMENT_TOL_F32 = wp.constant(wp.float32(1.0e-12))
+_STALL_TOL_F32 = wp.constant(wp.float32(1.0e-5))
+_FULL_STEP_TOL_F32 = wp.constant(wp.float32(1.0e-2))
 # SDRS pairs whose widest-margin plane misses dhat by less than this fraction count as
 # beyond the support (see sdrs_solve).
 _SUPPORT_TOL = wp.constant(wp.float64(1.0e-8))
@@ -112,8 +119,8 @@ class LeafSolution:
 
 
 @wp.func
-def leaf_barrier(g: wp.float64, dhat: wp.float64):
-    """Barrier b(g) of one gap g > 0 and its derivatives (b, b', b'').
+def leaf_barrier(g: Any, dhat: Any):
+    """Barrier b(g) of one gap g > 0 and its derivatives (b, b', b''), in g's float type.
 
     dhat <= 0: the paper's global b = 1/g. dhat > 0: SDRS's (IPC's) locally supported
     log barrier, b = -(s - 1)^2 log(s) / dhat with s = g / dhat < 1, exactly 0 beyond; b, b'
@@ -122,20 +129,20 @@ def leaf_barrier(g: wp.float64, dhat: wp.float64):
     contact stiffness mu means the same in both models (b' = -1/g^2 and -1/(dhat g) for
     g << dhat).
     """
-    one = wp.float64(1.0)
-    two = wp.float64(2.0)
-    if dhat <= wp.float64(0.0):
+    one = type(g)(1.0)
+    two = type(g)(2.0)
+    if dhat <= type(g)(0.0):
         ig = one / g
         return ig, -ig * ig, two * ig * ig * ig
     if g >= dhat:
-        zero = wp.float64(0.0)
+        zero = type(g)(0.0)
         return zero, zero, zero
     s = g / dhat
     r = s - one
     lg = wp.log(s)
     b = -r * r * lg / dhat
     b1 = (-two * r * lg - r * r / s) / (dhat * dhat)
-    b2 = (-two * lg - wp.float64(4.0) * r / s + r * r / (s * s)) / (dhat * dhat * dhat)
+    b2 = (-two * lg - type(g)(4.0) * r / s + r * r / (s * s)) / (dhat * dhat * dhat)
     return b, b1, b2
 
 
@@ -156,15 +163,16 @@ def leaf_vertex_barrier(sol: LeafSolution, k: int):
 
 
 @wp.func
-def _barrier_sum(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dhat: wp.float64):
+def _barrier_sum(ta: Any, tb: Any, p: Any, dhat: Any):
     """sum_k b(g_k) at plane p; +inf if p does not separate the triangles strictly."""
-    n = wp.vec3d(p[0], p[1], p[2])
-    energy = wp.float64(0.0)
+    zero = p.dtype(0.0)
+    n = wp.vector(p[0], p[1], p[2])
+    energy = zero
     for k in range(3):
         ga = wp.dot(ta[k], n) + p[3]
         gb = -(wp.dot(tb[k], n) + p[3])
-        if ga <= wp.float64(0.0) or gb <= wp.float64(0.0):
-            return wp.float64(wp.inf)
+        if ga <= zero or gb <= zero:
+            return p.dtype(wp.inf)
         ba, _ba1, _ba2 = leaf_barrier(ga, dhat)
         bb, _bb1, _bb2 = leaf_barrier(gb, dhat)
         energy += ba + bb
@@ -172,71 +180,72 @@ def _barrier_sum(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dhat: wp.float64):
 
 
 @wp.func
-def _plane_energy(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d):
-    r = wp.length(wp.vec3d(p[0], p[1], p[2]))
-    one = wp.float64(1.0)
+def _plane_energy(ta: Any, tb: Any, p: Any):
+    r = wp.length(wp.vector(p[0], p[1], p[2]))
+    one = p.dtype(1.0)
     if r >= one:
-        return wp.float64(wp.inf)
-    return wp.float64(12.0) / (one - r) + _barrier_sum(ta, tb, p, wp.float64(0.0))
+        return p.dtype(wp.inf)
+    return p.dtype(12.0) / (one - r) + _barrier_sum(ta, tb, p, p.dtype(0.0))
 
 
 @wp.func
-def _add_vertex_terms(x: wp.vec3d, sigma: wp.float64, p: wp.vec4d, dhat: wp.float64, grad: wp.vec4d, hess: wp.mat44d, lam: wp.float64):
+def _add_vertex_terms(x: Any, sigma: Any, p: Any, dhat: Any, grad: Any, hess: Any, lam: Any):
     """Adds vertex x's barrier term to grad and hess of L in p, and -b'(g) g to lam."""
-    g = sigma * (wp.dot(x, wp.vec3d(p[0], p[1], p[2])) + p[3])
+    g = sigma * (wp.dot(x, wp.vector(p[0], p[1], p[2])) + p[3])
     _b, b1, b2 = leaf_barrier(g, dhat)
-    v = wp.vec4d(x[0], x[1], x[2], wp.float64(1.0))
+    v = wp.vector(x[0], x[1], x[2], p.dtype(1.0))
     return grad + (sigma * b1) * v, hess + b2 * wp.outer(v, v), lam - b1 * g
 
 
 @wp.func
-def _plane_derivatives(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d):
+def _plane_derivatives(ta: Any, tb: Any, p: Any):
     """Gradient and Hessian of L in p (p must be feasible)."""
-    n = wp.vec3d(p[0], p[1], p[2])
+    zero = p.dtype(0.0)
+    n = wp.vector(p[0], p[1], p[2])
     r = wp.length(n)
-    one = wp.float64(1.0)
+    one = p.dtype(1.0)
     om = one - r
-    f1 = wp.float64(12.0) / (om * om)
-    f2 = wp.float64(24.0) / (om * om * om)
+    f1 = p.dtype(12.0) / (om * om)
+    f2 = p.dtype(24.0) / (om * om * om)
     u = n / r
-    grad = wp.vec4d(f1 * u[0], f1 * u[1], f1 * u[2], wp.float64(0.0))
-    hess = wp.mat44d()
+    grad = wp.vector(f1 * u[0], f1 * u[1], f1 * u[2], zero)
+    hess = wp.matrix(shape=(4, 4), dtype=p.dtype)
     for i in range(3):
         for j in range(3):
             hess[i, j] = (f2 - f1 / r) * u[i] * u[j]
         hess[i, i] = hess[i, i] + f1 / r
-    lam = wp.float64(0.0)
+    lam = zero
     for k in range(3):
-        grad, hess, lam = _add_vertex_terms(ta[k], one, p, wp.float64(0.0), grad, hess, lam)
-        grad, hess, lam = _add_vertex_terms(tb[k], -one, p, wp.float64(0.0), grad, hess, lam)
+        grad, hess, lam = _add_vertex_terms(ta[k], one, p, zero, grad, hess, lam)
+        grad, hess, lam = _add_vertex_terms(tb[k], -one, p, zero, grad, hess, lam)
     return grad, hess
 
 
 @wp.func
-def _max_feasible_step(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dp: wp.vec4d):
+def _max_feasible_step(ta: Any, tb: Any, p: Any, dp: Any):
     """Largest alpha with p + alpha dp strictly inside the feasible set (may be +inf)."""
-    zero = wp.float64(0.0)
-    alpha = wp.float64(wp.inf)
+    zero = p.dtype(0.0)
+    alpha = p.dtype(wp.inf)
     for k in range(3):
         for side in range(2):
             x = ta[k]
-            sigma = wp.float64(1.0)
+            sigma = p.dtype(1.0)
             if side == 1:
                 x = tb[k]
-                sigma = wp.float64(-1.0)
-            g = sigma * (wp.dot(x, wp.vec3d(p[0], p[1], p[2])) + p[3])
-            rate = sigma * (wp.dot(x, wp.vec3d(dp[0], dp[1], dp[2])) + dp[3])
+                sigma = p.dtype(-1.0)
+            g = sigma * (wp.dot(x, wp.vector(p[0], p[1], p[2])) + p[3])
+            rate = sigma * (wp.dot(x, wp.vector(dp[0], dp[1], dp[2])) + dp[3])
             if rate < zero:
                 alpha = wp.min(alpha, -g / rate)
     # |n + alpha dn| < 1: positive root of a alpha^2 + 2 b alpha + c, c < 0.
-    n = wp.vec3d(p[0], p[1], p[2])
-    dn = wp.vec3d(dp[0], dp[1], dp[2])
+    n = wp.vector(p[0], p[1], p[2])
+    dn = wp.vector(dp[0], dp[1], dp[2])
     a = wp.dot(dn, dn)
     if a > zero:
         b = wp.dot(n, dn)
-        c = wp.dot(n, n) - wp.float64(1.0)
+        c = wp.dot(n, n) - p.dtype(1.0)
         disc = wp.sqrt(wp.max(b * b - a * c, zero))
-        root = wp.float64(0.0)
+        root = zero
         if b >= zero:
             root = -c / (b + disc)
         else:
@@ -246,9 +255,9 @@ def _max_feasible_step(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dp: wp.vec4d):
 
 
 @wp.func
-def _tangent_projector(n: wp.vec3d):
+def _tangent_projector(n: Any):
     """diag(I - n n^T, 1): restricts plane variations to unit normals."""
-    t = wp.identity(n=4, dtype=wp.float64)
+    t = wp.identity(n=4, dtype=n.dtype)
     for i in range(3):
         for j in range(3):
             t[i, j] = t[i, j] - n[i] * n[j]
@@ -256,22 +265,22 @@ def _tangent_projector(n: wp.vec3d):
 
 
 @wp.func
-def _sdrs_derivatives(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dhat: wp.float64):
+def _sdrs_derivatives(ta: Any, tb: Any, p: Any, dhat: Any):
     """Riemannian gradient and Hessian of the SDRS plane energy on |n| = 1 (see module docstring)."""
-    grad = wp.vec4d()
-    hess = wp.mat44d()
-    lam = wp.float64(0.0)
-    one = wp.float64(1.0)
+    grad = wp.vector(length=4, dtype=p.dtype)
+    hess = wp.matrix(shape=(4, 4), dtype=p.dtype)
+    lam = p.dtype(0.0)
+    one = p.dtype(1.0)
     for k in range(3):
         grad, hess, lam = _add_vertex_terms(ta[k], one, p, dhat, grad, hess, lam)
         grad, hess, lam = _add_vertex_terms(tb[k], -one, p, dhat, grad, hess, lam)
-    n = wp.vec3d(p[0], p[1], p[2])
+    n = wp.vector(p[0], p[1], p[2])
     t = _tangent_projector(n)
     hess = t * hess * t
     # The sphere's curvature adds lam on the tangent plane. The radial direction is a gauge
     # (no gradient, no step, projected out of every derivative), so its curvature is free:
     # the mean tangent curvature keeps H well conditioned where lam -> 0 at the support.
-    gauge = lam + wp.float64(0.5) * (hess[0, 0] + hess[1, 1] + hess[2, 2])
+    gauge = lam + p.dtype(0.5) * (hess[0, 0] + hess[1, 1] + hess[2, 2])
     for i in range(3):
         for j in range(3):
             hess[i, j] = hess[i, j] + (gauge - lam) * n[i] * n[j]
@@ -280,38 +289,38 @@ def _sdrs_derivatives(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dhat: wp.float6
 
 
 @wp.func
-def _energy(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dhat: wp.float64):
-    if dhat > wp.float64(0.0):
+def _energy(ta: Any, tb: Any, p: Any, dhat: Any):
+    if dhat > p.dtype(0.0):
         return _barrier_sum(ta, tb, p, dhat)
     return _plane_energy(ta, tb, p)
 
 
 @wp.func
-def _derivatives(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dhat: wp.float64):
-    if dhat > wp.float64(0.0):
+def _derivatives(ta: Any, tb: Any, p: Any, dhat: Any):
+    if dhat > p.dtype(0.0):
         return _sdrs_derivatives(ta, tb, p, dhat)
     return _plane_derivatives(ta, tb, p)
 
 
 @wp.func
-def _step_bound(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dp: wp.vec4d, dhat: wp.float64):
+def _step_bound(ta: Any, tb: Any, p: Any, dp: Any, dhat: Any):
     # A retracted (SDRS) step leaves the linear constraint set along a curve; its
     # infeasible trials have infinite energy and are backtracked instead.
-    if dhat > wp.float64(0.0):
-        return wp.float64(wp.inf)
+    if dhat > p.dtype(0.0):
+        return p.dtype(wp.inf)
     return _max_feasible_step(ta, tb, p, dp)
 
 
 @wp.func
-def _energy_scale(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dhat: wp.float64, energy: wp.float64):
+def _energy_scale(ta: Any, tb: Any, p: Any, dhat: Any, energy: Any):
     """The scale of L's rounding error, which the full-step and stall tests compare
     decrements with: L itself for the paper's model (L >= 12), but for SDRS also
     sum_k |b'(g_k)| (|x_k| + |d|), E's slope times the size of its gaps' rounding: near
     the support E -> 0 far faster than its rounding error, and an Armijo test on E, or a
     stall test relative to E, resolves nothing there."""
-    if dhat <= wp.float64(0.0):
+    if dhat <= p.dtype(0.0):
         return energy
-    n = wp.vec3d(p[0], p[1], p[2])
+    n = wp.vector(p[0], p[1], p[2])
     scale = energy
     for k in range(3):
         _ba, ba1, _ba2 = leaf_barrier(wp.dot(ta[k], n) + p[3], dhat)
@@ -321,12 +330,12 @@ def _energy_scale(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d, dhat: wp.float64, e
 
 
 @wp.func
-def _advance(p: wp.vec4d, step: wp.vec4d, alpha: wp.float64, dhat: wp.float64):
+def _advance(p: Any, step: Any, alpha: Any, dhat: Any):
     trial = p + alpha * step
-    if dhat > wp.float64(0.0):
+    if dhat > p.dtype(0.0):
         # Retraction onto unit normals (the step is tangent, so |n + alpha dn| >= 1).
-        n = wp.normalize(wp.vec3d(trial[0], trial[1], trial[2]))
-        trial = wp.vec4d(n[0], n[1], n[2], trial[3])
+        n = wp.normalize(wp.vector(trial[0], trial[1], trial[2]))
+        trial = wp.vector(n[0], n[1], n[2], trial[3])
     return trial
 
 
@@ -410,18 +419,19 @@ def _store_plane(sol: LeafSolution, p: wp.vec4d):
 
 
 @wp.func
-def _solve_from(sol: LeafSolution, start: wp.vec4d, max_iterations: int):
-    """Damped Newton on the plane from ``start``; fills the solution (see the module docstring)."""
-    ta = sol.ta
-    tb = sol.tb
-    dhat = sol.dhat
+def _plane_newton(ta: Any, tb: Any, start: Any, dhat: Any, max_iterations: int, decrement_tol: Any, stall_tol: Any, full_step_tol: Any):
+    """Damped Newton on the plane from ``start`` (see the module docstring), in the float
+    type of its arguments; returns (plane, L, Hessian at the plane, converged, iterations).
+    Converged: decrement <= decrement_tol L, or, where the decrement stops shrinking,
+    decrement <= stall_tol times L's rounding scale."""
     p = start
     energy = _energy(ta, tb, p, dhat)
+    one = p.dtype(1.0)
     converged = bool(False)
-    previous_decrement = wp.float64(wp.inf)
-    # Every exit with converged = True leaves p where hess was taken, so the inverse below
-    # reuses it.
-    hess = wp.mat44d()
+    previous_decrement = p.dtype(wp.inf)
+    # Every exit with converged = True leaves p where hess was taken, so the caller's
+    # inverse reuses it.
+    hess = wp.matrix(shape=(4, 4), dtype=p.dtype)
     it = int(0)
     while it < max_iterations:
         grad, hess = _derivatives(ta, tb, p, dhat)
@@ -430,19 +440,19 @@ def _solve_from(sol: LeafSolution, start: wp.vec4d, max_iterations: int):
             break
         decrement = -wp.dot(grad, step)
         scale = _energy_scale(ta, tb, p, dhat, energy)
-        if decrement <= _DECREMENT_TOL * energy:
+        if decrement <= decrement_tol * energy:
             converged = True
             break
         max_step = _step_bound(ta, tb, p, step, dhat)
-        if decrement <= _FULL_STEP_TOL * scale and max_step > wp.float64(1.0):
+        if decrement <= full_step_tol * scale and max_step > one:
             # Quadratic regime: the expected decrease is below what an Armijo test on L
             # can resolve, so take the full (feasible) step; a decrement that stops
             # shrinking means L's rounding floor is reached.
             if decrement >= previous_decrement:
-                converged = decrement <= _STALL_TOL * scale
+                converged = decrement <= stall_tol * scale
                 break
             previous_decrement = decrement
-            trial = _advance(p, step, wp.float64(1.0), dhat)
+            trial = _advance(p, step, one, dhat)
             trial_energy = _energy(ta, tb, trial, dhat)
             if wp.isfinite(trial_energy):
                 it += 1
@@ -450,22 +460,27 @@ def _solve_from(sol: LeafSolution, start: wp.vec4d, max_iterations: int):
                 energy = trial_energy
                 continue
         it += 1
-        alpha = wp.min(wp.float64(1.0), wp.float64(0.99) * max_step)
+        alpha = wp.min(one, p.dtype(0.99) * max_step)
         accepted = bool(False)
         for _bt in range(_MAX_BACKTRACKS):
             trial = _advance(p, step, alpha, dhat)
             trial_energy = _energy(ta, tb, trial, dhat)
-            if trial_energy <= energy - _ARMIJO * alpha * decrement:
+            if trial_energy <= energy - p.dtype(_ARMIJO) * alpha * decrement:
                 p = trial
                 energy = trial_energy
                 accepted = True
                 break
-            alpha = alpha * wp.float64(0.5)
+            alpha = alpha * p.dtype(0.5)
         if not accepted:
-            converged = decrement <= _STALL_TOL * scale
+            converged = decrement <= stall_tol * scale
             break
+    return p, energy, hess, converged, it
 
-    sol.iterations = it
+
+@wp.func
+def _finish_solution(sol: LeafSolution, p: wp.vec4d, energy: wp.float64, hess: wp.mat44d, converged: bool, iterations: int):
+    """Stores the plane p, L and the inverse plane Hessian (taken at p) in ``sol``."""
+    sol.iterations = iterations
     sol = _store_plane(sol, p)
     sol.value = energy
     if not converged:
@@ -475,12 +490,44 @@ def _solve_from(sol: LeafSolution, start: wp.vec4d, max_iterations: int):
     if not inv_ok:
         sol.status = LEAF_NOT_CONVERGED
         return sol
-    if dhat > wp.float64(0.0):
+    if sol.dhat > wp.float64(0.0):
         # B_k T H^-1 T B_l^T: the plane moves on unit normals (module docstring). The
         # radial block of H is decoupled, so T H^-1 T is also the exact dp*/dx operator.
         t = _tangent_projector(sol.n)
         inv = t * inv * t
     sol.lpp_inv = inv
+    return sol
+
+
+@wp.func
+def _solve_from(sol: LeafSolution, start: wp.vec4d, max_iterations: int):
+    """Newton on the plane from ``start`` in float64; fills the solution."""
+    p, energy, hess, converged, it = _plane_newton(sol.ta, sol.tb, start, sol.dhat, max_iterations, _DECREMENT_TOL, _STALL_TOL, _FULL_STEP_TOL)
+    return _finish_solution(sol, p, energy, hess, converged, it)
+
+
+@wp.func
+def _solve_from_float32(sol: LeafSolution, start: wp.vec4d, max_iterations: int):
+    """Newton on the plane from ``start`` with the search in float32, finished in float64
+    (``_solve_from``) from its plane: the float64 stage usually takes one or two steps, and
+    the solution meets the float64 tolerances. The iteration cap applies to each stage."""
+    ta32 = wp.mat33f(sol.ta)
+    tb32 = wp.mat33f(sol.tb)
+    start32 = wp.vec4f(start)
+    dhat32 = wp.float32(sol.dhat)
+    p = start
+    it32 = int(0)
+    # Rounding may leave a near-touching start plane infeasible in float32, and the float32
+    # optimum infeasible in float64: either stage then starts from the float64 start.
+    if wp.isfinite(_energy(ta32, tb32, start32, dhat32)):
+        p32, _energy32, _hess32, _converged32, it32 = _plane_newton(
+            ta32, tb32, start32, dhat32, max_iterations, _DECREMENT_TOL_F32, _STALL_TOL_F32, _FULL_STEP_TOL_F32
+        )
+        p = wp.vec4d(p32)
+        if not wp.isfinite(_energy(sol.ta, sol.tb, p, sol.dhat)):
+            p = start
+    sol = _solve_from(sol, p, max_iterations)
+    sol.iterations = sol.iterations + it32
     return sol
 
 
@@ -497,11 +544,14 @@ def _scaled_bisector(sol: LeafSolution, e: wp.vec3d):
 
 
 @wp.func
-def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int):
-    """Solve the leaf plane problem for triangles A, B (rows = vertices, world frame)."""
+def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int, float32_search: bool):
+    """Solve the leaf plane problem for triangles A, B (rows = vertices, world frame);
+    ``float32_search`` runs the plane search in float32 (``_solve_from_float32``)."""
     sol, e = _leaf_start(ta_world, tb_world, wp.float64(0.0))
     if sol.status != LEAF_OK:
         return sol
+    if float32_search:
+        return _solve_from_float32(sol, _scaled_bisector(sol, e), max_iterations)
     return _solve_from(sol, _scaled_bisector(sol, e), max_iterations)
 
 
@@ -532,11 +582,12 @@ def sdrs_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64, max_i
 
 
 @wp.func
-def pair_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64, max_iterations: int):
-    """``leaf_solve`` for dhat <= 0 (the paper's model), ``sdrs_solve`` otherwise."""
+def pair_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64, max_iterations: int, float32_search: bool):
+    """``leaf_solve`` for dhat <= 0 (the paper's model), ``sdrs_solve`` otherwise (always
+    float64: its support test and the degenerate planes near it need float64)."""
     if dhat > wp.float64(0.0):
         return sdrs_solve(ta_world, tb_world, dhat, max_iterations)
-    return leaf_solve(ta_world, tb_world, max_iterations)
+    return leaf_solve(ta_world, tb_world, max_iterations, float32_search)
 
 
 @wp.func
@@ -638,6 +689,7 @@ def leaf_potential_kernel(
     tri_a_in: wp.array(dtype=wp.mat33d),
     tri_b_in: wp.array(dtype=wp.mat33d),
     max_iterations: int,
+    float32_search: bool,
     compute_derivatives: bool,
     # Data out:
     value_out: wp.array(dtype=wp.float64),
@@ -649,5 +701,5 @@ def leaf_potential_kernel(
 ):
     """One triangle pair per thread: the paper's potential for dhat <= 0, SDRS's otherwise."""
     tid = wp.tid()
-    sol = pair_solve(tri_a_in[tid], tri_b_in[tid], dhat, max_iterations)
+    sol = pair_solve(tri_a_in[tid], tri_b_in[tid], dhat, max_iterations, float32_search)
     _write_pair(tid, sol, compute_derivatives, value_out, plane_out, status_out, iterations_out, grad_out, hess_out)

@@ -273,6 +273,7 @@ def leaf_term_kernel(
     triangle_vertices: wp.array(dtype=wp.mat33d),
     dhat: wp.float64,
     max_iterations: int,
+    float32_search: bool,
     # Data in:
     body_rotation: wp.array(dtype=wp.mat33d),
     body_position: wp.array(dtype=wp.vec3d),
@@ -302,7 +303,7 @@ def leaf_term_kernel(
     pos_b = body_position[pair[1]]
     ta = world_triangle(triangle_vertices[item[0]], rot_a, pos_a)
     tb = world_triangle(triangle_vertices[item[1]], rot_b, pos_b)
-    sol = pair_solve(ta, tb, dhat, max_iterations)
+    sol = pair_solve(ta, tb, dhat, max_iterations, float32_search)
     leaf_iterations_out[tid] = sol.iterations
     leaf_plane_out[tid] = wp.vec4d(sol.n[0], sol.n[1], sol.n[2], sol.d - wp.dot(sol.n, sol.origin))
     record = target_record(targets, item[2], seed, tid)

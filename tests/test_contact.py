@@ -278,6 +278,29 @@ def test_top_level_replicas_give_the_same_result(mode):
     np.testing.assert_array_equal(res.hessian, res.hessian.T)
 
 
+@pytest.mark.parametrize("mode", ["bsh", "brute"])
+def test_float32_leaf_searches_give_the_float64_potential(mode):
+    # Near and far bodies on a static slab: the leaf planes are searched in float32 and
+    # finished in float64, so the scene's value, gradient and Hessian are float64's.
+    meshes = [box((4.0, 4.0, 0.2)), icosphere(1), icosphere(0)]
+    poses = identity_poses([[0, 0, 0], [0.1, 0.0, 0.6001], [0.3, 4.0, 0.9]])
+    reference = wc.ContactModel(meshes, mode=mode, static=[True, False, False]).evaluate(poses)
+    res = wc.ContactModel(meshes, mode=mode, static=[True, False, False], leaf_precision="float32").evaluate(poses)
+    assert res.num_leaf == reference.num_leaf > 0
+    assert res.value == pytest.approx(reference.value, rel=1e-12)
+    np.testing.assert_allclose(res.grad, reference.grad, rtol=1e-9, atol=1e-10 * np.abs(reference.grad).max())
+    np.testing.assert_allclose(res.hessian, reference.hessian, rtol=1e-9, atol=1e-10 * np.abs(reference.hessian).max())
+
+
+def test_leaf_precision_is_validated():
+    with pytest.raises(ValueError, match="leaf precision: must be one of float64, float32, got 'double'"):
+        wc.ContactModel([icosphere(0)], leaf_precision="double")
+    with pytest.raises(ValueError, match="contact mode 'sdrs' solves in float64"):
+        wc.ContactModel([icosphere(0)], mode="sdrs", leaf_precision="float32")
+    with pytest.raises(ValueError, match="contact mode 'ipc' solves in float64"):
+        wc.ModelBuilder(contact_mode="ipc", leaf_precision="float32")
+
+
 # --- buffers ----------------------------------------------------------------------------------
 
 

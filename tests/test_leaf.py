@@ -330,6 +330,54 @@ def test_batch_of_mixed_pairs_and_float32_input():
     assert empty.value.shape == (0,)
 
 
+# --- float32 plane searches ------------------------------------------------------------------
+
+
+def _hard_pairs():
+    rng = np.random.default_rng(5)
+    pairs = [random_separated_pair(rng, offset=o) for o in (0.5, 2.5, 10.0)]
+    pairs += [make(gap) for make in (parallel_faces, vertex_face, edge_edge) for gap in (1e-2, 1e-5, 1e-8)]
+    pairs += [vertex_face(0.05 * size, size=size) for size in (1e-4, 1e3)]
+    pairs += [(A + 1e6, B + 1e6) for A, B in [vertex_face(1e-3)]]  # far from the origin
+    pairs += [(A, B + np.array([0.0, 0.0, -d])) for A, B in [vertex_face(0.0)] for d in (1e3, 1e6)]  # huge distances
+    A = np.array([[0.0, 0.0, 0.01], [1.0, 0.0, 0.01], [0.5, 1e-6, 0.01]])
+    B = np.array([[0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [0.5 + 1e-6, 0.0, 0.0]])
+    pairs.append((A, B))  # slivers
+    return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
+
+
+def test_float32_search_matches_float64_on_hard_cases():
+    """The float32 search is finished in float64, so values and derivatives meet float64's
+    tolerances, also where float32 cannot resolve the gaps (1e-8 on unit triangles)."""
+    A, B = _hard_pairs()
+    ref = wc.triangle_pair_potential(A, B)
+    res = wc.triangle_pair_potential(A, B, precision="float32")
+    assert ref.ok.all() and res.ok.all()
+    np.testing.assert_allclose(res.value, ref.value, rtol=1e-12)
+    n = len(A)
+    for got, want in ((res.grad.reshape(n, -1), ref.grad.reshape(n, -1)), (res.hessian.reshape(n, -1), ref.hessian.reshape(n, -1))):
+        err = np.linalg.norm(got - want, axis=1) / np.linalg.norm(want, axis=1)
+        assert err.max() < 1e-8
+    assert (res.iterations >= 1).all()
+
+
+def test_float32_search_keeps_contact_and_iteration_cap_status():
+    A, B = parallel_faces(0.0)
+    assert evaluate(A, B, precision="float32").status[0] == wc.LeafStatus.CONTACT
+    A, B = vertex_face(1e-8)
+    res = evaluate(A, B, precision="float32", max_iterations=1)
+    assert res.status[0] == wc.LeafStatus.NOT_CONVERGED
+    assert np.isfinite(res.value[0]) and np.isfinite(res.hessian).all()
+
+
+def test_float32_search_refuses_sdrs_and_unknown_precisions():
+    A, B = vertex_face(0.1)
+    with pytest.raises(ValueError, match="contact mode 'sdrs' solves in float64"):
+        evaluate(A, B, dhat=1e-2, precision="float32")
+    with pytest.raises(ValueError, match=r"leaf precision: must be one of float64, float32, got 'float16'"):
+        evaluate(A, B, precision="float16")
+
+
 # --- bad input -------------------------------------------------------------------------------
 
 

@@ -32,7 +32,7 @@ from .kernels import rigid as rigid_kernels
 from .kernels import traversal as traversal_kernels
 from ._runtime import HostReadback, LaunchCache, host_buffer, resolve_device, run_concurrently
 from ._validate import as_float64_array
-from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus
+from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus, float32_search
 from .sphere_tree import SphereTree, build_sphere_tree
 
 __all__ = ["CENTRED_WEIGHTS", "ContactEvaluation", "ContactModel", "CONTACT_MODES", "LaggedFriction", "QUATERNION_TOLERANCE", "TermLists", "symmetric_from_upper"]
@@ -189,6 +189,10 @@ class ContactModel:
             a joint); they are never visited.
         device: Warp device.
         max_leaf_iterations: Newton iteration cap of each leaf solve.
+        leaf_precision: float type of the leaf plane searches, ``"float64"`` (default) or
+            ``"float32"`` (modes ``"bsh"`` and ``"brute"``): the search runs in float32 and
+            float64 finishes it to the float64 tolerances; every value and derivative is
+            evaluated in float64 (docs/architecture.md, "The leaf potential").
         top_replicas: accumulator records per body pair for its top-level terms (None: 1 on
             a CPU; on a GPU up to 32, capped at ~32 MB, which spreads the atomic adds that
             all of a body pair's top-level terms would make to the same addresses). Any
@@ -222,6 +226,7 @@ class ContactModel:
         exclude_pairs=(),
         device="cpu",
         max_leaf_iterations: int = DEFAULT_MAX_ITERATIONS,
+        leaf_precision: str = "float64",
         top_replicas: int | None = None,
         sync_free: bool | None = None,
         term_chunks: int | None = None,
@@ -257,6 +262,8 @@ class ContactModel:
         # The leaf kernels read dhat = 0 as the paper's barrier.
         self.dhat = float(dhat) if mode == "sdrs" else 0.0
         self.max_leaf_iterations = int(max_leaf_iterations)
+        self.leaf_precision = leaf_precision
+        self._float32_search = float32_search(leaf_precision, mode=mode)
         self.num_bodies = num_bodies
         self.static = static_flags
         self.device = resolve_device(device)
@@ -661,7 +668,7 @@ class ContactModel:
                 ("leaf", chunk),
                 reduction_kernels.leaf_term_kernel,
                 dim=num_leaf,
-                inputs=[self._triangle_vertices, self.dhat, self.max_leaf_iterations, *common, self._leaf, self._counters, *select],
+                inputs=[self._triangle_vertices, self.dhat, self.max_leaf_iterations, self._float32_search, *common, self._leaf, self._counters, *select],
                 outputs=[targets, self._seed_status, self._seed_separation, self._leaf_iterations, self._leaf_plane],
             )
         for level in range(max_level if num_blend else -1, -1, -1):

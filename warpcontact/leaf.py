@@ -11,6 +11,7 @@ from ._runtime import resolve_device
 from ._validate import as_float64_array
 
 __all__ = [
+    "LEAF_PRECISIONS",
     "LeafStatus",
     "TrianglePairPotential",
     "triangle_pair_potential",
@@ -19,6 +20,19 @@ __all__ = [
 ]
 
 DEFAULT_MAX_ITERATIONS = 100
+# Float types of the leaf's plane search (docs/architecture.md, "The leaf potential").
+LEAF_PRECISIONS = ("float64", "float32")
+
+
+def float32_search(precision: str, *, mode: str = "bsh") -> bool:
+    """The kernels' ``float32_search`` flag for a leaf precision name under contact ``mode``;
+    ValueError for an unknown name, or for float32 with a baseline (``"sdrs"``, ``"ipc"``),
+    whose solves are float64 only."""
+    if precision not in LEAF_PRECISIONS:
+        raise ValueError(f"leaf precision: must be one of {', '.join(LEAF_PRECISIONS)}, got {precision!r}")
+    if precision != "float64" and mode in ("sdrs", "ipc"):
+        raise ValueError(f"leaf precision: {precision!r} applies to the paper's potential; contact mode {mode!r} solves in float64")
+    return precision == "float32"
 
 
 class LeafStatus:
@@ -54,7 +68,14 @@ class TrianglePairPotential:
 
 
 def triangle_pair_potential(
-    A, B, *, device="cpu", derivatives: bool = True, max_iterations: int = DEFAULT_MAX_ITERATIONS, dhat: float | None = None
+    A,
+    B,
+    *,
+    device="cpu",
+    derivatives: bool = True,
+    max_iterations: int = DEFAULT_MAX_ITERATIONS,
+    dhat: float | None = None,
+    precision: str = "float64",
 ) -> TrianglePairPotential:
     """Separating-plane potential of triangle pairs, with exact first and second derivatives.
 
@@ -68,6 +89,10 @@ def triangle_pair_potential(
             for the SDRS baseline: log barrier on vertex-to-plane distances below ``dhat``,
             unit normals, exactly 0 (with zero derivatives) for triangles 2 dhat apart or
             more. ``plane`` then has a unit normal.
+        precision: float type of the plane search, "float64" or "float32" (the paper's
+            potential only). With "float32" the search runs in float32 and float64 finishes
+            it from its plane to the same tolerances; values, gradients and Hessians are
+            always evaluated in float64 at the final plane.
 
     Zero-area triangles are valid: the potential is defined on convex hulls, so a collapsed
     triangle acts as the segment or point it is.
@@ -80,6 +105,7 @@ def triangle_pair_potential(
         raise ValueError(f"max_iterations: must be >= 1, got {max_iterations}")
     if dhat is not None and not (np.isfinite(dhat) and dhat > 0):
         raise ValueError(f"dhat: must be a positive finite distance (m) or None, got {dhat}")
+    search32 = float32_search(precision, mode="bsh" if dhat is None else "sdrs")
     n = a.shape[0]
     dev = resolve_device(device)
     ncols = 6 if derivatives else 0
@@ -96,7 +122,7 @@ def triangle_pair_potential(
             wp.launch(
                 leaf_kernels.leaf_potential_kernel,
                 dim=n,
-                inputs=[0.0 if dhat is None else float(dhat), tri_a, tri_b, int(max_iterations), bool(derivatives)],
+                inputs=[0.0 if dhat is None else float(dhat), tri_a, tri_b, int(max_iterations), search32, bool(derivatives)],
                 outputs=[value, plane, status, iterations, grad, hess],
             )
     status_np = status.numpy()
