@@ -91,7 +91,7 @@ def test_round_trip_preserves_bodies_masses_meshes_and_poses(tmp_path):
     box.kp_linear = np.array([10.0, 10.0, 0.0])
     box.control_dofs = ("x", "y")
     box.group = 1
-    scene.settings = io.SimulationSettings(time_step=0.02, frames=30, contact_stiffness=3e-8, eps=0.7, centred_weight="pairs", friction=0.4)
+    scene.settings = io.SimulationSettings(time_step=0.02, frames=30, contact_stiffness=3e-8, eps=0.7, centred_weight="pairs", leaf_precision="float32", friction=0.4)
     scene.task = io.TaskSpec(
         name="gather",
         control="pd_targets",
@@ -124,7 +124,7 @@ def test_round_trip_preserves_bodies_masses_meshes_and_poses(tmp_path):
     np.testing.assert_allclose(b1.kp_linear, box.kp_linear)
     assert again.settings == scene.settings and again.task == scene.task
     m0, m1 = scene.build_model(), again.build_model()
-    assert m1.contact.centred_weight == "pairs"
+    assert m1.contact.centred_weight == "pairs" and m1.contact.leaf_precision == "float32"
     np.testing.assert_allclose(m1.body_mass.numpy(), m0.body_mass.numpy())
     np.testing.assert_allclose(m1.initial_q, m0.initial_q, atol=1e-12)
 
@@ -183,6 +183,18 @@ def test_unknown_centred_weight_names_the_file_prim_and_attribute(tmp_path):
     scene_prim.CreateAttribute("warpcontact:centredWeight", Sdf.ValueTypeNames.Token).Set("count")
     stage.Save()
     with pytest.raises(ValueError, match=r"w\.usda: prim .*warpcontact:centredWeight must be one of \('paper', 'pairs'\), got 'count'"):
+        io.load_scene(path)
+
+
+def test_unknown_leaf_precision_names_the_file_prim_and_attribute(tmp_path):
+    from pxr import Sdf, Usd
+
+    path = write_physics_scene(tmp_path / "p.usda")
+    stage = Usd.Stage.Open(str(path))
+    scene_prim = next(p for p in stage.Traverse() if p.GetTypeName() == "PhysicsScene")
+    scene_prim.CreateAttribute("warpcontact:leafPrecision", Sdf.ValueTypeNames.Token).Set("half")
+    stage.Save()
+    with pytest.raises(ValueError, match=r"p\.usda: prim .*warpcontact:leafPrecision must be one of \('float64', 'float32'\), got 'half'"):
         io.load_scene(path)
 
 

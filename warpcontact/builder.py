@@ -9,6 +9,7 @@ import warp as wp
 from ._runtime import resolve_device
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, frame_in_body
 from .contact import ContactModel
+from .leaf import float32_search
 from .rotation import pose_mul, quat_rotate
 from .types import Model
 
@@ -77,6 +78,8 @@ class ModelBuilder:
             ``"ipc"`` (the IPC baseline through ipctk, with IPC's lagged friction; CPU only)
             or ``"sdrs"`` (the SDRS baseline: locally supported log barrier on separating
             planes). Every mode takes friction's lagged normal forces from its own potential.
+        leaf_precision: float type of the leaf plane searches of ``"bsh"`` and ``"brute"``,
+            ``"float64"`` or ``"float32"`` (``ContactModel``); the baselines solve in float64.
         ipc_dhat: barrier support distance of the ``"ipc"`` baseline (m).
         sdrs_dhat: barrier support of the ``"sdrs"`` baseline on vertex-to-plane gaps (m);
             triangles interact below 2 sdrs_dhat.
@@ -84,7 +87,7 @@ class ModelBuilder:
             (default: all pairs except a joint's parent and child), ``"all"`` or ``"none"``.
     """
 
-    def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, friction_smoothing: float = 1e-4, eps: float = 0.5, centred_weight: str = "paper", contact_mode: str = "bsh", ipc_dhat: float = 1e-2, sdrs_dhat: float = 1e-2, articulation_contact: str = "nonadjacent"):
+    def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, friction_smoothing: float = 1e-4, eps: float = 0.5, centred_weight: str = "paper", contact_mode: str = "bsh", leaf_precision: str = "float64", ipc_dhat: float = 1e-2, sdrs_dhat: float = 1e-2, articulation_contact: str = "nonadjacent"):
         gravity = np.asarray(gravity, dtype=np.float64)
         if gravity.shape != (3,) or not np.isfinite(gravity).all():
             raise ValueError(f"gravity: expected 3 finite numbers, got {gravity}")
@@ -101,6 +104,8 @@ class ModelBuilder:
         self.eps = eps
         self.centred_weight = centred_weight
         self.contact_mode = contact_mode
+        float32_search(leaf_precision, mode=contact_mode)
+        self.leaf_precision = leaf_precision
         self.ipc_dhat = ipc_dhat
         if articulation_contact not in _ARTICULATION_CONTACT:
             raise ValueError(f"articulation_contact: {articulation_contact!r} is not one of {_ARTICULATION_CONTACT}")
@@ -390,7 +395,7 @@ class ModelBuilder:
 
             contact = IpcContactModel(meshes, dhat=self.ipc_dhat, static=static, names=names, device=dev, exclude_pairs=exclude)
         else:
-            contact = ContactModel(meshes, eps=self.eps, centred_weight=self.centred_weight, mode=self.contact_mode, dhat=self.sdrs_dhat, static=static, names=names, device=dev, exclude_pairs=exclude)
+            contact = ContactModel(meshes, eps=self.eps, centred_weight=self.centred_weight, mode=self.contact_mode, leaf_precision=self.leaf_precision, dhat=self.sdrs_dhat, static=static, names=names, device=dev, exclude_pairs=exclude)
         with wp.ScopedDevice(dev):
             return Model(
                 body_names=names,

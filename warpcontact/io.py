@@ -47,6 +47,7 @@ import trimesh
 
 from .builder import ModelBuilder
 from .contact import CENTRED_WEIGHTS
+from .leaf import LEAF_PRECISIONS
 from .rotation import pose_mul, quat_from_matrix, quat_rotate, quat_to_matrix
 
 __all__ = [
@@ -77,6 +78,7 @@ class SimulationSettings:
     contact_stiffness: float = 1e-6
     eps: float = 0.5
     centred_weight: str = "paper"
+    leaf_precision: str = "float64"
     friction: float = 0.0
     friction_smoothing: float = 1e-4
     contact_mode: str = "bsh"
@@ -181,6 +183,7 @@ class Scene:
             eps=s.eps,
             centred_weight=s.centred_weight,
             contact_mode=s.contact_mode,
+            leaf_precision=s.leaf_precision,
         )
         for b in self.bodies:
             kwargs = dict(name=b.name, pose=b.pose, static=b.static)
@@ -616,6 +619,7 @@ def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: s
         "contactStiffness": ("contact_stiffness", float),
         "eps": ("eps", float),
         "centredWeight": ("centred_weight", str),
+        "leafPrecision": ("leaf_precision", str),
         "friction": ("friction", float),
         "frictionSmoothing": ("friction_smoothing", float),
         "contactMode": ("contact_mode", str),
@@ -630,6 +634,8 @@ def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: s
         raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:frames must be >= 1, got {settings.frames}")
     if settings.centred_weight not in CENTRED_WEIGHTS:
         raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:centredWeight must be one of {CENTRED_WEIGHTS}, got {settings.centred_weight!r}")
+    if settings.leaf_precision not in LEAF_PRECISIONS:
+        raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:leafPrecision must be one of {LEAF_PRECISIONS}, got {settings.leaf_precision!r}")
     task_casts = {
         "task:name": ("name", str),
         "task:control": ("control", str),
@@ -725,6 +731,7 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
             ("contactStiffness", s.contact_stiffness, Sdf.ValueTypeNames.Double),
             ("eps", s.eps, Sdf.ValueTypeNames.Double),
             ("centredWeight", s.centred_weight, Sdf.ValueTypeNames.Token),
+            ("leafPrecision", s.leaf_precision, Sdf.ValueTypeNames.Token),
             ("friction", s.friction, Sdf.ValueTypeNames.Double),
             ("frictionSmoothing", s.friction_smoothing, Sdf.ValueTypeNames.Double),
             ("contactMode", s.contact_mode, Sdf.ValueTypeNames.Token),
