@@ -12,7 +12,7 @@ import warp as wp
 from .contact import ContactModel
 from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
-from .leaf import DEFAULT_MAX_ITERATIONS
+from .leaf import DEFAULT_MAX_ITERATIONS, LEAF_PRECISIONS, float32_search
 from .rotation import quat_rotate
 
 __all__ = [
@@ -105,9 +105,20 @@ def _median_seconds(fn, repeats: int) -> float:
     return float(np.median(samples))
 
 
-def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, seed: int = 0) -> dict:
-    """Time batched leaf solves (value only, and value + gradient + Hessian); write leaf.json."""
+def _relative_errors(approx: np.ndarray, reference: np.ndarray) -> tuple[float, float]:
+    """(median, max) over pairs of |approx - reference| / |reference| (row norms)."""
+    a = approx.reshape(approx.shape[0], -1)
+    r = reference.reshape(reference.shape[0], -1)
+    err = np.linalg.norm(a - r, axis=1) / np.maximum(np.linalg.norm(r, axis=1), np.finfo(float).tiny)
+    return (float(np.median(err)), float(err.max())) if err.size else (0.0, 0.0)
+
+
+def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, seed: int = 0, precisions=("float64",)) -> dict:
+    """Time batched leaf solves (value only, and value + gradient + Hessian) for each plane
+    search precision; rows after the first also give their errors against the first
+    (float64 unless asked otherwise) on the same pairs. Writes leaf.json and leaf.csv."""
     dev = resolve_device(device)
+    flags = [float32_search(p) for p in precisions]
     A, B = leaf_benchmark_pairs(num_pairs, seed=seed)
     with wp.ScopedDevice(dev):
         tri_a = wp.array(A, dtype=wp.mat33d)
@@ -119,11 +130,11 @@ def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, s
         grad = wp.empty((num_pairs, 6), dtype=wp.vec3d)
         hess = wp.empty((num_pairs, 6, 6), dtype=wp.mat33d)
 
-        def launch(derivatives: bool):
+        def launch(search32: bool, derivatives: bool):
             wp.launch(
                 leaf_kernels.leaf_potential_kernel,
                 dim=num_pairs,
-                inputs=[0.0, tri_a, tri_b, DEFAULT_MAX_ITERATIONS, derivatives],
+                inputs=[0.0, tri_a, tri_b, DEFAULT_MAX_ITERATIONS, search32, derivatives],
                 outputs=[value, plane, status, iterations, grad, hess],
             )
             wp.synchronize_device()
@@ -131,22 +142,34 @@ def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, s
         compile_start = time.perf_counter()
         wp.load_module(leaf_kernels, device=dev)
         compile_seconds = time.perf_counter() - compile_start
-        launch(True)  # warm-up, excluded
-        value_only = _median_seconds(lambda: launch(False), repeats)
-        full = _median_seconds(lambda: launch(True), repeats)
-    iters = iterations.numpy()
-    ok = status.numpy() == 0
-    return _write_results(out_dir, "leaf", dev, repeats, {
-        "num_pairs": num_pairs,
-        "module_load_seconds": compile_seconds,
-        "median_seconds_value": value_only,
-        "median_seconds_value_grad_hessian": full,
-        "solves_per_second_value": num_pairs / value_only,
-        "solves_per_second_value_grad_hessian": num_pairs / full,
-        "mean_newton_iterations": float(iters.mean()),
-        "max_newton_iterations": int(iters.max()),
-        "fraction_ok": float(ok.mean()),
-    })
+        rows, reference = [], None
+        for precision, search32 in zip(precisions, flags):
+            launch(search32, True)  # warm-up, excluded
+            value_only = _median_seconds(lambda: launch(search32, False), repeats)
+            full = _median_seconds(lambda: launch(search32, True), repeats)
+            iters = iterations.numpy()
+            ok = status.numpy() == 0
+            result = (value.numpy(), grad.numpy(), hess.numpy(), ok)
+            row = {
+                "precision": precision,
+                "median_seconds_value": value_only,
+                "median_seconds_value_grad_hessian": full,
+                "solves_per_second_value": num_pairs / value_only,
+                "solves_per_second_value_grad_hessian": num_pairs / full,
+                "mean_newton_iterations": float(iters.mean()),
+                "max_newton_iterations": int(iters.max()),
+                "fraction_ok": float(ok.mean()),
+            }
+            if reference is None:
+                reference = result
+            else:
+                both = ok & reference[3]
+                for name, k in (("value", 0), ("gradient", 1), ("hessian", 2)):
+                    median, worst = _relative_errors(result[k][both], reference[k][both])
+                    row[f"{name}_error_median"] = median
+                    row[f"{name}_error_max"] = worst
+            rows.append(row)
+    return _write_results(out_dir, "leaf", dev, repeats, {"num_pairs": num_pairs, "module_load_seconds": compile_seconds, "reference_precision": precisions[0], "rows": rows})
 
 
 def _icosphere(subdivisions: int, radius: float):
@@ -516,7 +539,7 @@ def _timed(fn, dev):
     return result, time.perf_counter() - start
 
 
-def _simulate_frames(scene, setup: dict, *, mode: str, frames: int, warmup: int, dev, eps: float | None, ipc_stiffness: float = 1e3):
+def _simulate_frames(scene, setup: dict, *, mode: str, frames: int, warmup: int, dev, eps: float | None, ipc_stiffness: float = 1e3, leaf_precision: str = "float64"):
     """Simulate ``frames`` timed frames of ``scene`` under contact ``mode`` after ``warmup``
     untimed ones from the same start; per frame: forward step on a tape, contact evaluation
     at the step's solution, and the tape's backward. Returns (row, solved poses per frame,
@@ -525,6 +548,7 @@ def _simulate_frames(scene, setup: dict, *, mode: str, frames: int, warmup: int,
     from .types import set_body_velocity
 
     scene.settings.contact_mode = mode
+    scene.settings.leaf_precision = leaf_precision
     if eps is not None:
         scene.settings.eps = eps
     if mode == "ipc":
@@ -585,6 +609,7 @@ def _simulate_frames(scene, setup: dict, *, mode: str, frames: int, warmup: int,
     row = {
         "model": mode,
         "eps": scene.settings.eps if mode == "bsh" else None,
+        "leaf_precision": leaf_precision,
         "friction": scene.settings.friction,
         "contact_stiffness": scene.settings.contact_stiffness,
         "frames": len(samples["forward"]),
@@ -607,7 +632,9 @@ def _contact_only_row(model, poses: list, *, mode: str, dev) -> dict:
     bodies at given configurations (its body-frame poses)."""
     from .contact import ContactModel
 
-    contact = ContactModel(model.body_meshes, eps=model.contact.eps, centred_weight=model.contact.centred_weight, mode=mode, static=model.static, device=dev)
+    contact = ContactModel(
+        model.body_meshes, eps=model.contact.eps, centred_weight=model.contact.centred_weight, mode=mode, leaf_precision=model.contact.leaf_precision, static=model.static, device=dev
+    )
     contact.evaluate(poses[0])  # warm-up: buffers and kernels
     times, leaves = [], []
     for q in poses:
@@ -617,6 +644,7 @@ def _contact_only_row(model, poses: list, *, mode: str, dev) -> dict:
     return {
         "model": mode,
         "eps": None if mode == "brute" else contact.eps,
+        "leaf_precision": contact.leaf_precision,
         "friction": float(model.friction.numpy()[0]),
         "frames": 0,
         "first_frame_seconds": None,
@@ -644,6 +672,7 @@ def run_frame_benchmark(
     brute_max_triangles: int = 512,
     brute_eval_max_triangles: int = 6208,
     ipc_stiffness: float = 1e3,
+    leaf_precision: str = "float64",
     device,
     out_dir: Path,
     scene_dir: Path = Path("scenes"),
@@ -663,7 +692,9 @@ def run_frame_benchmark(
     BSH run's configurations (contact evaluation only) up to ``brute_eval_max_triangles``;
     ipc (ipctk, CPU only) runs on the CPU, frictionless, with barrier stiffness
     ``ipc_stiffness`` in place of the scene's mu. ``eps`` None keeps each scene's.
+    ``leaf_precision`` is the plane search precision of bsh and brute (ipc: float64).
     """
+    float32_search(leaf_precision)
     dev = resolve_device(device)
     module_seconds = _load_kernel_modules(dev)
     rows: list[dict] = []
@@ -702,7 +733,10 @@ def run_frame_benchmark(
                     continue
                 row = _contact_only_row(solved[0], solved[1], mode="brute", dev=dev)
             else:
-                row, poses, model = _simulate_frames(scene, setup, mode=mode, frames=frames, warmup=warmup, dev=dev, eps=eps if mode == "bsh" else None, ipc_stiffness=ipc_stiffness)
+                precision = "float64" if mode == "ipc" else leaf_precision
+                row, poses, model = _simulate_frames(
+                    scene, setup, mode=mode, frames=frames, warmup=warmup, dev=dev, eps=eps if mode == "bsh" else None, ipc_stiffness=ipc_stiffness, leaf_precision=precision
+                )
                 if mode == "bsh" and poses:
                     solved = (model, poses)
             rows.append({**base, **row})
@@ -774,7 +808,7 @@ def accuracy_scene(*, balls: int = 3, points_per_ball: int = 18, gap: float = 0.
     return scene, np.array([0.0, 0.0, *(speed * np.asarray(setup["direction"]))])
 
 
-def _accuracy_run(scene, controls, *, mode: str, eps: float, tolerance: float, frames: int, dev):
+def _accuracy_run(scene, controls, *, mode: str, eps: float, tolerance: float, frames: int, dev, leaf_precision: str = "float64"):
     """One rollout with its task gradient: (loss, d loss / d controls, trajectory (frames+1,
     nbodies, 7), forward seconds per frame, Newton iterations per frame, backward seconds, the
     problem)."""
@@ -790,6 +824,7 @@ def _accuracy_run(scene, controls, *, mode: str, eps: float, tolerance: float, f
 
     scene.settings.contact_mode = mode
     scene.settings.eps = eps
+    scene.settings.leaf_precision = leaf_precision
     problem = TaskProblem(scene, device=dev)
     problem.solver = TimedSolver(problem.model, tolerance=tolerance)
     problem.solver.seconds, problem.solver.iterations = [], []
@@ -803,6 +838,7 @@ def run_accuracy_benchmark(
     *,
     eps_values=(0.25, 0.5, 1.0, 2.0, 4.0),
     tolerances=(1e-4, 1e-6, 1e-8),
+    precisions=LEAF_PRECISIONS,
     eps: float = 0.5,
     default_tolerance: float = 1e-10,
     reference_tolerance: float = 1e-12,
@@ -819,32 +855,37 @@ def run_accuracy_benchmark(
 
     The reference is brute force (the exact sum) at ``reference_tolerance``. Configurations:
     BSH at each of ``eps_values`` and brute force, at ``default_tolerance``; BSH at ``eps``
-    at each of ``tolerances``. Each simulates ``frames`` frames on a tape and takes the
+    at each of ``tolerances``; BSH at ``eps`` and ``default_tolerance`` with each of
+    ``precisions`` for the leaf plane searches. Each simulates ``frames`` frames on a tape and takes the
     gradient of the task loss (squared distances of the struck balls to their goals) with
     respect to the cue's initial (x, y, vx, vy). Per configuration: forward seconds per frame
     (median) and Newton iterations, backward seconds per frame; trajectory deviation from the
     reference (largest centre-of-mass distance over bodies and frames, m, and relative to the
     reference's largest displacement); contact force / torque errors against brute force at
     the reference's configurations (worst over frames, as in ``bench contact``); and the
-    task gradient's cosine and relative error against the reference's. Everything is float64
-    (the only precision warpcontact has). Writes accuracy.json, accuracy.csv, accuracy.png.
+    task gradient's cosine and relative error against the reference's. Everything but the
+    precision sweep's float32 plane searches is float64. Writes accuracy.json, accuracy.csv,
+    accuracy.png.
     """
     from .solver import SolverError
 
     dev = resolve_device(device)
     module_seconds = _load_kernel_modules(dev)  # so the first configuration's times exclude compilation
-    configs = [("reference", "brute", 1.0, reference_tolerance)]
-    configs += [("eps", "bsh", e, default_tolerance) for e in eps_values]
-    configs += [("eps", "brute", 1.0, default_tolerance)]
-    configs += [("tolerance", "bsh", eps, t) for t in tolerances]
+    for precision in precisions:
+        float32_search(precision)
+    configs = [("reference", "brute", 1.0, reference_tolerance, "float64")]
+    configs += [("eps", "bsh", e, default_tolerance, "float64") for e in eps_values]
+    configs += [("eps", "brute", 1.0, default_tolerance, "float64")]
+    configs += [("tolerance", "bsh", eps, t, "float64") for t in tolerances]
+    configs += [("precision", "bsh", eps, default_tolerance, p) for p in precisions]
     rows: list[dict] = []
     reference = None
-    header = {"module_load_seconds": module_seconds, "frames": frames, "balls": balls, "points_per_ball": points_per_ball, "precision": "float64", "reference": f"brute force, tolerance {reference_tolerance:g}"}
-    for sweep, mode, e, tol in configs:
+    header = {"module_load_seconds": module_seconds, "frames": frames, "balls": balls, "points_per_ball": points_per_ball, "reference": f"brute force, tolerance {reference_tolerance:g}"}
+    for sweep, mode, e, tol, precision in configs:
         scene, controls = accuracy_scene(balls=balls, points_per_ball=points_per_ball, gap=gap, speed=speed)
-        row = {"sweep": sweep, "model": mode, "eps": e if mode == "bsh" else None, "tolerance": tol, "triangles": _scene_triangles(scene)[0], "frames": frames}
+        row = {"sweep": sweep, "model": mode, "eps": e if mode == "bsh" else None, "tolerance": tol, "leaf_precision": precision, "triangles": _scene_triangles(scene)[0], "frames": frames}
         try:
-            loss, grad, trajectory, forward, iterations, backward, problem = _accuracy_run(scene, controls, mode=mode, eps=e, tolerance=tol, frames=frames, dev=dev)
+            loss, grad, trajectory, forward, iterations, backward, problem = _accuracy_run(scene, controls, mode=mode, eps=e, tolerance=tol, frames=frames, dev=dev, leaf_precision=precision)
         except SolverError as exc:
             rows.append({**row, "error": str(exc)})
             if reference is None:
@@ -897,7 +938,7 @@ def _plot_accuracy(rows: list[dict], path: Path) -> bool:
         ("gradient_cosine", "1 - cos(task gradient, reference)"),
     )
     for ax, (key, label) in zip(axes, panels):
-        for sweep, style in (("eps", "o-"), ("tolerance", "s-")):
+        for sweep, style in (("eps", "o-"), ("tolerance", "s-"), ("precision", "^-")):
             sel = [r for r in ok if r["sweep"] == sweep and r["model"] == "bsh"]
             if not sel:
                 continue
@@ -906,7 +947,8 @@ def _plot_accuracy(rows: list[dict], path: Path) -> bool:
             times = [r["forward_seconds"] for r in sel]
             ax.loglog(times, values, style, label=f"bsh, {sweep} sweep")
             for r, t, v in zip(sel, times, values):
-                ax.annotate(f"{r['eps']:g}" if sweep == "eps" else f"{r['tolerance']:.0e}", (t, v), fontsize=7)
+                note = {"eps": f"{r['eps']:g}", "tolerance": f"{r['tolerance']:.0e}", "precision": r["leaf_precision"]}[sweep]
+                ax.annotate(note, (t, v), fontsize=7)
         for r in ok:
             if r["model"] == "brute":
                 v = (1.0 - r[key]) if key == "gradient_cosine" else r[key]

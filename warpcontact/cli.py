@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .contact import CENTRED_WEIGHTS
+from .leaf import LEAF_PRECISIONS
 from .tasks import IPC_TASK_STIFFNESS, MODELS
 
 __all__ = ["main"]
@@ -338,7 +339,7 @@ def _list(args) -> int:
 def _bench_leaf(args) -> int:
     from .bench import run_leaf_benchmark
 
-    result = run_leaf_benchmark(num_pairs=args.pairs, repeats=args.repeats, device=args.device, out_dir=Path(args.out))
+    result = run_leaf_benchmark(num_pairs=args.pairs, repeats=args.repeats, device=args.device, out_dir=Path(args.out), precisions=args.precisions)
     print(json.dumps(result, indent=2))
     print(f"wrote {Path(args.out) / 'leaf.json'}")
     return 0
@@ -414,6 +415,7 @@ def _bench_frame(args) -> int:
         brute_max_triangles=args.brute_max_triangles,
         brute_eval_max_triangles=args.brute_eval_max_triangles,
         ipc_stiffness=args.ipc_stiffness,
+        leaf_precision=args.leaf_precision,
         device=args.device,
         out_dir=Path(args.out),
         scene_dir=Path(args.scene_dir),
@@ -440,6 +442,7 @@ def _bench_accuracy(args) -> int:
     run_accuracy_benchmark(
         eps_values=args.eps,
         tolerances=args.tolerances,
+        precisions=args.precisions,
         eps=args.tolerance_eps,
         reference_tolerance=args.reference_tolerance,
         frames=args.frames,
@@ -530,6 +533,7 @@ def build_parser() -> argparse.ArgumentParser:
     leaf = bench_sub.add_parser("leaf", help="leaf solves per second and Newton iterations")
     leaf.add_argument("--pairs", type=_positive_int, default=100_000)
     leaf.add_argument("--repeats", type=_positive_int, default=5)
+    leaf.add_argument("--precisions", nargs="+", choices=LEAF_PRECISIONS, default=list(LEAF_PRECISIONS), help="plane search precisions; rows after the first give errors against it")
     leaf.add_argument("--device", default="cpu")
     leaf.add_argument("--out", default="outputs/bench")
     leaf.set_defaults(func=_bench_leaf)
@@ -567,6 +571,7 @@ def build_parser() -> argparse.ArgumentParser:
     frame.add_argument("--brute-max-triangles", type=int, default=512, help="brute force runs whole frames up to this many dynamic triangles")
     frame.add_argument("--brute-eval-max-triangles", type=int, default=6208, help="above that, only its contact evaluation is timed, up to this many")
     frame.add_argument("--ipc-stiffness", type=_positive_float, default=1e3, help="IPC barrier stiffness (replaces the scene's mu for ipc)")
+    frame.add_argument("--leaf-precision", choices=LEAF_PRECISIONS, default="float64", help="plane search precision of bsh and brute (ipc: float64)")
     frame.add_argument("--scene-dir", default="scenes")
     frame.add_argument("--peer-meshes", default="../shared/peer-meshes", help="folder of the paper code base's meshes (18.obj ... 196.obj)")
     frame.add_argument("--device", default="cpu")
@@ -575,7 +580,8 @@ def build_parser() -> argparse.ArgumentParser:
     accuracy = bench_sub.add_parser("accuracy", help="time against error (eps, solver tolerance) on a small billiards case")
     accuracy.add_argument("--eps", type=_positive_float, nargs="+", default=[0.25, 0.5, 1.0, 2.0, 4.0])
     accuracy.add_argument("--tolerances", type=_positive_float, nargs="+", default=[1e-4, 1e-6, 1e-8], help="Newton tolerances swept at --tolerance-eps")
-    accuracy.add_argument("--tolerance-eps", type=_positive_float, default=0.5)
+    accuracy.add_argument("--tolerance-eps", type=_positive_float, default=0.5, help="eps of the tolerance and precision sweeps")
+    accuracy.add_argument("--precisions", nargs="+", choices=LEAF_PRECISIONS, default=list(LEAF_PRECISIONS), help="leaf plane search precisions swept at --tolerance-eps")
     accuracy.add_argument("--reference-tolerance", type=_positive_float, default=1e-12, help="Newton tolerance of the brute-force reference run")
     accuracy.add_argument("--frames", type=_positive_int, default=3)
     accuracy.add_argument("--balls", type=_positive_int, default=3, help="rack balls besides the cue")
