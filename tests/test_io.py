@@ -174,27 +174,22 @@ def test_bad_scenes_name_the_prim_and_problem(tmp_path, kwargs, match):
         io.load_scene(write_physics_scene(tmp_path / "bad.usda", **kwargs)).build_model()
 
 
-def test_unknown_centred_weight_names_the_file_prim_and_attribute(tmp_path):
+@pytest.mark.parametrize(
+    "attribute, value, match",
+    [
+        ("centredWeight", "count", r"w\.usda: prim .*warpcontact:centredWeight must be one of \('paper', 'pairs'\), got 'count'"),
+        ("leafPrecision", "half", r"w\.usda: prim .*warpcontact:leafPrecision must be one of \('float64', 'float32'\), got 'half'"),
+    ],
+)
+def test_unknown_setting_token_names_the_file_prim_and_attribute(tmp_path, attribute, value, match):
     from pxr import Sdf, Usd
 
     path = write_physics_scene(tmp_path / "w.usda")
     stage = Usd.Stage.Open(str(path))
     scene_prim = next(p for p in stage.Traverse() if p.GetTypeName() == "PhysicsScene")
-    scene_prim.CreateAttribute("warpcontact:centredWeight", Sdf.ValueTypeNames.Token).Set("count")
+    scene_prim.CreateAttribute("warpcontact:" + attribute, Sdf.ValueTypeNames.Token).Set(value)
     stage.Save()
-    with pytest.raises(ValueError, match=r"w\.usda: prim .*warpcontact:centredWeight must be one of \('paper', 'pairs'\), got 'count'"):
-        io.load_scene(path)
-
-
-def test_unknown_leaf_precision_names_the_file_prim_and_attribute(tmp_path):
-    from pxr import Sdf, Usd
-
-    path = write_physics_scene(tmp_path / "p.usda")
-    stage = Usd.Stage.Open(str(path))
-    scene_prim = next(p for p in stage.Traverse() if p.GetTypeName() == "PhysicsScene")
-    scene_prim.CreateAttribute("warpcontact:leafPrecision", Sdf.ValueTypeNames.Token).Set("half")
-    stage.Save()
-    with pytest.raises(ValueError, match=r"p\.usda: prim .*warpcontact:leafPrecision must be one of \('float64', 'float32'\), got 'half'"):
+    with pytest.raises(ValueError, match=match):
         io.load_scene(path)
 
 
