@@ -33,6 +33,10 @@ T = diag(P, 1); the solution stores T L_pp^-1 T, which applies that projection o
 All work happens in a local frame centred on the midpoint of the closest points: the
 potential is translation invariant (d absorbs the shift), and the local frame keeps the
 small gaps g_k free of cancellation when the triangles sit far from the world origin.
+
+The plane search (``_plane_newton``) is generic over the float type: ``leaf_solve`` with
+``float32_search`` runs it in float32 and finishes it in float64 (``_solve_from_float32``).
+Everything the derivatives read (``LeafSolution``) is float64.
 """
 
 from typing import Any
