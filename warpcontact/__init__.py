@@ -8,6 +8,7 @@ Model with Long-range Influence"). See docs/architecture.md for the pipeline.
 from .builder import ModelBuilder
 from .contact import CENTRED_WEIGHTS, CONTACT_MODES, ContactEvaluation, ContactModel, TermLists
 from .leaf import (
+    LEAF_PRECISIONS,
     LeafStatus,
     TrianglePairPotential,
     centered_potential,
@@ -22,6 +23,7 @@ from .types import Control, Model, State, set_body_velocity
 __version__ = "0.1.0"
 
 __all__ = [
+    "LEAF_PRECISIONS",
     "LeafStatus",
     "TrianglePairPotential",
     "centered_potential",
