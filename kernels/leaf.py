@@ -427,7 +427,8 @@ def _plane_newton(ta: Any, tb: Any, start: Any, dhat: Any, max_iterations: int, 
     """Damped Newton on the plane from ``start`` (see the module docstring), in the float
     type of its arguments; returns (plane, L, Hessian at the plane, converged, iterations).
     Converged: decrement <= decrement_tol L, or, where the decrement stops shrinking,
-    decrement <= stall_tol times L's rounding scale."""
+    decrement <= stall_tol times L's rounding scale. A start that does not separate the
+    triangles strictly inside |n| < 1 returns at once with L = +inf (iterates never do)."""
     p = start
     energy = _energy(ta, tb, p, dhat)
     one = p.dtype(1.0)
@@ -437,6 +438,8 @@ def _plane_newton(ta: Any, tb: Any, start: Any, dhat: Any, max_iterations: int, 
     # inverse reuses it.
     hess = wp.matrix(shape=(4, 4), dtype=p.dtype)
     it = int(0)
+    if not wp.isfinite(energy):
+        return p, energy, hess, converged, it
     while it < max_iterations:
         grad, hess = _derivatives(ta, tb, p, dhat)
         step, ok = spd4_solve(hess, -grad)
@@ -504,9 +507,12 @@ def _finish_solution(sol: LeafSolution, p: wp.vec4d, energy: wp.float64, hess: w
 
 
 @wp.func
-def _solve_from(sol: LeafSolution, start: wp.vec4d, max_iterations: int):
-    """Newton on the plane from ``start`` in float64; fills the solution."""
+def _solve_from(sol: LeafSolution, start: wp.vec4d, fallback: wp.vec4d, max_iterations: int):
+    """Newton on the plane in float64 from ``start``, or from ``fallback`` (a start known to
+    be feasible) where ``start`` is not; fills the solution."""
     p, energy, hess, converged, it = _plane_newton(sol.ta, sol.tb, start, sol.dhat, max_iterations, _DECREMENT_TOL, _STALL_TOL, _FULL_STEP_TOL)
+    if not wp.isfinite(energy):
+        p, energy, hess, converged, it = _plane_newton(sol.ta, sol.tb, fallback, sol.dhat, max_iterations, _DECREMENT_TOL, _STALL_TOL, _FULL_STEP_TOL)
     return _finish_solution(sol, p, energy, hess, converged, it)
 
 
@@ -515,22 +521,15 @@ def _solve_from_float32(sol: LeafSolution, start: wp.vec4d, max_iterations: int)
     """Newton on the plane from ``start`` with the search in float32, finished in float64
     (``_solve_from``) from its plane: the float64 stage usually takes one or two steps, and
     the solution meets the float64 tolerances. The iteration cap applies to each stage."""
-    ta32 = wp.mat33f(sol.ta)
-    tb32 = wp.mat33f(sol.tb)
-    start32 = wp.vec4f(start)
-    dhat32 = wp.float32(sol.dhat)
-    p = start
-    it32 = int(0)
+    p32, energy32, _hess32, _converged32, it32 = _plane_newton(
+        wp.mat33f(sol.ta), wp.mat33f(sol.tb), wp.vec4f(start), wp.float32(sol.dhat), max_iterations, _DECREMENT_TOL_F32, _STALL_TOL_F32, _FULL_STEP_TOL_F32
+    )
     # Rounding may leave a near-touching start plane infeasible in float32, and the float32
     # optimum infeasible in float64: either stage then starts from the float64 start.
-    if wp.isfinite(_energy(ta32, tb32, start32, dhat32)):
-        p32, _energy32, _hess32, _converged32, it32 = _plane_newton(
-            ta32, tb32, start32, dhat32, max_iterations, _DECREMENT_TOL_F32, _STALL_TOL_F32, _FULL_STEP_TOL_F32
-        )
+    p = start
+    if wp.isfinite(energy32):
         p = wp.vec4d(p32)
-        if not wp.isfinite(_energy(sol.ta, sol.tb, p, sol.dhat)):
-            p = start
-    sol = _solve_from(sol, p, max_iterations)
+    sol = _solve_from(sol, p, start, max_iterations)
     sol.iterations = sol.iterations + it32
     return sol
 
@@ -554,9 +553,10 @@ def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int, fl
     sol, e = _leaf_start(ta_world, tb_world, wp.float64(0.0))
     if sol.status != LEAF_OK:
         return sol
+    start = _scaled_bisector(sol, e)
     if float32_search:
-        return _solve_from_float32(sol, _scaled_bisector(sol, e), max_iterations)
-    return _solve_from(sol, _scaled_bisector(sol, e), max_iterations)
+        return _solve_from_float32(sol, start, max_iterations)
+    return _solve_from(sol, start, start, max_iterations)
 
 
 @wp.func
@@ -582,7 +582,7 @@ def sdrs_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64, max_i
         sol.curv_b = wp.vec3d()
         sol.value = wp.float64(0.0)
         return sol
-    return _solve_from(sol, start, max_iterations)
+    return _solve_from(sol, start, start, max_iterations)
 
 
 @wp.func
@@ -607,9 +607,7 @@ def pair_solve_from_plane(ta_world: wp.mat33d, tb_world: wp.mat33d, plane: wp.ve
         return sol
     n = wp.vec3d(plane[0], plane[1], plane[2])
     start = wp.vec4d(n[0], n[1], n[2], plane[3] + wp.dot(n, sol.origin))
-    if not wp.isfinite(_energy(sol.ta, sol.tb, start, dhat)):
-        start = _scaled_bisector(sol, e)
-    return _solve_from(sol, start, max_iterations)
+    return _solve_from(sol, start, _scaled_bisector(sol, e), max_iterations)
 
 
 @wp.func
