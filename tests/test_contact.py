@@ -723,3 +723,32 @@ def test_advancement_keeps_random_steps_apart(shapes, together):
         if together:
             swapped.evaluate(poses[::-1].copy())
             assert swapped.advancement_limit(step[::-1].copy()) == pytest.approx(alpha, rel=1e-6), trial
+
+
+def test_advancement_skips_the_launch_only_where_the_kernel_would_skip_every_term(monkeypatch):
+    """Three bodies, one pair 1e-3 m apart. Steps from 1e-7 to 1e-2 m: the host's
+    whole-pair test returns alpha 1 without a launch for the short ones, and where it does,
+    the kernel over every term gives exactly 1 too; longer steps still reach the kernel."""
+    model = wc.ContactModel([icosphere(1), box(), icosphere(1)])
+    poses = identity_poses([[0, 0, 0], [0.0, 0.1, 0.0], [0.0, 3.0, 0.0]])
+    _place_apart(model, poses, 1e-3)
+    launches, host_test = [], {"on": True}
+    launch, keep_clear = wc.ContactModel._launch_advancement, wc.ContactModel._pairs_keep_clear
+    monkeypatch.setattr(wc.ContactModel, "_launch_advancement", lambda self, *a: (launches.append(1), launch(self, *a)))
+    monkeypatch.setattr(wc.ContactModel, "_pairs_keep_clear", lambda self, *a: host_test["on"] and keep_clear(self, *a))
+    rng = np.random.default_rng(3)
+    skipped = 0
+    for size in 10.0 ** np.linspace(-7, -2, 11):
+        step = rng.normal(size=(3, 6))
+        step[:, :3] *= size / np.linalg.norm(step[:, :3], axis=1, keepdims=True)
+        step[:, 3:] *= 1e-3 * size / np.linalg.norm(step[:, 3:], axis=1, keepdims=True)
+        model.evaluate(poses)
+        launches.clear()
+        alpha = model.advancement_limit(step)
+        if not launches:
+            skipped += 1
+            assert alpha == 1.0
+        host_test["on"] = False
+        assert model.advancement_limit(step) == alpha  # the kernel over every term agrees
+        host_test["on"] = True
+    assert 3 <= skipped < 11

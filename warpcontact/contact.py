@@ -126,6 +126,7 @@ class AdvancementFrame:
     leaf_plane: wp.array
     num_leaf: int
     seed_separation: wp.array
+    pair_separation: np.ndarray  # host copy of seed_separation
 
 
 @dataclass(frozen=True)
@@ -307,7 +308,8 @@ class ContactModel:
             self._node_radius = wp.array(np.concatenate([t.radii for t in trees]), dtype=wp.float64)
             # How far from its centre of mass any node sphere of a body reaches (m): child spheres
             # may stick out of their parents', so the maximum over all nodes.
-            self._body_reach = wp.array([float((np.linalg.norm(t.centers, axis=1) + t.radii).max()) for t in trees], dtype=wp.float64)
+            self._body_reach_host = np.array([float((np.linalg.norm(t.centers, axis=1) + t.radii).max()) for t in trees])
+            self._body_reach = wp.array(self._body_reach_host, dtype=wp.float64)
             weights = [t.triangle_count if self.centred_weight == "pairs" else np.ones(t.num_nodes) for t in trees]
             self._node_weight = wp.array(np.concatenate(weights).astype(np.float64), dtype=wp.float64)
             self._node_left = wp.array(left, dtype=wp.int32)
@@ -333,6 +335,7 @@ class ContactModel:
             self._counters = wp.zeros(_ROUND_SLOT + max_depth + 1, dtype=wp.int32)
             self._seed_status = wp.zeros(len(self.body_pairs), dtype=wp.int32)
             self._seed_separation = wp.zeros(len(self.body_pairs), dtype=wp.float64)
+            self._pair_separation = np.zeros(len(self.body_pairs))  # host copy, read by evaluate
             self._total_value = wp.zeros(1, dtype=wp.float64)
             self._total_grad = wp.zeros((self.num_bodies, 6), dtype=wp.float64)
             self._total_hess = wp.zeros((6 * self.num_bodies, 6 * self.num_bodies), dtype=wp.float64)
@@ -697,6 +700,7 @@ class ContactModel:
         if contact or unsolved:
             value = float("inf")
         iterations = read("leaf_iterations")[:num_leaf]
+        self._pair_separation = read("separation").copy()
         return ContactEvaluation(
             value=value,
             grad=read("grad").copy(),
@@ -707,7 +711,7 @@ class ContactModel:
             contact_pairs=contact,
             unsolved_pairs=unsolved,
             mean_leaf_iterations=float(iterations.mean()) if num_leaf else 0.0,
-            pair_separation=read("separation").copy(),
+            pair_separation=self._pair_separation,
         )
 
     def advancement_frame(self) -> "AdvancementFrame":
@@ -724,6 +728,7 @@ class ContactModel:
                 leaf_plane=wp.clone(self._leaf_plane[: max(num_leaf, 1)]) if self._leaf_plane.shape[0] else wp.zeros(1, dtype=wp.vec4d),
                 num_leaf=num_leaf,
                 seed_separation=wp.clone(self._seed_separation),
+                pair_separation=self._pair_separation,
             )
 
     def advancement_limit(self, step, *, fraction: float = 0.9, frame: "AdvancementFrame | None" = None) -> float:
@@ -744,7 +749,9 @@ class ContactModel:
             raise ValueError(f"step: expected {self.num_bodies} rows, got {step.shape[0]}")
         if frame is None:
             num_far, _, num_leaf, _ = self._counts
-            frame = AdvancementFrame(self._rotation, self._position, self._far, num_far, self._leaf, self._leaf_plane, num_leaf, self._seed_separation)
+            frame = AdvancementFrame(self._rotation, self._position, self._far, num_far, self._leaf, self._leaf_plane, num_leaf, self._seed_separation, self._pair_separation)
+        if self._pairs_keep_clear(step, frame.pair_separation, fraction):
+            return 1.0  # no term can cut the step: nothing to launch or wait for
         self._alpha.fill_(1.0)
         if frame.num_far + frame.num_leaf:
             self._step_host.numpy()[:] = step
@@ -754,6 +761,18 @@ class ContactModel:
         self._readback.enqueue(alpha=self._alpha)
         self._readback.wait()
         return float(self._readback.read("alpha").min())
+
+    def _pairs_keep_clear(self, step: np.ndarray, pair_separation: np.ndarray, fraction: float) -> bool:
+        """True when every body pair passes the advancement kernel's own skip test
+        (``_pair_keeps_clear`` in kernels/reduction.py): the two bodies' travel along
+        ``step`` adds up to at most half of ``fraction`` times their closest term's separation.
+        The kernel would then skip every term and leave alpha at 1; converged Newton
+        iterations, whose steps are tiny, end here without a launch."""
+        if not len(self.body_pairs):
+            return True
+        travel = np.linalg.norm(step[:, :3], axis=1) + np.linalg.norm(step[:, 3:], axis=1) * self._body_reach_host
+        pair_travel = travel[self.body_pairs[:, 0]] + travel[self.body_pairs[:, 1]]
+        return bool(np.all(2.0 * pair_travel <= fraction * pair_separation))
 
     def _launch_advancement(self, frame: "AdvancementFrame", far: tuple[int, int], leaf: tuple[int, int], fraction: float, chunk: int):
         """The advancement bound of the ``frame``'s list ranges ``far`` and ``leaf`` into alpha slot ``chunk``."""
