@@ -225,7 +225,7 @@ def test_friction_exact_newton_steps_reach_the_same_solution_in_fewer_iterations
     dt = 0.02
     first = model.state(requires_grad=False)
     wc.set_body_velocity(first, wp.array([[0.0, 0.0, 0.0], [1.2, 0.3, 0.0], [-1.0, 0.5, 0.0]], dtype=wp.vec3d), wp.zeros(3, dtype=wp.vec3d), dt)
-    assert wc.ImplicitSolver(model).exact_friction_steps  # the CPU default
+    assert wc.ImplicitSolver(model).exact_friction_steps  # the default
     runs = {}
     for exact in (False, True):
         solver = wc.ImplicitSolver(model, exact_friction_steps=exact)

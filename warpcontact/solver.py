@@ -134,12 +134,11 @@ class ImplicitSolver:
             cluster pair's sphere separation) that one line-search step may close.
         exact_friction_steps: with friction on free bodies, take Newton directions that
             minimise a model of L with the friction term exact (``_friction_exact_direction``)
-            while a step is longer than the slip smoothing length. None: on a CPU only,
-            where a friction evaluation costs a few per cent of a contact evaluation and
-            the saved Newton iterations pay; on a GPU both are bound by launches and host
-            waits, and the extra friction evaluations cost about what they save
-            (docs/architecture.md, "Friction-exact Newton steps"). Either way the step
-            converges to the same solution, within ``tolerance``.
+            while a step is longer than the slip smoothing length. On by default, on a CPU
+            and on a GPU alike: the friction evaluations it adds cost less than the Newton
+            iterations and rejected line-search trials it saves (docs/architecture.md,
+            "Friction-exact Newton steps"). Either way the step converges to the same
+            solution, within ``tolerance``.
     """
 
     def __init__(
@@ -149,7 +148,7 @@ class ImplicitSolver:
         tolerance: float = 1e-10,
         max_iterations: int = 500,
         advancement_fraction: float = 0.9,
-        exact_friction_steps: bool | None = None,
+        exact_friction_steps: bool = True,
     ):
         if not (0 < tolerance < 1):
             raise ValueError(f"tolerance: must be in (0, 1), got {tolerance}")
@@ -161,7 +160,7 @@ class ImplicitSolver:
         self.tolerance = float(tolerance)
         self.max_iterations = int(max_iterations)
         self.advancement_fraction = float(advancement_fraction)
-        self.exact_friction_steps = model.device.is_cpu if exact_friction_steps is None else bool(exact_friction_steps)
+        self.exact_friction_steps = bool(exact_friction_steps)
         self.last_step: StepInfo | None = None
         n = model.num_bodies
         self._dynamic = ~model.static
