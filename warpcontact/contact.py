@@ -335,7 +335,7 @@ class ContactModel:
             self._counters = wp.zeros(_ROUND_SLOT + max_depth + 1, dtype=wp.int32)
             self._seed_status = wp.zeros(len(self.body_pairs), dtype=wp.int32)
             self._seed_separation = wp.zeros(len(self.body_pairs), dtype=wp.float64)
-            self._pair_separation = np.zeros(len(self.body_pairs))  # host copy, read by evaluate
+            self._pair_separation = np.zeros(len(self.body_pairs))  # host copy of _seed_separation, written by evaluate
             self._total_value = wp.zeros(1, dtype=wp.float64)
             self._total_grad = wp.zeros((self.num_bodies, 6), dtype=wp.float64)
             self._total_hess = wp.zeros((6 * self.num_bodies, 6 * self.num_bodies), dtype=wp.float64)
