@@ -33,6 +33,7 @@ from .kernels import traversal as traversal_kernels
 from ._runtime import HostReadback, LaunchCache, host_buffer, resolve_device, run_concurrently
 from ._validate import as_float64_array
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus, float32_search
+from .rotation import rigid_step_travel
 from .sphere_tree import SphereTree, build_sphere_tree
 
 __all__ = ["CENTRED_WEIGHTS", "ContactEvaluation", "ContactModel", "CONTACT_MODES", "LaggedFriction", "QUATERNION_TOLERANCE", "TermLists", "symmetric_from_upper"]
@@ -770,7 +771,7 @@ class ContactModel:
         iterations, whose steps are tiny, end here without a launch."""
         if not len(self.body_pairs):
             return True
-        travel = np.linalg.norm(step[:, :3], axis=1) + np.linalg.norm(step[:, 3:], axis=1) * self._body_reach_host
+        travel = rigid_step_travel(step, self._body_reach_host)
         pair_travel = travel[self.body_pairs[:, 0]] + travel[self.body_pairs[:, 1]]
         return bool(np.all(2.0 * pair_travel <= fraction * pair_separation))
 

@@ -19,6 +19,7 @@ __all__ = [
     "axial",
     "pose_mul",
     "pose_inverse",
+    "rigid_step_travel",
 ]
 
 
@@ -129,3 +130,12 @@ def pose_inverse(a) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64)
     q = quat_conjugate(a[..., 3:])
     return np.concatenate([-quat_rotate(q, a[..., :3]), q], axis=-1)
+
+
+def rigid_step_travel(step, reach) -> np.ndarray:
+    """Upper bound (m) on how far any point within ``reach`` (m) of a body's centre of mass
+    moves under its rigid step (..., 6) = (dp, dtheta): |dp| + |dtheta| reach (a chord is
+    no longer than its arc). The advancement kernel's pair skip (kernels/reduction.py,
+    ``_pair_keeps_clear``) is the same bound on the device."""
+    step = np.asarray(step, dtype=np.float64)
+    return np.linalg.norm(step[..., :3], axis=-1) + np.linalg.norm(step[..., 3:], axis=-1) * reach
