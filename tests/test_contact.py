@@ -752,3 +752,32 @@ def test_advancement_skips_the_launch_only_where_the_kernel_would_skip_every_ter
         assert model.advancement_limit(step) == alpha  # the kernel over every term agrees
         host_test["on"] = True
     assert 3 <= skipped < 11
+
+
+def test_evaluate_reuses_its_last_result_only_at_the_same_poses(monkeypatch):
+    """``reuse=True`` returns a copy of the last evaluation, with nothing launched, only for
+    bit-identical poses whose term lists are still in the buffers."""
+    model = wc.ContactModel([icosphere(1), box(), icosphere(1)])
+    poses = identity_poses([[0, 0, 0], [0.0, 1.2, 0.0], [0.0, 3.0, 0.0]])
+    moved = poses.copy()
+    moved[1, 1] += 1e-9
+    fills = []
+    fill = wc.ContactModel._fill_lists
+    monkeypatch.setattr(wc.ContactModel, "_fill_lists", lambda self, **kw: (fills.append(kw), fill(self, **kw)))
+    first = model.evaluate(poses)
+    again = model.evaluate(poses, reuse=True)
+    assert len(fills) == 1
+    assert again.value == first.value and again.num_leaf == first.num_leaf
+    np.testing.assert_array_equal(again.grad, first.grad)
+    np.testing.assert_array_equal(again.hessian, first.hessian)
+    again.grad[:] = 0.0  # a caller's changes stay its own
+    np.testing.assert_array_equal(model.evaluate(poses, reuse=True).grad, first.grad)
+    assert len(fills) == 1
+    model.evaluate(poses)  # without reuse: evaluates
+    assert len(fills) == 2
+    model.evaluate(moved, reuse=True)  # other poses: evaluates
+    assert len(fills) == 3
+    model.term_lists(poses)  # the buffers now hold lists without an evaluation
+    fresh = model.evaluate(poses, reuse=True)
+    assert len(fills) == 5
+    np.testing.assert_array_equal(fresh.grad, first.grad)

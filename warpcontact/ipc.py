@@ -105,8 +105,12 @@ class IpcContactModel:
         R = quat_to_matrix(poses[:, 3:])
         return np.einsum("vij,vj->vi", R[self._body_of], self._local) + poses[self._body_of, :3]
 
-    def evaluate(self, poses) -> ContactEvaluation:
-        """Barrier value, (nbodies, 6) gradient and Hessian in rigid coordinates (dp, dtheta)."""
+    def evaluate(self, poses, *, reuse: bool = False) -> ContactEvaluation:
+        """Barrier value, (nbodies, 6) gradient and Hessian in rigid coordinates (dp, dtheta).
+
+        ``reuse`` is accepted for ``ContactModel``'s signature and ignored: ipctk's
+        collision set is rebuilt at every call.
+        """
         poses = as_float64_array(poses, "poses", trailing_shape=(7,))
         if poses.shape[0] != self.num_bodies:
             raise ValueError(f"poses: expected {self.num_bodies} rows (one per body), got {poses.shape[0]}")

@@ -479,7 +479,7 @@ class ImplicitSolver:
 
         q = q_now.copy()
         q[:, 3:] /= np.linalg.norm(q[:, 3:], axis=1, keepdims=True)
-        start = model.contact.evaluate(q)
+        start = model.contact.evaluate(q, reuse=True)
         if start.contact_pairs:
             names = ", ".join(f"{a} and {b}" for a, b in start.contact_pairs)
             raise ValueError(f"state_in: bodies intersect or touch at the start of the step: {names}")
