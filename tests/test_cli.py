@@ -4,6 +4,7 @@ import csv
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from pxr import Usd
 
@@ -98,6 +99,7 @@ def test_bench_frame_writes_results_and_plot(tmp_path):
         assert len(r["newton_iterations_per_frame"]) == 2 and r["newton_iterations"] >= 1
         assert r["forward_seconds"] > 0 and r["contact_seconds"] > 0 and r["backward_seconds"] > 0
         assert min(r["frame_seconds"], r["frame_seconds_mean"]) > 0
+        assert len(r["forward_seconds_per_frame"]) == 2 and r["forward_seconds_mean"] == pytest.approx(np.mean(r["forward_seconds_per_frame"]))
         assert r["setup"] == "cue 0.02 m from ball00 at 1 m/s"
     assert rows[2]["friction"] == 0.0 and rows[0]["eps"] == 0.5 and rows[1]["eps"] is None
     assert _csv_rows(tmp_path / "frame.csv") == 3
@@ -108,7 +110,7 @@ def test_bench_frame_times_brute_contact_only_above_the_cap(tmp_path):
     args = ["bench", "frame", "--scenes", str(_tiny_billiards(tmp_path)), "--models", "bsh", "brute", "--frames", "1", "--warmup", "0", "--brute-max-triangles", "0", "--out", str(tmp_path)]
     assert main(args) == 0
     brute = json.loads((tmp_path / "frame.json").read_text())["rows"][1]
-    assert brute["model"] == "brute" and brute["frames"] == 0 and brute["forward_seconds"] is None and brute["frame_seconds_mean"] is None and brute["contact_seconds"] > 0
+    assert brute["model"] == "brute" and brute["frames"] == 0 and brute["forward_seconds"] is None and brute["forward_seconds_mean"] is None and brute["frame_seconds_mean"] is None and brute["contact_seconds"] > 0
 
 
 def test_bench_accuracy_writes_results_and_plot(tmp_path):
