@@ -212,11 +212,8 @@ def test_rolling_faceted_ball_takes_ordinary_newton_steps():
     assert all(model.contact.evaluate(x).ok for x in q)
 
 
-def test_friction_exact_newton_steps_reach_the_same_solution_in_fewer_iterations():
-    """A box and a ball slide on a grid and brake to a stop: slips cross the smoothing length
-    v_eps dt, where the friction term's quadratic model overshoots. Directions that minimise
-    a model with the friction term exact converge to the same steps (within the solver's
-    tolerance) in about two thirds of the Newton iterations (measured: 206 -> 132)."""
+def sliding_box_and_ball():
+    """A box and a ball sliding apart on a grid with friction 0.5: (model, first state, dt)."""
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-6, friction=0.5)
     b.add_body(grid_ground(4.0), static=True, name="ground")
     b.add_box((0.4, 0.4, 0.4), density=500.0, name="box", pose=(-0.5, 0.1, 0.201, 0.0, 0.0, 0.0, 1.0))
@@ -225,6 +222,15 @@ def test_friction_exact_newton_steps_reach_the_same_solution_in_fewer_iterations
     dt = 0.02
     first = model.state(requires_grad=False)
     wc.set_body_velocity(first, wp.array([[0.0, 0.0, 0.0], [1.2, 0.3, 0.0], [-1.0, 0.5, 0.0]], dtype=wp.vec3d), wp.zeros(3, dtype=wp.vec3d), dt)
+    return model, first, dt
+
+
+def test_friction_exact_newton_steps_reach_the_same_solution_in_fewer_iterations():
+    """A box and a ball slide on a grid and brake to a stop: slips cross the smoothing length
+    v_eps dt, where the friction term's quadratic model overshoots. Directions that minimise
+    a model with the friction term exact converge to the same steps (within the solver's
+    tolerance) in about two thirds of the Newton iterations (measured: 206 -> 132)."""
+    model, first, dt = sliding_box_and_ball()
     assert wc.ImplicitSolver(model).exact_friction_steps  # the default
     runs = {}
     for exact in (False, True):
@@ -296,14 +302,7 @@ def test_a_step_starts_from_the_last_evaluation_of_the_previous_step(monkeypatch
     (its solution); reusing that evaluation saves one a step and changes nothing: the same
     poses, bit for bit, as evaluating again (a 20-frame strike of the 16-ball rack: 106 ->
     87 evaluations)."""
-    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-6, friction=0.5)
-    b.add_body(grid_ground(4.0), static=True, name="ground")
-    b.add_box((0.4, 0.4, 0.4), density=500.0, name="box", pose=(-0.5, 0.1, 0.201, 0.0, 0.0, 0.0, 1.0))
-    b.add_sphere(0.2, subdivisions=1, density=300.0, name="ball", pose=(0.5, -0.3, 0.203, 0.0, 0.0, 0.0, 1.0))
-    model = b.finalize()
-    dt = 0.02
-    first = model.state(requires_grad=False)
-    wc.set_body_velocity(first, wp.array([[0.0, 0.0, 0.0], [1.2, 0.3, 0.0], [-1.0, 0.5, 0.0]], dtype=wp.vec3d), wp.zeros(3, dtype=wp.vec3d), dt)
+    model, first, dt = sliding_box_and_ball()
     evaluate = wc.ContactModel.evaluate
     fills, allowed = [], {"reuse": True}
     fill = wc.ContactModel._fill_lists
