@@ -320,6 +320,41 @@ def test_a_step_starts_from_the_last_evaluation_of_the_previous_step(monkeypatch
     assert with_reuse <= without - 7, (with_reuse, without)
 
 
+def test_a_rejected_warm_start_bounds_the_first_step_with_the_start_lists(monkeypatch):
+    """When L is not lower at the inertial prediction, Newton starts from q^t, whose first
+    step conservative advancement bounds with copies of q^t's term lists taken before the
+    prediction was evaluated, instead of evaluating q^t again: the same poses, bit for bit,
+    with one evaluation fewer per rejection. A cue strikes the rack (the case of ``bench
+    frame``), where some predictions are rejected."""
+    from warpcontact.tasks import TaskProblem
+
+    problem = TaskProblem(scenes.build_scene("billiards"))
+    start = problem.model.initial_q.copy()
+    strike = np.array([[4.9, 0.0, 1.0, 0.0]])  # x, y, vx, vy: the cue 5 cm from the apex ball
+    warm_start = wc.ImplicitSolver._warm_start
+    rejected = []
+
+    def evaluate_q_again(self, q, *args):
+        result = warm_start(self, q, *args)
+        copies = result[-1]
+        if copies is not None:
+            rejected.append(1)
+            self.model.contact.evaluate(q)
+            lists = self.model.contact.advancement_frame()
+            assert (copies.num_far, copies.num_leaf) == (lists.num_far, lists.num_leaf)
+            for name in ("rotation", "position", "far", "leaf", "leaf_plane", "seed_separation"):
+                np.testing.assert_array_equal(getattr(copies, name).numpy(), getattr(lists, name).numpy())
+            np.testing.assert_array_equal(copies.pair_separation, lists.pair_separation)
+            return (*result[:-1], None)
+        return result
+
+    _, _, with_copies = problem.rollout(strike, (start, start), 20, gradient=False)
+    monkeypatch.setattr(wc.ImplicitSolver, "_warm_start", evaluate_q_again)
+    _, _, evaluated_again = problem.rollout(strike, (start, start), 20, gradient=False)
+    assert rejected
+    np.testing.assert_array_equal(with_copies, evaluated_again)
+
+
 def test_backtracking_lands_on_the_minimiser_of_a_quadratic_line():
     from warpcontact.solver import _backtrack_factor
 

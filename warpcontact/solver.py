@@ -371,7 +371,7 @@ class ImplicitSolver:
             step = self._newton_direction(h_other + t_hess, model_grad)
         return d if float(grad @ d) < 0.0 else direction
 
-    def _unblocked_direction(self, grad: np.ndarray, hess: np.ndarray, direction: np.ndarray, alpha: float) -> tuple[np.ndarray, float]:
+    def _unblocked_direction(self, grad: np.ndarray, hess: np.ndarray, direction: np.ndarray, alpha: float, frame=None) -> tuple[np.ndarray, float]:
         """A direction and its advancement bound for a Newton step that a near contact blocks.
 
         A body struck from almost touching can be asked to turn or slide far in one step;
@@ -381,6 +381,7 @@ class ImplicitSolver:
         turn the step towards -g; each is cut by its own advancement bound, and the one whose
         bounded step lowers the quadratic model of L most is taken (the Newton direction
         itself when none does better). Rigid bodies only (joints keep plain Newton).
+        ``frame``: q's term lists when the contact model last evaluated elsewhere.
         """
 
         def model_change(d: np.ndarray, a: float) -> float:
@@ -391,7 +392,7 @@ class ImplicitSolver:
         damping = _DAMPING_FIRST
         while damping <= _DAMPING_LAST:
             d = self._newton_direction(hess + damping * scaling, grad)
-            a = self.model.contact.advancement_limit(self._step_travel(d)[0], fraction=self.advancement_fraction)
+            a = self.model.contact.advancement_limit(self._step_travel(d)[0], fraction=self.advancement_fraction, frame=frame)
             change = model_change(d, a)
             if change < best_change:
                 best_change, best_direction, best_alpha = change, d, a
@@ -509,8 +510,11 @@ class ImplicitSolver:
 
         coords = coords_now.copy()
         value, grad, hess, contact, jacobian = self._evaluate(q, coords, step_in, start)
+        # The term lists that bound the next Newton step when the contact model's last
+        # evaluation was elsewhere (None: its lists are those of q).
+        q_lists = None
         if art is None and np.isfinite(value):
-            q, value, grad, hess, contact = self._warm_start(q, value, grad, hess, contact, coords, step_in)
+            q, value, grad, hess, contact, q_lists = self._warm_start(q, value, grad, hess, contact, coords, step_in)
         if not np.isfinite(value):
             raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs}; joint limits reached: {self._limits_reached(coords)})")
         tol = self.tolerance * self._length_scale
@@ -536,11 +540,13 @@ class ImplicitSolver:
                 converged = True
                 break
             decrement = -float(grad @ direction)
-            # The contact model still holds the term lists of q: trials come after this.
-            frame = model.contact.advancement_frame() if art is not None else None
+            # The contact model holds the term lists of q (or q_lists does, after a rejected
+            # warm start): trials come after this.
+            frame = model.contact.advancement_frame() if art is not None else q_lists
+            q_lists = None
             alpha = min(model.contact.advancement_limit(full, fraction=self.advancement_fraction, frame=frame), self._limit_step(q, coords, direction))
             if art is None and alpha < _BLOCKED_ALPHA:
-                direction, alpha = self._unblocked_direction(grad, hess, direction, alpha)
+                direction, alpha = self._unblocked_direction(grad, hess, direction, alpha, frame)
                 full, travel = self._step_travel(direction)
                 step_length = float(travel.max())
                 decrement = -float(grad @ direction)
@@ -595,7 +601,11 @@ class ImplicitSolver:
     def _warm_start(self, q, value, grad, hess, contact, coords, step_in):
         """Start Newton from the inertial prediction (``predict_kernel``: where each body would
         coast to, the minimiser of the inertia term) when conservative advancement certifies
-        the whole path to it and L is lower there."""
+        the whole path to it and L is lower there.
+
+        Returns the start (q, value, grad, hess, contact) and, when the prediction was
+        evaluated and rejected, an ``AdvancementFrame`` of q's term lists for the first
+        Newton step's bound (else None), instead of evaluating q again."""
         model = self.model
         dynamic = np.flatnonzero(self._dynamic)
         position = self._predicted_position.numpy()
@@ -605,17 +615,17 @@ class ImplicitSolver:
         predicted = np.array([quat_from_matrix(rotation[b]) for b in dynamic]).reshape(-1, 4)
         velocity[dynamic, 3:] = rotation_vector_from_quat(quat_mul(predicted, quat_conjugate(q[dynamic, 3:])))
         if not np.any(velocity):
-            return q, value, grad, hess, contact
+            return q, value, grad, hess, contact, None
         if model.contact.advancement_limit(velocity, fraction=self.advancement_fraction) < 1.0:
             # A contact closes within the step: the impact will change the velocities, and a
             # start pressed against the barrier costs Newton more than it saves.
-            return q, value, grad, hess, contact
+            return q, value, grad, hess, contact, None
+        q_lists = model.contact.advancement_frame()  # copies, far cheaper than evaluating q again
         trial = retract(q, velocity)
         t_value, t_grad, t_hess, t_contact, _ = self._evaluate(trial, coords, step_in)
         if np.isfinite(t_value) and t_value < value:
-            return trial, t_value, t_grad, t_hess, t_contact
-        model.contact.evaluate(q)  # the term lists of q again, for the first advancement bound
-        return q, value, grad, hess, contact
+            return trial, t_value, t_grad, t_hess, t_contact, None
+        return q, value, grad, hess, contact, q_lists
 
     def _limits_reached(self, coords: np.ndarray) -> list[str]:
         art = self._articulation
