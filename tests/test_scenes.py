@@ -99,6 +99,23 @@ def test_a_ball_at_rest_stays_at_rest():
     assert abs(abs(float(np.dot(end[3:], start[3:]))) - 1.0) < 1e-7
 
 
+def test_billiards_goals_are_reached_by_the_reference_strike():
+    """Billiards has a solution: the reference strike (the cue launched from its start at
+    5.8 m/s) leaves both targets within their tolerance after the task's 100 frames, while
+    at the start both are outside it (measured: 0.60 and 0.44 m from their goals)."""
+    from warpcontact.tasks import TaskProblem, TaskSettings
+
+    scene = scenes.build_scene("billiards")
+    problem = TaskProblem(scene, settings=TaskSettings(scene.task.horizon, 0, 1, 0.03))
+    start = problem.model.initial_q.copy()
+    for name in scenes.BILLIARDS_GOALS:
+        body = next(b for b in scene.bodies if b.name == name)
+        assert np.linalg.norm(body.pose[:2] - body.target_position[:2]) > body.target_tolerance + 0.2
+    loss, _, trajectory = problem.rollout(np.array([scenes.BILLIARDS_REFERENCE_STRIKE]), (start, start), scene.task.horizon, gradient=False)
+    assert loss == 0.0
+    assert np.all(trajectory[:, 1:, 2] > 0.3)  # every ball stays on the table (body 0: the ground)
+
+
 def test_resting_needs_a_closed_outward_convex_mesh():
     v, f = scenes.fibonacci_ball(18)
     with pytest.raises(ValueError, match="outward-oriented"):

@@ -438,7 +438,7 @@ def frame_scene(spec: str, *, scene_dir: Path = Path("scenes"), peer_meshes: Pat
     (a pickled ``Scene``, for machines without usd-core).
     """
     from . import io
-    from .scenes import SCENE_NAMES, billiards_scene, build_scene
+    from .scenes import RACK_BENCHMARK_FRICTION, SCENE_NAMES, billiards_scene, build_scene
 
     path = Path(spec)
     if path.suffix == ".pkl":
@@ -455,7 +455,7 @@ def frame_scene(spec: str, *, scene_dir: Path = Path("scenes"), peer_meshes: Pat
         file = Path(peer_meshes) / PEER_BALLS[triangles]
         if not file.is_file():
             raise ValueError(f"{spec}: {file} not found (pass the peer-mesh folder)")
-        scene = billiards_scene(*_peer_ball(file))
+        scene = billiards_scene(*_peer_ball(file), friction=RACK_BENCHMARK_FRICTION)
         scene.source = spec
         return scene
     if spec not in SCENE_NAMES:
@@ -799,9 +799,9 @@ def accuracy_scene(*, balls: int = 3, points_per_ball: int = 18, gap: float = 0.
     ball moving into it at ``speed`` m/s (``strike_setup``). Each struck ball's goal is 1 m
     beyond it (alternately 0.5 m left and right) with zero tolerance, so the task loss has a
     gradient. Returns (scene, the cue's initial-state controls (x, y, vx, vy))."""
-    from .scenes import billiards_scene, fibonacci_ball
+    from .scenes import RACK_BENCHMARK_FRICTION, billiards_scene, fibonacci_ball
 
-    scene = billiards_scene(*fibonacci_ball(points_per_ball))
+    scene = billiards_scene(*fibonacci_ball(points_per_ball), friction=RACK_BENCHMARK_FRICTION)
     keep = {"ground", "cue", *(f"ball{i:02d}" for i in range(balls))}
     scene.bodies = [b for b in scene.bodies if b.name in keep]
     setup = strike_setup(scene, gap=gap, speed=speed)
