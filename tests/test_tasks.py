@@ -394,7 +394,7 @@ def test_shipped_rod_tasks_lower_the_loss_from_the_trivial_guess(name):
     long-range potential links them), yet the second iterate's loss is strictly lower.
     (Gather's rod starts 2.4 m from its nearest cube: there its preset's first steps change
     the loss by ~1e-11 either way, the size of what the implicit solves' tolerance leaves
-    in it; its loss falls only once the rod nears the cubes, README "Task optimisation".)"""
+    in it; its loss falls only once the rod nears the cubes, docs/tasks.md.)"""
     from warpcontact.scenes import build_scene
 
     scene = build_scene(name)

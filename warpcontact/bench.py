@@ -552,7 +552,7 @@ def _simulate_frames(scene, setup: dict, *, mode: str, frames: int, warmup: int,
     if eps is not None:
         scene.settings.eps = eps
     if mode == "ipc":
-        scene.settings.friction = 0.0  # ipc frames are timed without friction (as measured in the README)
+        scene.settings.friction = 0.0  # ipc frames are timed without friction (as measured in docs/performance.md)
         # The scenes' mu is sized for the separating-plane potential; on IPC's barrier it is
         # so soft that the balls sink ~dhat into the table over hundreds of Newton iterations.
         scene.settings.contact_stiffness = ipc_stiffness

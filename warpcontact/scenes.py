@@ -222,7 +222,7 @@ def _rod(position, dofs, kp=400.0, kd=60.0):
 # The Billiards table's friction. The faceted balls cannot roll, so on a billiards table
 # their sliding friction stands in for a rolling ball's resistance: at 0.05 the reference
 # strike below scatters the rack's front balls 0.38-1.0 m, at 0.3 (the scaling series') a
-# 5 m/s strike from 2 m moves no ball more than 0.26 m (README, "Billiards").
+# 5 m/s strike from 2 m moves no ball more than 0.26 m (docs/architecture.md, "Billiards' goals and table").
 BILLIARDS_FRICTION = 0.05
 # The friction of the scaling series (BILLIARDS_SERIES, bench): every Performance figure
 # was measured on these racks at this friction.
@@ -284,7 +284,7 @@ def _push() -> Scene:
         settings=SimulationSettings(time_step=0.04, frames=200, contact_stiffness=1e-6, friction=0.5),
         # --quick: 32-frame windows over 200 frames, each executing 8 frames after 20 Adam
         # steps of 5 cm; the paper's 48-frame windows also succeed, at about twice the cost
-        # (README, "Task optimisation").
+        # (docs/tasks.md).
         task=TaskSpec(name="push", control="pd_targets", horizon=200, receding_horizon=48, learning_rate=1e-2, iterations=50,
                       quick_horizon=200, quick_receding_horizon=32, quick_receding_stride=8, quick_learning_rate=5e-2, quick_iterations=20),
     )
@@ -368,10 +368,10 @@ def _sort(seed: int = 1) -> Scene:
     return Scene(
         bodies=[grid_ground(10.0, 7.0), *cubes, _rod((0.0, 0.0, 0.3 + 0.02), ("x", "y", "z"))],
         # Pair-weighted centred terms, as in Gather: with the paper's, the earlier preset left
-        # the rod hovering about 0.46 m from where it starts (README, "Task optimisation").
+        # the rod hovering about 0.46 m from where it starts (docs/tasks.md).
         # --quick: 48 frames in the paper's 16-frame windows, each executing 8 frames after 16
         # Adam steps of 5 cm; the earlier 24-frame windows over 64 frames sorted the same two
-        # cubes at more than twice the cost (README, "Task optimisation").
+        # cubes at more than twice the cost (docs/tasks.md).
         settings=SimulationSettings(time_step=0.04, frames=700, contact_stiffness=3e-8, friction=0.5, centred_weight="pairs"),
         task=TaskSpec(name="sort", control="pd_targets", horizon=700, receding_horizon=16, learning_rate=1e-2, iterations=100,
                       quick_horizon=48, quick_receding_horizon=16, quick_receding_stride=8, quick_learning_rate=5e-2, quick_iterations=16),
@@ -408,7 +408,7 @@ def _gather(seed: int = 2, *, bunny: bool = False) -> Scene:
         # only; with the paper's unweighted centred terms it stalls at the root blend shell
         # (docs/architecture.md, "Centred weights"). --quick: 64 frames in 16-frame windows
         # each executing 8 frames, 16 Adam steps of 5 cm; 24- and 32-frame windows push the
-        # cube no further at higher cost (README, "Task optimisation").
+        # cube no further at higher cost (docs/tasks.md).
         settings = SimulationSettings(time_step=0.04, frames=300, contact_stiffness=3e-8, friction=0.5, centred_weight="pairs")
         task = TaskSpec(name=name, control="pd_targets", horizon=300, receding_horizon=32, learning_rate=1e-2, iterations=60,
                         quick_horizon=64, quick_receding_horizon=16, quick_receding_stride=8, quick_learning_rate=5e-2, quick_iterations=16)

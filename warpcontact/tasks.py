@@ -53,7 +53,7 @@ _BASELINE_CONTACT_MODE = {"ipc": "ipc", "sdrs": "sdrs", "gb": "sdrs"}
 # IPC's barrier stiffness for task runs. The scenes' contact_stiffness (mu 1e-6 .. 5e-9) is
 # sized for the paper's 1/x potential; on IPC's (unnormalised) log barrier it is so soft
 # that resting bodies sink to gaps of ~1e-8 m and ipctk's CCD takes seconds a step. The
-# default gives gaps of ~1e-4 m on the shipped scenes (README, "Task optimisation").
+# default gives gaps of ~1e-4 m on the shipped scenes (docs/tasks.md).
 IPC_TASK_STIFFNESS = 1e5
 
 
