@@ -422,3 +422,70 @@ def test_gather_rod_behind_a_cube_lowers_the_loss_through_the_long_range_potenti
     history = TaskProblem(scene, settings=settings).optimize().loss_history
     assert history[0] > 0
     assert np.all(np.diff(history) < -1e-10)
+
+
+def sampled_space_billiards():
+    """space_billiards with a sample box for the cue's (x, y, vx, vy): some draws strike."""
+    scene = space_billiards()
+    scene.task.sample_low, scene.task.sample_high = (-0.3, -0.3, 0.0, -1.0), (0.3, 0.6, 8.0, 2.0)
+    return scene
+
+
+def test_initial_samples_start_the_descent_at_the_best_draw():
+    """The paper's random-sampling initialisation: the descent starts from the lowest-loss
+    draw of the scene's box, and every draw (seeded) is recorded with its loss."""
+    settings = TaskSettings(horizon=15, receding_horizon=0, iterations=2, learning_rate=0.3, initial_samples=5, sample_seed=1)
+    problem = TaskProblem(sampled_space_billiards(), settings=settings)
+    result = problem.optimize()
+    samples = result.extra["initial_samples"]
+    assert len(samples) == 5
+    losses = [s["loss"] for s in samples]
+    low, high = np.array([-0.3, -0.3, 0.0, -1.0]), np.array([0.3, 0.6, 8.0, 2.0])
+    for s in samples:
+        assert np.all(low <= s["values"]) and np.all(np.array(s["values"]) <= high)
+    best = int(np.argmin(losses))
+    assert result.loss_history[0] == pytest.approx(losses[best], rel=1e-12)
+    trivial = TaskProblem(space_billiards(), settings=TaskSettings(15, 0, 1, 0.3)).optimize()
+    assert min(losses) < trivial.initial_loss  # some draw strikes the target
+    again = TaskProblem(sampled_space_billiards(), settings=settings).optimize()
+    assert again.extra["initial_samples"] == samples  # the seed fixes the draws
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda s: setattr(s.task, "sample_low", ()), "need warpcontact:task:sampleLow"),
+        (lambda s: setattr(s.task, "sample_high", (1.0, 1.0, 1.0)), "sampleHigh has 3 values for the 4 control DOFs"),
+        (lambda s: setattr(s.task, "sample_low", (0.0, 0.0, np.nan, 0.0)), "sampleLow must be finite"),
+        (lambda s: setattr(s.task, "sample_low", (0.5, -0.3, 0.0, -1.0)), "exceeds warpcontact:task:sampleHigh"),
+        (lambda s: setattr(s.task, "control", "pd_targets"), "this task's control is 'pd_targets'"),
+    ],
+)
+def test_initial_samples_need_a_valid_box(change, message):
+    scene = sampled_space_billiards()
+    change(scene)
+    with pytest.raises(ValueError, match=message):
+        TaskProblem(scene, settings=TaskSettings(15, 0, 1, 0.3, initial_samples=2))
+
+
+def test_initial_samples_all_infeasible_is_a_clear_error():
+    scene = sampled_space_billiards()
+    scene.task.sample_low, scene.task.sample_high = (1.0, 0.3, 0.0, 0.0), (1.0, 0.3, 0.0, 0.0)  # the cue inside the target
+    problem = TaskProblem(scene, settings=TaskSettings(15, 0, 1, 0.3, initial_samples=2))
+    with pytest.raises(ValueError, match="none of the 2 initial samples is feasible"):
+        problem.optimize()
+
+
+def test_cli_init_samples_round_trip_the_box_and_record_the_draws(tmp_path, capsys):
+    scene_path = tmp_path / "space.usda"
+    io.save_scene(sampled_space_billiards(), scene_path)
+    assert io.load_scene(scene_path).task.sample_high == (0.3, 0.6, 8.0, 2.0)
+    out = tmp_path / "out"
+    assert main(["run", str(scene_path), "--init-samples", "3", "--seed", "2", "--iters", "1", "--out", str(out)]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["init_samples"] == 3 and len(metrics["initial_samples"]) == 3
+    assert metrics["initial_loss"] == min(s["loss"] for s in metrics["initial_samples"])
+    plain = tmp_path / "plain.usda"
+    io.save_scene(space_billiards(), plain)
+    assert main(["run", str(plain), "--init-samples", "3", "--out", str(out)]) == 2
+    assert "need warpcontact:task:sampleLow" in capsys.readouterr().err

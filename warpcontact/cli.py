@@ -148,7 +148,7 @@ def _load_task(args):
     the output folder and the scene's task metadata, so bad input fails before any work."""
     from . import io
     from ._runtime import resolve_device
-    from .tasks import TaskSettings, validate_task
+    from .tasks import TaskSettings, sample_box, validate_task
 
     resolve_device(args.device)
     _output_folder(args.out)
@@ -156,6 +156,9 @@ def _load_task(args):
     scene = io.load_scene(scene_path)
     validate_task(scene)
     settings = TaskSettings.from_task(scene, quick=args.quick, iterations=args.iters)
+    if args.init_samples:
+        sample_box(scene, args.init_samples)
+        settings.initial_samples, settings.sample_seed = args.init_samples, args.seed
     return scene_path, scene, settings
 
 
@@ -222,6 +225,7 @@ def _run(args) -> int:
         "device": str(problem.model.device),
         "seed": args.seed,
         "quick": bool(args.quick),
+        "init_samples": settings.initial_samples,
         **_settings_metrics(settings, args, [args.model]),
         **_result_metrics(result),
     }
@@ -262,6 +266,7 @@ def _compare(args) -> int:
         "device": device,
         "seed": args.seed,
         "quick": bool(args.quick),
+        "init_samples": settings.initial_samples,
         "frictionless": bool(args.frictionless),
         "iterations": settings.iterations,
         **_settings_metrics(settings, args, args.models),
@@ -490,7 +495,13 @@ def _add_task_arguments(parser, default_out: str):
     parser.add_argument("--iters", type=_positive_int, default=None, help="optimiser iterations (per window)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--quick", action="store_true", help="short horizons and few iterations (minutes on a CPU)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the gb model's samples")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the gb model's samples and of --init-samples")
+    parser.add_argument(
+        "--init-samples",
+        type=_positive_int,
+        default=None,
+        help="start from the best of N initial-state controls drawn from the scene's box (warpcontact:task:sampleLow/High) instead of the trivial guess",
+    )
     parser.add_argument(
         "--ipc-stiffness",
         type=_positive_float,

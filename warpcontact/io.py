@@ -20,6 +20,9 @@ warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``Body
         warpcontact:task:quick:learningRate (double)  warpcontact:task:quick:iterations (int)
         warpcontact:task:quick:recedingStride (int)
             (the ``--quick`` preset: minutes on a 2-core CPU; horizon 0 = no preset)
+        warpcontact:task:sampleLow (double[])     warpcontact:task:sampleHigh (double[])
+            (per control DOF, in warpcontact:control:dofs order: the box that
+            ``--init-samples`` draws initial-state controls from)
     on a rigid-body prim
         warpcontact:target:position (double3, m)  warpcontact:target:tolerance (double, m)
         warpcontact:pd:kpLinear (double3)         warpcontact:pd:kdLinear (double3)
@@ -102,6 +105,10 @@ class TaskSpec:
     quick_learning_rate: float = 0.0
     quick_iterations: int = 0
     quick_receding_stride: int = 1
+    # The box initial-state controls are sampled from (tasks.TaskSettings.initial_samples):
+    # one bound per control DOF, in ``control_dofs`` order; empty: no box.
+    sample_low: tuple = ()
+    sample_high: tuple = ()
 
 
 @dataclass
@@ -654,6 +661,10 @@ def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: s
         value = _attr(prim, _NS + attr_name)
         if value is not None:
             setattr(task, field_name, cast(value))
+    for attr_name, field_name in (("task:sampleLow", "sample_low"), ("task:sampleHigh", "sample_high")):
+        value = _attr(prim, _NS + attr_name)
+        if value is not None:
+            setattr(task, field_name, tuple(float(v) for v in value))
 
 
 # --- export ---------------------------------------------------------------------------------
@@ -753,6 +764,9 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
                 ("task:quick:recedingStride", t.quick_receding_stride, Sdf.ValueTypeNames.Int),
             ):
                 prim.CreateAttribute(_NS + name, kind).Set(value)
+            for name, bounds in (("task:sampleLow", t.sample_low), ("task:sampleHigh", t.sample_high)):
+                if bounds:
+                    prim.CreateAttribute(_NS + name, Sdf.ValueTypeNames.DoubleArray).Set(Vt.DoubleArray([float(v) for v in bounds]))
         for b in scene.bodies:
             path_ = f"/World/{b.name}"
             if b.static:

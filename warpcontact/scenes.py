@@ -265,7 +265,10 @@ def billiards_scene(vertices: np.ndarray, faces: np.ndarray, *, friction: float 
     return Scene(
         bodies=bodies,
         settings=SimulationSettings(time_step=0.04, frames=100, contact_stiffness=1e-7, eps=0.5, friction=friction),
-        task=TaskSpec(name="billiards", control="initial_state", horizon=100, receding_horizon=0, learning_rate=3e-2, iterations=400),
+        # --init-samples draws the cue's start between its place and 1 m before the apex
+        # ball, within 0.5 m of the rack's axis, launched at up to 7 m/s.
+        task=TaskSpec(name="billiards", control="initial_state", horizon=100, receding_horizon=0, learning_rate=3e-2, iterations=400,
+                      sample_low=(0.0, -0.5, 0.0, -0.5), sample_high=(4.0, 0.5, 7.0, 0.5)),
     )
 
 

@@ -15,6 +15,10 @@ controlled body whose ``control_dofs`` are the decision variables:
   are each wave's amplitude, frequency and phase (after ChainQueen, as in the paper). The
   trivial guess has zero amplitudes, frequencies of 1..4 Hz and zero phases.
 
+With ``TaskSettings.initial_samples`` (initial-state control only) the descent starts from
+the lowest-loss of that many controls drawn uniformly from the scene's box
+(``TaskSpec.sample_low`` / ``sample_high``): the paper's random-sampling initialisation.
+
 Loss: sum over targets of ReLU(|x_com - x*|^2 - tolerance^2) at the window's last frame.
 Gradients come from ``wp.Tape`` through the implicit steps; the optimiser is Adam with the
 paper's betas (0.3, 0.5). Trivial initial guess: all offsets zero.
@@ -40,7 +44,7 @@ from .kernels import task as task_kernels
 from .solver import ImplicitSolver, SolverError
 from .types import State, set_body_velocity
 
-__all__ = ["CONTROL_KINDS", "IPC_TASK_STIFFNESS", "MODELS", "SINE_WAVES", "TaskProblem", "TaskResult", "TaskSettings", "adam", "validate_task"]
+__all__ = ["CONTROL_KINDS", "IPC_TASK_STIFFNESS", "MODELS", "SINE_WAVES", "TaskProblem", "TaskResult", "TaskSettings", "adam", "sample_box", "validate_task"]
 
 CONTROL_KINDS = ("initial_state", "pd_targets", "joint_sine")
 SINE_WAVES = 4
@@ -73,6 +77,11 @@ class TaskSettings:
     learning_rate: float
     receding_stride: int = 1
     betas: tuple = (0.3, 0.5)
+    # Random-sampling initialisation (the paper's Billiards, "random sampling"): the descent
+    # starts from the best of this many initial-state controls drawn uniformly from the
+    # scene's box (warpcontact:task:sampleLow/High) with ``sample_seed``; 0: the trivial guess.
+    initial_samples: int = 0
+    sample_seed: int = 0
 
     @property
     def window(self) -> int:
@@ -202,6 +211,35 @@ def _descend(rollout, values, settings, history, progress=None, total=None):
     return best
 
 
+def sample_box(scene, samples: int) -> tuple:
+    """(low, high) arrays, one bound per control DOF, of the box a task's ``samples``
+    initial samples are drawn from (``TaskSettings.initial_samples``).
+
+    Raises ValueError naming the attribute for a negative sample count, a task whose control
+    is not ``initial_state``, a missing box, a box of the wrong length, non-finite bounds or
+    a low bound above its high one (and what ``validate_task`` rejects).
+    """
+    source = scene.source or "<scene>"
+    controlled, _ = validate_task(scene)
+    task = scene.task
+    if samples < 0:
+        raise ValueError(f"initial samples: must be >= 0, got {samples}")
+    if task.control != "initial_state":
+        raise ValueError(f"{source}: initial samples draw initial-state controls; this task's control is {task.control!r}")
+    dofs = tuple(scene.bodies[controlled].control_dofs)
+    if not task.sample_low or not task.sample_high:
+        raise ValueError(f"{source}: initial samples need warpcontact:task:sampleLow and warpcontact:task:sampleHigh (one bound per control DOF {dofs})")
+    low, high = np.asarray(task.sample_low, dtype=np.float64), np.asarray(task.sample_high, dtype=np.float64)
+    for name, bound in (("sampleLow", low), ("sampleHigh", high)):
+        if bound.shape != (len(dofs),):
+            raise ValueError(f"{source}: warpcontact:task:{name} has {bound.size} values for the {len(dofs)} control DOFs {dofs}")
+        if not np.all(np.isfinite(bound)):
+            raise ValueError(f"{source}: warpcontact:task:{name} must be finite, got {bound.tolist()}")
+    if np.any(low > high):
+        raise ValueError(f"{source}: warpcontact:task:sampleLow {low.tolist()} exceeds warpcontact:task:sampleHigh {high.tolist()}")
+    return low, high
+
+
 def validate_task(scene) -> tuple:
     """(controlled body index or None for joint_sine tasks, target body indices) of a task scene.
 
@@ -291,6 +329,8 @@ class TaskProblem:
             self.dof_names = tuple(body.control_dofs)
             self.base_pose = self.model.initial_q[self.body].copy()
             self._dof_codes = wp.array([task_kernels.DOF_CODES[d] for d in self.dof_names], dtype=wp.int32, device=device)
+        if self.settings.initial_samples:
+            self._sample_box = sample_box(scene, self.settings.initial_samples)
         self._target_body = wp.array(targets, dtype=wp.int32, device=device)
         self._target_position = wp.array([scene.bodies[i].target_position for i in targets], dtype=wp.vec3d, device=device)
         self._target_tolerance = wp.array([scene.bodies[i].target_tolerance for i in targets], dtype=wp.float64, device=device)
@@ -380,6 +420,8 @@ class TaskProblem:
         extra = {"bundle": dataclasses.asdict(self.bundle)} if self.bundle else {}
         if self.kind != "pd_targets" or s.window == s.horizon:
             values = self.initial_values(1 if self.kind == "initial_state" else s.horizon)
+            if s.initial_samples:
+                values, extra["initial_samples"] = self._best_sample((q0, q0), s.horizon)
             final, values, traj = _descend(self._objective((q0, q0), s.horizon, rng), values, s, history, progress)
             return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, values, traj, extra)
 
@@ -407,6 +449,29 @@ class TaskProblem:
         trajectory = np.array(executed)
         final = self._loss_at(trajectory[-1])
         return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, plan[: s.horizon], trajectory, extra)
+
+    def _best_sample(self, start: tuple, frames: int):
+        """(the lowest-loss sample, every sample's values and loss) of
+        ``settings.initial_samples`` draws from the scene's box; infeasible draws (bodies
+        intersecting at the start, a failed step) are recorded with loss None.
+
+        Raises ValueError when every draw is infeasible.
+        """
+        low, high = self._sample_box
+        rng = np.random.default_rng(self.settings.sample_seed)
+        samples, best = [], None
+        for _ in range(self.settings.initial_samples):
+            values = rng.uniform(low, high)[None, :]
+            try:
+                loss, _, _ = self.rollout(values, start, frames, gradient=False)
+            except (ValueError, SolverError):
+                loss = None
+            samples.append({"values": values[0].tolist(), "loss": loss})
+            if loss is not None and (best is None or loss < best[0]):
+                best = (loss, values)
+        if best is None:
+            raise ValueError(f"{self.scene.source or '<scene>'}: none of the {len(samples)} initial samples is feasible (bodies intersect at the start, or a step fails)")
+        return best[1], samples
 
     def _loss_at(self, q: np.ndarray) -> float:
         total = 0.0
