@@ -103,7 +103,7 @@ def test_billiards_goals_are_reached_by_the_reference_strike():
     """Billiards has a solution: the reference strike (the cue launched from its start at
     5.8 m/s) leaves both targets within their tolerance after the task's 100 frames, while
     at the start both are outside it (measured: 0.60 and 0.44 m from their goals)."""
-    from warpcontact.tasks import TaskProblem, TaskSettings
+    from warpcontact.tasks import TaskProblem, TaskSettings, sample_box
 
     scene = scenes.build_scene("billiards")
     problem = TaskProblem(scene, settings=TaskSettings(scene.task.horizon, 0, 1, 0.03))
@@ -114,6 +114,8 @@ def test_billiards_goals_are_reached_by_the_reference_strike():
     loss, _, trajectory = problem.rollout(np.array([scenes.BILLIARDS_REFERENCE_STRIKE]), (start, start), scene.task.horizon, gradient=False)
     assert loss == 0.0
     assert np.all(trajectory[:, 1:, 2] > 0.3)  # every ball stays on the table (body 0: the ground)
+    low, high = sample_box(scene, 1)  # --init-samples' box holds the reference strike
+    assert np.all(low <= scenes.BILLIARDS_REFERENCE_STRIKE) and np.all(np.array(scenes.BILLIARDS_REFERENCE_STRIKE) <= high)
 
 
 def test_resting_needs_a_closed_outward_convex_mesh():
