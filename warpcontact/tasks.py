@@ -173,8 +173,9 @@ def adam(betas, learning_rate):
     return update
 
 
-def _descend(rollout, values, settings, history, progress=None, total=None):
+def _descend(rollout, values, settings, history, progress=None, total=None, first=None):
     """Adam iterations on ``values`` (in place); returns (best loss, best values, its trajectory).
+    ``first``: ``rollout(values)``'s result when the caller already has it.
 
     An update that makes the rollout infeasible (bodies intersecting at the start, or a step
     that fails) is halved back towards the last feasible values, up to FEASIBLE_HALVINGS
@@ -185,7 +186,7 @@ def _descend(rollout, values, settings, history, progress=None, total=None):
     """
     step = adam(settings.betas, settings.learning_rate)
     best = (np.inf, values.copy(), None)
-    result = rollout(values)  # the trivial guess must be feasible: its errors propagate
+    result = first or rollout(values)  # the start must be feasible: its errors propagate
     for it in range(settings.iterations):
         loss, grad, trajectory = result
         history.append(loss)
@@ -420,9 +421,10 @@ class TaskProblem:
         extra = {"bundle": dataclasses.asdict(self.bundle)} if self.bundle else {}
         if self.kind != "pd_targets" or s.window == s.horizon:
             values = self.initial_values(1 if self.kind == "initial_state" else s.horizon)
+            first = None
             if s.initial_samples:
-                values, extra["initial_samples"] = self._best_sample((q0, q0), s.horizon)
-            final, values, traj = _descend(self._objective((q0, q0), s.horizon, rng), values, s, history, progress)
+                values, extra["initial_samples"], first = self._best_sample((q0, q0), s.horizon)
+            final, values, traj = _descend(self._objective((q0, q0), s.horizon, rng), values, s, history, progress, first=first)
             return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, values, traj, extra)
 
         # Receding horizon: optimise a window, apply its first actions, shift.
@@ -451,27 +453,33 @@ class TaskProblem:
         return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, plan[: s.horizon], trajectory, extra)
 
     def _best_sample(self, start: tuple, frames: int):
-        """(the lowest-loss sample, every sample's values and loss) of
-        ``settings.initial_samples`` draws from the scene's box; infeasible draws (bodies
-        intersecting at the start, a failed step) are recorded with loss None.
+        """(the lowest-loss sample, every sample's values and loss, the lowest-loss rollout
+        for the descent's first step or None) of ``settings.initial_samples`` draws from
+        the scene's box; infeasible draws (bodies intersecting at the start, a failed step)
+        are recorded with loss None.
+
+        With exact gradients each draw's rollout also runs backward (a small fraction of its
+        forward cost), so the descent starts from the best draw without simulating it again;
+        gb's first gradient is a bundle, so its draws run forward only.
 
         Raises ValueError when every draw is infeasible.
         """
         low, high = self._sample_box
         rng = np.random.default_rng(self.settings.sample_seed)
+        exact = self.bundle is None
         samples, best = [], None
         for _ in range(self.settings.initial_samples):
             values = rng.uniform(low, high)[None, :]
             try:
-                loss, _, _ = self.rollout(values, start, frames, gradient=False)
+                result = self.rollout(values, start, frames, gradient=exact)
             except (ValueError, SolverError):
-                loss = None
-            samples.append({"values": values[0].tolist(), "loss": loss})
-            if loss is not None and (best is None or loss < best[0]):
-                best = (loss, values)
+                result = None
+            samples.append({"values": values[0].tolist(), "loss": None if result is None else result[0]})
+            if result is not None and (best is None or result[0] < best[1][0]):
+                best = (values, result)
         if best is None:
             raise ValueError(f"{self.scene.source or '<scene>'}: none of the {len(samples)} initial samples is feasible (bodies intersect at the start, or a step fails)")
-        return best[1], samples
+        return best[0], samples, (best[1] if exact else None)
 
     def _loss_at(self, q: np.ndarray) -> float:
         total = 0.0
