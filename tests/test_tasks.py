@@ -435,12 +435,12 @@ def test_initial_samples_start_the_descent_at_the_best_draw():
     """The paper's random-sampling initialisation: the descent starts from the lowest-loss
     draw of the scene's box, and every draw (seeded) is recorded with its loss."""
     settings = TaskSettings(horizon=15, receding_horizon=0, iterations=2, learning_rate=0.3, initial_samples=5, sample_seed=1)
-    problem = TaskProblem(sampled_space_billiards(), settings=settings)
-    result = problem.optimize()
+    scene = sampled_space_billiards()
+    result = TaskProblem(scene, settings=settings).optimize()
     samples = result.extra["initial_samples"]
     assert len(samples) == 5
     losses = [s["loss"] for s in samples]
-    low, high = np.array([-0.3, -0.3, 0.0, -1.0]), np.array([0.3, 0.6, 8.0, 2.0])
+    low, high = np.array(scene.task.sample_low), np.array(scene.task.sample_high)
     for s in samples:
         assert np.all(low <= s["values"]) and np.all(np.array(s["values"]) <= high)
     best = int(np.argmin(losses))
