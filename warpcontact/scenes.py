@@ -219,18 +219,12 @@ def _rod(position, dofs, kp=400.0, kd=60.0):
     )
 
 
-# The Billiards table's friction. The faceted balls cannot roll, so on a billiards table
-# their sliding friction stands in for a rolling ball's resistance: at 0.05 the reference
-# strike below scatters the rack's front balls 0.38-1.0 m, at 0.3 (the scaling series') a
-# 5 m/s strike from 2 m moves no ball more than 0.26 m (docs/architecture.md, "Billiards' goals and table").
+# Billiards' table friction (faceted balls cannot roll, so sliding stands in for rolling),
+# the scaling series' (every Performance figure was measured at it), and the reference
+# strike (cue offsets x, y in m, velocity vx, vy in m/s) whose rest positions of two balls
+# are the goals, so the task has a solution (docs/architecture.md, "Billiards' goals and table").
 BILLIARDS_FRICTION = 0.05
-# The friction of the scaling series (BILLIARDS_SERIES, bench): every Performance figure
-# was measured on these racks at this friction.
 RACK_BENCHMARK_FRICTION = 0.3
-# Billiards' goals are where a reference strike leaves two balls, so a solution exists: the
-# cue's offsets (x, y) from its start and its velocity (vx, vy), m and m/s, and the rest
-# positions (x, y) its 100 frames gave two of the balls it moved (CPU, float64; the paper
-# picks goals at random, which mostly asks balls deep in the rack to cross it).
 BILLIARDS_REFERENCE_STRIKE = (0.0, 0.05, 5.78, 0.02)
 BILLIARDS_GOALS = {"ball02": (5.421, 0.838), "ball05": (6.151, 1.343)}
 
