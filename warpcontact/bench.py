@@ -438,7 +438,7 @@ def frame_scene(spec: str, *, scene_dir: Path = Path("scenes"), peer_meshes: Pat
     (a pickled ``Scene``, for machines without usd-core).
     """
     from . import io
-    from .scenes import RACK_BENCHMARK_FRICTION, SCENE_NAMES, billiards_scene, build_scene
+    from .scenes import SCENE_NAMES, benchmark_rack, build_scene
 
     path = Path(spec)
     if path.suffix == ".pkl":
@@ -455,7 +455,7 @@ def frame_scene(spec: str, *, scene_dir: Path = Path("scenes"), peer_meshes: Pat
         file = Path(peer_meshes) / PEER_BALLS[triangles]
         if not file.is_file():
             raise ValueError(f"{spec}: {file} not found (pass the peer-mesh folder)")
-        scene = billiards_scene(*_peer_ball(file), friction=RACK_BENCHMARK_FRICTION)
+        scene = benchmark_rack(*_peer_ball(file))
         scene.source = spec
         return scene
     if spec not in SCENE_NAMES:
@@ -794,14 +794,14 @@ def _plot_frame_benchmark(rows: list[dict], path: Path) -> bool:
 
 def accuracy_scene(*, balls: int = 3, points_per_ball: int = 18, gap: float = 0.02, speed: float = 1.0):
     """A small billiards case: the cue and the rack's first ``balls`` balls of
-    ``warpcontact.scenes.billiards_scene`` (Fibonacci balls of ``points_per_ball`` points),
+    ``warpcontact.scenes.benchmark_rack`` (Fibonacci balls of ``points_per_ball`` points),
     on the table cropped to 1 m around them; the cue starts ``gap`` m in front of the apex
     ball moving into it at ``speed`` m/s (``strike_setup``). Each struck ball's goal is 1 m
     beyond it (alternately 0.5 m left and right) with zero tolerance, so the task loss has a
     gradient. Returns (scene, the cue's initial-state controls (x, y, vx, vy))."""
-    from .scenes import RACK_BENCHMARK_FRICTION, billiards_scene, fibonacci_ball
+    from .scenes import benchmark_rack, fibonacci_ball
 
-    scene = billiards_scene(*fibonacci_ball(points_per_ball), friction=RACK_BENCHMARK_FRICTION)
+    scene = benchmark_rack(*fibonacci_ball(points_per_ball))
     keep = {"ground", "cue", *(f"ball{i:02d}" for i in range(balls))}
     scene.bodies = [b for b in scene.bodies if b.name in keep]
     setup = strike_setup(scene, gap=gap, speed=speed)

@@ -30,7 +30,7 @@ from .articulation import frame_in_body
 from .io import BodySpec, JointSpec, Scene, SimulationSettings, TaskSpec, save_scene
 from .robots import AntSpec, ant_description
 
-__all__ = ["SCENE_NAMES", "BILLIARDS_SERIES", "BILLIARDS_FRICTION", "BILLIARDS_GOALS", "BILLIARDS_REFERENCE_STRIKE", "RACK_BENCHMARK_FRICTION", "build_scene", "billiards_scene", "write_scenes", "fibonacci_ball", "rest_on_face", "decimate", "bunny_mesh"]
+__all__ = ["SCENE_NAMES", "BILLIARDS_SERIES", "BILLIARDS_FRICTION", "BILLIARDS_GOALS", "BILLIARDS_REFERENCE_STRIKE", "RACK_BENCHMARK_FRICTION", "RACK_BENCHMARK_TABLE_CELL", "build_scene", "billiards_scene", "benchmark_rack", "write_scenes", "fibonacci_ball", "rest_on_face", "decimate", "bunny_mesh"]
 
 # Ball point counts for the scaling series: faces per ball = 2 N - 4.
 BILLIARDS_SERIES = {"billiards_512": 18, "billiards_1280": 42, "billiards_2560": 82, "billiards_6208": 196}
@@ -220,16 +220,18 @@ def _rod(position, dofs, kp=400.0, kd=60.0):
 
 
 # Billiards' table friction (faceted balls cannot roll, so sliding stands in for rolling),
-# the scaling series' (every Performance figure was measured at it), and the reference
-# strike (cue offsets x, y in m, velocity vx, vy in m/s) whose rest positions of two balls
-# are the goals, so the task has a solution (docs/architecture.md, "Billiards' goals and table").
+# the scaling series' friction and table grid (every Performance figure was measured on
+# them), and the reference strike (cue offsets x, y in m, velocity vx, vy in m/s) whose rest
+# positions of two balls are the goals, so the task has a solution (docs/architecture.md,
+# "Billiards' goals and table").
 BILLIARDS_FRICTION = 0.05
 RACK_BENCHMARK_FRICTION = 0.3
+RACK_BENCHMARK_TABLE_CELL = 0.5
 BILLIARDS_REFERENCE_STRIKE = (0.0, 0.05, 5.78, 0.02)
 BILLIARDS_GOALS = {"ball02": (5.421, 0.838), "ball05": (6.151, 1.343)}
 
 
-def billiards_scene(vertices: np.ndarray, faces: np.ndarray, *, friction: float = BILLIARDS_FRICTION) -> Scene:
+def billiards_scene(vertices: np.ndarray, faces: np.ndarray, *, friction: float = BILLIARDS_FRICTION, table_cell: float | None = None) -> Scene:
     """The Billiards task with 16 copies of a given convex ball mesh.
 
     The cue rests 5 m in front of a 15-ball rack; the targets are BILLIARDS_GOALS' balls
@@ -240,6 +242,9 @@ def billiards_scene(vertices: np.ndarray, faces: np.ndarray, *, friction: float 
             assumes a radius of about 0.5 m.
         faces: (nf, 3) outward-oriented triangles (the mass comes from the closed mesh).
         friction: the table's (and the balls') friction coefficient.
+        table_cell: None for a flat table of two triangles (the task's: a ball sliding over
+            the edges of a grid's triangles feels their seams, which makes where it stops
+            a rough function of where it starts); a grid cell size in m otherwise.
     """
     vertices, height = rest_on_face(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64))
     ball = (vertices, faces)
@@ -247,7 +252,7 @@ def billiards_scene(vertices: np.ndarray, faces: np.ndarray, *, friction: float 
     spacing = 2 * radius + 0.05
     centres = [(row * spacing * np.sqrt(3) / 2 + 4.0, (k - row / 2) * spacing) for row in range(5) for k in range(row + 1)]
     z = height + _REST_GAP
-    bodies = [_billiards_ground()]
+    bodies = [grid_ground(16.0, 10.0, table_cell or 16.0, centre=(3.0, 0.0))]
     cue = _body("cue", ball, (-2.0, 0.0, z), density=100.0, control_dofs=("x", "y", "vx", "vy"))
     bodies.append(cue)
     for i, (x, y) in enumerate(centres):
@@ -266,8 +271,10 @@ def billiards_scene(vertices: np.ndarray, faces: np.ndarray, *, friction: float 
     )
 
 
-def _billiards_ground() -> BodySpec:
-    return grid_ground(16.0, 10.0, 0.5, centre=(3.0, 0.0))
+def benchmark_rack(vertices: np.ndarray, faces: np.ndarray) -> Scene:
+    """The scaling series' and ``bench``'s rack: the Billiards scene at
+    RACK_BENCHMARK_FRICTION on a grid table of RACK_BENCHMARK_TABLE_CELL squares."""
+    return billiards_scene(vertices, faces, friction=RACK_BENCHMARK_FRICTION, table_cell=RACK_BENCHMARK_TABLE_CELL)
 
 
 def _push() -> Scene:
@@ -421,7 +428,7 @@ def build_scene(name: str) -> Scene:
     if name == "billiards":
         return billiards_scene(*fibonacci_ball(18))
     if name in BILLIARDS_SERIES:
-        return billiards_scene(*fibonacci_ball(BILLIARDS_SERIES[name]), friction=RACK_BENCHMARK_FRICTION)
+        return benchmark_rack(*fibonacci_ball(BILLIARDS_SERIES[name]))
     builders = {"push": _push, "ant_push": _ant_push, "sort": _sort, "gather": _gather, "gather_bunny": lambda: _gather(bunny=True)}
     if name not in builders:
         raise ValueError(f"scene: {name!r} is not one of {', '.join(SCENE_NAMES)}")
