@@ -177,8 +177,10 @@ def bunny_mesh(target_faces: int = 270, height: float = 0.3):
     return v, f, (float(props["volume"]), np.asarray(props["center_mass"]), np.asarray(props["inertia"]))
 
 
-def grid_ground(size_x: float, size_y: float, cell: float = 0.5, centre=(0.0, 0.0)) -> BodySpec:
-    nx, ny = max(1, int(round(size_x / cell))), max(1, int(round(size_y / cell)))
+def grid_ground(size_x: float, size_y: float, cell: float | None = 0.5, centre=(0.0, 0.0)) -> BodySpec:
+    """A static rectangle of size_x by size_y m at z = 0: squares of about ``cell`` m, two
+    triangles each, or, with ``cell=None``, one rectangle of two triangles (a flat table)."""
+    nx, ny = (1, 1) if cell is None else (max(1, int(round(size_x / cell))), max(1, int(round(size_y / cell))))
     xs = np.linspace(-size_x / 2, size_x / 2, nx + 1) + centre[0]
     ys = np.linspace(-size_y / 2, size_y / 2, ny + 1) + centre[1]
     X, Y = np.meshgrid(xs, ys, indexing="ij")
@@ -252,7 +254,7 @@ def billiards_scene(vertices: np.ndarray, faces: np.ndarray, *, friction: float 
     spacing = 2 * radius + 0.05
     centres = [(row * spacing * np.sqrt(3) / 2 + 4.0, (k - row / 2) * spacing) for row in range(5) for k in range(row + 1)]
     z = height + _REST_GAP
-    bodies = [grid_ground(16.0, 10.0, table_cell or 16.0, centre=(3.0, 0.0))]
+    bodies = [grid_ground(16.0, 10.0, table_cell, centre=(3.0, 0.0))]
     cue = _body("cue", ball, (-2.0, 0.0, z), density=100.0, control_dofs=("x", "y", "vx", "vy"))
     bodies.append(cue)
     for i, (x, y) in enumerate(centres):
