@@ -795,11 +795,11 @@ def _plot_frame_benchmark(rows: list[dict], path: Path) -> bool:
 def accuracy_scene(*, balls: int = 3, points_per_ball: int = 18, gap: float = 0.02, speed: float = 1.0):
     """A small billiards case: the cue and the rack's first ``balls`` balls of
     ``warpcontact.scenes.benchmark_rack`` (Fibonacci balls of ``points_per_ball`` points),
-    on the table cropped to 1 m around them; the cue starts ``gap`` m in front of the apex
+    on the table cut to 1 m around them (two triangles); the cue starts ``gap`` m in front of the apex
     ball moving into it at ``speed`` m/s (``strike_setup``). Each struck ball's goal is 1 m
     beyond it (alternately 0.5 m left and right) with zero tolerance, so the task loss has a
     gradient. Returns (scene, the cue's initial-state controls (x, y, vx, vy))."""
-    from .scenes import benchmark_rack, fibonacci_ball
+    from .scenes import benchmark_rack, fibonacci_ball, grid_ground
 
     scene = benchmark_rack(*fibonacci_ball(points_per_ball))
     keep = {"ground", "cue", *(f"ball{i:02d}" for i in range(balls))}
@@ -810,11 +810,8 @@ def accuracy_scene(*, balls: int = 3, points_per_ball: int = 18, gap: float = 0.
         b.target_tolerance = 0.0
     centres = np.array([b.pose[:2] for b in scene.bodies if not b.static])
     lo, hi = centres.min(axis=0) - 1.0, centres.max(axis=0) + 1.0
-    ground = scene.body("ground")
-    centroid = ground.vertices[ground.faces].mean(axis=1)[:, :2]
-    faces = ground.faces[np.all((centroid >= lo) & (centroid <= hi), axis=1)]
-    used, remap = np.unique(faces, return_inverse=True)
-    ground.vertices, ground.faces = ground.vertices[used], remap.reshape(-1, 3)
+    ground = grid_ground(*(hi - lo), None, centre=(lo + hi) / 2)
+    scene.bodies = [ground if b.name == "ground" else b for b in scene.bodies]
     cue = scene.body("cue")
     cue.linear_velocity = np.zeros(3)  # the controls carry it (initial-state task)
     return scene, np.array([0.0, 0.0, *(speed * np.asarray(setup["direction"]))])

@@ -30,7 +30,7 @@ from .articulation import frame_in_body
 from .io import BodySpec, JointSpec, Scene, SimulationSettings, TaskSpec, save_scene
 from .robots import AntSpec, ant_description
 
-__all__ = ["SCENE_NAMES", "BILLIARDS_SERIES", "BILLIARDS_FRICTION", "BILLIARDS_GOALS", "BILLIARDS_REFERENCE_STRIKE", "RACK_BENCHMARK_FRICTION", "RACK_BENCHMARK_TABLE_CELL", "build_scene", "billiards_scene", "benchmark_rack", "write_scenes", "fibonacci_ball", "rest_on_face", "decimate", "bunny_mesh"]
+__all__ = ["SCENE_NAMES", "BILLIARDS_SERIES", "BILLIARDS_FRICTION", "BILLIARDS_GOALS", "BILLIARDS_REFERENCE_STRIKE", "RACK_BENCHMARK_FRICTION", "build_scene", "billiards_scene", "benchmark_rack", "write_scenes", "fibonacci_ball", "rest_on_face", "decimate", "bunny_mesh"]
 
 # Ball point counts for the scaling series: faces per ball = 2 N - 4.
 BILLIARDS_SERIES = {"billiards_512": 18, "billiards_1280": 42, "billiards_2560": 82, "billiards_6208": 196}
@@ -222,13 +222,12 @@ def _rod(position, dofs, kp=400.0, kd=60.0):
 
 
 # Billiards' table friction (faceted balls cannot roll, so sliding stands in for rolling),
-# the scaling series' friction and table grid (every Performance figure was measured on
-# them), and the reference strike (cue offsets x, y in m, velocity vx, vy in m/s) whose rest
+# the scaling series' friction (every Performance figure was measured with it), and the
+# reference strike (cue offsets x, y in m, velocity vx, vy in m/s) whose rest
 # positions of two balls are the goals, so the task has a solution (docs/architecture.md,
 # "Billiards' goals and table").
 BILLIARDS_FRICTION = 0.05
 RACK_BENCHMARK_FRICTION = 0.3
-RACK_BENCHMARK_TABLE_CELL = 0.5
 BILLIARDS_REFERENCE_STRIKE = (0.0, 0.05, 5.78, 0.02)
 BILLIARDS_GOALS = {"ball02": (5.421, 0.838), "ball05": (6.151, 1.343)}
 
@@ -277,9 +276,9 @@ def billiards_scene(vertices: np.ndarray, faces: np.ndarray, *, friction: float 
 
 
 def benchmark_rack(vertices: np.ndarray, faces: np.ndarray) -> Scene:
-    """The scaling series' and ``bench``'s rack: the Billiards scene at
-    RACK_BENCHMARK_FRICTION on a grid table of RACK_BENCHMARK_TABLE_CELL squares."""
-    return billiards_scene(vertices, faces, friction=RACK_BENCHMARK_FRICTION, table_cell=RACK_BENCHMARK_TABLE_CELL)
+    """The scaling series' and ``bench``'s rack: the Billiards scene (its two-triangle table;
+    the paper's floor is a box) at RACK_BENCHMARK_FRICTION."""
+    return billiards_scene(vertices, faces, friction=RACK_BENCHMARK_FRICTION)
 
 
 def _push() -> Scene:
