@@ -795,8 +795,8 @@ def _plot_frame_benchmark(rows: list[dict], path: Path) -> bool:
 def accuracy_scene(*, balls: int = 3, points_per_ball: int = 18, gap: float = 0.02, speed: float = 1.0):
     """A small billiards case: the cue and the rack's first ``balls`` balls of
     ``warpcontact.scenes.benchmark_rack`` (Fibonacci balls of ``points_per_ball`` points),
-    on the table cut to 1 m around them (two triangles); the cue starts ``gap`` m in front of the apex
-    ball moving into it at ``speed`` m/s (``strike_setup``). Each struck ball's goal is 1 m
+    on a two-triangle table reaching 1 m beyond them; the cue starts ``gap`` m in front of
+    the apex ball moving into it at ``speed`` m/s (``strike_setup``). Each struck ball's goal is 1 m
     beyond it (alternately 0.5 m left and right) with zero tolerance, so the task loss has a
     gradient. Returns (scene, the cue's initial-state controls (x, y, vx, vy))."""
     from .scenes import benchmark_rack, fibonacci_ball, grid_ground
