@@ -21,7 +21,7 @@ def quat_matrix(q):
 
 
 def grid_ground(size=4.0, cell=0.5):
-    ground = scenes.grid_ground(size, size, cell)
+    ground = scenes.ground_rectangle(size, size, cell)
     return ground.vertices, ground.faces
 
 

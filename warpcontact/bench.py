@@ -799,7 +799,7 @@ def accuracy_scene(*, balls: int = 3, points_per_ball: int = 18, gap: float = 0.
     the apex ball moving into it at ``speed`` m/s (``strike_setup``). Each struck ball's goal is 1 m
     beyond it (alternately 0.5 m left and right) with zero tolerance, so the task loss has a
     gradient. Returns (scene, the cue's initial-state controls (x, y, vx, vy))."""
-    from .scenes import benchmark_rack, fibonacci_ball, grid_ground
+    from .scenes import benchmark_rack, fibonacci_ball, ground_rectangle
 
     scene = benchmark_rack(*fibonacci_ball(points_per_ball))
     keep = {"ground", "cue", *(f"ball{i:02d}" for i in range(balls))}
@@ -810,7 +810,7 @@ def accuracy_scene(*, balls: int = 3, points_per_ball: int = 18, gap: float = 0.
         b.target_tolerance = 0.0
     centres = np.array([b.pose[:2] for b in scene.bodies if not b.static])
     lo, hi = centres.min(axis=0) - 1.0, centres.max(axis=0) + 1.0
-    ground = grid_ground(*(hi - lo), None, centre=(lo + hi) / 2)
+    ground = ground_rectangle(*(hi - lo), centre=(lo + hi) / 2)
     scene.bodies = [ground if b.name == "ground" else b for b in scene.bodies]
     cue = scene.body("cue")
     cue.linear_velocity = np.zeros(3)  # the controls carry it (initial-state task)
