@@ -281,6 +281,24 @@ def test_parallel_faces_at_tiny_gap():
     assert res.iterations[0] < 50
 
 
+@pytest.mark.parametrize("ground", [1.0, 12.0, 1e4])
+def test_small_face_over_a_large_one_at_tiny_gaps(ground):
+    """A face of 2 cm over a ground triangle of metres to kilometres: at gaps far below the
+    triangles' size the closest points' direction, rounded, tilts the start plane across the
+    large triangle's far vertices; the start falls back to the pair's separating axis."""
+    small = np.array([[-0.01, 0.01, 0.0], [0.01, -0.01, 0.0], [-0.01, -0.01, 0.0]]) + [0.013, -0.007, 0.0]
+    large = np.array([[-ground / 2, 0.35 * ground, 0.0], [ground / 2, -0.35 * ground, 0.0], [ground / 2, 0.35 * ground, 0.0]])
+    scaled = []
+    for gap in (1e-9, 3e-9, 1e-8, 3e-8, 1e-7):
+        res = evaluate(small + [0.0, 0.0, gap], large)
+        assert res.ok[0], (ground, gap, res.status[0])
+        scaled.append(res.value[0] * gap)
+    assert np.ptp(scaled) < 0.01 * np.min(scaled)  # P ~ 1/gap: the near vertices dominate
+    if ground <= 12.0:  # beyond, a 1e-12 m step is a few ulps of the far vertices
+        grad_err, hess_err = leaf_fd_errors(small + [0.0, 0.0, 1e-8], large, 1e-12)
+        assert grad_err < 1e-6 and hess_err < 1e-6
+
+
 @pytest.mark.parametrize("aspect", [1e3, 1e6])
 def test_sliver_triangles(aspect):
     A = np.array([[0.0, 0.0, 0.01], [1.0, 0.0, 0.01], [0.5, 1.0 / aspect, 0.01]])
