@@ -521,18 +521,22 @@ def _plane_newton(ta: Any, tb: Any, start: Any, dhat: Any, max_iterations: int, 
         if decrement <= full_step_tol * scale and max_step > one:
             # Quadratic regime: the expected decrease is below what an Armijo test on L
             # can resolve, so take the full (feasible) step; a decrement that stops
-            # shrinking means L's rounding floor is reached.
+            # shrinking means L's rounding floor is reached, or, above the stall level,
+            # that L is not quadratic here after all (SDRS near its support, where
+            # vertices leave it as the plane tilts): then the damped step below.
             if decrement >= previous_decrement:
-                converged = decrement <= stall_tol * scale
-                break
-            previous_decrement = decrement
-            trial = _advance(p, step, one, dhat)
-            trial_energy = _energy(ta, tb, trial, dhat)
-            if wp.isfinite(trial_energy):
-                it += 1
-                p = trial
-                energy = trial_energy
-                continue
+                if decrement <= stall_tol * scale:
+                    converged = True
+                    break
+            else:
+                previous_decrement = decrement
+                trial = _advance(p, step, one, dhat)
+                trial_energy = _energy(ta, tb, trial, dhat)
+                if wp.isfinite(trial_energy):
+                    it += 1
+                    p = trial
+                    energy = trial_energy
+                    continue
         it += 1
         alpha = wp.min(one, p.dtype(0.99) * max_step)
         accepted = bool(False)

@@ -66,6 +66,21 @@ def test_pairs_at_the_edge_of_the_support_always_solve():
             assert 0.0 <= res.value[0] < 1e-9
 
 
+@pytest.mark.parametrize("ground", [0.5, 12.0, 200.0])
+def test_small_face_over_a_large_one_at_the_edge_of_the_support(ground):
+    """A face of 2 or 10 cm parallel over a ground triangle of up to 200 m, just inside 2
+    dhat: tilting the plane moves the large triangle's far vertices in and out of the
+    support, so the decrement can grow again where a quadratic model expected it to
+    shrink; the solve must go on with damped steps (it stopped there before 2026-11-25)."""
+    large = np.array([[-ground / 2, 0.35 * ground, 0.0], [ground / 2, -0.35 * ground, 0.0], [ground / 2, 0.35 * ground, 0.0]])
+    for size in (0.1, 0.02):
+        small = np.array([[-size / 2, size / 2, 0.0], [size / 2, -size / 2, 0.0], [-size / 2, -size / 2, 0.0]]) + [0.013, -0.007, 2 * DHAT]
+        for drop in np.logspace(-10, -4, 13):
+            res = wc.triangle_pair_potential((small - [0.0, 0.0, drop])[None], large[None], dhat=DHAT)
+            assert res.ok[0], (ground, size, drop, res.status[0])
+            assert 0.0 <= res.value[0] < 1e-3
+
+
 def test_planes_have_unit_normals_and_separate():
     A, B = vertex_face(0.05)
     res = wc.triangle_pair_potential(A[None], B[None], dhat=DHAT)

@@ -204,9 +204,9 @@ def _box_mesh(extents):
     return np.asarray(m.vertices), np.asarray(m.faces)
 
 
-# The rod hovers 3 cm above the ground: clear of the SDRS baseline's support (2 sdrs_dhat =
-# 2 cm), at whose edge its plane solve fails over a ground triangle many times the rod's
-# size (docs/tasks.md, "Two-triangle grounds").
+# The rod hovers 3 cm above the ground, clear of the SDRS baseline's support (2 sdrs_dhat =
+# 2 cm): a rod on its edge is a hard case for that baseline's plane solve (docs/tasks.md,
+# "Two-triangle grounds").
 _ROD_CLEARANCE = 0.03
 
 
