@@ -4,14 +4,16 @@ Used to start the leaf solve from a true separating plane: for two disjoint tria
 closest pair is attained between a vertex and the other triangle or between two edges, so
 the 9 edge-edge pairs plus the 6 vertex-face projections cover every case. Degenerate
 (zero-area) triangles skip the face projections; their hull is the union of their edges,
-which the edge-edge pairs already cover.
+which the edge-edge pairs already cover. Where the closest points' direction, rounded at a
+gap far below the triangles' size, does not separate them, the separating-axis candidates
+(2 face normals, 9 edge cross products) give an exact one.
 """
 
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["segment_closest_points", "triangle_closest_points"]
+__all__ = ["segment_closest_points", "triangle_closest_points", "triangle_separating_axis"]
 
 
 @wp.func
@@ -99,3 +101,52 @@ def triangle_closest_points(ta: wp.mat33d, tb: wp.mat33d):
                 ca = qa
                 cb = tb[k]
     return ca, cb
+
+
+@wp.func
+def _projection_range(t: wp.mat33d, u: wp.vec3d):
+    """(min, max) of a triangle's vertices projected on u."""
+    low = wp.float64(wp.inf)
+    high = wp.float64(-wp.inf)
+    for k in range(3):
+        x = wp.dot(t[k], u)
+        low = wp.min(low, x)
+        high = wp.max(high, x)
+    return low, high
+
+
+@wp.func
+def triangle_separating_axis(ta: wp.mat33d, tb: wp.mat33d):
+    """The unit axis among the pair's face normals and edge cross products (either sign)
+    along which A lies beyond B with the widest gap, and the gap's midpoint along it; found
+    is False when no candidate separates the triangles strictly."""
+    best = wp.vec3d()
+    best_gap = wp.float64(0.0)
+    best_mid = wp.float64(0.0)
+    found = bool(False)
+    for c in range(11):
+        u = wp.vec3d()
+        if c == 0:
+            u = wp.cross(ta[1] - ta[0], ta[2] - ta[0])
+        elif c == 1:
+            u = wp.cross(tb[1] - tb[0], tb[2] - tb[0])
+        else:
+            i = (c - 2) // 3
+            j = (c - 2) % 3
+            u = wp.cross(ta[(i + 1) % 3] - ta[i], tb[(j + 1) % 3] - tb[j])
+        length = wp.length(u)
+        if length > wp.float64(0.0):
+            u = u / length
+            low_a, high_a = _projection_range(ta, u)
+            low_b, high_b = _projection_range(tb, u)
+            if low_a - high_b > best_gap:  # A beyond B along u
+                best = u
+                best_gap = low_a - high_b
+                best_mid = wp.float64(0.5) * (low_a + high_b)
+                found = True
+            if low_b - high_a > best_gap:  # along -u
+                best = -u
+                best_gap = low_b - high_a
+                best_mid = wp.float64(-0.5) * (high_a + low_b)
+                found = True
+    return best, best_mid, found

@@ -43,7 +43,7 @@ from typing import Any
 
 import warp as wp
 
-from .geometry import triangle_closest_points
+from .geometry import triangle_closest_points, triangle_separating_axis
 from .linalg import spd4_inverse, spd4_solve
 
 wp.set_module_options({"enable_backward": False})
@@ -393,7 +393,7 @@ def _leaf_start(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64):
     # At gaps far below the triangles' size that direction, rounded, can tilt the plane
     # across a large triangle's far vertices; a separating axis of the pair (face normals,
     # edge cross products) is exact there. With none, the triangles touch or intersect.
-    axis, offset, found = _separating_axis(ta, tb)
+    axis, offset, found = triangle_separating_axis(ta, tb)
     if not found:
         sol.status = LEAF_CONTACT
         return sol, e
@@ -415,51 +415,6 @@ def _separates(ta: wp.mat33d, tb: wp.mat33d, e: wp.vec3d):
         if wp.dot(ta[k], e) <= wp.float64(0.0) or wp.dot(tb[k], e) >= wp.float64(0.0):
             return False
     return True
-
-
-@wp.func
-def _axis_gap(ta: wp.mat33d, tb: wp.mat33d, u: wp.vec3d):
-    """(min over A, max over B) of the projections on u."""
-    low_a = wp.float64(wp.inf)
-    high_b = wp.float64(-wp.inf)
-    for k in range(3):
-        low_a = wp.min(low_a, wp.dot(ta[k], u))
-        high_b = wp.max(high_b, wp.dot(tb[k], u))
-    return low_a, high_b
-
-
-@wp.func
-def _separating_axis(ta: wp.mat33d, tb: wp.mat33d):
-    """The unit axis among the pair's face normals and edge cross products (both signs)
-    along which A lies beyond B with the widest gap, and the gap's midpoint on it; found
-    is False when no candidate separates the triangles strictly."""
-    best = wp.vec3d()
-    best_gap = wp.float64(0.0)
-    best_mid = wp.float64(0.0)
-    found = bool(False)
-    for c in range(11):
-        u = wp.vec3d()
-        if c == 0:
-            u = wp.cross(ta[1] - ta[0], ta[2] - ta[0])
-        elif c == 1:
-            u = wp.cross(tb[1] - tb[0], tb[2] - tb[0])
-        else:
-            i = (c - 2) // 3
-            j = (c - 2) % 3
-            u = wp.cross(ta[(i + 1) % 3] - ta[i], tb[(j + 1) % 3] - tb[j])
-        length = wp.length(u)
-        if length > wp.float64(0.0):
-            u = u / length
-            for side in range(2):
-                if side == 1:
-                    u = -u
-                low_a, high_b = _axis_gap(ta, tb, u)
-                if low_a - high_b > best_gap:
-                    best = u
-                    best_gap = low_a - high_b
-                    best_mid = wp.float64(0.5) * (low_a + high_b)
-                    found = True
-    return best, best_mid, found
 
 
 @wp.func
