@@ -205,8 +205,8 @@ def _box_mesh(extents):
 
 
 # The rod hovers 3 cm above the ground, clear of the SDRS baseline's support (2 sdrs_dhat =
-# 2 cm): a rod on its edge is a hard case for that baseline's plane solve (docs/tasks.md,
-# "Two-triangle grounds").
+# 2 cm), so that baseline's rod starts off the edge of it, a hard case for its plane solve
+# (docs/tasks.md, "Two-triangle grounds").
 _ROD_CLEARANCE = 0.03
 
 
