@@ -195,6 +195,10 @@ def test_quick_uses_the_scene_preset_or_caps_the_paper_settings():
     preset = TaskSettings.from_task(scene, quick=True, iterations=7)
     assert (preset.horizon, preset.receding_horizon, preset.iterations, preset.learning_rate, preset.receding_stride) == (64, 16, 7, 0.05, 4)
     assert (paper.window, capped.window, preset.window) == (48, 8, 16)
+    strided = TaskSettings.from_task(scene, receding_stride=6)
+    assert (strided.receding_stride, strided.window, strided.iterations) == (6, 48, 50)
+    with pytest.raises(ValueError, match=r"--stride must be >= 1 and at most the window \(48\), got 49"):
+        TaskSettings.from_task(scene, receding_stride=49)
     assert TaskSettings(horizon=10, receding_horizon=0, iterations=1, learning_rate=0.1).window == 10
     assert TaskSettings(horizon=10, receding_horizon=12, iterations=1, learning_rate=0.1).window == 10
     scene.task.horizon = 0  # the scene's frame count
@@ -360,6 +364,22 @@ def test_cli_task_errors_are_clear(tmp_path, capsys, command):
             assert "not writable" in capsys.readouterr().err
     finally:
         os.chmod(locked, 0o700)
+
+
+def test_cli_stride_reaches_the_settings_and_is_checked_against_the_window(tmp_path, capsys):
+    assert main(["run", "push", "--stride", "49", "--out", str(tmp_path)]) == 2
+    assert "--stride must be >= 1 and at most the window (48), got 49" in capsys.readouterr().err
+    scene = space_billiards()
+    scene.bodies[0].control_dofs = ("x", "y")
+    scene.task.control, scene.task.horizon, scene.task.receding_horizon = "pd_targets", 4, 2
+    scene_path = tmp_path / "receding.usda"
+    io.save_scene(scene, scene_path)
+    assert main(["run", str(scene_path), "--stride", "2", "--iters", "1", "--out", str(tmp_path / "out")]) == 0
+    assert "window 2 executed 2 frame(s) at a time" in capsys.readouterr().out
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["receding_stride"] == 2 and len(metrics["loss_history"]) == 2
+    with pytest.raises(SystemExit):
+        main(["run", str(scene_path), "--stride", "0", "--out", str(tmp_path / "bad")])
 
 
 @pytest.mark.parametrize("argv", [["run", "push", "--model", "mujoco"], ["compare", "push", "--models", "ours,mujoco"], ["compare", "push", "--models", ","]])

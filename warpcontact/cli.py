@@ -155,7 +155,7 @@ def _load_task(args):
     scene_path = _resolve_scene_path(args.task)
     scene = io.load_scene(scene_path)
     validate_task(scene)
-    settings = TaskSettings.from_task(scene, quick=args.quick, iterations=args.iters)
+    settings = TaskSettings.from_task(scene, quick=args.quick, iterations=args.iters, receding_stride=args.stride)
     if args.init_samples:
         sample_box(scene, args.init_samples)
         settings.initial_samples, settings.sample_seed = args.init_samples, args.seed
@@ -493,6 +493,12 @@ def _model_list(text: str) -> list:
 def _add_task_arguments(parser, default_out: str):
     parser.add_argument("task", help="a task name (scenes/NAME.usda) or a .usda with task metadata")
     parser.add_argument("--iters", type=_positive_int, default=None, help="optimiser iterations (per window)")
+    parser.add_argument(
+        "--stride",
+        type=_positive_int,
+        default=None,
+        help="frames executed per receding window, at most the window (default: the scene's; the paper's settings execute 1)",
+    )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--quick", action="store_true", help="short horizons and few iterations (minutes on a CPU)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the gb model's samples and of --init-samples")

@@ -90,7 +90,7 @@ class TaskSettings:
         return self.receding_horizon if 0 < self.receding_horizon < self.horizon else self.horizon
 
     @classmethod
-    def from_task(cls, scene, *, quick: bool = False, iterations: int | None = None) -> TaskSettings:
+    def from_task(cls, scene, *, quick: bool = False, iterations: int | None = None, receding_stride: int | None = None) -> TaskSettings:
         """The settings a scene's task metadata asks for.
 
         Args:
@@ -99,6 +99,7 @@ class TaskSettings:
                 scene without one, the paper settings capped at GENERIC_QUICK_HORIZON frames,
                 windows of GENERIC_QUICK_WINDOW and GENERIC_QUICK_ITERATIONS iterations.
             iterations: overrides the iteration count (per window for receding tasks).
+            receding_stride: overrides the frames executed per receding window.
 
         Raises ValueError naming the attribute when a value is out of range.
         """
@@ -116,11 +117,14 @@ class TaskSettings:
         iterations_name = f"warpcontact:{prefix}iterations"
         if iterations is not None:
             settings.iterations, iterations_name = iterations, "--iters"
+        stride_name = f"warpcontact:{prefix}recedingStride"
+        if receding_stride is not None:
+            settings.receding_stride, stride_name = receding_stride, "--stride"
         source = scene.source or "<scene>"
         for name, value, rule, ok in (
             (f"warpcontact:{prefix}horizon", settings.horizon, ">= 1", settings.horizon >= 1),
             (f"warpcontact:{prefix}recedingHorizon", settings.receding_horizon, ">= 0", settings.receding_horizon >= 0),
-            (f"warpcontact:{prefix}recedingStride", settings.receding_stride, f">= 1 and at most the window ({settings.window})", 1 <= settings.receding_stride <= settings.window),
+            (stride_name, settings.receding_stride, f">= 1 and at most the window ({settings.window})", 1 <= settings.receding_stride <= settings.window),
             (iterations_name, settings.iterations, ">= 1", settings.iterations >= 1),
             (f"warpcontact:{prefix}learningRate", settings.learning_rate, "positive and finite", bool(np.isfinite(settings.learning_rate) and settings.learning_rate > 0)),
         ):
