@@ -199,6 +199,10 @@ def test_quick_uses_the_scene_preset_or_caps_the_paper_settings():
     assert (strided.receding_stride, strided.window, strided.iterations) == (6, 48, 50)
     with pytest.raises(ValueError, match=r"--stride must be >= 1 and at most the window \(48\), got 49"):
         TaskSettings.from_task(scene, receding_stride=49)
+    scene.task.receding_horizon = 0
+    with pytest.raises(ValueError, match="--stride applies to receding-window tasks; this one optimises a single window of 200 frames"):
+        TaskSettings.from_task(scene, receding_stride=2)
+    scene.task.receding_horizon = 48
     assert TaskSettings(horizon=10, receding_horizon=0, iterations=1, learning_rate=0.1).window == 10
     assert TaskSettings(horizon=10, receding_horizon=12, iterations=1, learning_rate=0.1).window == 10
     scene.task.horizon = 0  # the scene's frame count

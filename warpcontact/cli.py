@@ -497,7 +497,7 @@ def _add_task_arguments(parser, default_out: str):
         "--stride",
         type=_positive_int,
         default=None,
-        help="frames executed per receding window, at most the window (default: the scene's; the paper's settings execute 1)",
+        help="frames executed per receding window, at most the window (receding-window tasks only; default: the scene's; the paper's settings execute 1)",
     )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--quick", action="store_true", help="short horizons and few iterations (minutes on a CPU)")

@@ -99,7 +99,8 @@ class TaskSettings:
                 scene without one, the paper settings capped at GENERIC_QUICK_HORIZON frames,
                 windows of GENERIC_QUICK_WINDOW and GENERIC_QUICK_ITERATIONS iterations.
             iterations: overrides the iteration count (per window for receding tasks).
-            receding_stride: overrides the frames executed per receding window.
+            receding_stride: overrides the frames executed per receding window; an error
+                for a task optimised as one window, where it would do nothing.
 
         Raises ValueError naming the attribute when a value is out of range.
         """
@@ -117,10 +118,12 @@ class TaskSettings:
         iterations_name = f"warpcontact:{prefix}iterations"
         if iterations is not None:
             settings.iterations, iterations_name = iterations, "--iters"
+        source = scene.source or "<scene>"
         stride_name = f"warpcontact:{prefix}recedingStride"
         if receding_stride is not None:
+            if settings.window == settings.horizon:
+                raise ValueError(f"{source}: --stride applies to receding-window tasks; this one optimises a single window of {settings.horizon} frames")
             settings.receding_stride, stride_name = receding_stride, "--stride"
-        source = scene.source or "<scene>"
         for name, value, rule, ok in (
             (f"warpcontact:{prefix}horizon", settings.horizon, ">= 1", settings.horizon >= 1),
             (f"warpcontact:{prefix}recedingHorizon", settings.receding_horizon, ">= 0", settings.receding_horizon >= 0),
