@@ -458,25 +458,19 @@ def blend_level_kernel(
 
 
 # Entries of an accumulator record: the value, 12 gradient entries, the 12x12 Hessian.
-RECORD_ENTRIES = 1 + 12 + 144
+RECORD_ENTRIES = wp.constant(1 + 12 + 144)
 
 
-@wp.kernel
-def top_level_kernel(
-    # Model:
-    seed_body_pair: wp.array(dtype=wp.vec2i),
-    # Data in:
+@wp.func
+def _add_top_level_entry(
+    seed: int,
+    entry: int,
+    pair: wp.vec2i,
     targets: Targets,
-    # Data out:
     total_value_out: wp.array(dtype=wp.float64),
     total_grad_out: wp.array2d(dtype=wp.float64),
     total_hess_out: wp.array2d(dtype=wp.float64),
 ):
-    """Sums entry ``entry`` (< RECORD_ENTRIES) of a body pair's top-level replicas into the
-    scene totals (value, (nbodies, 6) gradient, upper triangle of the (6 nbodies)^2
-    Hessian); static bodies' entries are dropped. Launched over (body pairs, RECORD_ENTRIES)."""
-    seed, entry = wp.tid()
-    pair = seed_body_pair[seed]
     first = targets.top_record + seed * targets.top_replicas
     total = wp.float64(0.0)
     if entry == 0:
@@ -503,6 +497,32 @@ def top_level_kernel(
         total += targets.record_hess[seed * targets.top_replicas + r, i, j]
     row, col = upper_entry(body_r, body_c, i % 6, j % 6)
     wp.atomic_add(total_hess_out, row, col, total)
+
+
+@wp.kernel
+def top_level_kernel(
+    # Model:
+    seed_body_pair: wp.array(dtype=wp.vec2i),
+    entries_per_thread: int,
+    # Data in:
+    targets: Targets,
+    # Data out:
+    total_value_out: wp.array(dtype=wp.float64),
+    total_grad_out: wp.array2d(dtype=wp.float64),
+    total_hess_out: wp.array2d(dtype=wp.float64),
+):
+    """Sums entries [group * entries_per_thread, (group + 1) * entries_per_thread) of
+    RECORD_ENTRIES of a body pair's top-level replicas into the scene totals (value,
+    (nbodies, 6) gradient, upper triangle of the (6 nbodies)^2 Hessian); static bodies'
+    entries are dropped. Launched over (body pairs, entry groups): on a GPU one entry a
+    thread; on a CPU, whose threads run one after another, all of a body pair's entries in
+    one thread, since a thread each made the launch cost more than its sums. Each total
+    receives the body pairs in the same order either way."""
+    seed, group = wp.tid()
+    pair = seed_body_pair[seed]
+    first_entry = group * entries_per_thread
+    for entry in range(first_entry, wp.min(first_entry + entries_per_thread, RECORD_ENTRIES)):
+        _add_top_level_entry(seed, entry, pair, targets, total_value_out, total_grad_out, total_hess_out)
 
 
 _ADVANCEMENT_HALVINGS = wp.constant(60)

@@ -303,6 +303,7 @@ class ContactModel:
             # A CPU thread never contends.
             top_replicas = 1 if self.device.is_cpu else max(1, min(32, (1 << 22) // (reduction_kernels.RECORD_ENTRIES * max(1, len(self.body_pairs)))))
         self._top_replicas = int(top_replicas)
+        self._top_entries_per_thread = reduction_kernels.RECORD_ENTRIES if self.device.is_cpu else 1
         self._upload_model(trees, triangles)
 
     # --- set-up ---------------------------------------------------------------------------
@@ -460,8 +461,8 @@ class ContactModel:
             self._launches.launch(
                 site,
                 reduction_kernels.top_level_kernel,
-                dim=(len(self.body_pairs), reduction_kernels.RECORD_ENTRIES),
-                inputs=[self._seed_body_pair, records],
+                dim=(len(self.body_pairs), reduction_kernels.RECORD_ENTRIES // self._top_entries_per_thread),
+                inputs=[self._seed_body_pair, self._top_entries_per_thread, records],
                 outputs=list(totals_out),
             )
 
