@@ -341,6 +341,19 @@ def test_cli_compare_runs_baselines_with_friction_and_reports_models_that_cannot
     assert "no model could run" in capsys.readouterr().err
 
 
+def test_cli_compare_skips_ipc_without_ipctk_and_keeps_the_other_models(tmp_path, capsys, monkeypatch):
+    import sys
+
+    scene_path = tmp_path / "space.usda"
+    io.save_scene(space_billiards(), scene_path)
+    monkeypatch.setitem(sys.modules, "ipctk", None)  # import ipctk now fails, as where it is not installed
+    assert main(["compare", str(scene_path), "--models", "ours,ipc", "--iters", "1", "--out", str(tmp_path / "cmp")]) == 0
+    data = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert "loss_history" in data["models"]["ours"]
+    assert "the ipc baseline needs the IPC Toolkit: pip install 'warpcontact[ipc]'" in data["models"]["ipc"]["error"]
+    assert "ipc: skipped" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("command", ["run", "compare"])
 def test_cli_task_errors_are_clear(tmp_path, capsys, command):
     assert main([command, "no_such_task", "--out", str(tmp_path)]) == 2
@@ -517,3 +530,117 @@ def test_cli_init_samples_round_trip_the_box_and_record_the_draws(tmp_path, caps
     io.save_scene(space_billiards(), plain)
     assert main(["run", str(plain), "--init-samples", "3", "--out", str(out)]) == 2
     assert "need warpcontact:task:sampleLow" in capsys.readouterr().err
+
+
+def _pd_space_billiards():
+    """space_billiards with the cue driven by PD targets in x, y (a receding-horizon task)."""
+    scene = space_billiards()
+    scene.bodies[0].control_dofs = ("x", "y")
+    scene.bodies[0].kp_linear = np.full(3, 100.0)
+    scene.task.control = "pd_targets"
+    return scene
+
+
+_CHECKPOINTED_RUNS = {
+    # Receding windows (the resumed window continues mid-descent, later ones start afresh).
+    "receding": (_pd_space_billiards, TaskSettings(horizon=5, receding_horizon=2, iterations=3, learning_rate=0.05, receding_stride=1), "ours"),
+    # One window, gradient bundles: the random generator and the sigma schedule carry over.
+    "bundles": (space_billiards, TaskSettings(horizon=15, receding_horizon=0, iterations=4, learning_rate=0.3), "gb"),
+}
+
+
+def _interrupted_after(problem, calls):
+    """Make ``problem``'s rollouts raise KeyboardInterrupt from the ``calls``-th on."""
+    rollout, count = problem.rollout, [0]
+
+    def interrupting(*args, **kwargs):
+        count[0] += 1
+        if count[0] >= calls:
+            raise KeyboardInterrupt
+        return rollout(*args, **kwargs)
+
+    problem.rollout = interrupting
+
+
+# Rollouts before the interruption: mid-window and at window starts; gb rolls out 3 times an
+# iteration (the loss, then 2 samples), and its first checkpoint follows its first 3.
+@pytest.mark.parametrize(("run", "calls"), [("receding", 2), ("receding", 5), ("receding", 9), ("bundles", 4), ("bundles", 8), ("bundles", 12)])
+def test_an_interrupted_optimisation_resumes_bit_for_bit(tmp_path, run, calls):
+    from warpcontact.bundle import BundleSettings
+
+    make_scene, settings, model = _CHECKPOINTED_RUNS[run]
+    bundle = BundleSettings(samples=2, seed=3) if model == "gb" else None
+
+    def problem():
+        return TaskProblem(make_scene(), settings=settings, model=model, bundle=bundle)
+
+    full = problem().optimize()
+    checkpoint = tmp_path / "checkpoint.npz"
+    interrupted = problem()
+    _interrupted_after(interrupted, calls)
+    with pytest.raises(KeyboardInterrupt):
+        interrupted.optimize(checkpoint=checkpoint)
+    assert checkpoint.exists()
+    resumed = problem().optimize(checkpoint=checkpoint, resume=True)
+    assert resumed.loss_history == full.loss_history and resumed.final_loss == full.final_loss
+    np.testing.assert_array_equal(resumed.values, full.values)
+    np.testing.assert_array_equal(resumed.trajectory, full.trajectory)
+    assert resumed.extra == full.extra and not checkpoint.exists()
+
+
+def test_a_checkpoint_is_never_overwritten_or_resumed_into_another_problem(tmp_path):
+    make_scene, settings, model = _CHECKPOINTED_RUNS["receding"]
+    checkpoint = tmp_path / "checkpoint.npz"
+    interrupted = TaskProblem(make_scene(), settings=settings)
+    _interrupted_after(interrupted, 4)
+    with pytest.raises(KeyboardInterrupt):
+        interrupted.optimize(checkpoint=checkpoint)
+    saved = checkpoint.read_bytes()
+    with pytest.raises(ValueError, match=r"checkpoint.npz: holds an unfinished run \(task space_billiards, model ours, frame 0 of 5, 2 Adam iterations"):
+        TaskProblem(make_scene(), settings=settings).optimize(checkpoint=checkpoint)
+    other = TaskSettings(horizon=5, receding_horizon=2, iterations=3, learning_rate=0.1, receding_stride=1)
+    with pytest.raises(ValueError, match=r"checkpoint of another problem \(settings: .*'learning_rate': 0.05.* saved, .*'learning_rate': 0.1"):
+        TaskProblem(make_scene(), settings=other).optimize(checkpoint=checkpoint, resume=True)
+    with pytest.raises(ValueError, match="checkpoint of another problem .*model: 'ours' saved, 'sdrs' now"):
+        TaskProblem(make_scene(), settings=settings, model="sdrs").optimize(checkpoint=checkpoint, resume=True)
+    assert checkpoint.read_bytes() == saved
+    with pytest.raises(ValueError, match="missing.npz: no checkpoint to resume"):
+        TaskProblem(make_scene(), settings=settings).optimize(checkpoint=tmp_path / "missing.npz", resume=True)
+    with pytest.raises(ValueError, match="resume: needs the checkpoint"):
+        TaskProblem(make_scene(), settings=settings).optimize(resume=True)
+    broken = tmp_path / "broken.npz"
+    broken.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="broken.npz: not a readable checkpoint"):
+        TaskProblem(make_scene(), settings=settings).optimize(checkpoint=broken, resume=True)
+
+
+def test_cli_run_keeps_its_progress_when_interrupted_and_resumes_it(tmp_path, capsys, monkeypatch):
+    from warpcontact import tasks
+
+    scene_path = tmp_path / "space.usda"
+    io.save_scene(space_billiards(), scene_path)
+    argv = ["run", str(scene_path), "--iters", "4"]
+    assert main([*argv, "--out", str(tmp_path / "full")]) == 0
+    full = json.loads((tmp_path / "full" / "metrics.json").read_text())
+    out = tmp_path / "out"
+    rollout, count = tasks.TaskProblem.rollout, [0]
+
+    def interrupting(self, *args, **kwargs):
+        count[0] += 1
+        if count[0] == 3:
+            raise KeyboardInterrupt
+        return rollout(self, *args, **kwargs)
+
+    monkeypatch.setattr(tasks.TaskProblem, "rollout", interrupting)
+    capsys.readouterr()
+    assert main([*argv, "--out", str(out)]) == 130
+    assert "interrupted: progress kept in" in capsys.readouterr().err and (out / cli.CHECKPOINT_NAME).exists()
+    assert not (out / "metrics.json").exists()
+    assert main([*argv, "--out", str(out)]) == 2
+    assert "holds an unfinished run (task space_billiards, model ours, 1 Adam iteration, " in capsys.readouterr().err
+    assert main([*argv, "--out", str(out), "--resume"]) == 0
+    assert "resumed from" in capsys.readouterr().out
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["loss_history"] == full["loss_history"] and not (out / cli.CHECKPOINT_NAME).exists()
+    assert main([*argv, "--out", str(out), "--resume"]) == 2
+    assert "no checkpoint to resume" in capsys.readouterr().err

@@ -59,12 +59,12 @@ class BundleSettings:
 def bundled_gradient(rollout, *, sigmas: np.ndarray, samples: int, rng: np.random.Generator):
     """Wrap ``rollout(values, gradient=True) -> (loss, grad, trajectory)`` so that its k-th
     call returns the bundled gradient with sigma = sigmas[k] (the last sigma once the
-    schedule is used up), and the loss and trajectory at ``values`` itself."""
-    calls = [0]
+    schedule is used up), and the loss and trajectory at ``values`` itself. The count of
+    calls so far is the attribute ``calls`` (a checkpoint saves and restores it)."""
 
     def estimate(values):
-        sigma = float(sigmas[min(calls[0], len(sigmas) - 1)])
-        calls[0] += 1
+        sigma = float(sigmas[min(estimate.calls, len(sigmas) - 1)])
+        estimate.calls += 1
         loss, _, trajectory = rollout(values, gradient=False)
         total = np.zeros_like(values, dtype=np.float64)
         feasible = 0
@@ -77,4 +77,5 @@ def bundled_gradient(rollout, *, sigmas: np.ndarray, samples: int, rng: np.rando
             feasible += 1
         return loss, total / max(feasible, 1), trajectory
 
+    estimate.calls = 0
     return estimate

@@ -15,6 +15,9 @@ from .tasks import IPC_TASK_STIFFNESS, MODELS
 
 __all__ = ["main"]
 
+# The file in a run's output folder that keeps its progress (``tasks.TaskCheckpoint``).
+CHECKPOINT_NAME = "checkpoint.npz"
+
 
 def _demo(args) -> int:
     import trimesh
@@ -210,13 +213,23 @@ def _settings_line(settings) -> str:
 
 def _run(args) -> int:
     from . import io
+    from .tasks import TaskCheckpoint
 
     scene_path, scene, settings = _load_task(args)
     out = Path(args.out)
+    checkpoint = TaskCheckpoint(out / CHECKPOINT_NAME)
+    if checkpoint.exists() and not args.resume:
+        raise ValueError(f"{checkpoint.path} holds an unfinished run ({checkpoint.describe()}): continue it with --resume, or remove the file to start over")
+    resumed = f", resumed from {checkpoint.path} ({checkpoint.describe()})" if args.resume else ""
     problem = _task_problem(scene, settings, args.model, args)
     t = scene.task
-    print(f"{scene_path}: task {t.name}, model {args.model}, control {t.control} of {problem.dof_names}, {_settings_line(settings)}")
-    result = problem.optimize(progress=_progress(""))
+    print(f"{scene_path}: task {t.name}, model {args.model}, control {t.control} of {problem.dof_names}, {_settings_line(settings)}{resumed}")
+    try:
+        result = problem.optimize(progress=_progress(""), checkpoint=checkpoint.path, resume=args.resume)
+    except KeyboardInterrupt:
+        kept = f"progress kept in {checkpoint.path} ({checkpoint.describe()}); continue with the same command and --resume" if checkpoint.exists() else "nothing to keep yet"
+        print(f"\ninterrupted: {kept}", file=sys.stderr)
+        return 130
     print()
     metrics = {
         "task": t.name,
@@ -246,24 +259,10 @@ def _compare(args) -> int:
     t = scene.task
     print(f"{scene_path}: task {t.name}, models {', '.join(args.models)}, {_settings_line(settings)}")
     results = {}
-    device = args.device
-    for model in args.models:
-        # A model that cannot run this scene (ipc off the CPU, a failed step at the initial
-        # guess) is reported and the others still run.
-        try:
-            problem = _task_problem(scene, settings, model, args)
-            device = str(problem.model.device)
-            result = problem.optimize(progress=_progress(f"{model:>5} "))
-        except (ValueError, SolverError) as exc:
-            print(f"\n{model}: skipped: {exc}", file=sys.stderr)
-            results[model] = {"error": str(exc)}
-            continue
-        print()
-        results[model] = _result_metrics(result)
     payload = {
         "task": t.name,
         "scene": str(scene_path),
-        "device": device,
+        "device": args.device,
         "seed": args.seed,
         "quick": bool(args.quick),
         "init_samples": settings.initial_samples,
@@ -272,7 +271,21 @@ def _compare(args) -> int:
         **_settings_metrics(settings, args, args.models),
         "models": results,
     }
-    (out / "compare.json").write_text(json.dumps(payload, indent=2) + "\n")
+    for model in args.models:
+        # A model that cannot run this scene (ipc off the CPU or without ipctk, a failed step
+        # at the initial guess) is reported and the others still run.
+        try:
+            problem = _task_problem(scene, settings, model, args)
+            payload["device"] = str(problem.model.device)
+            result = problem.optimize(progress=_progress(f"{model:>5} "))
+        except (ValueError, SolverError) as exc:
+            print(f"\n{model}: skipped: {exc}", file=sys.stderr)
+            results[model] = {"error": str(exc)}
+        else:
+            print()
+            results[model] = _result_metrics(result)
+        # Rewritten after every model, so an interrupted comparison keeps the finished ones.
+        (out / "compare.json").write_text(json.dumps(payload, indent=2) + "\n")
     ran = {m: r["loss_history"] for m, r in results.items() if "error" not in r}
     plotted = _plot_convergence(ran, out / "compare.png", title=f"{t.name}: loss from the same initial guess")
     print(f"{'model':>6} {'initial loss':>13} {'final loss':>13} {'success':>8} {'seconds':>8}")
@@ -531,6 +544,11 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="optimise a task by gradient descent through the simulator")
     _add_task_arguments(run, "outputs/run")
     run.add_argument("--model", default="ours", choices=MODELS)
+    run.add_argument(
+        "--resume",
+        action="store_true",
+        help=f"continue the interrupted run whose progress is in OUT/{CHECKPOINT_NAME} (rewritten before every Adam iteration, removed when the run ends)",
+    )
     run.set_defaults(func=_run)
 
     compare = sub.add_parser("compare", help="optimise a task with several models from the same initial guess; one convergence plot")

@@ -60,8 +60,11 @@ class IpcContactModel:
     mode = "ipc"
 
     def __init__(self, meshes, *, dhat: float = 1e-2, static=None, names=None, device="cpu", exclude_pairs=()):
-        import ipctk
-        import scipy.sparse as sp
+        try:
+            import ipctk
+            import scipy.sparse as sp
+        except ImportError as exc:
+            raise ValueError(f"the ipc baseline needs the IPC Toolkit: pip install 'warpcontact[ipc]' ({exc})") from None
 
         if str(device) != "cpu":
             raise ValueError(f"device: the ipc baseline runs on the CPU only (ipctk), got {device!r}")

@@ -33,8 +33,12 @@ bundles (``bundle.py``) over the SDRS model.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
+import os
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import warp as wp
@@ -44,7 +48,7 @@ from .kernels import task as task_kernels
 from .solver import ImplicitSolver, SolverError
 from .types import State, set_body_velocity
 
-__all__ = ["CONTROL_KINDS", "IPC_TASK_STIFFNESS", "MODELS", "SINE_WAVES", "TaskProblem", "TaskResult", "TaskSettings", "adam", "sample_box", "validate_task"]
+__all__ = ["CONTROL_KINDS", "IPC_TASK_STIFFNESS", "MODELS", "SINE_WAVES", "TaskCheckpoint", "TaskProblem", "TaskResult", "TaskSettings", "adam", "sample_box", "validate_task"]
 
 CONTROL_KINDS = ("initial_state", "pd_targets", "joint_sine")
 SINE_WAVES = 4
@@ -161,7 +165,8 @@ FEASIBLE_HALVINGS = 20
 
 def adam(betas, learning_rate):
     """Adam step function with state: update(x, g) -> x (in place); ``update.learning_rate``
-    may be changed between steps."""
+    may be changed between steps; ``update.state`` holds the moments m, v and the step
+    count t (a checkpoint saves and restores them)."""
     b1, b2 = betas
     state = {"m": None, "v": None, "t": 0}
 
@@ -177,12 +182,15 @@ def adam(betas, learning_rate):
         return x
 
     update.learning_rate = learning_rate
+    update.state = state
     return update
 
 
-def _descend(rollout, values, settings, history, progress=None, total=None, first=None):
+def _descend(rollout, values, settings, history, progress=None, total=None, first=None, resume=None, save=None):
     """Adam iterations on ``values`` (in place); returns (best loss, best values, its trajectory).
-    ``first``: ``rollout(values)``'s result when the caller already has it.
+    ``first``: ``rollout(values)``'s result when the caller already has it. ``save(state)``,
+    if given, receives the descent's state (``_descent_state``) before every iteration;
+    ``resume``: such a state to continue from instead of starting at ``values``.
 
     An update that makes the rollout infeasible (bodies intersecting at the start, or a step
     that fails) is halved back towards the last feasible values, up to FEASIBLE_HALVINGS
@@ -192,9 +200,20 @@ def _descend(rollout, values, settings, history, progress=None, total=None, firs
     momentum alone, could only move the solution off it.
     """
     step = adam(settings.betas, settings.learning_rate)
-    best = (np.inf, values.copy(), None)
-    result = first or rollout(values)  # the start must be feasible: its errors propagate
-    for it in range(settings.iterations):
+    if resume is None:
+        start = 0
+        best = (np.inf, values.copy(), None)
+        result = first or rollout(values)  # the start must be feasible: its errors propagate
+    else:
+        start = resume["iteration"]
+        values[:] = resume["values"]
+        if resume["adam_t"]:
+            step.state.update(m=resume["adam_m"], v=resume["adam_v"], t=resume["adam_t"])
+        best = (resume["best_loss"], resume["best_values"], resume["best_trajectory"] if resume["best_trajectory"].size else None)
+        result = (resume["loss"], resume["gradient"], resume["trajectory"])
+    for it in range(start, settings.iterations):
+        if save is not None:
+            save(_descent_state(it, values, step.state, best, result))
         loss, grad, trajectory = result
         history.append(loss)
         if loss < best[0]:
@@ -217,6 +236,95 @@ def _descend(rollout, values, settings, history, progress=None, total=None, firs
             values[:] = feasible
             break
     return best
+
+
+def _descent_state(iteration, values, adam_state, best, result) -> dict:
+    """What a descent needs to continue at the top of ``iteration`` (``_descend``'s resume)."""
+    loss, gradient, trajectory = result
+    none = np.zeros((0,))
+    return {
+        "iteration": iteration,
+        "values": values.copy(),
+        "adam_m": none if adam_state["m"] is None else adam_state["m"].copy(),
+        "adam_v": none if adam_state["v"] is None else adam_state["v"].copy(),
+        "adam_t": adam_state["t"],
+        "best_loss": float(best[0]),
+        "best_values": best[1].copy(),
+        "best_trajectory": none if best[2] is None else best[2],
+        "loss": float(loss),
+        "gradient": gradient,
+        "trajectory": trajectory,
+    }
+
+
+# Version of the checkpoint file format; a file of another version is refused.
+CHECKPOINT_VERSION = 1
+_CHECKPOINT_ARRAYS = ("plan", "executed", "history", "values", "adam_m", "adam_v", "best_values", "best_trajectory", "gradient", "trajectory")
+
+
+class TaskCheckpoint:
+    """A file that keeps a task optimisation's progress, so that a run interrupted (a
+    time limit, Ctrl-C, a lost machine) continues where it stopped instead of starting
+    over: ``TaskProblem.optimize(checkpoint=path)`` rewrites it before every Adam
+    iteration, and ``optimize(checkpoint=path, resume=True)`` continues from it, bit for
+    bit on a CPU.
+
+    It holds the descent's state (decision variables, Adam's moments, the best iterate and
+    the pending rollout's loss, gradient and trajectory), the receding horizon's state (the
+    frames executed so far and the plan), gb's random generator and bundle count, the loss
+    history and the seconds spent, and a fingerprint of the problem (task, scene file, model,
+    settings, controlled DOFs, initial poses, simulation settings): resuming another problem
+    is refused, naming what differs. Written as a .npz (no pickles) through a temporary file
+    and an atomic rename, so an interruption while writing leaves the previous one intact.
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+
+    def exists(self) -> bool:
+        return self.path.is_file()
+
+    def save(self, fingerprint: dict, state: dict) -> None:
+        meta = {k: v for k, v in state.items() if k not in _CHECKPOINT_ARRAYS}
+        meta.update(version=CHECKPOINT_VERSION, fingerprint=fingerprint)
+        arrays = {k: np.asarray(state[k], dtype=np.float64) for k in _CHECKPOINT_ARRAYS if k in state}
+        temporary = self.path.with_name(self.path.name + ".tmp.npz")
+        with temporary.open("wb") as f:
+            np.savez(f, meta=np.array(json.dumps(meta)), **arrays)
+        os.replace(temporary, self.path)
+
+    def load(self, fingerprint: dict | None = None) -> dict:
+        """The saved state; ValueError naming the file when it is missing, unreadable, of
+        another format version, or (given ``fingerprint``) of another problem."""
+        if not self.exists():
+            raise ValueError(f"{self.path}: no checkpoint to resume")
+        try:
+            with np.load(self.path, allow_pickle=False) as data:
+                state = json.loads(str(data["meta"]))
+                state.update({k: data[k] for k in _CHECKPOINT_ARRAYS if k in data.files})
+        except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{self.path}: not a readable checkpoint ({exc})") from None
+        if state.get("version") != CHECKPOINT_VERSION:
+            raise ValueError(f"{self.path}: checkpoint format {state.get('version')!r}, expected {CHECKPOINT_VERSION}")
+        if fingerprint is not None:
+            saved = state["fingerprint"]
+            differ = sorted(k for k in set(saved) | set(fingerprint) if saved.get(k) != fingerprint.get(k))
+            if differ:
+                detail = "; ".join(f"{k}: {saved.get(k)!r} saved, {fingerprint.get(k)!r} now" for k in differ)
+                raise ValueError(f"{self.path}: checkpoint of another problem ({detail})")
+        return state
+
+    def describe(self) -> str:
+        """One line on the saved run, for messages: task, model and how far it got."""
+        state = self.load()
+        fp = state["fingerprint"]
+        horizon = fp["settings"]["horizon"]
+        where = f"frame {state['frame']} of {horizon}, " if state.get("receding") else ""
+        done = len(state["history"])
+        return f"task {fp['task']}, model {fp['model']}, {where}{done} Adam iteration{'' if done == 1 else 's'}, {state['seconds']:.0f} s"
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
 
 
 def sample_box(scene, samples: int) -> tuple:
@@ -311,6 +419,7 @@ class TaskProblem:
                 overrides["contact_stiffness"] = ipc_stiffness
             scene = dataclasses.replace(scene, settings=dataclasses.replace(scene.settings, **overrides))
         self.scene = scene
+        self.model_name = model
         self.bundle = (bundle or BundleSettings()) if model == "gb" else None
         self.kind = task.control
         self.settings = settings or TaskSettings.from_task(scene)
@@ -417,47 +526,125 @@ class TaskProblem:
         sigmas = self.bundle.sigmas(self.settings.iterations, self.settings.learning_rate)
         return bundled_gradient(exact, sigmas=sigmas, samples=self.bundle.samples, rng=rng)
 
-    def optimize(self, *, progress=None) -> TaskResult:
-        """Gradient descent from the trivial guess (zero offsets); see the module docstring."""
-        start_time = time.perf_counter()
+    def optimize(self, *, progress=None, checkpoint=None, resume: bool = False) -> TaskResult:
+        """Gradient descent from the trivial guess (zero offsets); see the module docstring.
+
+        Args:
+            progress: callback (done, total, loss) after every iteration (one window) or
+                every executed stride (receding horizon).
+            checkpoint: path of a ``TaskCheckpoint`` rewritten before every Adam iteration
+                and removed when the optimisation returns; an existing file is refused
+                unless ``resume`` is set, so no run's progress is overwritten.
+            resume: continue from ``checkpoint`` (ValueError when it is missing or belongs
+                to another problem).
+        """
+        store = None if checkpoint is None else TaskCheckpoint(checkpoint)
+        if store is None and resume:
+            raise ValueError("resume: needs the checkpoint to resume from")
+        fingerprint = None if store is None else self._fingerprint()
+        saved = None
+        if store is not None:
+            if resume:
+                saved = store.load(fingerprint)
+            elif store.exists():
+                raise ValueError(f"{store.path}: holds an unfinished run ({store.describe()}); resume it, or remove the file to start over")
+        start_time = time.perf_counter() - (saved["seconds"] if saved else 0.0)
         s = self.settings
         q0 = self.model.initial_q.copy()
         ndof = len(self.dof_names)
-        history = []
+        history = list(saved["history"]) if saved else []
         rng = np.random.default_rng(self.bundle.seed) if self.bundle else None
-        extra = {"bundle": dataclasses.asdict(self.bundle)} if self.bundle else {}
-        if self.kind != "pd_targets" or s.window == s.horizon:
+        if saved and rng is not None:
+            rng.bit_generator.state = saved["rng"]
+        extra = saved["extra"] if saved else ({"bundle": dataclasses.asdict(self.bundle)} if self.bundle else {})
+        receding = self.kind == "pd_targets" and s.window < s.horizon
+
+        def saver(objective, **outer):
+            """``_descend``'s save callback: the descent's state with the run's around it."""
+            if store is None:
+                return None
+
+            def save(descent):
+                state = {**outer, **descent, "history": history, "extra": extra, "receding": receding, "seconds": time.perf_counter() - start_time}
+                state["rng"] = None if rng is None else rng.bit_generator.state
+                state["bundle_calls"] = getattr(objective, "calls", 0)
+                store.save(fingerprint, state)
+
+            return save
+
+        def objective_at(start, frames, resumed):
+            """The window's objective; a resumed window's gb bundles continue their count."""
+            objective = self._objective(start, frames, rng)
+            if resumed is not None and hasattr(objective, "calls"):
+                objective.calls = resumed["bundle_calls"]
+            return objective
+
+        if not receding:
             values = self.initial_values(1 if self.kind == "initial_state" else s.horizon)
             first = None
-            if s.initial_samples:
+            if s.initial_samples and not saved:
                 values, extra["initial_samples"], first = self._best_sample((q0, q0), s.horizon)
-            final, values, traj = _descend(self._objective((q0, q0), s.horizon, rng), values, s, history, progress, first=first)
-            return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, values, traj, extra)
+            objective = objective_at((q0, q0), s.horizon, saved)
+            final, values, traj = _descend(objective, values, s, history, progress, first=first, resume=saved, save=saver(objective))
+            result = TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, values, traj, extra)
+        else:
+            result = self._receding(saved, history, extra, progress, objective_at, saver, start_time)
+        if store is not None:
+            store.remove()
+        return result
 
-        # Receding horizon: optimise a window, apply its first actions, shift.
+    def _receding(self, saved, history, extra, progress, objective_at, saver, start_time) -> TaskResult:
+        """Receding horizon: optimise a window, apply its first actions, shift (from the
+        checkpoint's frame when ``saved``)."""
+        s = self.settings
+        q0 = self.model.initial_q.copy()
         window, stride = s.window, s.receding_stride
-        plan = np.zeros((s.horizon + window + stride, ndof))
-        executed = [q0]
-        current = (q0, q0)
-        t = 0
+        if saved:
+            t, plan, executed = saved["frame"], saved["plan"], list(saved["executed"])
+        else:
+            t, plan, executed = 0, np.zeros((s.horizon + window + stride, len(self.dof_names))), [q0]
+        resume = saved
         while t < s.horizon:
+            # The state at the window's start: the last two executed frames.
+            current = (executed[-1], executed[-2]) if len(executed) > 1 else (q0, q0)
             values = plan[t : t + window].copy()
-            best = _descend(self._objective(current, window, rng), values, s, history, progress, total=s.horizon)
+            objective = objective_at(current, window, resume)
+            save = saver(objective, frame=t, plan=plan, executed=np.array(executed))
+            best = _descend(objective, values, s, history, progress, total=s.horizon, resume=resume, save=save)
+            resume = None
             plan[t : t + window] = best[1]
             # The rows entering the next window hold the last planned action; zero would
             # send the body's target back to its start pose at the end of every window.
             plan[t + window : t + window + stride] = best[1][-1]
             # The applied actions' frames are the best window rollout's first frames.
-            traj = best[2]
             applied = min(stride, s.horizon - t)
-            current = (traj[applied], traj[applied - 1])
-            executed.extend(traj[1 : applied + 1])
+            executed.extend(best[2][1 : applied + 1])
             t += applied
             if progress:
                 progress(t, s.horizon, history[-1])
         trajectory = np.array(executed)
         final = self._loss_at(trajectory[-1])
         return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, plan[: s.horizon], trajectory, extra)
+
+    def _fingerprint(self) -> dict:
+        """What makes two optimisations the same problem (a checkpoint's identity)."""
+        scene = self.scene
+        return json.loads(
+            json.dumps(
+                {
+                    "task": scene.task.name,
+                    "scene": str(scene.source),
+                    "model": self.model_name,
+                    "control": self.kind,
+                    "dofs": list(self.dof_names),
+                    "settings": dataclasses.asdict(self.settings),
+                    "simulation": dataclasses.asdict(scene.settings),
+                    "bundle": dataclasses.asdict(self.bundle) if self.bundle else None,
+                    "initial_poses": hashlib.sha256(np.ascontiguousarray(self.model.initial_q).tobytes()).hexdigest(),
+                },
+                default=str,
+            )
+        )
 
     def _best_sample(self, start: tuple, frames: int):
         """(the lowest-loss sample, every sample's values and loss, the lowest-loss rollout
