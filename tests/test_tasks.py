@@ -644,3 +644,18 @@ def test_cli_run_keeps_its_progress_when_interrupted_and_resumes_it(tmp_path, ca
     assert metrics["loss_history"] == full["loss_history"] and not (out / cli.CHECKPOINT_NAME).exists()
     assert main([*argv, "--out", str(out), "--resume"]) == 2
     assert "no checkpoint to resume" in capsys.readouterr().err
+
+
+def test_cli_run_reports_a_failed_simulation_without_a_traceback(tmp_path, capsys, monkeypatch):
+    from warpcontact import tasks
+    from warpcontact.solver import SolverError
+
+    scene_path = tmp_path / "space.usda"
+    io.save_scene(space_billiards(), scene_path)
+
+    def failing(self, *args, **kwargs):
+        raise SolverError("implicit step: no convergence after 500 Newton iterations")
+
+    monkeypatch.setattr(tasks.TaskProblem, "rollout", failing)
+    assert main(["run", str(scene_path), "--iters", "2", "--out", str(tmp_path / "out")]) == 1
+    assert "error: the simulation failed: implicit step: no convergence" in capsys.readouterr().err

@@ -213,6 +213,7 @@ def _settings_line(settings) -> str:
 
 def _run(args) -> int:
     from . import io
+    from .solver import SolverError
     from .tasks import TaskCheckpoint
 
     scene_path, scene, settings = _load_task(args)
@@ -230,6 +231,11 @@ def _run(args) -> int:
         kept = f"progress kept in {checkpoint.path} ({checkpoint.describe()}); continue with the same command and --resume" if checkpoint.exists() else "nothing to keep yet"
         print(f"\ninterrupted: {kept}", file=sys.stderr)
         return 130
+    except SolverError as exc:
+        # A window's first rollout failed (later ones are halved back): the descent cannot go on.
+        kept = f"; the progress before it is in {checkpoint.path} ({checkpoint.describe()})" if checkpoint.exists() else ""
+        print(f"\nerror: the simulation failed: {exc}{kept}", file=sys.stderr)
+        return 1
     print()
     metrics = {
         "task": t.name,
