@@ -659,3 +659,21 @@ def test_cli_run_reports_a_failed_simulation_without_a_traceback(tmp_path, capsy
     monkeypatch.setattr(tasks.TaskProblem, "rollout", failing)
     assert main(["run", str(scene_path), "--iters", "2", "--out", str(tmp_path / "out")]) == 1
     assert "error: the simulation failed: implicit step: no convergence" in capsys.readouterr().err
+
+
+def test_a_checkpoint_knows_its_scene_by_content_not_by_path(tmp_path):
+    make_scene, settings, _ = _CHECKPOINTED_RUNS["receding"]
+    scene = make_scene()
+    io.save_scene(scene, tmp_path / "a.usda")
+    io.save_scene(scene, tmp_path / "b.usda")
+    moved = make_scene()
+    moved.bodies[1].pose = moved.bodies[1].pose + np.array([0.0, 0.01, 0, 0, 0, 0, 0])
+    io.save_scene(moved, tmp_path / "moved.usda")
+    checkpoint = tmp_path / "checkpoint.npz"
+    interrupted = TaskProblem(io.load_scene(tmp_path / "a.usda"), settings=settings)
+    _interrupted_after(interrupted, 4)
+    with pytest.raises(KeyboardInterrupt):
+        interrupted.optimize(checkpoint=checkpoint)
+    with pytest.raises(ValueError, match="checkpoint of another problem .bodies:"):
+        TaskProblem(io.load_scene(tmp_path / "moved.usda"), settings=settings).optimize(checkpoint=checkpoint, resume=True)
+    assert TaskProblem(io.load_scene(tmp_path / "b.usda"), settings=settings).optimize(checkpoint=checkpoint, resume=True).loss_history

@@ -272,9 +272,9 @@ class TaskCheckpoint:
     It holds the descent's state (decision variables, Adam's moments, the best iterate and
     the pending rollout's loss, gradient and trajectory), the receding horizon's state (the
     frames executed so far and the plan), gb's random generator and bundle count, the loss
-    history and the seconds spent, and a fingerprint of the problem (task, scene file, model,
-    settings, controlled DOFs, initial poses, simulation settings): resuming another problem
-    is refused, naming what differs. Written as a .npz (no pickles) through a temporary file
+    history and the seconds spent, and a fingerprint of the problem (``TaskProblem``'s
+    ``_fingerprint``: task, model, settings, controlled DOFs, simulation settings, a digest of
+    the bodies and joints): resuming another problem is refused, naming what differs. Written as a .npz (no pickles) through a temporary file
     and an atomic rename, so an interruption while writing leaves the previous one intact.
     """
 
@@ -551,8 +551,7 @@ class TaskProblem:
         start_time = time.perf_counter() - (saved["seconds"] if saved else 0.0)
         s = self.settings
         q0 = self.model.initial_q.copy()
-        ndof = len(self.dof_names)
-        history = list(saved["history"]) if saved else []
+        history = [float(loss) for loss in saved["history"]] if saved else []
         rng = np.random.default_rng(self.bundle.seed) if self.bundle else None
         if saved and rng is not None:
             rng.bit_generator.state = saved["rng"]
@@ -627,20 +626,27 @@ class TaskProblem:
         return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, plan[: s.horizon], trajectory, extra)
 
     def _fingerprint(self) -> dict:
-        """What makes two optimisations the same problem (a checkpoint's identity)."""
+        """What makes two optimisations the same problem (a checkpoint's identity): the task,
+        model and settings, and a digest of the scene's bodies and joints (whatever file or
+        path they were loaded from)."""
         scene = self.scene
+        digest = hashlib.sha256()
+        for part in [*scene.bodies, *scene.joints]:
+            for f in dataclasses.fields(part):
+                value = getattr(part, f.name)
+                digest.update(np.ascontiguousarray(value).tobytes() if isinstance(value, np.ndarray) else repr(value).encode())
+        digest.update(np.ascontiguousarray(scene.gravity, dtype=np.float64).tobytes())
         return json.loads(
             json.dumps(
                 {
                     "task": scene.task.name,
-                    "scene": str(scene.source),
                     "model": self.model_name,
                     "control": self.kind,
                     "dofs": list(self.dof_names),
                     "settings": dataclasses.asdict(self.settings),
                     "simulation": dataclasses.asdict(scene.settings),
                     "bundle": dataclasses.asdict(self.bundle) if self.bundle else None,
-                    "initial_poses": hashlib.sha256(np.ascontiguousarray(self.model.initial_q).tobytes()).hexdigest(),
+                    "bodies": digest.hexdigest(),
                 },
                 default=str,
             )
