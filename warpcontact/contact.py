@@ -162,7 +162,7 @@ def symmetric_from_upper(upper: np.ndarray) -> np.ndarray:
     """The symmetric matrix whose upper triangle the term kernels accumulated (they add one
     of each pair of mirrored entries: ``kernels/rigid.py``, ``upper_entry``)."""
     full = upper + upper.T
-    full[np.diag_indices_from(full)] = np.diag(upper)
+    np.fill_diagonal(full, upper.diagonal())
     return full
 
 
