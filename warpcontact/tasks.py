@@ -28,6 +28,9 @@ scene's own contact mode, by default the paper's model), the baselines ``"ipc"``
 ``"sdrs"`` (locally supported barriers, each with friction lagged from its own normal
 forces, so a frictional scene is the same problem for every model), and ``"gb"``: gradient
 bundles (``bundle.py``) over the SDRS model.
+
+Long runs keep their progress in a ``TaskCheckpoint`` (``optimize(checkpoint=...)``) and
+continue from it bit for bit on a CPU (``optimize(checkpoint=..., resume=True)``).
 """
 
 from __future__ import annotations
