@@ -175,6 +175,21 @@ def test_simulate_writes_trajectory_and_summary(tmp_path, capsys):
     assert main(args + ["--overwrite"]) == 0
 
 
+def test_shipped_scenes_are_found_from_any_folder(tmp_path, monkeypatch, capsys):
+    """A task name means the scene installed with the package, not ./scenes of the caller."""
+    from warpcontact.scenes import SCENE_NAMES, shipped_scene
+
+    monkeypatch.chdir(tmp_path)
+    for name in SCENE_NAMES:
+        path = cli._resolve_scene_path(name)
+        assert path == shipped_scene(name) and path.is_file() and path.is_absolute()
+    assert io.load_scene(cli._resolve_scene_path("push")).task.name == "push"
+    assert main(["list"]) == 0
+    assert str(shipped_scene("gather")) in capsys.readouterr().out
+    with pytest.raises(ValueError, match="not a .usda file and not a shipped scene"):
+        cli._resolve_scene_path("pushh")
+
+
 def test_simulate_reports_bad_scene_paths(tmp_path, capsys):
     assert main(["simulate", str(tmp_path / "missing.usda"), "--out", str(tmp_path)]) == 2
     assert "file not found" in capsys.readouterr().err

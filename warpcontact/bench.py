@@ -429,16 +429,17 @@ def _peer_ball(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(hull.vertices, dtype=np.float64), np.asarray(hull.faces, dtype=np.int64)
 
 
-def frame_scene(spec: str, *, scene_dir: Path = Path("scenes"), peer_meshes: Path = Path("../shared/peer-meshes")):
+def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path = Path("../shared/peer-meshes")):
     """The ``Scene`` named by ``spec``.
 
-    ``spec`` is a scene name (``scene_dir``/NAME.usda when usd-core is installed, otherwise
+    ``spec`` is a scene name (``scene_dir``/NAME.usda, by default the shipped scene, when
+    usd-core is installed, otherwise
     built by ``warpcontact.scenes``), ``peer_billiards_T`` (billiards with the paper code
     base's balls, T in ``PEER_BALLS``, from ``peer_meshes``), a .usda path, or a .pkl path
     (a pickled ``Scene``, for machines without usd-core).
     """
     from . import io
-    from .scenes import SCENE_NAMES, benchmark_rack, build_scene
+    from .scenes import SCENE_NAMES, benchmark_rack, build_scene, shipped_scene
 
     path = Path(spec)
     if path.suffix == ".pkl":
@@ -460,11 +461,12 @@ def frame_scene(spec: str, *, scene_dir: Path = Path("scenes"), peer_meshes: Pat
         return scene
     if spec not in SCENE_NAMES:
         raise ValueError(f"scene: {spec!r} is not a scene name ({', '.join(SCENE_NAMES)}), peer_billiards_T, .usda or .pkl")
-    usda = Path(scene_dir) / f"{spec}.usda"
     try:
         import pxr  # noqa: F401
     except ImportError:
         usda = None
+    else:
+        usda = shipped_scene(spec) if scene_dir is None else Path(scene_dir) / f"{spec}.usda"
     if usda is not None and usda.is_file():
         return io.load_scene(usda)
     scene = build_scene(spec)
@@ -683,7 +685,7 @@ def run_frame_benchmark(
     leaf_precision: str = "float64",
     device,
     out_dir: Path,
-    scene_dir: Path = Path("scenes"),
+    scene_dir: Path | None = None,
     peer_meshes: Path = Path("../shared/peer-meshes"),
     progress=None,
 ) -> list[dict]:

@@ -120,16 +120,15 @@ def _simulate(args) -> int:
 
 
 def _resolve_scene_path(name: str) -> Path:
-    """A .usda path, or a task name looked up in ./scenes (the shipped scenes)."""
+    """A .usda path, or the name of a shipped scene (installed with the package)."""
     path = Path(name)
     if path.suffix in (".usda", ".usd", ".usdc"):
         return path
-    candidate = Path("scenes") / f"{name}.usda"
-    if candidate.is_file():
-        return candidate
-    from .scenes import SCENE_NAMES
+    from .scenes import SCENE_NAMES, shipped_scene
 
-    raise ValueError(f"{name!r}: not a .usda file and not a scene in ./scenes (known: {', '.join(SCENE_NAMES)})")
+    if name not in SCENE_NAMES:
+        raise ValueError(f"{name!r}: not a .usda file and not a shipped scene (known: {', '.join(SCENE_NAMES)})")
+    return shipped_scene(name)
 
 
 def _output_folder(path: str) -> Path:
@@ -345,12 +344,11 @@ def _plot_convergence(histories: dict, path: Path, *, title: str) -> bool:
 
 
 def _list(args) -> int:
-    from .scenes import SCENE_NAMES
+    from .scenes import SCENE_NAMES, shipped_scene
 
     print("tasks and scenes (run with: warpcontact run NAME | PATH.usda):")
     for name in SCENE_NAMES:
-        path = Path("scenes") / f"{name}.usda"
-        print(f"  {name:16s} {path if path.is_file() else '(not in ./scenes)'}")
+        print(f"  {name:16s} {shipped_scene(name)}")
     print("models (run --model, compare --models):")
     print("  ours   the paper's contact model (long-range, twice differentiable)")
     print("  ipc    IPC log barrier through ipctk, with IPC's lagged friction (CPU)")
@@ -447,7 +445,7 @@ def _bench_frame(args) -> int:
         leaf_precision=args.leaf_precision,
         device=args.device,
         out_dir=Path(args.out),
-        scene_dir=Path(args.scene_dir),
+        scene_dir=None if args.scene_dir is None else Path(args.scene_dir),
         peer_meshes=Path(args.peer_meshes),
         progress=show,
     )
@@ -510,7 +508,7 @@ def _model_list(text: str) -> list:
 
 
 def _add_task_arguments(parser, default_out: str):
-    parser.add_argument("task", help="a task name (scenes/NAME.usda) or a .usda with task metadata")
+    parser.add_argument("task", help="a shipped scene's name (warpcontact list) or a .usda with task metadata")
     parser.add_argument("--iters", type=_positive_int, default=None, help="optimiser iterations (per window)")
     parser.add_argument(
         "--stride",
@@ -618,7 +616,7 @@ def build_parser() -> argparse.ArgumentParser:
     frame.add_argument("--brute-eval-max-triangles", type=int, default=6208, help="above that, only its contact evaluation is timed, up to this many")
     frame.add_argument("--ipc-stiffness", type=_positive_float, default=1e3, help="IPC barrier stiffness (replaces the scene's mu for ipc)")
     frame.add_argument("--leaf-precision", choices=LEAF_PRECISIONS, default="float64", help="plane search precision of bsh and brute (ipc: float64)")
-    frame.add_argument("--scene-dir", default="scenes")
+    frame.add_argument("--scene-dir", default=None, help="folder of NAME.usda scenes (default: the shipped scenes)")
     frame.add_argument("--peer-meshes", default="../shared/peer-meshes", help="folder of the paper code base's meshes (18.obj ... 196.obj)")
     frame.add_argument("--device", default="cpu")
     frame.add_argument("--out", default="outputs/bench")

@@ -1,7 +1,8 @@
 """The paper's task scenes (appendix "Experimental Details", table "Parameter settings").
 
 ``build_scene(name)`` returns a ``Scene``; ``write_scenes(folder)`` writes every scene as
-.usda (the files shipped in ``scenes/``). Run ``python -m warpcontact.scenes scenes`` to
+.usda (the files shipped in ``scenes/``, installed as ``warpcontact.scene_files``;
+``shipped_scene(name)`` finds one). Run ``python -m warpcontact.scenes scenes`` to
 regenerate them. Shapes are made here, not downloaded:
 
 - balls: convex hulls of N Fibonacci points on a sphere of radius 0.5 m (2N - 4 faces),
@@ -12,13 +13,14 @@ regenerate them. Shapes are made here, not downloaded:
 - the bunny: warp-lang's bundled ``bunny.usd`` (12,200 triangles), scaled to 0.3 m,
   decimated by vertex clustering (``decimate``) to about 270 triangles; its mass
   properties come from the original closed mesh;
-- grounds: static grids of 0.5 m squares (a coarse ground lets the plane potential push
-  bodies sideways; docs/architecture.md);
+- grounds: static rectangles of two triangles (``ground_rectangle``; a grid of squares
+  stops sliding bodies at its seams; scenes/README.md);
 - the ant (Ant-Push): ``robots.ant_description``.
 """
 
 from __future__ import annotations
 
+import importlib.resources
 import os
 import sys
 from pathlib import Path
@@ -30,7 +32,7 @@ from .articulation import frame_in_body
 from .io import BodySpec, JointSpec, Scene, SimulationSettings, TaskSpec, save_scene
 from .robots import AntSpec, ant_description
 
-__all__ = ["SCENE_NAMES", "BILLIARDS_SERIES", "BILLIARDS_FRICTION", "BILLIARDS_GOALS", "BILLIARDS_REFERENCE_STRIKE", "RACK_BENCHMARK_FRICTION", "build_scene", "billiards_scene", "benchmark_rack", "write_scenes", "fibonacci_ball", "rest_on_face", "decimate", "bunny_mesh"]
+__all__ = ["SCENE_NAMES", "BILLIARDS_SERIES", "BILLIARDS_FRICTION", "BILLIARDS_GOALS", "BILLIARDS_REFERENCE_STRIKE", "RACK_BENCHMARK_FRICTION", "build_scene", "billiards_scene", "benchmark_rack", "write_scenes", "shipped_scene", "fibonacci_ball", "rest_on_face", "decimate", "bunny_mesh"]
 
 # Ball point counts for the scaling series: faces per ball = 2 N - 4.
 BILLIARDS_SERIES = {"billiards_512": 18, "billiards_1280": 42, "billiards_2560": 82, "billiards_6208": 196}
@@ -445,6 +447,16 @@ def build_scene(name: str) -> Scene:
     if name not in builders:
         raise ValueError(f"scene: {name!r} is not one of {', '.join(SCENE_NAMES)}")
     return builders[name]()
+
+
+def shipped_scene(name: str) -> Path:
+    """The installed .usda of scene ``name`` (one of ``SCENE_NAMES``), wherever the caller runs."""
+    if name not in SCENE_NAMES:
+        raise ValueError(f"scene: {name!r} is not one of {', '.join(SCENE_NAMES)}")
+    path = Path(str(importlib.resources.files("warpcontact.scene_files") / f"{name}.usda"))
+    if not path.is_file():
+        raise ValueError(f"scene: {name!r} is not installed ({path} is missing); reinstall warpcontact or pass a .usda path")
+    return path
 
 
 def write_scenes(folder, *, overwrite: bool = False) -> list[Path]:
