@@ -188,6 +188,8 @@ def test_shipped_scenes_are_found_from_any_folder(tmp_path, monkeypatch, capsys)
     assert str(shipped_scene("gather")) in capsys.readouterr().out
     with pytest.raises(ValueError, match="not a .usda file and not a shipped scene"):
         cli._resolve_scene_path("pushh")
+    assert main(["bench", "frame", "--scenes", "push", "--scene-dir", str(tmp_path), "--frames", "1", "--out", str(tmp_path / "b")]) == 2
+    assert f"{tmp_path / 'push.usda'} not found" in capsys.readouterr().err
 
 
 def test_simulate_reports_bad_scene_paths(tmp_path, capsys):

@@ -433,8 +433,7 @@ def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path =
     """The ``Scene`` named by ``spec``.
 
     ``spec`` is a scene name (``scene_dir``/NAME.usda, by default the shipped scene, when
-    usd-core is installed, otherwise
-    built by ``warpcontact.scenes``), ``peer_billiards_T`` (billiards with the paper code
+    usd-core is installed, otherwise built by ``warpcontact.scenes``), ``peer_billiards_T`` (billiards with the paper code
     base's balls, T in ``PEER_BALLS``, from ``peer_meshes``), a .usda path, or a .pkl path
     (a pickled ``Scene``, for machines without usd-core).
     """
@@ -464,10 +463,11 @@ def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path =
     try:
         import pxr  # noqa: F401
     except ImportError:
-        usda = None
+        pass  # machines without usd-core (GPU leases) build the same scene in memory
     else:
         usda = shipped_scene(spec) if scene_dir is None else Path(scene_dir) / f"{spec}.usda"
-    if usda is not None and usda.is_file():
+        if not usda.is_file():
+            raise ValueError(f"scene {spec!r}: {usda} not found")
         return io.load_scene(usda)
     scene = build_scene(spec)
     scene.source = spec
