@@ -207,6 +207,44 @@ def test_non_finite_points_missing_files_and_empty_stages(tmp_path):
         io.load_scene(tmp_path / "empty.usda")
 
 
+def _author(path, edit):
+    stage = Usd.Stage.Open(str(path))
+    edit(stage)
+    stage.Save()
+    return path
+
+
+@pytest.mark.parametrize(
+    "edit, match",
+    [
+        (lambda st: UsdPhysics.RigidBodyAPI(st.GetPrimAtPath("/World/box")).CreateVelocityAttr(Gf.Vec3f(float("nan"), 0, 0)), r"prim /World/box: physics:velocity must be finite, got \[nan, 0.0, 0.0\]"),
+        (lambda st: UsdPhysics.MassAPI.Apply(st.GetPrimAtPath("/World/box")).CreateCenterOfMassAttr(Gf.Vec3f(0, float("inf"), 0)), r"prim /World/box: centerOfMass must be finite"),
+        (lambda st: UsdPhysics.MassAPI.Apply(st.GetPrimAtPath("/World/box")).CreateDiagonalInertiaAttr(Gf.Vec3f(float("nan"), 1, 1)), r"prim /World/box: diagonalInertia must be positive"),
+        (lambda st: st.GetPrimAtPath("/World/box").CreateAttribute("warpcontact:target:position", Sdf.ValueTypeNames.Double3).Set(Gf.Vec3d(float("nan"), 0, 0)), r"prim /World/box: warpcontact:target:position must be finite"),
+        (lambda st: [st.GetPrimAtPath("/World/box").CreateAttribute(name, kind).Set(value) for name, kind, value in (("warpcontact:target:position", Sdf.ValueTypeNames.Double3, Gf.Vec3d(1, 0, 0)), ("warpcontact:target:tolerance", Sdf.ValueTypeNames.Double, -0.1))], r"prim /World/box: warpcontact:target:tolerance must be >= 0 and finite, got -0.1"),
+        (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:friction", Sdf.ValueTypeNames.Double).Set(float("inf")), r"prim /World/physicsScene: warpcontact:friction must be >= 0 and finite, got inf"),
+        (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:contactStiffness", Sdf.ValueTypeNames.Double).Set(-1.0), r"prim /World/physicsScene: warpcontact:contactStiffness must be positive and finite, got -1.0"),
+        (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:timeStep", Sdf.ValueTypeNames.String).Set("fast"), r"prim /World/physicsScene: warpcontact:timeStep must be a number, got 'fast'"),
+        (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:task:horizon", Sdf.ValueTypeNames.String).Set("long"), r"prim /World/physicsScene: warpcontact:task:horizon must be an integer, got 'long'"),
+    ],
+)
+def test_bad_values_name_the_file_prim_and_attribute(tmp_path, edit, match):
+    path = _author(write_physics_scene(tmp_path / "v.usda"), edit)
+    with pytest.raises(ValueError, match=r"v\.usda: " + match):
+        io.load_scene(path)
+
+
+def test_unreadable_files_are_clear_errors(tmp_path):
+    (tmp_path / "broken.usda").write_text("#usda 1.0\n( not a layer }}}\n")
+    with pytest.raises(ValueError, match=r"broken\.usda: not a readable USD stage \(.*broken\.usda:2"):
+        io.load_scene(tmp_path / "broken.usda")
+    (tmp_path / "binary.usda").write_bytes(b"\x00\x01 not text")
+    with pytest.raises(ValueError, match=r"binary\.usda: not a readable USD stage"):
+        io.load_scene(tmp_path / "binary.usda")
+    with pytest.raises(ValueError, match=r": not a file"):
+        io.load_scene(tmp_path)
+
+
 def write_hinged_box(path, *, limits=(-30.0, 60.0), stiffness=2.0, cone=None, cone1=None, d6_ball=False, ball_drives=None):
     """A box hanging from a world revolute joint about y (UsdPhysics only: degrees, per-degree
     gains), or from a spherical joint with a ``cone`` limit, or from a D6 joint with three free

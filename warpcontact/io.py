@@ -331,18 +331,35 @@ def _world_pose(prim, UsdGeom, Usd) -> np.ndarray:
     return np.array([t[0], t[1], t[2], *(q / np.linalg.norm(q))])
 
 
+def _usd_error_text(exc) -> str:
+    """The first message of a USD error, without the C++ function and source line."""
+    for line in str(exc).splitlines():
+        if " : " in line:
+            return line.split(" : ", 1)[1].strip().strip("'")
+    return str(exc).strip()
+
+
 def load_scene(path) -> Scene:
     """Read a USD stage into a ``Scene``.
 
-    Raises ValueError naming the file or prim and the problem (missing file, no rigid body,
-    bad meshes, non-positive mass, unsupported joints or colliders).
+    Raises ValueError naming the file or prim and the problem (missing or unreadable file, no
+    rigid body, bad meshes, non-positive mass, non-finite or out-of-range values of poses,
+    velocities, mass properties, targets and ``warpcontact:`` settings, values of the wrong
+    type, unsupported joints or colliders).
     """
     Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
     path = Path(path)
     source = str(path)
-    if not path.is_file():
+    if not path.exists():
         raise ValueError(f"{source}: file not found")
-    stage = Usd.Stage.Open(str(path))
+    if not path.is_file():
+        raise ValueError(f"{source}: not a file")
+    from pxr import Tf
+
+    try:
+        stage = Usd.Stage.Open(str(path))
+    except Tf.ErrorException as exc:
+        raise ValueError(f"{source}: not a readable USD stage ({_usd_error_text(exc)})") from None
     if stage is None:
         raise ValueError(f"{source}: not a readable USD stage")
     meters = float(UsdGeom.GetStageMetersPerUnit(stage) or 1.0)
@@ -381,8 +398,11 @@ def load_scene(path) -> Scene:
             linear_velocity=np.asarray(desc.linearVelocity, dtype=np.float64) * meters,
             angular_velocity=np.radians(np.asarray(desc.angularVelocity, dtype=np.float64)),
         )
+        for label, value in (("velocity", body.linear_velocity), ("angularVelocity", body.angular_velocity)):
+            if not np.isfinite(value).all():
+                raise ValueError(f"{source}: prim {prim_path}: physics:{label} must be finite, got {np.asarray(value).tolist()}")
         _read_mass(prim, body, UsdPhysics, meters, source)
-        _read_warpcontact_body(prim, body, meters)
+        _read_warpcontact_body(prim, body, meters, source)
         bodies[str(prim_path)] = body
 
     static_bodies: dict[str, BodySpec] = {}
@@ -591,22 +611,29 @@ def _read_mass(prim, body: BodySpec, UsdPhysics, meters: float, source: str):
     com_attr = api.GetCenterOfMassAttr()
     if com_attr and com_attr.HasAuthoredValue():
         body.center_of_mass = np.asarray(com_attr.Get(), dtype=np.float64) * meters
+        if not np.isfinite(body.center_of_mass).all():
+            raise ValueError(f"{where}: centerOfMass must be finite, got {body.center_of_mass.tolist()}")
     diag_attr = api.GetDiagonalInertiaAttr()
     if diag_attr and diag_attr.HasAuthoredValue():
         diag = np.asarray(diag_attr.Get(), dtype=np.float64) * meters**2
         axes_attr = api.GetPrincipalAxesAttr()
         q = _quat_xyzw(axes_attr.Get()) if axes_attr and axes_attr.HasAuthoredValue() else np.array([0.0, 0.0, 0.0, 1.0])
         R = quat_to_matrix(q)
-        if (diag <= 0).any():
+        if not (np.isfinite(diag).all() and (diag > 0).all()):
             raise ValueError(f"{where}: diagonalInertia must be positive, got {diag}")
         body.inertia = R @ np.diag(diag) @ R.T
 
 
-def _read_warpcontact_body(prim, body: BodySpec, meters: float):
+def _read_warpcontact_body(prim, body: BodySpec, meters: float, source: str):
+    where = f"{source}: prim {prim.GetPath()}"
     target = _attr(prim, _NS + "target:position")
     if target is not None:
         body.target_position = np.asarray(target, dtype=np.float64) * meters
         body.target_tolerance = float(_attr(prim, _NS + "target:tolerance", 0.0)) * meters
+        if not np.isfinite(body.target_position).all():
+            raise ValueError(f"{where}: warpcontact:target:position must be finite, got {body.target_position.tolist()}")
+        if not np.isfinite(body.target_tolerance) or body.target_tolerance < 0:
+            raise ValueError(f"{where}: warpcontact:target:tolerance must be >= 0 and finite, got {body.target_tolerance}")
     for field_name, attr_name in (("kp_linear", "pd:kpLinear"), ("kd_linear", "pd:kdLinear")):
         value = _attr(prim, _NS + attr_name)
         if value is not None:
@@ -617,6 +644,19 @@ def _read_warpcontact_body(prim, body: BodySpec, meters: float):
     if dofs is not None:
         body.control_dofs = tuple(str(d) for d in dofs)
     body.group = int(_attr(prim, _NS + "group", -1))
+
+
+def _read_casts(prim, target, casts: dict, source: str):
+    """Set ``target``'s fields from the authored ``warpcontact:`` attributes named in ``casts``."""
+    for attr_name, (field_name, cast) in casts.items():
+        value = _attr(prim, _NS + attr_name)
+        if value is None:
+            continue
+        try:
+            setattr(target, field_name, cast(value))
+        except (TypeError, ValueError):
+            kind = {int: "an integer", float: "a number"}.get(cast, cast.__name__)
+            raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:{attr_name} must be {kind}, got {value!r}") from None
 
 
 def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: str):
@@ -631,12 +671,13 @@ def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: s
         "frictionSmoothing": ("friction_smoothing", float),
         "contactMode": ("contact_mode", str),
     }
-    for attr_name, (field_name, cast) in casts.items():
-        value = _attr(prim, _NS + attr_name)
-        if value is not None:
-            setattr(settings, field_name, cast(value))
+    _read_casts(prim, settings, casts, source)
+    where = f"{source}: prim {prim.GetPath()}"
     if settings.time_step <= 0 or not np.isfinite(settings.time_step):
-        raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:timeStep must be positive, got {settings.time_step}")
+        raise ValueError(f"{where}: warpcontact:timeStep must be positive, got {settings.time_step}")
+    for attr_name, value, lowest in (("contactStiffness", settings.contact_stiffness, None), ("eps", settings.eps, None), ("friction", settings.friction, 0.0), ("frictionSmoothing", settings.friction_smoothing, None)):
+        if not np.isfinite(value) or (value <= 0 if lowest is None else value < lowest):
+            raise ValueError(f"{where}: warpcontact:{attr_name} must be {'positive' if lowest is None else '>= 0'} and finite, got {value}")
     if settings.frames < 1:
         raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:frames must be >= 1, got {settings.frames}")
     if settings.centred_weight not in CENTRED_WEIGHTS:
@@ -657,10 +698,7 @@ def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: s
         "task:quick:iterations": ("quick_iterations", int),
         "task:quick:recedingStride": ("quick_receding_stride", int),
     }
-    for attr_name, (field_name, cast) in task_casts.items():
-        value = _attr(prim, _NS + attr_name)
-        if value is not None:
-            setattr(task, field_name, cast(value))
+    _read_casts(prim, task, task_casts, source)
     for attr_name, field_name in (("task:sampleLow", "sample_low"), ("task:sampleHigh", "sample_high")):
         value = _attr(prim, _NS + attr_name)
         if value is not None:
