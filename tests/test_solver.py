@@ -523,6 +523,18 @@ def test_bad_input_raises_before_writing_state():
             solver.step(s0, s1, None, dt)
     with pytest.raises(ValueError, match="different State"):
         solver.step(s0, s0, None, 0.01)
+    s0 = model.state()
+    s0.body_q.assign(s0.body_q.numpy() + np.array([-0.5, 0, 0, 0, 0, 0, 0]) * [[1], [-1]])  # apart
+    control = model.control()
+    targets = control.body_target.numpy()
+    targets[1, 2] = np.inf
+    control.body_target.assign(targets)
+    with pytest.raises(ValueError, match=r"control.body_target: the target of body 'right' \(index 1\) is not finite"):
+        solver.step(s0, s1, control, 0.01)
+    control.body_target = wp.zeros(3, dtype=wp.transformd)
+    with pytest.raises(ValueError, match="control.body_target: expected a wp.array of 2 wp.transformd"):
+        solver.step(s0, s1, control, 0.01)
+    np.testing.assert_array_equal(s1.body_q.numpy(), before)
 
 
 @pytest.mark.parametrize(

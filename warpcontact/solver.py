@@ -472,6 +472,13 @@ class ImplicitSolver:
         for label, arr in (("state_in.body_q", q_now), ("state_in.body_q_prev", q_prev)):
             if not np.isfinite(arr).all():
                 raise ValueError(f"{label}: contains non-finite values")
+        if control is not None:
+            targets = control.body_target
+            if not isinstance(targets, wp.array) or targets.shape != (len(q_now),):
+                raise ValueError(f"control.body_target: expected a wp.array of {len(q_now)} wp.transformd, one per body (use model.control())")
+            bad = np.flatnonzero(~np.isfinite(targets.numpy()).all(axis=1))
+            if bad.size:
+                raise ValueError(f"control.body_target: the target of body {self.model.body_names[bad[0]]!r} (index {bad[0]}) is not finite")
         coords_now, joint_target = self._joint_arrays(state_in, state_out, control)
         ball_target, ball_start = self._ball_arrays(control, q_now)
         mu = float(model.contact_stiffness.numpy()[0])
