@@ -173,6 +173,23 @@ def test_simulate_writes_trajectory_and_summary(tmp_path, capsys):
     assert main(args) == 2  # never overwrites without --overwrite
     assert "--overwrite" in capsys.readouterr().err
     assert main(args + ["--overwrite"]) == 0
+    by_name = ["simulate", "push", "--frames", "1", "--out", str(tmp_path / "named")]
+    assert main(by_name) == 0
+    assert json.loads((tmp_path / "named" / "summary.json").read_text())["scene"] == str(SCENES / "push.usda")
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["demo", "--gaps", "0.1"], ["simulate", "push", "--frames", "1"], ["bench", "leaf", "--pairs", "2"], ["bench", "scaling", "--points", "18"], ["run", "push", "--iters", "1"]],
+)
+def test_commands_check_their_output_folder_before_any_work(tmp_path, capsys, argv):
+    blocker = tmp_path / "file"
+    blocker.write_text("keep")
+    assert main(argv + ["--out", str(blocker / "sub")]) == 2
+    assert "cannot create the output folder" in capsys.readouterr().err
+    assert main(argv + ["--out", str(blocker)]) == 2
+    assert "output path exists and is not a folder" in capsys.readouterr().err
+    assert blocker.read_text() == "keep"
 
 
 def test_shipped_scenes_are_found_from_any_folder(tmp_path, monkeypatch, capsys):

@@ -56,7 +56,6 @@ def _demo(args) -> int:
         )
         print(f"{gap:10.1e} {res.value.sum():16.6e} {force[2]:24.6e} {res.iterations.mean():17.2f} {seconds:8.3f}")
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     payload = {"triangles_per_body": nt, "device": args.device, "results": rows}
     (out / "demo.json").write_text(json.dumps(payload, indent=2) + "\n")
     print(f"wrote {out / 'demo.json'}")
@@ -71,7 +70,11 @@ def _simulate(args) -> int:
     from .types import set_body_velocity
 
     out = Path(args.out)
-    scene = io.load_scene(args.scene)
+    trajectory = out / "trajectory.usda"
+    if trajectory.exists() and not args.overwrite:
+        raise FileExistsError(f"{trajectory} exists")
+    scene_path = _resolve_scene_path(args.scene)
+    scene = io.load_scene(scene_path)
     frames = args.frames or scene.settings.frames
     model = scene.build_model(device=args.device)
     solver = ImplicitSolver(model)
@@ -82,7 +85,7 @@ def _simulate(args) -> int:
     control = model.control(requires_grad=False)
     iterations = []
     start = time.perf_counter()
-    print(f"{args.scene}: {model.num_bodies} bodies, {frames} frames of {dt} s on {model.device}")
+    print(f"{scene_path}: {model.num_bodies} bodies, {frames} frames of {dt} s on {model.device}")
     for frame in range(frames):
         nxt = model.state(requires_grad=False)
         try:
@@ -96,8 +99,6 @@ def _simulate(args) -> int:
             print(f"  frame {frame + 1:4d}/{frames}  Newton iterations {info.iterations:3d}  min separation {info.min_separation:.2e} m")
     seconds = time.perf_counter() - start
     q = np.array([s.body_q.numpy() for s in states])
-    out.mkdir(parents=True, exist_ok=True)
-    trajectory = out / "trajectory.usda"
     io.export_trajectory(scene, io.model_to_scene_poses(scene, model, q), trajectory, overwrite=args.overwrite)
     targets = {
         b.name: {"target": b.target_position.tolist(), "final": q[-1, i, :3].tolist(), "distance": float(np.linalg.norm(q[-1, i, :3] - b.target_position))}
@@ -105,7 +106,7 @@ def _simulate(args) -> int:
         if b.target_position is not None
     }
     summary = {
-        "scene": str(args.scene),
+        "scene": str(scene_path),
         "device": str(model.device),
         "frames": frames,
         "time_step": dt,
@@ -153,7 +154,6 @@ def _load_task(args):
     from .tasks import TaskSettings, sample_box, validate_task
 
     resolve_device(args.device)
-    _output_folder(args.out)
     scene_path = _resolve_scene_path(args.task)
     scene = io.load_scene(scene_path)
     validate_task(scene)
@@ -565,7 +565,7 @@ def build_parser() -> argparse.ArgumentParser:
     listing.set_defaults(func=_list)
 
     simulate = sub.add_parser("simulate", help="simulate a USD scene and export its trajectory")
-    simulate.add_argument("scene", help="a .usda scene (e.g. scenes/push.usda)")
+    simulate.add_argument("scene", help="a shipped scene's name (warpcontact list) or a .usda scene")
     simulate.add_argument("--frames", type=_positive_int, default=None, help="default: the scene's warpcontact:frames")
     simulate.add_argument("--device", default="cpu")
     simulate.add_argument("--out", default="outputs/simulate")
@@ -641,6 +641,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        if getattr(args, "out", None) is not None:
+            _output_folder(args.out)  # every command that writes checks its folder before any work
         return args.func(args)
     except FileExistsError as exc:
         print(f"error: {exc} (use --overwrite)", file=sys.stderr)
