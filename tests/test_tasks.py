@@ -386,9 +386,8 @@ def test_cli_task_errors_are_clear(tmp_path, capsys, command):
 def test_cli_stride_reaches_the_settings_and_is_checked_against_the_window(tmp_path, capsys):
     assert main(["run", "push", "--stride", "49", "--out", str(tmp_path)]) == 2
     assert "--stride must be >= 1 and at most the window (48), got 49" in capsys.readouterr().err
-    scene = space_billiards()
-    scene.bodies[0].control_dofs = ("x", "y")
-    scene.task.control, scene.task.horizon, scene.task.receding_horizon = "pd_targets", 4, 2
+    scene = _pd_space_billiards()
+    scene.task.horizon, scene.task.receding_horizon = 4, 2
     scene_path = tmp_path / "receding.usda"
     io.save_scene(scene, scene_path)
     assert main(["run", str(scene_path), "--stride", "2", "--iters", "1", "--out", str(tmp_path / "out")]) == 0
@@ -499,7 +498,7 @@ def test_initial_samples_start_the_descent_at_the_best_draw():
         (lambda s: setattr(s.task, "sample_high", (1.0, 1.0, 1.0)), "sampleHigh has 3 values for the 4 control DOFs"),
         (lambda s: setattr(s.task, "sample_low", (0.0, 0.0, np.nan, 0.0)), "sampleLow must be finite"),
         (lambda s: setattr(s.task, "sample_low", (0.5, -0.3, 0.0, -1.0)), "exceeds warpcontact:task:sampleHigh"),
-        (lambda s: setattr(s.task, "control", "pd_targets"), "this task's control is 'pd_targets'"),
+        (lambda s: (setattr(s.task, "control", "pd_targets"), setattr(s.bodies[0], "control_dofs", ("x", "y")), setattr(s.bodies[0], "kp_linear", np.full(3, 100.0))), "this task's control is 'pd_targets'"),
     ],
 )
 def test_initial_samples_need_a_valid_box(change, message):
@@ -539,6 +538,28 @@ def _pd_space_billiards():
     scene.bodies[0].kp_linear = np.full(3, 100.0)
     scene.task.control = "pd_targets"
     return scene
+
+
+@pytest.mark.parametrize(
+    "dofs, control, match",
+    [
+        (("x", "x"), "pd_targets", r"\['x'\] control the same coordinate more than once"),
+        (("yaw", "rz"), "pd_targets", r"\['rz', 'yaw'\] control the same coordinate more than once"),
+        (("x", "vx"), "pd_targets", r"\['vx'\] are initial velocities, which pd_targets control does not use"),
+        (("x", "yaw"), "pd_targets", r"the PD targets of \['yaw'\] move nothing"),
+        (("x", "spin"), "initial_state", r"unknown control dofs \['spin'\]"),
+    ],
+)
+def test_control_dofs_that_move_nothing_are_refused(dofs, control, match):
+    """Every decision variable must move the controlled body; otherwise its gradient is zero
+    and the run would silently optimise nothing."""
+    scene = _pd_space_billiards()  # kp_linear 100, kp_angular 0
+    scene.bodies[0].control_dofs = dofs
+    scene.task.control = control
+    with pytest.raises(ValueError, match=r"prim /World/cue: warpcontact:control:dofs: " + match):
+        TaskProblem(scene)
+    scene.bodies[0].control_dofs = ("x", "y", "vx") if control == "initial_state" else ("x", "y")
+    TaskProblem(scene)  # the same body with dofs that move it
 
 
 _CHECKPOINTED_RUNS = {

@@ -27,7 +27,8 @@ warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``Body
         warpcontact:target:position (double3, m)  warpcontact:target:tolerance (double, m)
         warpcontact:pd:kpLinear (double3)         warpcontact:pd:kdLinear (double3)
         warpcontact:pd:kpAngular (double)         warpcontact:pd:kdAngular (double)
-        warpcontact:control:dofs (string[]: any of x y z rx ry rz yaw, the optimised DOFs)
+        warpcontact:control:dofs (string[]: the optimised DOFs, each once: x y z rx ry rz
+            yaw (= rz), and vx vy vz for initial_state control; a PD target needs PD stiffness)
         warpcontact:group (int, e.g. the label of a Sort cube)
 
 Primitive colliders are triangulated: Cube exactly (12 triangles), Sphere as an icosphere

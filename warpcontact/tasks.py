@@ -363,7 +363,8 @@ def validate_task(scene) -> tuple:
     """(controlled body index or None for joint_sine tasks, target body indices) of a task scene.
 
     Raises ValueError when the scene has no task metadata, no target bodies, no or several
-    controlled bodies, or an unknown control kind.
+    controlled bodies, an unknown control kind, or control dofs that are unknown, repeated,
+    or (for PD targets) velocities or coordinates without PD stiffness.
     """
     source = scene.source or "<scene>"
     task = scene.task
@@ -374,10 +375,39 @@ def validate_task(scene) -> tuple:
     controlled = [i for i, b in enumerate(scene.bodies) if b.control_dofs]
     if task.control != "joint_sine" and len(controlled) != 1:
         raise ValueError(f"{source}: expected exactly one body with warpcontact:control:dofs, found {len(controlled)}")
+    if controlled and task.control != "joint_sine":
+        _check_control_dofs(scene.bodies[controlled[0]], task.control, source)
     targets = [i for i, b in enumerate(scene.bodies) if b.target_position is not None]
     if not targets:
         raise ValueError(f"{source}: no target bodies (warpcontact:target:position)")
     return (controlled[0] if controlled else None), targets
+
+
+_VELOCITY_DOFS = ("vx", "vy", "vz")
+_ROTATION_DOFS = ("rx", "ry", "rz", "yaw")
+
+
+def _check_control_dofs(body, control: str, source: str):
+    """Every decision variable of ``body`` must move something: known, not repeated (``yaw``
+    is ``rz``), and for PD targets a position or rotation the body's PD gains drive."""
+    where = f"{source}: prim {body.path}: warpcontact:control:dofs"
+    dofs = tuple(body.control_dofs)
+    unknown = [d for d in dofs if d not in task_kernels.DOF_CODES]
+    if unknown:
+        raise ValueError(f"{where}: unknown control dofs {unknown} (known: {', '.join(task_kernels.DOF_CODES)})")
+    axes = ["rz" if d == "yaw" else d for d in dofs]
+    repeated = sorted({d for d, a in zip(dofs, axes) if axes.count(a) > 1})
+    if repeated:
+        raise ValueError(f"{where}: {repeated} control the same coordinate more than once")
+    if control != "pd_targets":
+        return
+    velocities = [d for d in dofs if d in _VELOCITY_DOFS]
+    if velocities:
+        raise ValueError(f"{where}: {velocities} are initial velocities, which pd_targets control does not use")
+    kp_linear = np.broadcast_to(np.asarray(body.kp_linear, dtype=np.float64), (3,))
+    undriven = [d for d in dofs if (d in _ROTATION_DOFS and not body.kp_angular > 0) or (d in "xyz" and not kp_linear["xyz".index(d)] > 0)]
+    if undriven:
+        raise ValueError(f"{where}: the PD targets of {undriven} move nothing, since the body's PD stiffness there is 0 (warpcontact:pd:kpLinear / kpAngular)")
 
 
 class TaskProblem:
@@ -443,9 +473,6 @@ class TaskProblem:
         else:
             self.body = controlled
             body = scene.bodies[self.body]
-            unknown = [d for d in body.control_dofs if d not in task_kernels.DOF_CODES]
-            if unknown:
-                raise ValueError(f"{source}: prim {body.path}: unknown control dofs {unknown}")
             self.dof_names = tuple(body.control_dofs)
             self.base_pose = self.model.initial_q[self.body].copy()
             self._dof_codes = wp.array([task_kernels.DOF_CODES[d] for d in self.dof_names], dtype=wp.int32, device=device)
