@@ -175,7 +175,9 @@ def test_simulate_writes_trajectory_and_summary(tmp_path, capsys):
     assert main(args + ["--overwrite"]) == 0
     by_name = ["simulate", "push", "--frames", "1", "--out", str(tmp_path / "named")]
     assert main(by_name) == 0
-    assert json.loads((tmp_path / "named" / "summary.json").read_text())["scene"] == str(SCENES / "push.usda")
+    from warpcontact.scenes import shipped_scene
+
+    assert json.loads((tmp_path / "named" / "summary.json").read_text())["scene"] == str(shipped_scene("push"))
 
 
 @pytest.mark.parametrize(
