@@ -226,6 +226,13 @@ def _author(path, edit):
         (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:contactStiffness", Sdf.ValueTypeNames.Double).Set(-1.0), r"prim /World/physicsScene: warpcontact:contactStiffness must be positive and finite, got -1.0"),
         (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:timeStep", Sdf.ValueTypeNames.String).Set("fast"), r"prim /World/physicsScene: warpcontact:timeStep must be a number, got 'fast'"),
         (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:task:horizon", Sdf.ValueTypeNames.String).Set("long"), r"prim /World/physicsScene: warpcontact:task:horizon must be an integer, got 'long'"),
+        (lambda st: st.GetPrimAtPath("/World/box").CreateAttribute("warpcontact:pd:kpLinear", Sdf.ValueTypeNames.DoubleArray).Set([1.0, 2.0]), r"prim /World/box: warpcontact:pd:kpLinear must be 1 or 3 numbers"),
+        (lambda st: st.GetPrimAtPath("/World/box").CreateAttribute("warpcontact:control:dofs", Sdf.ValueTypeNames.String).Set("x"), r"prim /World/box: warpcontact:control:dofs must be a list of strings, got 'x'"),
+        (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:timestep", Sdf.ValueTypeNames.Double).Set(0.01), r"prim /World/physicsScene: unknown attribute warpcontact:timestep here \(did you mean warpcontact:timeStep\?\)"),
+        (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:task:learningrate", Sdf.ValueTypeNames.Double).Set(0.1), r"prim /World/physicsScene: unknown attribute warpcontact:task:learningrate here \(did you mean warpcontact:task:learningRate\?\)"),
+        (lambda st: st.GetPrimAtPath("/World/ground").CreateAttribute("warpcontact:target:position", Sdf.ValueTypeNames.Double3).Set(Gf.Vec3d(1, 0, 0)), r"prim /World/ground: unknown attribute warpcontact:target:position here \(it belongs on a rigid-body prim\)"),
+        (lambda st: st.GetPrimAtPath("/World/box").CreateAttribute("warpcontact:frames", Sdf.ValueTypeNames.Int).Set(3), r"prim /World/box: unknown attribute warpcontact:frames here \(it belongs on the PhysicsScene prim\)"),
+        (lambda st: st.GetPrimAtPath("/World/box/shape").CreateAttribute("warpcontact:spin", Sdf.ValueTypeNames.Int).Set(3), r"prim /World/box/shape: unknown attribute warpcontact:spin here \(see the namespace"),
     ],
 )
 def test_bad_values_name_the_file_prim_and_attribute(tmp_path, edit, match):

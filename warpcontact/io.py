@@ -12,6 +12,7 @@ warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``Body
         warpcontact:friction (double)             warpcontact:frictionSmoothing (double, m/s)
         warpcontact:contactMode (token: bsh | brute | ipc | sdrs)
         warpcontact:centredWeight (token: paper | pairs)
+        warpcontact:leafPrecision (token: float64 | float32)
         warpcontact:task:name (string)            warpcontact:task:control (token)
         warpcontact:task:horizon (int)            warpcontact:task:recedingHorizon (int)
         warpcontact:task:learningRate (double)    warpcontact:task:iterations (int)
@@ -30,6 +31,9 @@ warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``Body
         warpcontact:control:dofs (string[]: the optimised DOFs, each once: x y z rx ry rz
             yaw (= rz), and vx vy vz for initial_state control; a PD target needs PD stiffness)
         warpcontact:group (int, e.g. the label of a Sort cube)
+
+Any other warpcontact: attribute, or one on another kind of prim, is an error naming it (a
+typo would otherwise fall back to the default silently).
 
 Primitive colliders are triangulated: Cube exactly (12 triangles), Sphere as an icosphere
 with ``SPHERE_SUBDIVISIONS`` = 2 (320 triangles), Capsule and Cylinder with 32 segments; use
@@ -447,6 +451,7 @@ def load_scene(path) -> Scene:
         if names.count(b.name) > 1:
             b.name = b.path.strip("/").replace("/", "_")
 
+    _check_namespace(stage, scene_prim, bodies, source)
     settings = SimulationSettings()
     task = TaskSpec()
     if scene_prim is not None:
@@ -635,16 +640,7 @@ def _read_warpcontact_body(prim, body: BodySpec, meters: float, source: str):
             raise ValueError(f"{where}: warpcontact:target:position must be finite, got {body.target_position.tolist()}")
         if not np.isfinite(body.target_tolerance) or body.target_tolerance < 0:
             raise ValueError(f"{where}: warpcontact:target:tolerance must be >= 0 and finite, got {body.target_tolerance}")
-    for field_name, attr_name in (("kp_linear", "pd:kpLinear"), ("kd_linear", "pd:kdLinear")):
-        value = _attr(prim, _NS + attr_name)
-        if value is not None:
-            setattr(body, field_name, np.asarray(value, dtype=np.float64))
-    body.kp_angular = float(_attr(prim, _NS + "pd:kpAngular", 0.0))
-    body.kd_angular = float(_attr(prim, _NS + "pd:kdAngular", 0.0))
-    dofs = _attr(prim, _NS + "control:dofs")
-    if dofs is not None:
-        body.control_dofs = tuple(str(d) for d in dofs)
-    body.group = int(_attr(prim, _NS + "group", -1))
+    _read_casts(prim, body, _BODY_ATTRIBUTES, source)
 
 
 def _read_casts(prim, target, casts: dict, source: str):
@@ -656,23 +652,90 @@ def _read_casts(prim, target, casts: dict, source: str):
         try:
             setattr(target, field_name, cast(value))
         except (TypeError, ValueError):
-            kind = {int: "an integer", float: "a number"}.get(cast, cast.__name__)
+            kind = {int: "an integer", float: "a number", _vector3: "1 or 3 numbers", _strings: "a list of strings"}.get(cast, cast.__name__)
             raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:{attr_name} must be {kind}, got {value!r}") from None
 
 
+def _vector3(value) -> np.ndarray:
+    """Three numbers, or one for all three axes."""
+    vector = np.asarray(value, dtype=np.float64)
+    if vector.shape not in ((), (3,)):
+        raise ValueError(value)
+    return np.broadcast_to(vector, (3,)).copy()
+
+
+def _strings(value) -> tuple:
+    if isinstance(value, str):
+        raise ValueError(value)
+    return tuple(str(v) for v in value)
+
+
+# The warpcontact: namespace (module docstring): attribute -> (field, cast) on the PhysicsScene
+# prim (settings, task) and on rigid-body prims; target:position and task:sample* are read
+# apart (units, tuples).
+_SETTING_ATTRIBUTES = {
+    "timeStep": ("time_step", float),
+    "frames": ("frames", int),
+    "contactStiffness": ("contact_stiffness", float),
+    "eps": ("eps", float),
+    "centredWeight": ("centred_weight", str),
+    "leafPrecision": ("leaf_precision", str),
+    "friction": ("friction", float),
+    "frictionSmoothing": ("friction_smoothing", float),
+    "contactMode": ("contact_mode", str),
+}
+_TASK_ATTRIBUTES = {
+    "task:name": ("name", str),
+    "task:control": ("control", str),
+    "task:horizon": ("horizon", int),
+    "task:recedingHorizon": ("receding_horizon", int),
+    "task:learningRate": ("learning_rate", float),
+    "task:iterations": ("iterations", int),
+    "task:recedingStride": ("receding_stride", int),
+    "task:quick:horizon": ("quick_horizon", int),
+    "task:quick:recedingHorizon": ("quick_receding_horizon", int),
+    "task:quick:learningRate": ("quick_learning_rate", float),
+    "task:quick:iterations": ("quick_iterations", int),
+    "task:quick:recedingStride": ("quick_receding_stride", int),
+}
+_BODY_ATTRIBUTES = {
+    "pd:kpLinear": ("kp_linear", _vector3),
+    "pd:kdLinear": ("kd_linear", _vector3),
+    "pd:kpAngular": ("kp_angular", float),
+    "pd:kdAngular": ("kd_angular", float),
+    "control:dofs": ("control_dofs", _strings),
+    "group": ("group", int),
+}
+_SCENE_PRIM_NAMES = (*_SETTING_ATTRIBUTES, *_TASK_ATTRIBUTES, "task:sampleLow", "task:sampleHigh")
+_BODY_PRIM_NAMES = (*_BODY_ATTRIBUTES, "target:position", "target:tolerance")
+
+
+def _check_namespace(stage, scene_prim, body_paths, source: str):
+    """Every authored warpcontact: attribute must be one this module reads, on the kind of
+    prim it is read from; a typo or a misplaced attribute would otherwise be ignored."""
+    import difflib
+
+    scene_path = str(scene_prim.GetPath()) if scene_prim is not None else None
+    for prim in stage.Traverse():
+        path = str(prim.GetPath())
+        known = _SCENE_PRIM_NAMES if path == scene_path else _BODY_PRIM_NAMES if path in body_paths else ()
+        for attr in prim.GetAuthoredAttributes():
+            name = attr.GetName()
+            if not name.startswith(_NS) or name[len(_NS) :] in known:
+                continue
+            short = name[len(_NS) :]
+            if short in _SCENE_PRIM_NAMES:
+                hint = "it belongs on the PhysicsScene prim"
+            elif short in _BODY_PRIM_NAMES:
+                hint = "it belongs on a rigid-body prim"
+            else:
+                close = difflib.get_close_matches(short, _SCENE_PRIM_NAMES + _BODY_PRIM_NAMES, n=1)
+                hint = f"did you mean {_NS}{close[0]}?" if close else "see the namespace in warpcontact/io.py"
+            raise ValueError(f"{source}: prim {path}: unknown attribute {name} here ({hint})")
+
+
 def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: str):
-    casts = {
-        "timeStep": ("time_step", float),
-        "frames": ("frames", int),
-        "contactStiffness": ("contact_stiffness", float),
-        "eps": ("eps", float),
-        "centredWeight": ("centred_weight", str),
-        "leafPrecision": ("leaf_precision", str),
-        "friction": ("friction", float),
-        "frictionSmoothing": ("friction_smoothing", float),
-        "contactMode": ("contact_mode", str),
-    }
-    _read_casts(prim, settings, casts, source)
+    _read_casts(prim, settings, _SETTING_ATTRIBUTES, source)
     where = f"{source}: prim {prim.GetPath()}"
     if settings.time_step <= 0 or not np.isfinite(settings.time_step):
         raise ValueError(f"{where}: warpcontact:timeStep must be positive, got {settings.time_step}")
@@ -685,21 +748,7 @@ def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: s
         raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:centredWeight must be one of {CENTRED_WEIGHTS}, got {settings.centred_weight!r}")
     if settings.leaf_precision not in LEAF_PRECISIONS:
         raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:leafPrecision must be one of {LEAF_PRECISIONS}, got {settings.leaf_precision!r}")
-    task_casts = {
-        "task:name": ("name", str),
-        "task:control": ("control", str),
-        "task:horizon": ("horizon", int),
-        "task:recedingHorizon": ("receding_horizon", int),
-        "task:learningRate": ("learning_rate", float),
-        "task:iterations": ("iterations", int),
-        "task:recedingStride": ("receding_stride", int),
-        "task:quick:horizon": ("quick_horizon", int),
-        "task:quick:recedingHorizon": ("quick_receding_horizon", int),
-        "task:quick:learningRate": ("quick_learning_rate", float),
-        "task:quick:iterations": ("quick_iterations", int),
-        "task:quick:recedingStride": ("quick_receding_stride", int),
-    }
-    _read_casts(prim, task, task_casts, source)
+    _read_casts(prim, task, _TASK_ATTRIBUTES, source)
     for attr_name, field_name in (("task:sampleLow", "sample_low"), ("task:sampleHigh", "sample_high")):
         value = _attr(prim, _NS + attr_name)
         if value is not None:
