@@ -289,6 +289,19 @@ def test_cli_run_writes_metrics_plot_and_trajectory(tmp_path):
     assert Usd.Stage.Open(str(tmp_path / "out" / "trajectory.usda")).GetEndTimeCode() == 15
 
 
+def test_cli_run_keeps_an_earlier_runs_results_unless_told(tmp_path, capsys):
+    scene_path = tmp_path / "space.usda"
+    io.save_scene(space_billiards(), scene_path)
+    argv = ["run", str(scene_path), "--iters", "1", "--out", str(tmp_path / "out")]
+    assert main(argv) == 0
+    before = (tmp_path / "out" / "metrics.json").read_text()
+    assert main(argv + ["--iters", "2"]) == 2
+    assert "metrics.json holds an earlier run's results (use --overwrite)" in capsys.readouterr().err
+    assert (tmp_path / "out" / "metrics.json").read_text() == before
+    assert main(argv + ["--iters", "2", "--overwrite"]) == 0
+    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["iterations"] == 2
+
+
 def test_cli_run_accepts_baselines_and_seed(tmp_path):
     scene_path = tmp_path / "space.usda"
     io.save_scene(space_billiards(), scene_path)
@@ -332,7 +345,11 @@ def test_cli_compare_runs_baselines_with_friction_and_reports_models_that_cannot
         return real(scene, settings, model, args)
 
     monkeypatch.setattr(cli, "_task_problem", sdrs_cannot_run)
-    assert main(argv + ["--frictionless"]) == 0
+    before = (tmp_path / "cmp" / "compare.json").read_text()
+    assert main(argv + ["--frictionless"]) == 2  # the first comparison's results stay
+    assert "compare.json holds an earlier run's results (use --overwrite)" in capsys.readouterr().err
+    assert (tmp_path / "cmp" / "compare.json").read_text() == before
+    assert main(argv + ["--frictionless", "--overwrite"]) == 0
     data = json.loads((tmp_path / "cmp" / "compare.json").read_text())
     assert data["frictionless"] and "loss_history" in data["models"]["ours"]
     assert "cannot run" in data["models"]["sdrs"]["error"]

@@ -17,6 +17,8 @@ __all__ = ["main"]
 
 # The file in a run's output folder that keeps its progress (``tasks.TaskCheckpoint``).
 CHECKPOINT_NAME = "checkpoint.npz"
+RUN_OUTPUTS = ("metrics.json", "trajectory.usda", "convergence.png")
+COMPARE_OUTPUTS = ("compare.json", "compare.png")
 
 
 def _demo(args) -> int:
@@ -164,6 +166,14 @@ def _load_task(args):
     return scene_path, scene, settings
 
 
+def _refuse_earlier_results(out: Path, names: tuple, args):
+    """FileExistsError when OUT holds an earlier run's results and --overwrite is not given:
+    a task run can take hours, and its results are not to be replaced by accident."""
+    for name in names:
+        if (out / name).exists() and not args.overwrite:
+            raise FileExistsError(f"{out / name} holds an earlier run's results")
+
+
 def _task_problem(scene, settings, model: str, args):
     """The TaskProblem of one model; gb's bundle is seeded by --seed (4 samples with --quick);
     ipc's barrier stiffness is --ipc-stiffness in place of the scene's mu."""
@@ -220,6 +230,8 @@ def _run(args) -> int:
     checkpoint = TaskCheckpoint(out / CHECKPOINT_NAME)
     if checkpoint.exists() and not args.resume:
         raise ValueError(f"{checkpoint.path} holds an unfinished run ({checkpoint.describe()}): continue it with --resume, or remove the file to start over")
+    if not args.resume:  # a resumed run continues the one that was allowed to start here
+        _refuse_earlier_results(out, RUN_OUTPUTS, args)
     resumed = f", resumed from {checkpoint.path} ({checkpoint.describe()})" if args.resume else ""
     problem = _task_problem(scene, settings, args.model, args)
     t = scene.task
@@ -259,6 +271,7 @@ def _compare(args) -> int:
 
     scene_path, scene, settings = _load_task(args)
     out = Path(args.out)
+    _refuse_earlier_results(out, COMPARE_OUTPUTS, args)
     if args.frictionless:
         scene.settings.friction = 0.0
     t = scene.task
@@ -532,6 +545,7 @@ def _add_task_arguments(parser, default_out: str):
         help=f"barrier stiffness of the ipc model, in place of the scene's mu (sized for ours; far too soft for IPC's barrier); default {IPC_TASK_STIFFNESS:g}",
     )
     parser.add_argument("--out", default=default_out)
+    parser.add_argument("--overwrite", action="store_true", help="replace the results of an earlier run in OUT")
 
 
 def build_parser() -> argparse.ArgumentParser:
