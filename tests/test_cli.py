@@ -182,9 +182,11 @@ def test_simulate_writes_trajectory_and_summary(tmp_path, capsys):
 
 @pytest.mark.parametrize(
     "argv",
-    [["demo", "--gaps", "0.1"], ["simulate", "push", "--frames", "1"], ["bench", "leaf", "--pairs", "2"], ["bench", "scaling", "--points", "18"], ["run", "push", "--iters", "1"]],
+    [["demo", "--gaps", "0.1"], ["simulate", "push", "--frames", "1"], ["bench", "leaf", "--pairs", "2"], ["bench", "scaling", "--points", "18"], ["run", "push", "--quick", "--iters", "1"], ["compare", "push", "--quick", "--iters", "1", "--models", "sdrs"]],
 )
 def test_commands_check_their_output_folder_before_any_work(tmp_path, capsys, argv):
+    """An uncreatable folder, a file in its place, and earlier results (kept unless
+    --overwrite) all stop a command before it starts."""
     blocker = tmp_path / "file"
     blocker.write_text("keep")
     assert main(argv + ["--out", str(blocker / "sub")]) == 2
@@ -192,6 +194,13 @@ def test_commands_check_their_output_folder_before_any_work(tmp_path, capsys, ar
     assert main(argv + ["--out", str(blocker)]) == 2
     assert "output path exists and is not a folder" in capsys.readouterr().err
     assert blocker.read_text() == "keep"
+    out = tmp_path / "out"
+    assert main(argv + ["--out", str(out)]) == 0
+    written = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    assert main(argv + ["--out", str(out)]) == 2
+    assert "holds an earlier run's results (use --overwrite)" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == written
+    assert main(argv + ["--out", str(out), "--overwrite"]) == 0
 
 
 def test_shipped_scenes_are_found_from_any_folder(tmp_path, monkeypatch, capsys):

@@ -544,7 +544,7 @@ def test_cli_init_samples_round_trip_the_box_and_record_the_draws(tmp_path, caps
     assert metrics["initial_loss"] == min(s["loss"] for s in metrics["initial_samples"])
     plain = tmp_path / "plain.usda"
     io.save_scene(space_billiards(), plain)
-    assert main(["run", str(plain), "--init-samples", "3", "--out", str(out)]) == 2
+    assert main(["run", str(plain), "--init-samples", "3", "--out", str(tmp_path / "out2")]) == 2
     assert "need warpcontact:task:sampleLow" in capsys.readouterr().err
 
 

@@ -17,8 +17,6 @@ __all__ = ["main"]
 
 # The file in a run's output folder that keeps its progress (``tasks.TaskCheckpoint``).
 CHECKPOINT_NAME = "checkpoint.npz"
-RUN_OUTPUTS = ("metrics.json", "trajectory.usda", "convergence.png")
-COMPARE_OUTPUTS = ("compare.json", "compare.png")
 
 
 def _demo(args) -> int:
@@ -73,8 +71,6 @@ def _simulate(args) -> int:
 
     out = Path(args.out)
     trajectory = out / "trajectory.usda"
-    if trajectory.exists() and not args.overwrite:
-        raise FileExistsError(f"{trajectory} exists")
     scene_path = _resolve_scene_path(args.scene)
     scene = io.load_scene(scene_path)
     frames = args.frames or scene.settings.frames
@@ -168,7 +164,8 @@ def _load_task(args):
 
 def _refuse_earlier_results(out: Path, names: tuple, args):
     """FileExistsError when OUT holds an earlier run's results and --overwrite is not given:
-    a task run can take hours, and its results are not to be replaced by accident."""
+    a task run or a GPU benchmark can take hours, and its results are not to be replaced by
+    accident."""
     for name in names:
         if (out / name).exists() and not args.overwrite:
             raise FileExistsError(f"{out / name} holds an earlier run's results")
@@ -230,8 +227,6 @@ def _run(args) -> int:
     checkpoint = TaskCheckpoint(out / CHECKPOINT_NAME)
     if checkpoint.exists() and not args.resume:
         raise ValueError(f"{checkpoint.path} holds an unfinished run ({checkpoint.describe()}): continue it with --resume, or remove the file to start over")
-    if not args.resume:  # a resumed run continues the one that was allowed to start here
-        _refuse_earlier_results(out, RUN_OUTPUTS, args)
     resumed = f", resumed from {checkpoint.path} ({checkpoint.describe()})" if args.resume else ""
     problem = _task_problem(scene, settings, args.model, args)
     t = scene.task
@@ -271,7 +266,6 @@ def _compare(args) -> int:
 
     scene_path, scene, settings = _load_task(args)
     out = Path(args.out)
-    _refuse_earlier_results(out, COMPARE_OUTPUTS, args)
     if args.frictionless:
         scene.settings.friction = 0.0
     t = scene.task
@@ -520,7 +514,7 @@ def _model_list(text: str) -> list:
     return list(dict.fromkeys(models))
 
 
-def _add_task_arguments(parser, default_out: str):
+def _add_task_arguments(parser):
     parser.add_argument("task", help="a shipped scene's name (warpcontact list) or a .usda with task metadata")
     parser.add_argument("--iters", type=_positive_int, default=None, help="optimiser iterations (per window)")
     parser.add_argument(
@@ -544,8 +538,14 @@ def _add_task_arguments(parser, default_out: str):
         default=IPC_TASK_STIFFNESS,
         help=f"barrier stiffness of the ipc model, in place of the scene's mu (sized for ours; far too soft for IPC's barrier); default {IPC_TASK_STIFFNESS:g}",
     )
+
+
+def _writes(parser, default_out: str, *outputs: str):
+    """--out (default ``default_out``) and --overwrite of a command that writes ``outputs``
+    there; ``main`` refuses to replace them unless told."""
     parser.add_argument("--out", default=default_out)
-    parser.add_argument("--overwrite", action="store_true", help="replace the results of an earlier run in OUT")
+    parser.add_argument("--overwrite", action="store_true", help=f"replace an earlier run's {', '.join(outputs)} in OUT")
+    parser.set_defaults(outputs=outputs)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -556,11 +556,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--subdivisions", type=int, default=1, choices=range(0, 4))
     demo.add_argument("--gaps", type=_positive_float, nargs="+", default=[1.0, 0.1, 1e-2, 1e-4])
     demo.add_argument("--device", default="cpu")
-    demo.add_argument("--out", default="outputs/demo")
+    _writes(demo, "outputs/demo", "demo.json")
     demo.set_defaults(func=_demo)
 
     run = sub.add_parser("run", help="optimise a task by gradient descent through the simulator")
-    _add_task_arguments(run, "outputs/run")
+    _add_task_arguments(run)
+    _writes(run, "outputs/run", "metrics.json", "trajectory.usda", "convergence.png")
     run.add_argument("--model", default="ours", choices=MODELS)
     run.add_argument(
         "--resume",
@@ -570,7 +571,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(func=_run)
 
     compare = sub.add_parser("compare", help="optimise a task with several models from the same initial guess; one convergence plot")
-    _add_task_arguments(compare, "outputs/compare")
+    _add_task_arguments(compare)
+    _writes(compare, "outputs/compare", "compare.json", "compare.png")
     compare.add_argument("--models", type=_model_list, default=list(MODELS), help=f"comma-separated subset of {','.join(MODELS)} (default: all)")
     compare.add_argument("--frictionless", action="store_true", help="set the scene's friction to 0 for every model")
     compare.set_defaults(func=_compare)
@@ -582,8 +584,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("scene", help="a shipped scene's name (warpcontact list) or a .usda scene")
     simulate.add_argument("--frames", type=_positive_int, default=None, help="default: the scene's warpcontact:frames")
     simulate.add_argument("--device", default="cpu")
-    simulate.add_argument("--out", default="outputs/simulate")
-    simulate.add_argument("--overwrite", action="store_true", help="replace an existing trajectory.usda")
+    _writes(simulate, "outputs/simulate", "trajectory.usda", "summary.json")
     simulate.set_defaults(func=_simulate)
 
     bench = sub.add_parser("bench", help="benchmarks writing JSON results")
@@ -593,7 +594,7 @@ def build_parser() -> argparse.ArgumentParser:
     leaf.add_argument("--repeats", type=_positive_int, default=5)
     leaf.add_argument("--precisions", nargs="+", choices=LEAF_PRECISIONS, default=list(LEAF_PRECISIONS), help="plane search precisions; rows after the first give errors against it")
     leaf.add_argument("--device", default="cpu")
-    leaf.add_argument("--out", default="outputs/bench")
+    _writes(leaf, "outputs/bench", "leaf.json", "leaf.csv")
     leaf.set_defaults(func=_bench_leaf)
     contact = bench_sub.add_parser("contact", help="BSH speed vs force error against brute force (eps sweep)")
     contact.add_argument("--eps", type=_positive_float, nargs="+", default=[0.01, 0.1, 0.5, 1.0, 2.0, 10.0])
@@ -603,7 +604,7 @@ def build_parser() -> argparse.ArgumentParser:
     contact.add_argument("--ipc-dhat", type=float, default=1e-2, help="IPC Toolkit barrier support (m) for the side-by-side ipc rows (CPU); 0 skips them")
     contact.add_argument("--centred-weights", nargs="+", choices=CENTRED_WEIGHTS, default=["paper"], help="centred-term weights of the bsh rows (docs/architecture.md, 'Centred weights')")
     contact.add_argument("--device", default="cpu")
-    contact.add_argument("--out", default="outputs/bench")
+    _writes(contact, "outputs/bench", "contact.json", "contact.csv", "contact.png")
     contact.set_defaults(func=_bench_contact)
     scaling = bench_sub.add_parser("scaling", help="contact cost against triangle count (16-ball rack)")
     scaling.add_argument("--points", type=_positive_int, nargs="+", default=[18, 42, 82, 196], help="points per ball (2N-4 faces)")
@@ -611,7 +612,7 @@ def build_parser() -> argparse.ArgumentParser:
     scaling.add_argument("--brute-max-triangles", type=int, default=2560)
     scaling.add_argument("--repeats", type=_positive_int, default=3)
     scaling.add_argument("--device", default="cpu")
-    scaling.add_argument("--out", default="outputs/bench")
+    _writes(scaling, "outputs/bench", "scaling.json", "scaling.csv", "scaling.png")
     scaling.set_defaults(func=_bench_scaling)
     frame = bench_sub.add_parser("frame", help="per-frame forward, contact, Newton iterations and backward on task scenes")
     frame.add_argument(
@@ -633,7 +634,7 @@ def build_parser() -> argparse.ArgumentParser:
     frame.add_argument("--scene-dir", default=None, help="folder of NAME.usda scenes (default: the shipped scenes)")
     frame.add_argument("--peer-meshes", default="../shared/peer-meshes", help="folder of the paper code base's meshes (18.obj ... 196.obj)")
     frame.add_argument("--device", default="cpu")
-    frame.add_argument("--out", default="outputs/bench")
+    _writes(frame, "outputs/bench", "frame.json", "frame.csv", "frame.png")
     frame.set_defaults(func=_bench_frame)
     accuracy = bench_sub.add_parser("accuracy", help="time against error (eps, solver tolerance) on a small billiards case")
     accuracy.add_argument("--eps", type=_positive_float, nargs="+", default=[0.25, 0.5, 1.0, 2.0, 4.0])
@@ -647,7 +648,7 @@ def build_parser() -> argparse.ArgumentParser:
     accuracy.add_argument("--gap", type=_positive_float, default=0.02)
     accuracy.add_argument("--speed", type=_positive_float, default=1.0)
     accuracy.add_argument("--device", default="cpu")
-    accuracy.add_argument("--out", default="outputs/bench")
+    _writes(accuracy, "outputs/bench", "accuracy.json", "accuracy.csv", "accuracy.png")
     accuracy.set_defaults(func=_bench_accuracy)
     return parser
 
@@ -656,7 +657,11 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         if getattr(args, "out", None) is not None:
-            _output_folder(args.out)  # every command that writes checks its folder before any work
+            # Every command that writes checks its folder and earlier results before any work;
+            # a resumed run continues the one that was allowed to start there.
+            out = _output_folder(args.out)
+            if not getattr(args, "resume", False):
+                _refuse_earlier_results(out, args.outputs, args)
         return args.func(args)
     except FileExistsError as exc:
         print(f"error: {exc} (use --overwrite)", file=sys.stderr)
