@@ -476,9 +476,6 @@ class ImplicitSolver:
             targets = control.body_target
             if not isinstance(targets, wp.array) or targets.shape != (len(q_now),):
                 raise ValueError(f"control.body_target: expected a wp.array of {len(q_now)} wp.transformd, one per body (use model.control())")
-            bad = np.flatnonzero(~np.isfinite(targets.numpy()).all(axis=1))
-            if bad.size:
-                raise ValueError(f"control.body_target: the target of body {self.model.body_names[bad[0]]!r} (index {bad[0]}) is not finite")
         coords_now, joint_target = self._joint_arrays(state_in, state_out, control)
         ball_target, ball_start = self._ball_arrays(control, q_now)
         mu = float(model.contact_stiffness.numpy()[0])
@@ -523,6 +520,11 @@ class ImplicitSolver:
         if art is None and np.isfinite(value):
             q, value, grad, hess, contact, q_lists = self._warm_start(q, value, grad, hess, contact, coords, step_in)
         if not np.isfinite(value):
+            if control is not None:
+                # Read back only on failure: a non-finite PD target is the caller's error.
+                bad = np.flatnonzero(~np.isfinite(control.body_target.numpy()).all(axis=1) & self._dynamic)
+                if bad.size:
+                    raise ValueError(f"control.body_target: the target of body {self.model.body_names[bad[0]]!r} (index {bad[0]}) is not finite")
             raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs}; joint limits reached: {self._limits_reached(coords)})")
         tol = self.tolerance * self._length_scale
         # Steps this short are in Newton's quadratic regime, where Armijo tests only rounding
