@@ -38,6 +38,15 @@ def _second_moment_from_inertia(inertia: np.ndarray) -> np.ndarray:
 
 
 _ARTICULATION_CONTACT = ("nonadjacent", "all", "none")
+
+
+def contact_setting_problem(name: str, value: float) -> str | None:
+    """Why ``value`` is not admissible for the ModelBuilder contact setting ``name``
+    (contact_stiffness, friction, friction_smoothing or eps), or None. One rule for the
+    builder and for ``io.load_scene``, which names the USD attribute."""
+    if name == "friction":
+        return None if np.isfinite(value) and value >= 0 else "must be >= 0 and finite"
+    return None if np.isfinite(value) and value > 0 else "must be positive and finite"
 _IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 
 
@@ -91,14 +100,12 @@ class ModelBuilder:
         gravity = np.asarray(gravity, dtype=np.float64)
         if gravity.shape != (3,) or not np.isfinite(gravity).all():
             raise ValueError(f"gravity: expected 3 finite numbers, got {gravity}")
-        if not np.isfinite(contact_stiffness) or contact_stiffness <= 0:
-            raise ValueError(f"contact_stiffness: must be positive and finite, got {contact_stiffness}")
-        if not np.isfinite(friction) or friction < 0:
-            raise ValueError(f"friction: must be >= 0 and finite, got {friction}")
+        for name, value in (("contact_stiffness", contact_stiffness), ("friction", friction), ("friction_smoothing", friction_smoothing)):
+            problem = contact_setting_problem(name, value)
+            if problem:
+                raise ValueError(f"{name}: {problem}, got {value}")
         self.gravity = gravity
         self.contact_stiffness = float(contact_stiffness)
-        if not np.isfinite(friction_smoothing) or friction_smoothing <= 0:
-            raise ValueError(f"friction_smoothing: must be positive and finite, got {friction_smoothing}")
         self.friction = float(friction)
         self.friction_smoothing = float(friction_smoothing)
         self.eps = eps

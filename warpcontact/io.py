@@ -53,7 +53,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .builder import ModelBuilder
+from .builder import ModelBuilder, contact_setting_problem
 from .contact import CENTRED_WEIGHTS
 from .leaf import LEAF_PRECISIONS
 from .rotation import pose_mul, quat_from_matrix, quat_rotate, quat_to_matrix
@@ -739,15 +739,18 @@ def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: s
     where = f"{source}: prim {prim.GetPath()}"
     if settings.time_step <= 0 or not np.isfinite(settings.time_step):
         raise ValueError(f"{where}: warpcontact:timeStep must be positive, got {settings.time_step}")
-    for attr_name, value, lowest in (("contactStiffness", settings.contact_stiffness, None), ("eps", settings.eps, None), ("friction", settings.friction, 0.0), ("frictionSmoothing", settings.friction_smoothing, None)):
-        if not np.isfinite(value) or (value <= 0 if lowest is None else value < lowest):
-            raise ValueError(f"{where}: warpcontact:{attr_name} must be {'positive' if lowest is None else '>= 0'} and finite, got {value}")
+    for attr_name in ("contactStiffness", "eps", "friction", "frictionSmoothing"):
+        field_name = _SETTING_ATTRIBUTES[attr_name][0]
+        value = getattr(settings, field_name)
+        problem = contact_setting_problem(field_name, value)
+        if problem:
+            raise ValueError(f"{where}: warpcontact:{attr_name} {problem}, got {value}")
     if settings.frames < 1:
-        raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:frames must be >= 1, got {settings.frames}")
+        raise ValueError(f"{where}: warpcontact:frames must be >= 1, got {settings.frames}")
     if settings.centred_weight not in CENTRED_WEIGHTS:
-        raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:centredWeight must be one of {CENTRED_WEIGHTS}, got {settings.centred_weight!r}")
+        raise ValueError(f"{where}: warpcontact:centredWeight must be one of {CENTRED_WEIGHTS}, got {settings.centred_weight!r}")
     if settings.leaf_precision not in LEAF_PRECISIONS:
-        raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:leafPrecision must be one of {LEAF_PRECISIONS}, got {settings.leaf_precision!r}")
+        raise ValueError(f"{where}: warpcontact:leafPrecision must be one of {LEAF_PRECISIONS}, got {settings.leaf_precision!r}")
     _read_casts(prim, task, _TASK_ATTRIBUTES, source)
     for attr_name, field_name in (("task:sampleLow", "sample_low"), ("task:sampleHigh", "sample_high")):
         value = _attr(prim, _NS + attr_name)
