@@ -162,12 +162,12 @@ def _load_task(args):
     return scene_path, scene, settings
 
 
-def _refuse_earlier_results(out: Path, names: tuple, args):
+def _refuse_earlier_results(out: Path, names: tuple, overwrite: bool):
     """FileExistsError when OUT holds an earlier run's results and --overwrite is not given:
     a task run or a GPU benchmark can take hours, and its results are not to be replaced by
     accident."""
     for name in names:
-        if (out / name).exists() and not args.overwrite:
+        if (out / name).exists() and not overwrite:
             raise FileExistsError(f"{out / name} holds an earlier run's results")
 
 
@@ -661,7 +661,7 @@ def main(argv=None) -> int:
             # a resumed run continues the one that was allowed to start there.
             out = _output_folder(args.out)
             if not getattr(args, "resume", False):
-                _refuse_earlier_results(out, args.outputs, args)
+                _refuse_earlier_results(out, args.outputs, args.overwrite)
         return args.func(args)
     except FileExistsError as exc:
         print(f"error: {exc} (use --overwrite)", file=sys.stderr)

@@ -383,6 +383,7 @@ def validate_task(scene) -> tuple:
     return (controlled[0] if controlled else None), targets
 
 
+_POSITION_DOFS = ("x", "y", "z")
 _VELOCITY_DOFS = ("vx", "vy", "vz")
 _ROTATION_DOFS = ("rx", "ry", "rz", "yaw")
 
@@ -405,7 +406,7 @@ def _check_control_dofs(body, control: str, source: str):
     if velocities:
         raise ValueError(f"{where}: {velocities} are initial velocities, which pd_targets control does not use")
     kp_linear = np.broadcast_to(np.asarray(body.kp_linear, dtype=np.float64), (3,))
-    undriven = [d for d in dofs if (d in _ROTATION_DOFS and not body.kp_angular > 0) or (d in "xyz" and not kp_linear["xyz".index(d)] > 0)]
+    undriven = [d for d in dofs if (d in _ROTATION_DOFS and not body.kp_angular > 0) or (d in _POSITION_DOFS and not kp_linear[_POSITION_DOFS.index(d)] > 0)]
     if undriven:
         raise ValueError(f"{where}: the PD targets of {undriven} move nothing, since the body's PD stiffness there is 0 (warpcontact:pd:kpLinear / kpAngular)")
 
