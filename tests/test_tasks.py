@@ -699,6 +699,73 @@ def test_cli_run_reports_a_failed_simulation_without_a_traceback(tmp_path, capsy
     assert "error: the simulation failed: implicit step: no convergence" in capsys.readouterr().err
 
 
+def _failing_from_window(problem, window):
+    """Make the rollouts of ``problem``'s receding windows from the ``window``-th (1-based) on
+    fail as a step that does not converge does."""
+    from warpcontact.solver import SolverError
+
+    objective, windows = problem._objective, []
+
+    def failing(start, frames, rng):
+        windows.append(start)
+        if len(windows) < window:
+            return objective(start, frames, rng)
+
+        def fail(values, gradient=True):
+            raise SolverError("implicit step: no convergence after 500 Newton iterations")
+
+        return fail
+
+    problem._objective = failing
+
+
+def test_a_receding_run_that_cannot_go_on_keeps_the_frames_it_executed(tmp_path):
+    """A window whose carried-over plan cannot be simulated ends the run with the frames
+    executed before it (hours of a long run are not lost with a traceback), says where and
+    why, and claims no success; a trivial guess that cannot be simulated is still an error."""
+    from warpcontact.solver import SolverError
+
+    make_scene, settings, _ = _CHECKPOINTED_RUNS["receding"]
+    full = TaskProblem(make_scene(), settings=settings).optimize()
+    problem = TaskProblem(make_scene(), settings=settings)
+    _failing_from_window(problem, 3)
+    checkpoint = tmp_path / "checkpoint.npz"
+    stopped = problem.optimize(checkpoint=checkpoint)
+    assert stopped.extra["stopped"] == {"frame": 2, "error": "implicit step: no convergence after 500 Newton iterations"}
+    np.testing.assert_array_equal(stopped.trajectory, full.trajectory[:3])
+    assert stopped.loss_history == full.loss_history[: len(stopped.loss_history)] and len(stopped.loss_history) == 2 * settings.iterations
+    assert stopped.final_loss == problem._loss_at(full.trajectory[2]) and not stopped.success and not checkpoint.exists()
+    first = TaskProblem(make_scene(), settings=settings)
+    _failing_from_window(first, 1)
+    with pytest.raises(SolverError, match="no convergence"):
+        first.optimize()
+
+
+def test_cli_run_writes_what_a_stopped_receding_run_executed(tmp_path, capsys, monkeypatch):
+    from warpcontact import tasks
+
+    scene = _pd_space_billiards()
+    scene.task.horizon, scene.task.receding_horizon, scene.task.receding_stride = 5, 2, 1
+    scene_path = tmp_path / "receding.usda"
+    io.save_scene(scene, scene_path)
+    init = tasks.TaskProblem.__init__
+
+    def failing_later(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        _failing_from_window(self, 3)
+
+    monkeypatch.setattr(tasks.TaskProblem, "__init__", failing_later)
+    out = tmp_path / "out"
+    assert main(["run", str(scene_path), "--iters", "2", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "error: the run stopped at frame 2 of 5: the simulation failed: implicit step: no convergence" in err and "Traceback" not in err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["stopped"]["frame"] == 2 and metrics["success"] is False and len(metrics["loss_history"]) == 4
+    stage = Usd.Stage.Open(str(out / "trajectory.usda"))
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0, 2)
+    assert not (out / cli.CHECKPOINT_NAME).exists()
+
+
 def test_a_checkpoint_knows_its_scene_by_content_not_by_path(tmp_path):
     make_scene, settings, _ = _CHECKPOINTED_RUNS["receding"]
     scene = make_scene()

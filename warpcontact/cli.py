@@ -238,7 +238,8 @@ def _run(args) -> int:
         print(f"\ninterrupted: {kept}", file=sys.stderr)
         return 130
     except SolverError as exc:
-        # A window's first rollout failed (later ones are halved back): the descent cannot go on.
+        # The trivial guess failed (later rollouts are halved back, later windows stop the run
+        # with their executed frames): there is nothing to write.
         kept = f"; the progress before it is in {checkpoint.path} ({checkpoint.describe()})" if checkpoint.exists() else ""
         print(f"\nerror: the simulation failed: {exc}{kept}", file=sys.stderr)
         return 1
@@ -258,6 +259,10 @@ def _run(args) -> int:
     plotted = _plot_convergence({args.model: result.loss_history}, out / "convergence.png", title=f"{t.name} ({args.model})")
     io.export_trajectory(scene, io.model_to_scene_poses(scene, problem.model, result.trajectory), out / "trajectory.usda", overwrite=True)
     print(f"loss {result.initial_loss:.6g} -> {result.final_loss:.6g}, success {result.success}, {result.seconds:.1f} s; wrote {out}/metrics.json, trajectory.usda, {_plot_name('convergence.png', plotted)}")
+    stopped = result.extra.get("stopped")
+    if stopped:
+        print(f"error: the run stopped at frame {stopped['frame']} of {settings.horizon}: the simulation failed: {stopped['error']}; its outputs hold the frames executed before it", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -305,7 +310,8 @@ def _compare(args) -> int:
         if "error" in r:
             print(f"{model:>6} {'skipped (see compare.json)':>44}")
         else:
-            print(f"{model:>6} {r['initial_loss']:13.6g} {r['final_loss']:13.6g} {r['success']!s:>8} {r['seconds']:8.1f}")
+            stopped = f"  stopped at frame {r['stopped']['frame']} (see compare.json)" if "stopped" in r else ""
+            print(f"{model:>6} {r['initial_loss']:13.6g} {r['final_loss']:13.6g} {r['success']!s:>8} {r['seconds']:8.1f}{stopped}")
     print(f"wrote {out}/compare.json, {_plot_name('compare.png', plotted)}")
     if not ran:
         print("error: no model could run this scene", file=sys.stderr)

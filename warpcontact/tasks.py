@@ -9,7 +9,9 @@ controlled body whose ``control_dofs`` are the decision variables:
   target pose (translations, rotation vector or yaw), optimised over a receding horizon of
   ``receding_horizon`` frames; the first ``receding_stride`` actions (the paper: 1) are
   applied and the window shifts by as many frames (the rows that enter the window start
-  as copies of the last planned one);
+  as copies of the last planned one). A window whose carried-over plan cannot be simulated
+  ends the run early with the frames executed so far (``extra["stopped"]``: the frame and
+  the simulator's error; no success);
 - control ``"joint_sine"`` (Ant-Push): every actuated joint coordinate (one with a PD gain)
   follows its rest value plus ``SINE_WAVES`` accumulated sine waves; the decision variables
   are each wave's amplitude, frequency and phase (after ChainQueen, as in the paper). The
@@ -152,7 +154,7 @@ class TaskResult:
     iterations: int
     seconds: float
     values: np.ndarray
-    trajectory: np.ndarray  # (frames + 1, nbodies, 7) centre-of-mass poses
+    trajectory: np.ndarray  # (frames + 1, nbodies, 7) centre-of-mass poses; the executed ones when extra["stopped"]
     extra: dict = field(default_factory=dict)
 
 
@@ -634,13 +636,23 @@ class TaskProblem:
         else:
             t, plan, executed = 0, np.zeros((s.horizon + window + stride, len(self.dof_names))), [q0]
         resume = saved
+        stopped = None
         while t < s.horizon:
             # The state at the window's start: the last two executed frames.
             current = (executed[-1], executed[-2]) if len(executed) > 1 else (q0, q0)
             values = plan[t : t + window].copy()
             objective = objective_at(current, window, resume)
             save = saver(objective, frame=t, plan=plan, executed=np.array(executed))
-            best = _descend(objective, values, s, history, progress, total=s.horizon, resume=resume, save=save)
+            try:
+                best = _descend(objective, values, s, history, progress, total=s.horizon, resume=resume, save=save)
+            except (ValueError, SolverError) as exc:
+                if not t:
+                    raise  # the trivial guess itself cannot be simulated
+                # The frames this window adds beyond the last one fail under the plan carried
+                # into it; nothing feasible is left to descend from. The executed frames are
+                # the run's result, not lost with it; resuming would fail the same way.
+                stopped = {"frame": t, "error": str(exc)}
+                break
             resume = None
             plan[t : t + window] = best[1]
             # The rows entering the next window hold the last planned action; zero would
@@ -654,7 +666,9 @@ class TaskProblem:
                 progress(t, s.horizon, history[-1])
         trajectory = np.array(executed)
         final = self._loss_at(trajectory[-1])
-        return TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, plan[: s.horizon], trajectory, extra)
+        if stopped:
+            extra["stopped"] = stopped
+        return TaskResult(history, history[0], final, final == 0.0 and not stopped, len(history), time.perf_counter() - start_time, plan[: s.horizon], trajectory, extra)
 
     def _fingerprint(self) -> dict:
         """What makes two optimisations the same problem (a checkpoint's identity): the task,
