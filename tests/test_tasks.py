@@ -764,6 +764,10 @@ def test_cli_run_writes_what_a_stopped_receding_run_executed(tmp_path, capsys, m
     stage = Usd.Stage.Open(str(out / "trajectory.usda"))
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0, 2)
     assert not (out / cli.CHECKPOINT_NAME).exists()
+    # compare reports the stopped model's row and keeps it in compare.json.
+    assert main(["compare", str(scene_path), "--models", "ours", "--iters", "2", "--out", str(tmp_path / "compare")]) == 0
+    assert "stopped at frame 2 (see compare.json)" in capsys.readouterr().out
+    assert json.loads((tmp_path / "compare" / "compare.json").read_text())["models"]["ours"]["stopped"]["frame"] == 2
 
 
 def test_a_checkpoint_knows_its_scene_by_content_not_by_path(tmp_path):
