@@ -180,6 +180,32 @@ def test_simulate_writes_trajectory_and_summary(tmp_path, capsys):
     assert json.loads((tmp_path / "named" / "summary.json").read_text())["scene"] == str(shipped_scene("push"))
 
 
+def test_simulate_writes_the_frames_before_a_failed_step(tmp_path, capsys, monkeypatch):
+    """A step that fails (here the third) ends the simulation with its earlier frames written
+    and the failure named in summary.json and on stderr, exit status 1."""
+    from warpcontact.solver import ImplicitSolver, SolverError
+
+    step, calls = ImplicitSolver.step, []
+
+    def failing_third(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise SolverError("implicit step: no convergence after 500 Newton iterations")
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(ImplicitSolver, "step", failing_third)
+    assert main(["simulate", "push", "--frames", "5", "--out", str(tmp_path)]) == 1
+    assert "error: frame 2: implicit step: no convergence after 500 Newton iterations; the outputs hold the 2 frames before it" in capsys.readouterr().err
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["frames"] == 2 and summary["stopped"] == {"frame": 2, "error": "implicit step: no convergence after 500 Newton iterations"}
+    assert Usd.Stage.Open(str(tmp_path / "trajectory.usda")).GetEndTimeCode() == 2
+    calls.clear()
+    calls.extend([1, 1])  # the first step fails: the start alone is written
+    assert main(["simulate", "push", "--frames", "5", "--out", str(tmp_path / "first")]) == 1
+    summary = json.loads((tmp_path / "first" / "summary.json").read_text())
+    assert summary["frames"] == 0 and summary["newton_iterations_mean"] is None and summary["stopped"]["frame"] == 0
+
+
 @pytest.mark.parametrize(
     "argv",
     [["demo", "--gaps", "0.1"], ["simulate", "push", "--frames", "1"], ["bench", "leaf", "--pairs", "2"], ["bench", "scaling", "--points", "18"], ["run", "push", "--quick", "--iters", "1"], ["compare", "push", "--quick", "--iters", "1", "--models", "sdrs"]],

@@ -82,6 +82,7 @@ def _simulate(args) -> int:
     set_body_velocity(states[0], wp.array(lin, dtype=wp.vec3d, device=model.device), wp.array(ang, dtype=wp.vec3d, device=model.device), dt)
     control = model.control(requires_grad=False)
     iterations = []
+    stopped = None
     start = time.perf_counter()
     print(f"{scene_path}: {model.num_bodies} bodies, {frames} frames of {dt} s on {model.device}")
     for frame in range(frames):
@@ -89,8 +90,9 @@ def _simulate(args) -> int:
         try:
             info = solver.step(states[-1], nxt, control, dt)
         except SolverError as exc:
-            print(f"error: frame {frame}: {exc}", file=sys.stderr)
-            return 1
+            # The frames before it are written: they are what one looks at to see why.
+            stopped = {"frame": frame, "error": str(exc)}
+            break
         states.append(nxt)
         iterations.append(info.iterations)
         if (frame + 1) % max(1, frames // 10) == 0 or frame + 1 == frames:
@@ -106,15 +108,20 @@ def _simulate(args) -> int:
     summary = {
         "scene": str(scene_path),
         "device": str(model.device),
-        "frames": frames,
+        "frames": len(states) - 1,
         "time_step": dt,
         "seconds": seconds,
-        "newton_iterations_mean": float(np.mean(iterations)),
-        "newton_iterations_max": int(np.max(iterations)),
+        "newton_iterations_mean": float(np.mean(iterations)) if iterations else None,
+        "newton_iterations_max": int(np.max(iterations)) if iterations else None,
         "targets": targets,
+        **({"stopped": stopped} if stopped else {}),
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    print(f"wrote {trajectory} and {out / 'summary.json'} ({seconds:.1f} s, mean {np.mean(iterations):.1f} Newton iterations per frame)")
+    newton = f", mean {np.mean(iterations):.1f} Newton iterations per frame" if iterations else ""
+    print(f"wrote {trajectory} and {out / 'summary.json'} ({seconds:.1f} s{newton})")
+    if stopped:
+        print(f"error: frame {stopped['frame']}: {stopped['error']}; the outputs hold the {stopped['frame']} frames before it", file=sys.stderr)
+        return 1
     return 0
 
 
