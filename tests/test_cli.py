@@ -143,13 +143,21 @@ def test_bench_accuracy_writes_results_and_plot(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "argv",
-    [["demo", "--gaps", "-1"], ["bench", "leaf", "--pairs", "0"], ["bench", "contact", "--eps", "nan"], ["bench", "frame", "--frames", "0"], ["bench", "accuracy", "--eps", "-1"]],
+    "argv, message",
+    [
+        (["demo", "--gaps", "-1"], "--gaps: must be a positive finite number, got -1"),
+        (["demo", "--gaps", "x"], "--gaps: must be a positive finite number, got 'x'"),
+        (["bench", "leaf", "--pairs", "0"], "--pairs: must be >= 1, got 0"),
+        (["simulate", "push", "--frames", "2.5"], "--frames: must be a whole number >= 1, got '2.5'"),
+        (["bench", "contact", "--eps", "nan"], "--eps: must be a positive finite number, got nan"),
+        (["bench", "frame", "--frames", "0"], "--frames: must be >= 1, got 0"),
+        (["bench", "accuracy", "--eps", "-1"], "--eps: must be a positive finite number, got -1"),
+    ],
 )
-def test_bad_arguments_exit_with_usage_error(argv):
+def test_bad_arguments_exit_with_usage_error(argv, message, capsys):
     with pytest.raises(SystemExit) as exc:
         main(argv)
-    assert exc.value.code == 2
+    assert exc.value.code == 2 and message in capsys.readouterr().err
 
 
 def test_bad_device_is_a_clear_error(tmp_path, capsys):
