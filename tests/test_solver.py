@@ -555,6 +555,38 @@ def test_builder_rejects_bad_bodies(kwargs, match):
         b.add_body(trimesh.creation.box(extents=(1.0, 1.0, 1.0)), name="crate", **kwargs)
 
 
+_BOX = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+
+
+@pytest.mark.parametrize(
+    "faces, kwargs, match",
+    [
+        # Index and shape errors are named as such, before the mass properties could blame
+        # them on the mesh not being closed.
+        (np.vstack([_BOX.faces, [[0, 1, 99]]]), dict(density=1.0), r"mesh 'crate': face 12 has vertex indices \[0, 1, 99\] outside \[0, 8\)"),
+        (np.vstack([_BOX.faces, [[0, 1, -1]]]), dict(mass=1.0, inertia=np.eye(3)), r"face 12 has vertex indices \[0, 1, -1\] outside"),
+        # trimesh would have cast these to integers silently.
+        (_BOX.faces + 0.5, dict(mass=1.0, inertia=np.eye(3)), r"mesh 'crate': face 0 has non-integer vertex indices"),
+        (_BOX.faces[:, :2], dict(mass=1.0, inertia=np.eye(3)), r"mesh 'crate': faces must have shape \(nf, 3\), got \(12, 2\)"),
+    ],
+)
+def test_builder_names_bad_faces(faces, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        wc.ModelBuilder().add_body((_BOX.vertices, faces), name="crate", **kwargs)
+
+
+def test_builder_rejects_a_flat_closed_mesh_with_density_quietly():
+    """A closed mesh of zero volume (a box flattened to z = 0) has no mass from density; the
+    check says so without trimesh's division warning."""
+    import warnings
+
+    flat = _BOX.vertices * [1.0, 1.0, 0.0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match="'flat': mass from density needs a closed, outward-oriented mesh"):
+            wc.ModelBuilder().add_body((flat, _BOX.faces), density=1.0, name="flat")
+
+
 def test_builder_rejects_open_mesh_with_density():
     b = wc.ModelBuilder()
     V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]])

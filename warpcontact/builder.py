@@ -11,6 +11,7 @@ from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel,
 from .contact import ContactModel
 from .leaf import float32_search
 from .rotation import pose_mul, quat_rotate
+from .sphere_tree import validated_mesh
 from .types import Model
 
 __all__ = ["ModelBuilder"]
@@ -70,6 +71,13 @@ def _unit_axes(axis, count: int, where: str) -> np.ndarray:
     if count == 2 and abs(axes[0] @ axes[1]) > 1e-9:
         raise ValueError(f"{where}: the two universal-joint axes must be orthogonal (cosine {axes[0] @ axes[1]:.3g})")
     return axes
+
+
+def _encloses_volume(mesh: trimesh.Trimesh) -> bool:
+    """Whether the mesh is closed and outward-oriented around a positive volume; a flat
+    closed mesh has none (trimesh divides by its zero volume for the centre of mass)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return bool(mesh.is_watertight and mesh.volume > 0)
 
 
 class ModelBuilder:
@@ -153,19 +161,16 @@ class ModelBuilder:
         """
         name = name or f"body{len(self._bodies)}"
         if isinstance(mesh, trimesh.Trimesh):
-            tm = mesh
+            vertices, faces = mesh.vertices, mesh.faces
         else:
             try:
                 vertices, faces = mesh
-                tm = trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces), process=False)
-            except Exception as exc:
+            except (TypeError, ValueError) as exc:
                 raise ValueError(f"body {name!r}: mesh must be a trimesh.Trimesh or (vertices, faces): {exc}") from None
-        vertices = np.asarray(tm.vertices, dtype=np.float64)
-        faces = np.asarray(tm.faces, dtype=np.int64)
-        if len(faces) == 0:
-            raise ValueError(f"body {name!r}: mesh has no faces")
-        if not np.isfinite(vertices).all():
-            raise ValueError(f"body {name!r}: mesh has non-finite vertices")
+        # Checked before anything reads the mesh: trimesh would cast fractional indices to
+        # integers and the mass properties would blame an index out of range on the shape.
+        vertices, faces = validated_mesh(vertices, faces, name)
+        tm = trimesh.Trimesh(vertices, faces, process=False)
         pose = np.asarray(pose, dtype=np.float64)
         if pose.shape != (7,) or not np.isfinite(pose).all():
             raise ValueError(f"body {name!r}: pose must be 7 finite numbers (px, py, pz, qx, qy, qz, qw), got {pose}")
@@ -184,7 +189,7 @@ class ModelBuilder:
                 raise ValueError(f"body {name!r}: give either density or mass/inertia, not both")
             if not np.isfinite(density) or density <= 0:
                 raise ValueError(f"body {name!r}: density must be positive, got {density}")
-            if not tm.is_watertight or tm.volume <= 0:
+            if not _encloses_volume(tm):
                 raise ValueError(f"body {name!r}: mass from density needs a closed, outward-oriented mesh; give mass and inertia instead")
             props = tm.mass_properties
             body_mass = float(props["volume"]) * density
@@ -195,7 +200,7 @@ class ModelBuilder:
                 raise ValueError(f"body {name!r}: mass must be positive, got {mass}")
             body_mass = float(mass)
             if inertia is None:
-                if not tm.is_watertight or tm.volume <= 0:
+                if not _encloses_volume(tm):
                     raise ValueError(f"body {name!r}: inertia is needed for a mesh that is not closed")
                 props = tm.mass_properties
                 com = np.asarray(props["center_mass"], dtype=np.float64) if center_of_mass is None else np.asarray(center_of_mass, dtype=np.float64)

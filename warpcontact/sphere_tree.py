@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["SphereTree", "build_sphere_tree"]
+__all__ = ["SphereTree", "build_sphere_tree", "validated_mesh"]
 
 
 @dataclass(frozen=True)
@@ -84,7 +84,7 @@ def build_sphere_tree(vertices, faces, *, name: str = "mesh") -> SphereTree:
         ValueError: naming the mesh and the problem, for non-numeric input, wrong shapes,
             non-finite vertices, non-integer or out-of-range face indices, or no faces.
     """
-    positions, face_indices = _validated_mesh(vertices, faces, name)
+    positions, face_indices = validated_mesh(vertices, faces, name)
     num_triangles = face_indices.shape[0]
     num_nodes = 2 * num_triangles - 1
 
@@ -223,7 +223,7 @@ def _unique_vertex_means(
     return sums / counts[:, None], counts
 
 
-def _validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
+def validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
     """Return (float64 (nv, 3) positions, int64 (nf, 3) face indices) or raise ValueError."""
     positions = _real_array(vertices, name, "vertices")
     if positions.ndim != 2 or positions.shape[1] != 3:
