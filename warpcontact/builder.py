@@ -85,7 +85,11 @@ class ModelBuilder:
 
     Args:
         gravity: (3,) gravitational acceleration (m/s^2).
-        contact_stiffness: potential coefficient mu (the paper uses 1e-6 .. 5e-9).
+        contact_stiffness: potential coefficient mu (the paper uses 1e-6 .. 5e-9). It sets
+            how far above a support a body rests: about sqrt(100 mu / (m g)) for a box on a
+            face (measured: a 1 m box of 1,000 kg/m^3 rests 1.1e-4 m up at mu 1e-6; a 1 mm
+            box of the same density rests 1.2e-4 m up at mu 1e-15, and at 1e-6 the barrier
+            throws it ~17 m high). Choose it for the lightest body that rests on another.
         friction: friction coefficient; 0 disables friction (and all its work).
         friction_smoothing: slip speed (m/s) below which the friction law is smoothed.
         eps: blend margin of the hierarchical contact potential.
