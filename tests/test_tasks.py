@@ -1,5 +1,6 @@
 """Task optimisation: losses, control parameterisations, gradients, optimiser, CLI."""
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -197,7 +198,7 @@ def test_quick_uses_the_scene_preset_or_caps_the_paper_settings():
     assert (paper.window, capped.window, preset.window) == (48, 8, 16)
     strided = TaskSettings.from_task(scene, receding_stride=6)
     assert (strided.receding_stride, strided.window, strided.iterations) == (6, 48, 50)
-    with pytest.raises(ValueError, match=r"--stride must be >= 1 and at most the window \(48\), got 49"):
+    with pytest.raises(ValueError, match=r"--stride must be a whole number >= 1 and at most the window \(48\), got 49"):
         TaskSettings.from_task(scene, receding_stride=49)
     scene.task.receding_horizon = 0
     with pytest.raises(ValueError, match="--stride applies to receding-window tasks; this one optimises a single window of 200 frames"):
@@ -212,12 +213,12 @@ def test_quick_uses_the_scene_preset_or_caps_the_paper_settings():
 @pytest.mark.parametrize(
     ("field", "value", "message"),
     [
-        ("iterations", 0, "warpcontact:task:iterations must be >= 1, got 0"),
+        ("iterations", 0, "warpcontact:task:iterations must be a whole number >= 1, got 0"),
         ("learning_rate", -0.1, "warpcontact:task:learningRate must be positive and finite, got -0.1"),
         ("learning_rate", float("nan"), "warpcontact:task:learningRate must be positive and finite"),
-        ("receding_horizon", -2, "warpcontact:task:recedingHorizon must be >= 0, got -2"),
-        ("receding_stride", 0, r"warpcontact:task:recedingStride must be >= 1 and at most the window \(15\), got 0"),
-        ("receding_stride", 16, r"warpcontact:task:recedingStride must be >= 1 and at most the window \(15\), got 16"),
+        ("receding_horizon", -2, "warpcontact:task:recedingHorizon must be a whole number >= 0, got -2"),
+        ("receding_stride", 0, r"warpcontact:task:recedingStride must be a whole number >= 1 and at most the window \(15\), got 0"),
+        ("receding_stride", 16, r"warpcontact:task:recedingStride must be a whole number >= 1 and at most the window \(15\), got 16"),
         ("quick_learning_rate", 0.0, "warpcontact:task:quick:learningRate must be positive and finite, got 0.0"),
     ],
 )
@@ -229,6 +230,28 @@ def test_out_of_range_task_settings_are_clear_errors(tmp_path, field, value, mes
     io.save_scene(scene, path)
     with pytest.raises(ValueError, match=f"bad.usda: {message}"):
         TaskSettings.from_task(io.load_scene(path), quick=field.startswith("quick"))
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        (dict(horizon=0), "settings.horizon must be a whole number >= 1, got 0"),
+        (dict(horizon=8.5), "settings.horizon must be a whole number >= 1, got 8.5"),
+        (dict(iterations=0), "settings.iterations must be a whole number >= 1, got 0"),
+        (dict(learning_rate=float("nan")), "settings.learning_rate must be positive and finite, got nan"),
+        (dict(receding_horizon=-4), "settings.receding_horizon must be a whole number >= 0, got -4"),
+        (dict(receding_stride=3), r"settings.receding_stride must be a whole number >= 1 and at most the window \(2\), got 3"),
+        (dict(betas=(1.5, 0.5)), r"settings.betas must be two numbers in \[0, 1\), got \(1.5, 0.5\)"),
+        (dict(initial_samples=-1), "settings.initial_samples must be a whole number >= 0, got -1"),
+    ],
+)
+def test_settings_built_directly_are_checked_like_a_scenes(changes, message):
+    """The Python API's own TaskSettings meet the rules of the scene metadata they stand in
+    for: they used to run silently (a horizon of 0, a negative or NaN learning rate, a
+    stride past the window) or fail deep inside (0 iterations: a TypeError)."""
+    settings = dataclasses.replace(_CHECKPOINTED_RUNS["receding"][1], **changes)
+    with pytest.raises(ValueError, match=message):
+        TaskProblem(_pd_space_billiards(), settings=settings)
 
 
 @pytest.mark.parametrize("stride", [1, 2])
@@ -402,7 +425,7 @@ def test_cli_task_errors_are_clear(tmp_path, capsys, command):
 
 def test_cli_stride_reaches_the_settings_and_is_checked_against_the_window(tmp_path, capsys):
     assert main(["run", "push", "--stride", "49", "--out", str(tmp_path)]) == 2
-    assert "--stride must be >= 1 and at most the window (48), got 49" in capsys.readouterr().err
+    assert "--stride must be a whole number >= 1 and at most the window (48), got 49" in capsys.readouterr().err
     scene = _pd_space_billiards()
     scene.task.horizon, scene.task.receding_horizon = 4, 2
     scene_path = tmp_path / "receding.usda"

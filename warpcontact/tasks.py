@@ -133,16 +133,40 @@ class TaskSettings:
             if settings.window == settings.horizon:
                 raise ValueError(f"{source}: --stride applies to receding-window tasks; this one optimises a single window of {settings.horizon} frames")
             settings.receding_stride, stride_name = receding_stride, "--stride"
-        for name, value, rule, ok in (
-            (f"warpcontact:{prefix}horizon", settings.horizon, ">= 1", settings.horizon >= 1),
-            (f"warpcontact:{prefix}recedingHorizon", settings.receding_horizon, ">= 0", settings.receding_horizon >= 0),
-            (stride_name, settings.receding_stride, f">= 1 and at most the window ({settings.window})", 1 <= settings.receding_stride <= settings.window),
-            (iterations_name, settings.iterations, ">= 1", settings.iterations >= 1),
-            (f"warpcontact:{prefix}learningRate", settings.learning_rate, "positive and finite", bool(np.isfinite(settings.learning_rate) and settings.learning_rate > 0)),
+        names = {
+            "horizon": f"warpcontact:{prefix}horizon",
+            "receding_horizon": f"warpcontact:{prefix}recedingHorizon",
+            "receding_stride": stride_name,
+            "iterations": iterations_name,
+            "learning_rate": f"warpcontact:{prefix}learningRate",
+        }
+        settings.check(lambda field: f"{source}: {names.get(field, field)}")
+        return settings
+
+    def check(self, where=lambda field: f"settings.{field}") -> None:
+        """Raises ValueError for the first setting out of range, named by ``where(field)``:
+        the one rule for settings read from a scene and settings built directly."""
+
+        def whole(value) -> bool:
+            return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+        def unit_interval(value) -> bool:
+            return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and 0.0 <= value < 1.0
+
+        window = self.window if whole(self.horizon) and whole(self.receding_horizon) else None
+        betas = tuple(self.betas) if isinstance(self.betas, (tuple, list)) else ()
+        for field, rule, ok in (
+            ("horizon", "a whole number >= 1", whole(self.horizon) and self.horizon >= 1),
+            ("receding_horizon", "a whole number >= 0", whole(self.receding_horizon) and self.receding_horizon >= 0),
+            ("receding_stride", f"a whole number >= 1 and at most the window ({window})", whole(self.receding_stride) and window is not None and 1 <= self.receding_stride <= window),
+            ("iterations", "a whole number >= 1", whole(self.iterations) and self.iterations >= 1),
+            ("learning_rate", "positive and finite", isinstance(self.learning_rate, (int, float, np.integer, np.floating)) and bool(np.isfinite(self.learning_rate) and self.learning_rate > 0)),
+            ("betas", "two numbers in [0, 1)", len(betas) == 2 and all(unit_interval(b) for b in betas)),
+            ("initial_samples", "a whole number >= 0", whole(self.initial_samples) and self.initial_samples >= 0),
+            ("sample_seed", "a whole number >= 0", whole(self.sample_seed) and self.sample_seed >= 0),
         ):
             if not ok:
-                raise ValueError(f"{source}: {name} must be {rule}, got {value!r}")
-        return settings
+                raise ValueError(f"{where(field)} must be {rule}, got {getattr(self, field)!r}")
 
 
 @dataclass
@@ -458,6 +482,8 @@ class TaskProblem:
         self.model_name = model
         self.bundle = (bundle or BundleSettings()) if model == "gb" else None
         self.kind = task.control
+        if settings is not None:
+            settings.check()
         self.settings = settings or TaskSettings.from_task(scene)
         self.model = scene.build_model(device=device)
         self.solver = ImplicitSolver(self.model)
