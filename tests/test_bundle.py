@@ -15,8 +15,10 @@ def quadratic(values, gradient=True):
 def test_sigma_schedule_decays_from_ten_to_one_learning_rate():
     np.testing.assert_allclose(BundleSettings().sigmas(5, 0.01), [0.1, 0.1 * 10**-0.25, 0.1 * 10**-0.5, 0.1 * 10**-0.75, 0.01])
     np.testing.assert_allclose(BundleSettings(initial_sigma=2.0, final_sigma=0.5).sigmas(3, 0.01), [2.0, 1.0, 0.5])
-    with pytest.raises(ValueError, match="samples"):
+    with pytest.raises(ValueError, match="samples: must be a whole number >= 1, got 0"):
         BundleSettings(samples=0).sigmas(3, 0.01)
+    with pytest.raises(ValueError, match="samples: must be a whole number >= 1, got 2.5"):
+        BundleSettings(samples=2.5).sigmas(3, 0.01)  # was a TypeError deep in numpy
     with pytest.raises(ValueError, match="sigma"):
         BundleSettings(final_sigma=-1.0).sigmas(3, 0.01)
 

@@ -233,6 +233,26 @@ def test_out_of_range_task_settings_are_clear_errors(tmp_path, field, value, mes
 
 
 @pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("target_position", np.array([np.nan, 0.0, 0.0]), r"prim /World/target: warpcontact:target:position must be finite \(3 numbers\), got \[nan, 0.0, 0.0\]"),
+        ("target_position", np.array([1.0, 0.0]), r"warpcontact:target:position must be finite \(3 numbers\), got \[1.0, 0.0\]"),
+        ("target_tolerance", -1.0, "prim /World/target: warpcontact:target:tolerance must be >= 0 and finite, got -1.0"),
+        ("target_tolerance", float("inf"), "warpcontact:target:tolerance must be >= 0 and finite, got inf"),
+    ],
+)
+def test_a_scene_built_in_python_is_refused_a_goal_that_is_not_finite(field, value, message):
+    """load_scene refuses these in USD; a Scene built in Python used to run with them, a NaN
+    target giving a NaN loss at every iteration and a negative tolerance a wrong one."""
+    scene = space_billiards()
+    target = next(b for b in scene.bodies if b.target_position is not None)
+    target.path = "/World/target"
+    setattr(target, field, value)
+    with pytest.raises(ValueError, match=message):
+        TaskProblem(scene)
+
+
+@pytest.mark.parametrize(
     ("changes", "message"),
     [
         (dict(horizon=0), "settings.horizon must be a whole number >= 1, got 0"),

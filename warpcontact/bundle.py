@@ -47,8 +47,8 @@ class BundleSettings:
 
     def sigmas(self, iterations: int, learning_rate: float) -> np.ndarray:
         """(iterations,) geometric sigma schedule of one optimisation window."""
-        if self.samples < 1:
-            raise ValueError(f"samples: must be >= 1, got {self.samples}")
+        if isinstance(self.samples, bool) or not isinstance(self.samples, (int, np.integer)) or self.samples < 1:
+            raise ValueError(f"samples: must be a whole number >= 1, got {self.samples!r}")
         first = 10.0 * learning_rate if self.initial_sigma is None else self.initial_sigma
         last = learning_rate if self.final_sigma is None else self.final_sigma
         if not (np.isfinite(first) and np.isfinite(last) and first > 0 and last > 0):

@@ -65,6 +65,7 @@ __all__ = [
     "SimulationSettings",
     "TaskSpec",
     "load_scene",
+    "target_problem",
     "save_scene",
     "export_trajectory",
     "model_to_scene_poses",
@@ -630,16 +631,27 @@ def _read_mass(prim, body: BodySpec, UsdPhysics, meters: float, source: str):
         body.inertia = R @ np.diag(diag) @ R.T
 
 
+def target_problem(body: BodySpec) -> str | None:
+    """What is wrong with a target body's goal (``target_position``: 3 finite numbers,
+    ``target_tolerance``: finite and >= 0), or None: one rule for scenes read from USD and
+    scenes built in Python (``tasks.validate_task``)."""
+    position = np.asarray(body.target_position, dtype=np.float64)
+    if position.shape != (3,) or not np.isfinite(position).all():
+        return f"warpcontact:target:position must be finite (3 numbers), got {position.tolist()}"
+    tolerance = body.target_tolerance
+    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float, np.integer, np.floating)) or not np.isfinite(tolerance) or tolerance < 0:
+        return f"warpcontact:target:tolerance must be >= 0 and finite, got {tolerance}"
+    return None
+
+
 def _read_warpcontact_body(prim, body: BodySpec, meters: float, source: str):
-    where = f"{source}: prim {prim.GetPath()}"
     target = _attr(prim, _NS + "target:position")
     if target is not None:
         body.target_position = np.asarray(target, dtype=np.float64) * meters
         body.target_tolerance = float(_attr(prim, _NS + "target:tolerance", 0.0)) * meters
-        if not np.isfinite(body.target_position).all():
-            raise ValueError(f"{where}: warpcontact:target:position must be finite, got {body.target_position.tolist()}")
-        if not np.isfinite(body.target_tolerance) or body.target_tolerance < 0:
-            raise ValueError(f"{where}: warpcontact:target:tolerance must be >= 0 and finite, got {body.target_tolerance}")
+        problem = target_problem(body)
+        if problem:
+            raise ValueError(f"{source}: prim {prim.GetPath()}: {problem}")
     _read_casts(prim, body, _BODY_ATTRIBUTES, source)
 
 

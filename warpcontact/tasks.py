@@ -49,6 +49,7 @@ import numpy as np
 import warp as wp
 
 from .bundle import BundleSettings, bundled_gradient
+from .io import target_problem
 from .kernels import task as task_kernels
 from .solver import ImplicitSolver, SolverError
 from .types import State, set_body_velocity
@@ -388,9 +389,10 @@ def sample_box(scene, samples: int) -> tuple:
 def validate_task(scene) -> tuple:
     """(controlled body index or None for joint_sine tasks, target body indices) of a task scene.
 
-    Raises ValueError when the scene has no task metadata, no target bodies, no or several
-    controlled bodies, an unknown control kind, or control dofs that are unknown, repeated,
-    or (for PD targets) velocities or coordinates without PD stiffness.
+    Raises ValueError when the scene has no task metadata, no target bodies, a target
+    position that is not 3 finite numbers or a tolerance that is negative or not finite, no
+    or several controlled bodies, an unknown control kind, or control dofs that are unknown,
+    repeated, or (for PD targets) velocities or coordinates without PD stiffness.
     """
     source = scene.source or "<scene>"
     task = scene.task
@@ -406,6 +408,12 @@ def validate_task(scene) -> tuple:
     targets = [i for i, b in enumerate(scene.bodies) if b.target_position is not None]
     if not targets:
         raise ValueError(f"{source}: no target bodies (warpcontact:target:position)")
+    for i in targets:
+        # load_scene checks these in USD; a Scene built in Python reaches here unchecked,
+        # and a NaN target would make every loss NaN.
+        problem = target_problem(scene.bodies[i])
+        if problem:
+            raise ValueError(f"{source}: prim {scene.bodies[i].path}: {problem}")
     return (controlled[0] if controlled else None), targets
 
 
