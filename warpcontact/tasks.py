@@ -156,7 +156,7 @@ class TaskSettings:
 
         window = self.window if whole(self.horizon) and whole(self.receding_horizon) else None
         betas = tuple(self.betas) if isinstance(self.betas, (tuple, list)) else ()
-        for field, rule, ok in (
+        for name, rule, ok in (
             ("horizon", "a whole number >= 1", whole(self.horizon) and self.horizon >= 1),
             ("receding_horizon", "a whole number >= 0", whole(self.receding_horizon) and self.receding_horizon >= 0),
             ("receding_stride", f"a whole number >= 1 and at most the window ({window})", whole(self.receding_stride) and window is not None and 1 <= self.receding_stride <= window),
@@ -167,7 +167,7 @@ class TaskSettings:
             ("sample_seed", "a whole number >= 0", whole(self.sample_seed) and self.sample_seed >= 0),
         ):
             if not ok:
-                raise ValueError(f"{where(field)} must be {rule}, got {getattr(self, field)!r}")
+                raise ValueError(f"{where(name)} must be {rule}, got {getattr(self, name)!r}")
 
 
 @dataclass
