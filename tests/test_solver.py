@@ -518,8 +518,8 @@ def test_bad_input_raises_before_writing_state():
     with pytest.raises(ValueError, match="left and right"):
         solver.step(s0, s1, None, 0.01)
     np.testing.assert_array_equal(s1.body_q.numpy(), before)
-    for dt in (0.0, -0.01, float("nan")):
-        with pytest.raises(ValueError, match="dt"):
+    for dt in (0.0, -0.01, float("nan"), "0.01", True):
+        with pytest.raises(ValueError, match="dt: must be a positive finite number of seconds"):
             solver.step(s0, s1, None, dt)
     with pytest.raises(ValueError, match="different State"):
         solver.step(s0, s0, None, 0.01)
@@ -534,6 +534,20 @@ def test_bad_input_raises_before_writing_state():
     control.body_target = wp.zeros(3, dtype=wp.transformd)
     with pytest.raises(ValueError, match="control.body_target: expected a wp.array of 2 wp.transformd"):
         solver.step(s0, s1, control, 0.01)
+    np.testing.assert_array_equal(s1.body_q.numpy(), before)
+    # States of another model: a third body's row used to be left as it was in state_out.
+    other = wc.ModelBuilder()
+    for i in range(3):
+        other.add_sphere(0.5, subdivisions=1, density=100.0, pose=(2.0 * i, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    other = other.finalize()
+    for state_in, state_out, label in ((other.state(), s1, "state_in.body_q"), (s0, other.state(), "state_out.body_q")):
+        with pytest.raises(ValueError, match=rf"{label}: expected a wp.array of 2 wp.transformd, one per body of this model"):
+            solver.step(state_in, state_out, None, 0.01)
+    q = s0.body_q.numpy()
+    q[1, 3:] = 0.0
+    s0.body_q.assign(q)
+    with pytest.raises(ValueError, match=r"state_in.body_q: body 'right' \(index 1\) has a zero rotation quaternion"):
+        solver.step(s0, s1, None, 0.01)
     np.testing.assert_array_equal(s1.body_q.numpy(), before)
 
 

@@ -415,8 +415,10 @@ class ImplicitSolver:
     def step(self, state_in: State, state_out: State, control: Control | None, dt: float) -> StepInfo:
         """Advance one time step of ``dt`` seconds from ``state_in`` into ``state_out``.
 
-        Raises ValueError before writing anything if dt is not positive or bodies intersect
-        in ``state_in``; raises SolverError with diagnostics if Newton does not converge.
+        Raises ValueError before writing anything if dt is not a positive number, a state's
+        arrays are not one pose per body of this model, ``state_in`` holds non-finite poses
+        or a zero quaternion, or bodies intersect in it; raises SolverError with diagnostics
+        if Newton does not converge.
         Inside ``with wp.Tape()``, records the step's implicit-function-theorem backward.
         """
         with paused_tape() as tape:
@@ -462,16 +464,24 @@ class ImplicitSolver:
         return target / norms[:, None], start
 
     def _solve(self, state_in: State, state_out: State, control: Control | None, dt: float):
-        if not np.isfinite(dt) or dt <= 0:
-            raise ValueError(f"dt: must be a positive finite number of seconds, got {dt}")
+        if isinstance(dt, bool) or not isinstance(dt, (int, float, np.integer, np.floating)) or not np.isfinite(dt) or dt <= 0:
+            raise ValueError(f"dt: must be a positive finite number of seconds, got {dt!r}")
         model = self.model
         if state_out is state_in:
             raise ValueError("state_out: must be a different State from state_in (one buffer per time step)")
+        for label, state in (("state_in", state_in), ("state_out", state_out)):
+            for name in ("body_q", "body_q_prev"):
+                poses = getattr(state, name, None)
+                if not isinstance(poses, wp.array) or poses.shape != (model.num_bodies,):
+                    raise ValueError(f"{label}.{name}: expected a wp.array of {model.num_bodies} wp.transformd, one per body of this model (use model.state())")
         q_now = state_in.body_q.numpy()
         q_prev = state_in.body_q_prev.numpy()
         for label, arr in (("state_in.body_q", q_now), ("state_in.body_q_prev", q_prev)):
             if not np.isfinite(arr).all():
                 raise ValueError(f"{label}: contains non-finite values")
+            unrotated = np.flatnonzero(np.linalg.norm(arr[:, 3:], axis=1) == 0.0)
+            if unrotated.size:
+                raise ValueError(f"{label}: body {model.body_names[unrotated[0]]!r} (index {unrotated[0]}) has a zero rotation quaternion")
         if control is not None:
             targets = control.body_target
             if not isinstance(targets, wp.array) or targets.shape != (len(q_now),):
