@@ -156,6 +156,23 @@ def test_trajectory_export_opens_with_time_samples(tmp_path):
         io.export_trajectory(scene, poses, tmp_path / "missing" / "x.usda")
     with pytest.raises(ValueError, match="poses"):
         io.export_trajectory(scene, poses[..., :6], tmp_path / "y.usda")
+    # Each of these used to write a file USD viewers cannot use, or fail inside pxr.
+    unrotated = poses.copy()
+    unrotated[3, 1, 3:] = 0.0
+    with pytest.raises(ValueError, match="poses: body 'box' has a zero rotation quaternion at frame 3"):
+        io.export_trajectory(scene, unrotated, tmp_path / "y.usda")
+    for fps in (0.0, float("nan"), -25.0):
+        with pytest.raises(ValueError, match="fps: must be a positive finite number"):
+            io.export_trajectory(scene, poses, tmp_path / "y.usda", fps=fps)
+    for name in ("y.txt", "y"):
+        with pytest.raises(ValueError, match=rf"{name}: a USD file name must end in .usda, .usd, .usdc"):
+            io.export_trajectory(scene, poses, tmp_path / name)
+        with pytest.raises(ValueError, match=rf"{name}: a USD file name must end in"):
+            io.save_scene(scene, tmp_path / name)
+    (tmp_path / "folder.usda").mkdir()
+    with pytest.raises(ValueError, match="folder.usda: is a folder, not a file name"):
+        io.export_trajectory(scene, poses, tmp_path / "folder.usda", overwrite=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.usda", "folder.usda", "traj.usda"]
 
 
 @pytest.mark.parametrize(

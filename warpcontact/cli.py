@@ -127,8 +127,10 @@ def _simulate(args) -> int:
 
 def _resolve_scene_path(name: str) -> Path:
     """A .usda path, or the name of a shipped scene (installed with the package)."""
+    from . import io
+
     path = Path(name)
-    if path.suffix in (".usda", ".usd", ".usdc"):
+    if path.suffix in io.USD_SUFFIXES:
         return path
     from .scenes import SCENE_NAMES, shipped_scene
 

@@ -66,6 +66,7 @@ __all__ = [
     "TaskSpec",
     "load_scene",
     "target_problem",
+    "USD_SUFFIXES",
     "save_scene",
     "export_trajectory",
     "model_to_scene_poses",
@@ -806,9 +807,17 @@ def _set_pose_ops(xformable, Gf, UsdGeom, pose, time=None):
         orient.Set(q, time)
 
 
+# The file names Usd.Stage reads and writes (text, either, binary).
+USD_SUFFIXES = (".usda", ".usd", ".usdc")
+
+
 def _atomic_save(stage_writer, path, overwrite: bool):
     """Write via a temporary file in the same folder, then rename: no partial files, no lost data."""
     path = Path(path)
+    if path.suffix not in USD_SUFFIXES:
+        raise ValueError(f"{path}: a USD file name must end in {', '.join(USD_SUFFIXES)}")
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder, not a file name")
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path}: exists; pass overwrite=True to replace it")
     if not path.parent.is_dir():
@@ -1024,7 +1033,15 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (len(scene.bodies), 7) or not np.isfinite(poses).all():
         raise ValueError(f"poses: expected finite (frames, {len(scene.bodies)}, 7), got {poses.shape}")
-    fps = float(fps or 1.0 / scene.settings.time_step)
+    unrotated = np.argwhere(np.linalg.norm(poses[..., 3:], axis=-1) == 0.0)
+    if unrotated.size:
+        frame, body = unrotated[0]
+        raise ValueError(f"poses: body {scene.bodies[body].name!r} has a zero rotation quaternion at frame {frame}")
+    if fps is None:
+        fps = 1.0 / scene.settings.time_step
+    if isinstance(fps, bool) or not isinstance(fps, (int, float, np.integer, np.floating)) or not np.isfinite(fps) or fps <= 0:
+        raise ValueError(f"fps: must be a positive finite number of frames per second, got {fps!r}")
+    fps = float(fps)
 
     def write(tmp: Path):
         stage = _new_stage(Usd, UsdGeom, tmp)
