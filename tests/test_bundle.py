@@ -19,6 +19,8 @@ def test_sigma_schedule_decays_from_ten_to_one_learning_rate():
         BundleSettings(samples=0).sigmas(3, 0.01)
     with pytest.raises(ValueError, match="samples: must be a whole number >= 1, got 2.5"):
         BundleSettings(samples=2.5).sigmas(3, 0.01)  # was a TypeError deep in numpy
+    with pytest.raises(ValueError, match="seed: must be a whole number >= 0, got -1"):
+        BundleSettings(seed=-1).check()  # was numpy's "expected non-negative integer"
     with pytest.raises(ValueError, match="sigma"):
         BundleSettings(final_sigma=-1.0).sigmas(3, 0.01)
 

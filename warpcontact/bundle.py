@@ -45,10 +45,15 @@ class BundleSettings:
     final_sigma: float | None = None
     seed: int = 0
 
+    def check(self) -> None:
+        """Raises ValueError for a sample count below 1 or a seed below 0 (or not whole)."""
+        for name, value, low in (("samples", self.samples, 1), ("seed", self.seed, 0)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+                raise ValueError(f"{name}: must be a whole number >= {low}, got {value!r}")
+
     def sigmas(self, iterations: int, learning_rate: float) -> np.ndarray:
         """(iterations,) geometric sigma schedule of one optimisation window."""
-        if isinstance(self.samples, bool) or not isinstance(self.samples, (int, np.integer)) or self.samples < 1:
-            raise ValueError(f"samples: must be a whole number >= 1, got {self.samples!r}")
+        self.check()
         first = 10.0 * learning_rate if self.initial_sigma is None else self.initial_sigma
         last = learning_rate if self.final_sigma is None else self.final_sigma
         if not (np.isfinite(first) and np.isfinite(last) and first > 0 and last > 0):

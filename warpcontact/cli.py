@@ -517,6 +517,16 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 0, got {value}")
+    return value
+
+
 def _positive_float(text: str) -> float:
     try:
         value = float(text)
@@ -546,7 +556,7 @@ def _add_task_arguments(parser):
     )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--quick", action="store_true", help="short horizons and few iterations (minutes on a CPU)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the gb model's samples and of --init-samples")
+    parser.add_argument("--seed", type=_seed, default=0, help="seed of the gb model's samples and of --init-samples")
     parser.add_argument(
         "--init-samples",
         type=_positive_int,

@@ -489,6 +489,8 @@ class TaskProblem:
         self.scene = scene
         self.model_name = model
         self.bundle = (bundle or BundleSettings()) if model == "gb" else None
+        if self.bundle is not None:
+            self.bundle.check()
         self.kind = task.control
         if settings is not None:
             settings.check()
