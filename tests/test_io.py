@@ -235,6 +235,9 @@ def _author(path, edit):
     "edit, match",
     [
         (lambda st: UsdPhysics.RigidBodyAPI(st.GetPrimAtPath("/World/box")).CreateVelocityAttr(Gf.Vec3f(float("nan"), 0, 0)), r"prim /World/box: physics:velocity must be finite, got \[nan, 0.0, 0.0\]"),
+        # A zero was replaced by 1 silently; a negative or NaN one surfaced as some other value's error.
+        (lambda st: UsdGeom.SetStageMetersPerUnit(st, 0.0), r"metersPerUnit must be positive and finite, got 0.0"),
+        (lambda st: UsdGeom.SetStageMetersPerUnit(st, float("nan")), r"metersPerUnit must be positive and finite, got nan"),
         (lambda st: UsdPhysics.MassAPI.Apply(st.GetPrimAtPath("/World/box")).CreateCenterOfMassAttr(Gf.Vec3f(0, float("inf"), 0)), r"prim /World/box: centerOfMass must be finite"),
         (lambda st: UsdPhysics.MassAPI.Apply(st.GetPrimAtPath("/World/box")).CreateDiagonalInertiaAttr(Gf.Vec3f(float("nan"), 1, 1)), r"prim /World/box: diagonalInertia must be positive"),
         (lambda st: st.GetPrimAtPath("/World/box").CreateAttribute("warpcontact:target:position", Sdf.ValueTypeNames.Double3).Set(Gf.Vec3d(float("nan"), 0, 0)), r"prim /World/box: warpcontact:target:position must be finite"),

@@ -39,8 +39,9 @@ Primitive colliders are triangulated: Cube exactly (12 triangles), Sphere as an 
 with ``SPHERE_SUBDIVISIONS`` = 2 (320 triangles), Capsule and Cylinder with 32 segments; use
 Mesh prims to control resolution. Polygons are fan-triangulated (exact for convex ones).
 Kinematic or disabled rigid bodies load as static bodies. Rigid-body prims are assumed
-unscaled (scale the collider prims instead); stage metersPerUnit is applied to lengths,
-and the stage up axis only sets the default gravity when no PhysicsScene gives one.
+unscaled (scale the collider prims instead); stage metersPerUnit is applied to lengths
+(unauthored, USD's fallback of 0.01 applies: centimetres; zero, negative or NaN is an
+error), and the stage up axis only sets the default gravity when no PhysicsScene gives one.
 """
 
 from __future__ import annotations
@@ -369,7 +370,10 @@ def load_scene(path) -> Scene:
         raise ValueError(f"{source}: not a readable USD stage ({_usd_error_text(exc)})") from None
     if stage is None:
         raise ValueError(f"{source}: not a readable USD stage")
-    meters = float(UsdGeom.GetStageMetersPerUnit(stage) or 1.0)
+    # Unauthored, USD's fallback applies: 0.01 (centimetres).
+    meters = float(UsdGeom.GetStageMetersPerUnit(stage))
+    if not (np.isfinite(meters) and meters > 0):
+        raise ValueError(f"{source}: metersPerUnit must be positive and finite, got {meters}")
     up = UsdGeom.GetStageUpAxis(stage)
     parsed = _load_physics(stage, UsdPhysics)
     descs = {str(k): list(zip(v[0], v[1])) for k, v in parsed.items()}
