@@ -147,11 +147,11 @@ def test_bench_accuracy_writes_results_and_plot(tmp_path):
     [
         (["demo", "--gaps", "-1"], "--gaps: must be a positive finite number, got -1"),
         (["demo", "--gaps", "x"], "--gaps: must be a positive finite number, got 'x'"),
-        (["bench", "leaf", "--pairs", "0"], "--pairs: must be >= 1, got 0"),
+        (["bench", "leaf", "--pairs", "0"], "--pairs: must be a whole number >= 1, got 0"),
         (["simulate", "push", "--frames", "2.5"], "--frames: must be a whole number >= 1, got '2.5'"),
         (["run", "push", "--model", "gb", "--seed", "-1"], "--seed: must be a whole number >= 0, got -1"),
         (["bench", "contact", "--eps", "nan"], "--eps: must be a positive finite number, got nan"),
-        (["bench", "frame", "--frames", "0"], "--frames: must be >= 1, got 0"),
+        (["bench", "frame", "--frames", "0"], "--frames: must be a whole number >= 1, got 0"),
         (["bench", "accuracy", "--eps", "-1"], "--eps: must be a positive finite number, got -1"),
     ],
 )
