@@ -2,7 +2,17 @@
 
 import numpy as np
 
-__all__ = ["as_float64_array"]
+__all__ = ["as_float64_array", "is_real", "is_whole"]
+
+
+def is_real(value) -> bool:
+    """A Python or numpy real scalar, not a bool (which Python counts as an int)."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+
+
+def is_whole(value) -> bool:
+    """A Python or numpy integer scalar, not a bool."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
 def as_float64_array(value, name: str, *, trailing_shape: tuple[int, ...] = (), allow_empty: bool = True) -> np.ndarray:

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._validate import is_whole
 from .solver import SolverError
 
 __all__ = ["BundleSettings", "bundled_gradient"]
@@ -48,7 +49,7 @@ class BundleSettings:
     def check(self) -> None:
         """Raises ValueError for a sample count below 1 or a seed below 0 (or not whole)."""
         for name, value, low in (("samples", self.samples, 1), ("seed", self.seed, 0)):
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+            if not is_whole(value) or value < low:
                 raise ValueError(f"{name}: must be a whole number >= {low}, got {value!r}")
 
     def sigmas(self, iterations: int, learning_rate: float) -> np.ndarray:

@@ -54,6 +54,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from ._validate import is_real
 from .builder import ModelBuilder, contact_setting_problem
 from .contact import CENTRED_WEIGHTS
 from .leaf import LEAF_PRECISIONS
@@ -644,7 +645,7 @@ def target_problem(body: BodySpec) -> str | None:
     if position.shape != (3,) or not np.isfinite(position).all():
         return f"warpcontact:target:position must be finite (3 numbers), got {position.tolist()}"
     tolerance = body.target_tolerance
-    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float, np.integer, np.floating)) or not np.isfinite(tolerance) or tolerance < 0:
+    if not is_real(tolerance) or not np.isfinite(tolerance) or tolerance < 0:
         return f"warpcontact:target:tolerance must be >= 0 and finite, got {tolerance}"
     return None
 
@@ -1043,7 +1044,7 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
         raise ValueError(f"poses: body {scene.bodies[body].name!r} has a zero rotation quaternion at frame {frame}")
     if fps is None:
         fps = 1.0 / scene.settings.time_step
-    if isinstance(fps, bool) or not isinstance(fps, (int, float, np.integer, np.floating)) or not np.isfinite(fps) or fps <= 0:
+    if not is_real(fps) or not np.isfinite(fps) or fps <= 0:
         raise ValueError(f"fps: must be a positive finite number of frames per second, got {fps!r}")
     fps = float(fps)
 

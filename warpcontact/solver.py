@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from ._validate import is_real
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
@@ -464,7 +465,7 @@ class ImplicitSolver:
         return target / norms[:, None], start
 
     def _solve(self, state_in: State, state_out: State, control: Control | None, dt: float):
-        if isinstance(dt, bool) or not isinstance(dt, (int, float, np.integer, np.floating)) or not np.isfinite(dt) or dt <= 0:
+        if not is_real(dt) or not np.isfinite(dt) or dt <= 0:
             raise ValueError(f"dt: must be a positive finite number of seconds, got {dt!r}")
         model = self.model
         if state_out is state_in:

@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from ._validate import is_real, is_whole
 from .bundle import BundleSettings, bundled_gradient
 from .io import target_problem
 from .kernels import task as task_kernels
@@ -148,23 +149,20 @@ class TaskSettings:
         """Raises ValueError for the first setting out of range, named by ``where(field)``:
         the one rule for settings read from a scene and settings built directly."""
 
-        def whole(value) -> bool:
-            return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
-
         def unit_interval(value) -> bool:
-            return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and 0.0 <= value < 1.0
+            return is_real(value) and 0.0 <= value < 1.0
 
-        window = self.window if whole(self.horizon) and whole(self.receding_horizon) else None
+        window = self.window if is_whole(self.horizon) and is_whole(self.receding_horizon) else None
         betas = tuple(self.betas) if isinstance(self.betas, (tuple, list)) else ()
         for name, rule, ok in (
-            ("horizon", "a whole number >= 1", whole(self.horizon) and self.horizon >= 1),
-            ("receding_horizon", "a whole number >= 0", whole(self.receding_horizon) and self.receding_horizon >= 0),
-            ("receding_stride", f"a whole number >= 1 and at most the window ({window})", whole(self.receding_stride) and window is not None and 1 <= self.receding_stride <= window),
-            ("iterations", "a whole number >= 1", whole(self.iterations) and self.iterations >= 1),
-            ("learning_rate", "positive and finite", isinstance(self.learning_rate, (int, float, np.integer, np.floating)) and bool(np.isfinite(self.learning_rate) and self.learning_rate > 0)),
+            ("horizon", "a whole number >= 1", is_whole(self.horizon) and self.horizon >= 1),
+            ("receding_horizon", "a whole number >= 0", is_whole(self.receding_horizon) and self.receding_horizon >= 0),
+            ("receding_stride", f"a whole number >= 1 and at most the window ({window})", is_whole(self.receding_stride) and window is not None and 1 <= self.receding_stride <= window),
+            ("iterations", "a whole number >= 1", is_whole(self.iterations) and self.iterations >= 1),
+            ("learning_rate", "positive and finite", is_real(self.learning_rate) and bool(np.isfinite(self.learning_rate) and self.learning_rate > 0)),
             ("betas", "two numbers in [0, 1)", len(betas) == 2 and all(unit_interval(b) for b in betas)),
-            ("initial_samples", "a whole number >= 0", whole(self.initial_samples) and self.initial_samples >= 0),
-            ("sample_seed", "a whole number >= 0", whole(self.sample_seed) and self.sample_seed >= 0),
+            ("initial_samples", "a whole number >= 0", is_whole(self.initial_samples) and self.initial_samples >= 0),
+            ("sample_seed", "a whole number >= 0", is_whole(self.sample_seed) and self.sample_seed >= 0),
         ):
             if not ok:
                 raise ValueError(f"{where(name)} must be {rule}, got {getattr(self, name)!r}")
