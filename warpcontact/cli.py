@@ -514,9 +514,9 @@ def _whole_number(low: int):
         try:
             value = int(text)
         except ValueError:
-            value = None
-        if value is None or value < low:
-            raise argparse.ArgumentTypeError(f"must be a whole number >= {low}, got {text!r}" if value is None else f"must be a whole number >= {low}, got {value}")
+            raise argparse.ArgumentTypeError(f"must be a whole number >= {low}, got {text!r}") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"must be a whole number >= {low}, got {value}")
         return value
 
     return parse
