@@ -188,6 +188,35 @@ def test_fast_impact_on_thin_wall_never_tunnels():
 
 
 
+def _cube_shot_at_a_resting_cube(speed):
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e-6)
+    b.add_box((0.3, 0.3, 0.3), density=500.0, name="puck", pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    b.add_box((0.3, 0.3, 0.3), density=500.0, name="target", pose=(0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    first = model.state(requires_grad=False)
+    wc.set_body_velocity(first, wp.array([[speed, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(2, dtype=wp.vec3d), 0.04)
+    return model, first
+
+
+def test_a_step_that_moves_a_body_through_another_is_refused():
+    """At 1.2 m a step the Newton iterates slide the two cubes past each other sideways (each
+    iterate intersection-free) to the cube beyond a target that never moved; the step is
+    refused, naming both, and nothing is written."""
+    model, first = _cube_shot_at_a_resting_cube(30.0)
+    nxt = model.state(requires_grad=False)
+    before = nxt.body_q.numpy().copy()
+    with pytest.raises(wc.SolverError, match=r"'puck' and 'target' pass through each other.*reduce dt"):
+        wc.ImplicitSolver(model).step(first, nxt, None, 0.04)
+    np.testing.assert_array_equal(nxt.body_q.numpy(), before)
+
+
+def test_a_fast_cube_pushes_the_cube_it_strikes():
+    model, first = _cube_shot_at_a_resting_cube(10.0)
+    q, _ = rollout(model, 2, 0.04, first=first)
+    assert q[-1, 1, 0] > 0.6  # the target moves on ahead ...
+    assert q[-1, 0, 0] + 0.3 < q[-1, 1, 0]  # ... with the puck still behind it
+    assert all(model.contact.evaluate(q[t]).ok for t in range(len(q)))
+
 def test_rolling_faceted_ball_takes_ordinary_newton_steps():
     """A 320-face ball rolling on a grid with friction must tip from facet to facet every
     step. Conservative advancement bounds the gap closure vertex by vertex, so the tipping

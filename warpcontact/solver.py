@@ -53,6 +53,10 @@ _BLOCKED_ALPHA = 1e-2
 _DAMPING_FIRST = 1e-4
 _DAMPING_FACTOR = 10.0
 _DAMPING_LAST = 1e2
+# A body pair whose centres close in on each other by less than this fraction of the smaller
+# body's radius in one step cannot pass through each other within it; the pass-through check
+# (``ImplicitSolver._pass_through``) skips it, so resting and pushing contact cost nothing.
+_PASS_THROUGH_TRAVEL = 0.5
 
 
 class SolverError(RuntimeError):
@@ -70,6 +74,15 @@ class StepInfo:
     objective: float
     min_separation: float
     friction_pairs: int
+
+
+def rigid_step_between(poses_from: np.ndarray, poses_to: np.ndarray) -> np.ndarray:
+    """The (nbodies, 6) rigid coordinates (dp, dtheta) that ``retract`` moves ``poses_from``
+    by to reach ``poses_to`` (the shorter rotation)."""
+    step = np.empty((len(poses_from), 6))
+    step[:, :3] = poses_to[:, :3] - poses_from[:, :3]
+    step[:, 3:] = rotation_vector_from_quat(quat_mul(poses_to[:, 3:], quat_conjugate(poses_from[:, 3:])))
+    return step
 
 
 def retract(poses: np.ndarray, step: np.ndarray) -> np.ndarray:
@@ -419,7 +432,8 @@ class ImplicitSolver:
         Raises ValueError before writing anything if dt is not a positive number, a state's
         arrays are not one pose per body of this model, ``state_in`` holds non-finite poses
         or a zero quaternion, or bodies intersect in it; raises SolverError with diagnostics
-        if Newton does not converge.
+        if Newton does not converge, or if its solution moves one body through another
+        (``_pass_through``: dt too large for the impact). Nothing is written then.
         Inside ``with wp.Tape()``, records the step's implicit-function-theorem backward.
         """
         with paused_tape() as tape:
@@ -495,6 +509,7 @@ class ImplicitSolver:
 
         q = q_now.copy()
         q[:, 3:] /= np.linalg.norm(q[:, 3:], axis=1, keepdims=True)
+        q_start = q.copy()
         start = model.contact.evaluate(q, reuse=True)
         if start.contact_pairs:
             names = ", ".join(f"{a} and {b}" for a, b in start.contact_pairs)
@@ -603,6 +618,9 @@ class ImplicitSolver:
             raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel))
 
         q[~dynamic] = q_now[~dynamic]
+        passed = self._pass_through(q_start, q, dt)
+        if passed is not None:
+            raise SolverError(passed)
         state_out.body_q.assign(q)
         state_out.body_q_prev.assign(q_now)
         if len(coords):
@@ -630,10 +648,11 @@ class ImplicitSolver:
         dynamic = np.flatnonzero(self._dynamic)
         position = self._predicted_position.numpy()
         rotation = self._predicted_rotation.numpy()
+        predicted = q[dynamic].copy()
+        predicted[:, :3] = position[dynamic]
+        predicted[:, 3:] = np.array([quat_from_matrix(rotation[b]) for b in dynamic]).reshape(-1, 4)
         velocity = np.zeros((model.num_bodies, 6))
-        velocity[dynamic, :3] = position[dynamic] - q[dynamic, :3]
-        predicted = np.array([quat_from_matrix(rotation[b]) for b in dynamic]).reshape(-1, 4)
-        velocity[dynamic, 3:] = rotation_vector_from_quat(quat_mul(predicted, quat_conjugate(q[dynamic, 3:])))
+        velocity[dynamic] = rigid_step_between(q[dynamic], predicted)
         if not np.any(velocity):
             return q, value, grad, hess, contact, None
         if model.contact.advancement_limit(velocity, fraction=self.advancement_fraction) < 1.0:
@@ -646,6 +665,50 @@ class ImplicitSolver:
         if np.isfinite(t_value) and t_value < value:
             return trial, t_value, t_grad, t_hess, t_contact, None
         return q, value, grad, hess, contact, q_lists
+
+    def _pass_through(self, q_from: np.ndarray, q_to: np.ndarray, dt: float) -> str | None:
+        """Why the step from ``q_from`` to its solution ``q_to`` moved one body through
+        another, or None.
+
+        Every Newton iterate is intersection-free and so is the path through them, but with a
+        step too large for the bodies' speed that path can lead around a body: a cube at 30
+        m/s (1.2 m a step) met a resting cube 0.2 m ahead, the iterates slid the two past
+        each other sideways, and the step ended with the cube beyond the other one, which
+        never moved (docs/architecture.md, "Pass-through"). The frames, and any playback
+        interpolating them, then show one body passing through the other. A body pair is
+        suspect when its centres close in by at least ``_PASS_THROUGH_TRAVEL`` of the smaller
+        body's radius and come closest strictly inside the step, within the two bodies'
+        radii; the step is refused when the contact model finds the pair intersecting at
+        that point of the straight motion from ``q_from`` to ``q_to``.
+        """
+        pairs = self.model.contact.body_pairs
+        if not len(pairs):
+            return None
+        a, b = pairs[:, 0], pairs[:, 1]
+        start = q_from[b, :3] - q_from[a, :3]
+        closing = (q_to[b, :3] - q_to[a, :3]) - start
+        length2 = np.einsum("ij,ij->i", closing, closing)
+        radius = self.model.body_radius
+        moving = length2 > (_PASS_THROUGH_TRAVEL * np.minimum(radius[a], radius[b])) ** 2
+        fraction = -np.einsum("ij,ij->i", start, closing) / np.where(moving, length2, 1.0)
+        closest = np.linalg.norm(start + fraction[:, None] * closing, axis=1)
+        suspect = np.flatnonzero(moving & (fraction > 0.0) & (fraction < 1.0) & (closest < radius[a] + radius[b]))
+        if not suspect.size:
+            return None
+        names = self.model.body_names
+        step = rigid_step_between(q_from, q_to)
+        for s in np.unique(np.round(fraction[suspect], 3)):
+            hits = self.model.contact.evaluate(retract(q_from, s * step)).contact_pairs
+            for i in suspect:
+                pair = (names[a[i]], names[b[i]])
+                if pair in hits:
+                    speed = np.sqrt(length2[i]) / dt
+                    return (
+                        f"bodies {pair[0]!r} and {pair[1]!r} pass through each other: moving straight to this step's solution, they "
+                        f"intersect at {s:.0%} of it (relative speed {speed:.3g} m/s, {np.sqrt(length2[i]):.3g} m in dt={dt} s, "
+                        f"radii {radius[a[i]]:.3g} and {radius[b[i]]:.3g} m); the time step is too large for this impact, reduce dt"
+                    )
+        return None
 
     def _limits_reached(self, coords: np.ndarray) -> list[str]:
         art = self._articulation
