@@ -635,3 +635,11 @@ def test_builder_rejects_open_mesh_with_density():
     V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]])
     with pytest.raises(ValueError, match="'sheet'.*closed"):
         b.add_body((V, np.array([[0, 1, 2]])), density=1.0, name="sheet")
+
+
+def test_builder_names_an_inside_out_mesh_for_density_and_for_a_mass_without_inertia():
+    inside_out = (_BOX.vertices, _BOX.faces[:, ::-1])
+    with pytest.raises(ValueError, match="'inverted': mass from density needs a closed, outward-oriented mesh"):
+        wc.ModelBuilder().add_body(inside_out, density=1.0, name="inverted")
+    with pytest.raises(ValueError, match="'inverted': inertia is needed for a mesh that is not closed and outward-oriented"):
+        wc.ModelBuilder().add_body(inside_out, mass=1.0, name="inverted")

@@ -205,7 +205,7 @@ class ModelBuilder:
             body_mass = float(mass)
             if inertia is None:
                 if not _encloses_volume(tm):
-                    raise ValueError(f"body {name!r}: inertia is needed for a mesh that is not closed")
+                    raise ValueError(f"body {name!r}: inertia is needed for a mesh that is not closed and outward-oriented (no volume to take it from)")
                 props = tm.mass_properties
                 com = np.asarray(props["center_mass"], dtype=np.float64) if center_of_mass is None else np.asarray(center_of_mass, dtype=np.float64)
                 scale = body_mass / float(props["mass"])
