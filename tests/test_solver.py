@@ -643,3 +643,18 @@ def test_builder_names_an_inside_out_mesh_for_density_and_for_a_mass_without_ine
         wc.ModelBuilder().add_body(inside_out, density=1.0, name="inverted")
     with pytest.raises(ValueError, match="'inverted': inertia is needed for a mesh that is not closed and outward-oriented"):
         wc.ModelBuilder().add_body(inside_out, mass=1.0, name="inverted")
+
+
+def test_a_taped_step_names_a_state_without_gradient_arrays():
+    """Warp's record_func used to fail after the step was written, printing the array."""
+    model, _ = _cube_shot_at_a_resting_cube(1.0)
+    solver = wc.ImplicitSolver(model)
+    for grads_in, grads_out, label in ((False, True, "state_in.body_q"), (True, False, "state_out.body_q")):
+        state_in, state_out = model.state(requires_grad=grads_in), model.state(requires_grad=grads_out)
+        before = state_out.body_q.numpy().copy()
+        with wp.Tape(), pytest.raises(ValueError, match=rf"{label}: has no gradient array, but the step is recorded on a wp.Tape"):
+            solver.step(state_in, state_out, None, 0.04)
+        np.testing.assert_array_equal(state_out.body_q.numpy(), before)
+    with wp.Tape() as tape:
+        solver.step(model.state(), model.state(), None, 0.04)  # gradient arrays: recorded
+    assert tape.launches

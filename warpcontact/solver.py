@@ -434,9 +434,17 @@ class ImplicitSolver:
         or a zero quaternion, or bodies intersect in it; raises SolverError with diagnostics
         if Newton does not converge, or if its solution moves one body through another
         (``_pass_through``: dt too large for the impact). Nothing is written then.
-        Inside ``with wp.Tape()``, records the step's implicit-function-theorem backward.
+        Inside ``with wp.Tape()``, records the step's implicit-function-theorem backward; the
+        states must then have gradient arrays (ValueError before anything is written).
         """
         with paused_tape() as tape:
+            if tape is not None:
+                for label, array in self._taped_state_arrays(state_in, state_out):
+                    if isinstance(array, wp.array) and not array.requires_grad:
+                        raise ValueError(
+                            f"{label}: has no gradient array, but the step is recorded on a wp.Tape; make the states with "
+                            "model.state(requires_grad=True), or step outside the tape"
+                        )
             info, record = self._solve(state_in, state_out, control, dt)
         if tape is not None:
             tape.record_func(*record())
@@ -728,6 +736,14 @@ class ImplicitSolver:
 
     # --- backward -----------------------------------------------------------------------------
 
+    def _taped_state_arrays(self, state_in: State, state_out: State) -> list[tuple[str, wp.array]]:
+        """The state arrays whose gradients a recorded step's backward reads or writes, by name."""
+        names = [("state_out", "body_q"), ("state_out", "body_q_prev"), ("state_in", "body_q"), ("state_in", "body_q_prev")]
+        if self.model.num_joint_coordinates:
+            names += [("state_out", "joint_q"), ("state_out", "joint_q_prev"), ("state_in", "joint_q")]
+        states = {"state_in": state_in, "state_out": state_out}
+        return [(f"{label}.{name}", getattr(states[label], name)) for label, name in names]
+
     def _backward_function(self, state_in, state_out, control, step_in, hess, jacobian, contact_grad, q_next, q_now, q_prev):
         """The step's backward and the arrays it touches, for ``tape.record_func``."""
         model = self.model
@@ -748,12 +764,11 @@ class ImplicitSolver:
             predicted_rotation = wp.clone(self._predicted_rotation)
             sensitivity = wp.clone(self._prediction_sensitivity)
         bodies = step_in.bodies
-        arrays = [state_out.body_q, state_out.body_q_prev, state_in.body_q, state_in.body_q_prev, model.body_mass, model.contact_stiffness, model.friction]
+        arrays = [array for _, array in self._taped_state_arrays(state_in, state_out)] + [model.body_mass, model.contact_stiffness, model.friction]
         if control is not None and control.body_target.requires_grad:
             arrays.append(control.body_target)
         joints = art is not None and art.num_coordinates > 0
         if joints:
-            arrays += [state_out.joint_q, state_out.joint_q_prev, state_in.joint_q]
             if control is not None and control.joint_target is not None and control.joint_target.requires_grad:
                 arrays.append(control.joint_target)
         balls = art is not None and art.has_ball_drives
