@@ -7,6 +7,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics
 
 import warpcontact as wc
 from warpcontact import io
+from warpcontact.rotation import quat_to_matrix as quat_matrix
 
 
 def write_physics_scene(path, *, meters=1.0, mass=None, joint=None, face_counts=None, points=None, drop_height=0.6):
@@ -395,3 +396,58 @@ def test_articulated_scene_round_trip_preserves_joints(tmp_path):
     np.testing.assert_allclose(b.lower, a.lower, rtol=1e-6)
     np.testing.assert_allclose(b.upper, a.upper, rtol=1e-6)
     np.testing.assert_allclose(b.initial_coordinates, a.initial_coordinates, atol=1e-6)
+
+
+def _cube_corners_in_world(stage, path, meters):
+    matrix = UsdGeom.Xformable(stage.GetPrimAtPath(path)).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    half = 0.5 * UsdGeom.Cube(stage.GetPrimAtPath(path)).GetSizeAttr().Get()
+    corners = [Gf.Vec3d(x, y, z) for x in (-half, half) for y in (-half, half) for z in (-half, half)]
+    return np.array([list(matrix.Transform(c)) for c in corners]) * meters
+
+
+@pytest.mark.parametrize(
+    "body_ops, shape_ops",
+    [
+        ([("Scale", (1.0, 1.0, 3.0))], [("RotateX", 45.0)]),  # a shear: came out 0.5 m off at the corners
+        ([("RotateZ", 30.0), ("Scale", (1.0, 2.0, 3.0))], [("Translate", (0.5, 0.2, 0.3))]),  # body turned 32.5 degrees, not 30
+        ([("Scale", (2.0, 2.0, 2.0))], [("RotateX", 45.0), ("Scale", (1.0, 1.0, 3.0))]),  # supported before: unchanged
+    ],
+)
+def test_scaled_and_sheared_colliders_load_where_usd_puts_them(tmp_path, body_ops, shape_ops):
+    meters = 0.01
+    path = write_physics_scene(tmp_path / "scaled.usda", meters=meters, drop_height=2.0)
+    stage = Usd.Stage.Open(str(path))
+    for prim_path, ops in (("/World/box", body_ops), ("/World/box/shape", shape_ops)):
+        xform = UsdGeom.Xformable(stage.GetPrimAtPath(prim_path))
+        for op, value in ops:
+            getattr(xform, f"Add{op}Op")().Set(Gf.Vec3d(*value) if op == "Translate" else Gf.Vec3f(*value) if op == "Scale" else value)
+    stage.GetRootLayer().Save()
+    expected = _cube_corners_in_world(stage, "/World/box/shape", meters)
+    box = io.load_scene(path).body("box")
+    posed = box.vertices @ quat_matrix(box.pose[3:]).T + box.pose[:3]
+    assert len(posed) == 8
+    for corner in expected:
+        # UsdPhysics hands the case it describes exactly float32 dimensions and offsets.
+        assert np.linalg.norm(posed - corner, axis=1).min() < 1e-7
+    model = io.load_scene(path).build_model()
+    volume = abs(np.linalg.det(expected[[4, 2, 1]] - expected[0]))  # edges from one corner
+    assert model.body_mass.numpy()[1] == pytest.approx(1000.0 * volume, rel=1e-6)
+
+
+def test_a_sheared_static_collider_loads_where_usd_puts_it(tmp_path):
+    path = write_physics_scene(tmp_path / "sheared.usda")
+    stage = Usd.Stage.Open(str(path))
+    wall = UsdGeom.Xform.Define(stage, "/World/leaning")
+    wall.AddTranslateOp().Set(Gf.Vec3d(2.0, 0.0, 0.5))
+    wall.AddScaleOp().Set(Gf.Vec3f(1.0, 1.0, 4.0))
+    cube = UsdGeom.Cube.Define(stage, "/World/leaning/slab")
+    cube.AddRotateYOp().Set(30.0)
+    cube.CreateSizeAttr(0.2)
+    UsdPhysics.CollisionAPI.Apply(cube.GetPrim())
+    stage.GetRootLayer().Save()
+    expected = _cube_corners_in_world(stage, "/World/leaning/slab", 1.0)
+    slab = io.load_scene(path).body("slab")
+    assert slab.static
+    posed = slab.vertices @ quat_matrix(slab.pose[3:]).T + slab.pose[:3]
+    for corner in expected:
+        assert np.linalg.norm(posed - corner, axis=1).min() < 1e-9

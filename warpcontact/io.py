@@ -38,8 +38,13 @@ typo would otherwise fall back to the default silently).
 Primitive colliders are triangulated: Cube exactly (12 triangles), Sphere as an icosphere
 with ``SPHERE_SUBDIVISIONS`` = 2 (320 triangles), Capsule and Cylinder with 32 segments; use
 Mesh prims to control resolution. Polygons are fan-triangulated (exact for convex ones).
-Kinematic or disabled rigid bodies load as static bodies. Rigid-body prims are assumed
-unscaled (scale the collider prims instead); stage metersPerUnit is applied to lengths
+Kinematic or disabled rigid bodies load as static bodies. Scales anywhere above a collider
+apply as USD composes them; a rigid body's frame is its prim's with the scale removed (the
+nearest rotation where the scale is not uniform). Where UsdPhysics' description of a
+collider (a rigid pose and a scale along the collider's own axes) cannot hold its
+transform (a shear from a non-uniform scale above a rotated collider, or any collider of a
+non-uniformly scaled body), its points are moved by its full world matrix instead (Mesh,
+Cube, Sphere, Capsule and Cylinder colliders). Stage metersPerUnit is applied to lengths
 (unauthored, USD's fallback of 0.01 applies: centimetres; zero, negative or NaN is an
 error), and the stage up axis only sets the default gravity when no PhysicsScene gives one.
 """
@@ -332,12 +337,71 @@ def _align_axis(mesh, axis: str):
     return mesh
 
 
+def _world_matrix(prim, UsdGeom, Usd):
+    return UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+
+
+def _linear_part(m) -> np.ndarray:
+    """The 3x3 linear part of a Gf 4x4 matrix (USD's row-vector convention: x' = x L + t)."""
+    return np.array([[m[i][j] for j in range(3)] for i in range(3)], dtype=np.float64)
+
+
+def _scaled_uniformly(linear: np.ndarray) -> bool:
+    """Whether x L is a rotation times one scale factor (Gf's rotation extraction is exact)."""
+    gram = linear @ linear.T
+    return bool(np.abs(gram - gram[0, 0] * np.eye(3)).max() <= 1e-9 * abs(gram[0, 0]))
+
+
+def _scaled_along_own_axes(linear: np.ndarray) -> bool:
+    """Whether x L scales along the prim's own axes, then rotates (no shear): L L^T diagonal."""
+    gram = linear @ linear.T
+    return bool(np.abs(gram - np.diag(np.diag(gram))).max() <= 1e-9 * np.abs(gram).max())
+
+
 def _world_pose(prim, UsdGeom, Usd) -> np.ndarray:
-    m = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    """A prim's world frame with its scale removed: (px, py, pz, qx, qy, qz, qw)."""
+    m = _world_matrix(prim, UsdGeom, Usd)
     t = m.ExtractTranslation()
-    rot = m.ExtractRotationQuat()
-    q = _quat_xyzw(rot)
+    linear = _linear_part(m)
+    if _scaled_uniformly(linear):
+        q = _quat_xyzw(m.ExtractRotationQuat())
+    else:
+        # Gf's extraction tilts the rotation of a non-uniformly scaled frame (30 degrees under
+        # a scale of (1, 2, 3) came back as 32.5); the polar factor is the nearest rotation.
+        u, _, vt = np.linalg.svd(linear)
+        q = quat_from_matrix((u @ vt).T)
     return np.array([t[0], t[1], t[2], *(q / np.linalg.norm(q))])
+
+
+def _local_triangles(kind, prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
+    """A collider's triangles in its own prim frame, from its unscaled attributes."""
+    if kind == "MeshShape":
+        return _mesh_triangles(prim, UsdGeom, source)
+    if kind == "CubeShape":
+        m = trimesh.creation.box(extents=[float(UsdGeom.Cube(prim).GetSizeAttr().Get())] * 3)
+    elif kind == "SphereShape":
+        m = trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=float(UsdGeom.Sphere(prim).GetRadiusAttr().Get()))
+    elif kind == "CapsuleShape":
+        shape = UsdGeom.Capsule(prim)
+        m = trimesh.creation.capsule(height=float(shape.GetHeightAttr().Get()), radius=float(shape.GetRadiusAttr().Get()), count=[ROUND_SEGMENTS, ROUND_SEGMENTS])
+        m = _align_axis(m, str(shape.GetAxisAttr().Get()))
+    elif kind == "CylinderShape":
+        shape = UsdGeom.Cylinder(prim)
+        m = trimesh.creation.cylinder(radius=float(shape.GetRadiusAttr().Get()), height=float(shape.GetHeightAttr().Get()), sections=ROUND_SEGMENTS)
+        m = _align_axis(m, str(shape.GetAxisAttr().Get()))
+    else:
+        raise ValueError(
+            f"{source}: prim {prim.GetPath()}: a {kind} collider under a non-uniform scale or a shear is not supported "
+            "(use a Mesh, Cube, Sphere, Capsule or Cylinder there, or move the scale onto the collider)"
+        )
+    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
+
+
+def _in_frame(points: np.ndarray, matrix, frame: np.ndarray) -> np.ndarray:
+    """Points of a prim's own frame, moved by its world ``matrix`` (scale and shear
+    included), in the frame ``frame`` = (position, xyzw quaternion) of the same stage."""
+    world = points @ _linear_part(matrix) + np.asarray(matrix.ExtractTranslation(), dtype=np.float64)
+    return world @ quat_to_matrix(frame[3:]) - frame[:3] @ quat_to_matrix(frame[3:])
 
 
 def _usd_error_text(exc) -> str:
@@ -424,18 +488,33 @@ def load_scene(path) -> Scene:
             prim = stage.GetPrimAtPath(prim_path)
             if not desc.collisionEnabled:
                 continue
-            vertices, faces = _shape_triangles(desc, kind, prim, UsdGeom, source)
-            # localPos / localRot place the collider in its rigid body's frame, or in the world
-            # for a collider without a rigid body (a static body of its own). Scale is already
-            # in the shape's dimensions (meshScale, radius, halfExtents).
-            local_pose = np.array([*desc.localPos, *_quat_xyzw(desc.localRot)], dtype=np.float64)
-            local_pose[3:] /= np.linalg.norm(local_pose[3:])
-            local_pose[:3] *= meters
-            vertices = vertices * meters
             owner = str(desc.rigidBody) if desc.rigidBody and str(desc.rigidBody) in bodies else ""
+            matrix = _world_matrix(prim, UsdGeom, Usd)
+            exact = not _scaled_along_own_axes(_linear_part(matrix)) or (owner and not _scaled_uniformly(_linear_part(_world_matrix(stage.GetPrimAtPath(owner), UsdGeom, Usd))))
+            if exact:
+                # UsdPhysics describes a collider by a rigid pose and a scale along its own axes,
+                # which cannot hold a shear (a non-uniform scale above a rotated collider) or a
+                # collider of a non-uniformly scaled body: a box under a body scaled (1, 1, 3) and
+                # turned 45 degrees inside it came out 0.5 m off at its corners. Its points are
+                # then moved by the full world matrix into the frame of its body (or its own).
+                vertices, faces = _local_triangles(kind, prim, UsdGeom, source)
+                frame = _world_pose(stage.GetPrimAtPath(owner) if owner else prim, UsdGeom, Usd)
+                vertices = _in_frame(vertices, matrix, frame) * meters
+                local_pose = frame.copy()
+                local_pose[:3] *= meters
+            else:
+                vertices, faces = _shape_triangles(desc, kind, prim, UsdGeom, source)
+                # localPos / localRot place the collider in its rigid body's frame, or in the
+                # world for a collider without a rigid body (a static body of its own). Scale is
+                # already in the shape's dimensions (meshScale, radius, halfExtents).
+                local_pose = np.array([*desc.localPos, *_quat_xyzw(desc.localRot)], dtype=np.float64)
+                local_pose[3:] /= np.linalg.norm(local_pose[3:])
+                local_pose[:3] *= meters
+                vertices = vertices * meters
+                if owner:
+                    vertices = quat_rotate(local_pose[3:], vertices) + local_pose[:3]
             if owner:
                 target = bodies[owner]
-                vertices = quat_rotate(local_pose[3:], vertices) + local_pose[:3]
             else:
                 target = static_bodies.setdefault(
                     str(prim_path),
