@@ -451,3 +451,19 @@ def test_a_sheared_static_collider_loads_where_usd_puts_it(tmp_path):
     posed = slab.vertices @ quat_matrix(slab.pose[3:]).T + slab.pose[:3]
     for corner in expected:
         assert np.linalg.norm(posed - corner, axis=1).min() < 1e-9
+
+
+def test_a_transform_with_time_samples_only_is_refused_and_a_default_is_read(tmp_path):
+    """With samples only, the default time has no value and the body used to load at the origin."""
+    path = write_physics_scene(tmp_path / "sampled.usda")
+    stage = Usd.Stage.Open(str(path))
+    translate = UsdGeom.Xformable(stage.GetPrimAtPath("/World/box")).GetOrderedXformOps()[0]
+    translate.GetAttr().Clear()
+    translate.Set(Gf.Vec3d(0.5, 0.0, 1.0), 1.0)
+    translate.Set(Gf.Vec3d(0.9, 0.0, 1.0), 10.0)
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/box: /World/box.xformOp:translate has time samples but no default value"):
+        io.load_scene(path)
+    translate.Set(Gf.Vec3d(0.2, 0.0, 0.8))
+    stage.GetRootLayer().Save()
+    np.testing.assert_allclose(io.load_scene(path).body("box").pose[:3], [0.2, 0.0, 0.8])

@@ -44,7 +44,9 @@ nearest rotation where the scale is not uniform). Where UsdPhysics' description 
 collider (a rigid pose and a scale along the collider's own axes) cannot hold its
 transform (a shear from a non-uniform scale above a rotated collider, or any collider of a
 non-uniformly scaled body), its points are moved by its full world matrix instead (Mesh,
-Cube, Sphere, Capsule and Cylinder colliders). Stage metersPerUnit is applied to lengths
+Cube, Sphere, Capsule and Cylinder colliders). The initial state is read at the default time
+code; a body or collider transform with time samples but no default value is an error.
+Stage metersPerUnit is applied to lengths
 (unauthored, USD's fallback of 0.01 applies: centimetres; zero, negative or NaN is an
 error), and the stage up axis only sets the default gravity when no PhysicsScene gives one.
 """
@@ -358,6 +360,22 @@ def _scaled_along_own_axes(linear: np.ndarray) -> bool:
     return bool(np.abs(gram - np.diag(np.diag(gram))).max() <= 1e-9 * np.abs(gram).max())
 
 
+def _require_default_transform(prim, UsdGeom, Usd, source: str) -> None:
+    """Refuse a prim whose transform (or an ancestor's) is only time-sampled: the initial
+    state is read at the default time, where such an op has no value and would silently
+    count as the identity (a body authored at z = 1 m in samples loaded at the origin)."""
+    ancestor = prim
+    while ancestor and not ancestor.IsPseudoRoot():
+        for op in UsdGeom.Xformable(ancestor).GetOrderedXformOps() if ancestor.IsA(UsdGeom.Xformable) else ():
+            attr = op.GetAttr()
+            if attr.GetNumTimeSamples() and attr.Get(Usd.TimeCode.Default()) is None:
+                raise ValueError(
+                    f"{source}: prim {prim.GetPath()}: {attr.GetPath()} has time samples but no default value; the initial "
+                    "state is read at the default time (author the first frame's value as the default)"
+                )
+        ancestor = ancestor.GetParent()
+
+
 def _world_pose(prim, UsdGeom, Usd) -> np.ndarray:
     """A prim's world frame with its scale removed: (px, py, pz, qx, qy, qz, qw)."""
     m = _world_matrix(prim, UsdGeom, Usd)
@@ -462,6 +480,7 @@ def load_scene(path) -> Scene:
     bodies: dict[str, BodySpec] = {}
     for prim_path, desc in descs.get("RigidBody", []):
         prim = stage.GetPrimAtPath(prim_path)
+        _require_default_transform(prim, UsdGeom, Usd, source)
         pose = _world_pose(prim, UsdGeom, Usd)
         pose[:3] *= meters
         body = BodySpec(
@@ -488,6 +507,7 @@ def load_scene(path) -> Scene:
             prim = stage.GetPrimAtPath(prim_path)
             if not desc.collisionEnabled:
                 continue
+            _require_default_transform(prim, UsdGeom, Usd, source)
             owner = str(desc.rigidBody) if desc.rigidBody and str(desc.rigidBody) in bodies else ""
             matrix = _world_matrix(prim, UsdGeom, Usd)
             exact = not _scaled_along_own_axes(_linear_part(matrix)) or (owner and not _scaled_uniformly(_linear_part(_world_matrix(stage.GetPrimAtPath(owner), UsdGeom, Usd))))
