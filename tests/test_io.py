@@ -410,6 +410,7 @@ def _cube_corners_in_world(stage, path, meters):
     [
         ([("Scale", (1.0, 1.0, 3.0))], [("RotateX", 45.0)]),  # a shear: came out 0.5 m off at the corners
         ([("RotateZ", 30.0), ("Scale", (1.0, 2.0, 3.0))], [("Translate", (0.5, 0.2, 0.3))]),  # body turned 32.5 degrees, not 30
+        ([("RotateX", 30.0), ("Scale", (2.0, 2.0, 2.0))], [("Translate", (0.1, 0.2, 0.3))]),  # turned 34.2 degrees, not 30
         ([("Scale", (2.0, 2.0, 2.0))], [("RotateX", 45.0), ("Scale", (1.0, 1.0, 3.0))]),  # supported before: unchanged
     ],
 )
@@ -467,3 +468,24 @@ def test_a_transform_with_time_samples_only_is_refused_and_a_default_is_read(tmp
     translate.Set(Gf.Vec3d(0.2, 0.0, 0.8))
     stage.GetRootLayer().Save()
     np.testing.assert_allclose(io.load_scene(path).body("box").pose[:3], [0.2, 0.0, 0.8])
+
+
+def test_a_joint_on_a_scaled_turned_body_keeps_its_anchor(tmp_path):
+    """The body's frame was Gf's rotation of its scaled matrix (34.2 degrees for 30), which
+    moved the joint's anchor on the body 0.23 m away from the world's."""
+    path = write_physics_scene(tmp_path / "hinged.usda", drop_height=3.0)
+    stage = Usd.Stage.Open(str(path))
+    body = UsdGeom.Xformable(stage.GetPrimAtPath("/World/box"))
+    body.AddRotateXOp().Set(30.0)
+    body.AddScaleOp().Set(Gf.Vec3f(2.0, 2.0, 2.0))
+    anchor = np.array(body.ComputeLocalToWorldTransform(Usd.TimeCode.Default()).Transform(Gf.Vec3d(0.0, 0.0, 0.5)))
+    hinge = UsdPhysics.RevoluteJoint.Define(stage, "/World/hinge")
+    hinge.CreateBody1Rel().SetTargets(["/World/box"])
+    hinge.CreateAxisAttr("X")
+    hinge.CreateLocalPos0Attr(Gf.Vec3f(*anchor))
+    hinge.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.5))
+    stage.GetRootLayer().Save()
+    scene = io.load_scene(path)
+    box, joint = scene.body("box"), scene.joints[0]
+    on_body = quat_matrix(box.pose[3:]) @ joint.child_frame[:3] + box.pose[:3]
+    np.testing.assert_allclose(on_body, anchor, atol=1e-6)  # float32 joint positions

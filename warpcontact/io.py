@@ -348,10 +348,9 @@ def _linear_part(m) -> np.ndarray:
     return np.array([[m[i][j] for j in range(3)] for i in range(3)], dtype=np.float64)
 
 
-def _scaled_uniformly(linear: np.ndarray) -> bool:
-    """Whether x L is a rotation times one scale factor (Gf's rotation extraction is exact)."""
-    gram = linear @ linear.T
-    return bool(np.abs(gram - gram[0, 0] * np.eye(3)).max() <= 1e-9 * abs(gram[0, 0]))
+def _unscaled(linear: np.ndarray) -> bool:
+    """Whether x L is a rotation (the only case Gf's rotation extraction is exact for)."""
+    return bool(np.abs(linear @ linear.T - np.eye(3)).max() <= 1e-9)
 
 
 def _scaled_along_own_axes(linear: np.ndarray) -> bool:
@@ -381,11 +380,12 @@ def _world_pose(prim, UsdGeom, Usd) -> np.ndarray:
     m = _world_matrix(prim, UsdGeom, Usd)
     t = m.ExtractTranslation()
     linear = _linear_part(m)
-    if _scaled_uniformly(linear):
+    if _unscaled(linear):
         q = _quat_xyzw(m.ExtractRotationQuat())
     else:
-        # Gf's extraction tilts the rotation of a non-uniformly scaled frame (30 degrees under
-        # a scale of (1, 2, 3) came back as 32.5); the polar factor is the nearest rotation.
+        # Gf's extraction tilts the rotation of a scaled frame (30 degrees about x came back as
+        # 34.2 under a scale of 2, and 30 about z as 32.5 under (1, 2, 3)); the polar factor
+        # is the nearest rotation.
         u, _, vt = np.linalg.svd(linear)
         q = quat_from_matrix((u @ vt).T)
     return np.array([t[0], t[1], t[2], *(q / np.linalg.norm(q))])
@@ -510,13 +510,13 @@ def load_scene(path) -> Scene:
             _require_default_transform(prim, UsdGeom, Usd, source)
             owner = str(desc.rigidBody) if desc.rigidBody and str(desc.rigidBody) in bodies else ""
             matrix = _world_matrix(prim, UsdGeom, Usd)
-            exact = not _scaled_along_own_axes(_linear_part(matrix)) or (owner and not _scaled_uniformly(_linear_part(_world_matrix(stage.GetPrimAtPath(owner), UsdGeom, Usd))))
+            exact = not _scaled_along_own_axes(_linear_part(matrix)) or (owner and not _unscaled(_linear_part(_world_matrix(stage.GetPrimAtPath(owner), UsdGeom, Usd))))
             if exact:
                 # UsdPhysics describes a collider by a rigid pose and a scale along its own axes,
-                # which cannot hold a shear (a non-uniform scale above a rotated collider) or a
-                # collider of a non-uniformly scaled body: a box under a body scaled (1, 1, 3) and
-                # turned 45 degrees inside it came out 0.5 m off at its corners. Its points are
-                # then moved by the full world matrix into the frame of its body (or its own).
+                # which cannot hold a shear (a box under a body scaled (1, 1, 3) and turned 45
+                # degrees inside it came out 0.5 m off at its corners); and a scaled body's frame
+                # is the polar one (``_world_pose``). Its points are then moved by the full world
+                # matrix into the frame of its body (or its own).
                 vertices, faces = _local_triangles(kind, prim, UsdGeom, source)
                 frame = _world_pose(stage.GetPrimAtPath(owner) if owner else prim, UsdGeom, Usd)
                 vertices = _in_frame(vertices, matrix, frame) * meters
