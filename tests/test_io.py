@@ -489,3 +489,17 @@ def test_a_joint_on_a_scaled_turned_body_keeps_its_anchor(tmp_path):
     box, joint = scene.body("box"), scene.joints[0]
     on_body = quat_matrix(box.pose[3:]) @ joint.child_frame[:3] + box.pose[:3]
     np.testing.assert_allclose(on_body, anchor, atol=1e-6)  # float32 joint positions
+
+
+def test_a_scaled_body_s_center_of_mass_is_read_in_its_scaled_local_space(tmp_path):
+    path = write_physics_scene(tmp_path / "com.usda", mass=2.0, drop_height=3.0)
+    stage = Usd.Stage.Open(str(path))
+    body = UsdGeom.Xformable(stage.GetPrimAtPath("/World/box"))
+    body.AddRotateXOp().Set(30.0)
+    body.AddScaleOp().Set(Gf.Vec3f(2.0, 2.0, 2.0))
+    UsdPhysics.MassAPI(stage.GetPrimAtPath("/World/box")).CreateCenterOfMassAttr(Gf.Vec3f(0.0, 0.0, 0.1))
+    world = np.array(body.ComputeLocalToWorldTransform(Usd.TimeCode.Default()).Transform(Gf.Vec3d(0.0, 0.0, 0.1)))
+    stage.GetRootLayer().Save()
+    box = io.load_scene(path).body("box")
+    np.testing.assert_allclose(box.center_of_mass, [0.0, 0.0, 0.2], atol=1e-7)  # was (0, 0, 0.1): half-way to the centre
+    np.testing.assert_allclose(quat_matrix(box.pose[3:]) @ box.center_of_mass + box.pose[:3], world, atol=1e-7)

@@ -497,6 +497,10 @@ def load_scene(path) -> Scene:
             if not np.isfinite(value).all():
                 raise ValueError(f"{source}: prim {prim_path}: physics:{label} must be finite, got {np.asarray(value).tolist()}")
         _read_mass(prim, body, UsdPhysics, meters, source)
+        linear = _linear_part(_world_matrix(prim, UsdGeom, Usd))
+        if body.center_of_mass is not None and not _unscaled(linear):
+            # centerOfMass is in the prim's local, scaled space; the body frame is unscaled.
+            body.center_of_mass = body.center_of_mass @ linear @ quat_to_matrix(body.pose[3:])
         _read_warpcontact_body(prim, body, meters, source)
         bodies[str(prim_path)] = body
 
