@@ -317,6 +317,17 @@ def test_violated_joint_and_limits_are_refused():
         b.finalize()
 
 
+def test_a_state_outside_the_joint_limits_is_refused_naming_the_coordinate():
+    """It used to reach the solver as 'objective is not finite at the start pose'."""
+    model, state = pendulum(limits=[(-1.0, 1.0)])
+    state.joint_q.assign(np.array([1.5]))
+    nxt = model.state(requires_grad=False)
+    before = nxt.joint_q.numpy().copy()
+    with pytest.raises(ValueError, match=r"state_in.joint_q: coordinate 'hinge0:0' = 1.5 is not strictly inside its limits \(-1, 1\)"):
+        wc.ImplicitSolver(model).step(state, nxt, None, 0.01)
+    np.testing.assert_array_equal(nxt.joint_q.numpy(), before)
+
+
 def test_static_child_and_missing_joint_state_are_refused():
     b = wc.ModelBuilder()
     s = b.add_box((1, 1, 0.1), static=True, name="floor")

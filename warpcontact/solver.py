@@ -461,6 +461,11 @@ class ImplicitSolver:
         coords = state_in.joint_q.numpy()
         if not np.isfinite(coords).all():
             raise ValueError("state_in.joint_q: contains non-finite values")
+        outside = self._limits_reached(coords)
+        if outside:
+            art = self._articulation
+            i = art.coordinate_names.index(outside[0])
+            raise ValueError(f"state_in.joint_q: coordinate {outside[0]!r} = {coords[i]:.6g} is not strictly inside its limits ({art.lower[i]:.6g}, {art.upper[i]:.6g})")
         target = coords if control is None or control.joint_target is None else control.joint_target.numpy()
         if target.shape != (count,) or not np.isfinite(target).all():
             raise ValueError(f"control.joint_target: expected {count} finite joint targets")
