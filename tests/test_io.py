@@ -503,3 +503,18 @@ def test_a_scaled_body_s_center_of_mass_is_read_in_its_scaled_local_space(tmp_pa
     box = io.load_scene(path).body("box")
     np.testing.assert_allclose(box.center_of_mass, [0.0, 0.0, 0.2], atol=1e-7)  # was (0, 0, 0.1): half-way to the centre
     np.testing.assert_allclose(quat_matrix(box.pose[3:]) @ box.center_of_mass + box.pose[:3], world, atol=1e-7)
+
+
+def test_velocities_are_read_in_the_parent_s_space(tmp_path):
+    """UsdPhysics authors velocities in the space of the body's xform (its parent's); under a
+    parent turned 90 degrees about z, (1, 0, 0) m/s used to be taken as world x."""
+    path = write_physics_scene(tmp_path / "moving.usda", drop_height=3.0)
+    stage = Usd.Stage.Open(str(path))
+    UsdGeom.Xform.Define(stage, "/World").AddRotateZOp().Set(90.0)
+    rigid = UsdPhysics.RigidBodyAPI(stage.GetPrimAtPath("/World/box"))
+    rigid.CreateVelocityAttr(Gf.Vec3f(1.0, 0.0, 0.0))
+    rigid.CreateAngularVelocityAttr(Gf.Vec3f(0.0, 90.0, 0.0))
+    stage.GetRootLayer().Save()
+    box = io.load_scene(path).body("box")
+    np.testing.assert_allclose(box.linear_velocity, [0.0, 1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(box.angular_velocity, [-np.pi / 2, 0.0, 0.0], atol=1e-7)

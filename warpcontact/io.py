@@ -496,6 +496,14 @@ def load_scene(path) -> Scene:
         for label, value in (("velocity", body.linear_velocity), ("angularVelocity", body.angular_velocity)):
             if not np.isfinite(value).all():
                 raise ValueError(f"{source}: prim {prim_path}: physics:{label} must be finite, got {np.asarray(value).tolist()}")
+        parent = prim.GetParent()
+        if parent.IsA(UsdGeom.Xformable):
+            # Velocities are authored "in the same space as the node's xform": its parent's.
+            above = _linear_part(_world_matrix(parent, UsdGeom, Usd))
+            if not np.array_equal(above, np.eye(3)):
+                u, _, vt = np.linalg.svd(above)
+                body.linear_velocity = body.linear_velocity @ above
+                body.angular_velocity = body.angular_velocity @ (u @ vt)
         _read_mass(prim, body, UsdPhysics, meters, source)
         linear = _linear_part(_world_matrix(prim, UsdGeom, Usd))
         if body.center_of_mass is not None and not _unscaled(linear):
