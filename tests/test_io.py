@@ -518,3 +518,25 @@ def test_velocities_are_read_in_the_parent_s_space(tmp_path):
     box = io.load_scene(path).body("box")
     np.testing.assert_allclose(box.linear_velocity, [0.0, 1.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(box.angular_velocity, [-np.pi / 2, 0.0, 0.0], atol=1e-7)
+
+
+def test_mass_properties_on_a_collider_are_used_or_refused(tmp_path):
+    """A collider's MassAPI used to be ignored: density 5,000 kg/m^3 gave the default 1,000."""
+    path = write_physics_scene(tmp_path / "dense.usda", drop_height=3.0)
+    stage = Usd.Stage.Open(str(path))
+    shape_mass = UsdPhysics.MassAPI.Apply(stage.GetPrimAtPath("/World/box/shape"))
+    shape_mass.CreateDensityAttr(5000.0)
+    stage.GetRootLayer().Save()
+    assert io.load_scene(path).build_model().body_mass.numpy()[1] == pytest.approx(5000.0 * 0.5**3)
+    shape_mass.CreateCenterOfMassAttr(Gf.Vec3f(0.0, 0.0, 0.1))
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/box/shape: physics:density, physics:centerOfMass on a collider of rigid body /World/box is not supported"):
+        io.load_scene(path)
+    shape_mass.GetCenterOfMassAttr().Clear()
+    second = UsdGeom.Cube.Define(stage, "/World/box/second")
+    second.CreateSizeAttr(0.1)
+    second.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 0.4))
+    UsdPhysics.CollisionAPI.Apply(second.GetPrim())
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/box/shape: physics:density on a collider of rigid body /World/box is not supported"):
+        io.load_scene(path)

@@ -513,6 +513,7 @@ def load_scene(path) -> Scene:
         bodies[str(prim_path)] = body
 
     static_bodies: dict[str, BodySpec] = {}
+    colliders: dict[str, list] = {}  # rigid body path -> its collider prims
     shape_kinds = [k for k in descs if k.endswith("Shape")]
     for kind in shape_kinds:
         for prim_path, desc in descs[kind]:
@@ -555,6 +556,10 @@ def load_scene(path) -> Scene:
             offset = len(target.vertices)
             target.vertices = np.concatenate([target.vertices, vertices])
             target.faces = np.concatenate([target.faces, faces + offset])
+            if owner:
+                colliders.setdefault(owner, []).append(prim)
+    for owner, prims in colliders.items():
+        _read_collider_mass(stage.GetPrimAtPath(owner), prims, bodies[owner], UsdPhysics, meters, source)
 
     # Keep the stage's prim order, so bodies come back in the order they were authored.
     order = {str(prim.GetPath()): i for i, prim in enumerate(stage.Traverse())}
@@ -746,6 +751,32 @@ def _read_mass(prim, body: BodySpec, UsdPhysics, meters: float, source: str):
         if not (np.isfinite(diag).all() and (diag > 0).all()):
             raise ValueError(f"{where}: diagonalInertia must be positive, got {diag}")
         body.inertia = R @ np.diag(diag) @ R.T
+
+
+def _read_collider_mass(body_prim, collider_prims, body: BodySpec, UsdPhysics, meters: float, source: str):
+    """MassAPI authored on a body's collider prims rather than on the body prim (UsdPhysics
+    allows both): it used to be ignored, so a collider's density of 5,000 kg/m^3 gave the
+    default 1,000. The mass or density of a body's only collider is the body's when the body
+    prim authors neither; any other per-collider mass property is refused, naming the prim."""
+    authored = []
+    for prim in collider_prims:
+        if prim == body_prim or not prim.HasAPI(UsdPhysics.MassAPI):
+            continue
+        api = UsdPhysics.MassAPI(prim)
+        names = [name for name, attr in (("mass", api.GetMassAttr()), ("density", api.GetDensityAttr()), ("centerOfMass", api.GetCenterOfMassAttr()),
+                                          ("diagonalInertia", api.GetDiagonalInertiaAttr()), ("principalAxes", api.GetPrincipalAxesAttr())) if attr and attr.HasAuthoredValue()]
+        if names:
+            authored.append((prim, names))
+    if not authored:
+        return
+    prim, names = authored[0]
+    transferable = len(collider_prims) == 1 and set(names) <= {"mass", "density"} and body.mass is None and body.density is None
+    if not transferable:
+        raise ValueError(
+            f"{source}: prim {prim.GetPath()}: physics:{', physics:'.join(names)} on a collider of rigid body {body_prim.GetPath()} "
+            "is not supported (per-collider mass properties); author them on the rigid body prim"
+        )
+    _read_mass(prim, body, UsdPhysics, meters, source)
 
 
 def target_problem(body: BodySpec) -> str | None:
