@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 import warp as wp
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdShade
 
 import warpcontact as wc
 from warpcontact import io
@@ -539,4 +539,47 @@ def test_mass_properties_on_a_collider_are_used_or_refused(tmp_path):
     UsdPhysics.CollisionAPI.Apply(second.GetPrim())
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match=r"prim /World/box/shape: physics:density on a collider of rigid body /World/box is not supported"):
+        io.load_scene(path)
+
+
+def _bind_physics_material(stage, prim_path, material_path, **values):
+    material = UsdShade.Material.Define(stage, material_path)
+    api = UsdPhysics.MaterialAPI.Apply(material.GetPrim())
+    for name, value in values.items():
+        getattr(api, f"Create{name[0].upper()}{name[1:]}Attr")(value)
+    UsdShade.MaterialBindingAPI.Apply(stage.GetPrimAtPath(prim_path)).Bind(material, UsdShade.Tokens.weakerThanDescendants, "physics")
+
+
+def test_physics_materials_give_density_and_friction_or_are_refused(tmp_path):
+    """Bound physics materials used to be ignored: density 5,000 kg/m^3 gave the default
+    1,000, and dynamicFriction 0.9 simulated without friction."""
+    path = write_physics_scene(tmp_path / "materials.usda", drop_height=3.0)
+    stage = Usd.Stage.Open(str(path))
+    _bind_physics_material(stage, "/World/box/shape", "/World/steel", density=5000.0, dynamicFriction=0.5)
+    _bind_physics_material(stage, "/World/ground", "/World/floor", dynamicFriction=0.5)
+    stage.GetRootLayer().Save()
+    scene = io.load_scene(path)
+    assert scene.settings.friction == pytest.approx(0.5)
+    assert scene.build_model().body_mass.numpy()[1] == pytest.approx(5000.0 * 0.5**3)
+    UsdPhysics.MaterialAPI(stage.GetPrimAtPath("/World/floor")).GetDynamicFrictionAttr().Set(0.9)
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"different dynamicFriction \(/World/ground: 0.9.*/World/box/shape: 0.5|different dynamicFriction \(/World/box/shape: 0.5.*/World/ground: 0.9"):
+        io.load_scene(path)
+    scene_prim = stage.GetPrimAtPath("/World/physicsScene")
+    scene_prim.CreateAttribute("warpcontact:friction", Sdf.ValueTypeNames.Double).Set(0.3)
+    stage.GetRootLayer().Save()
+    assert io.load_scene(path).settings.friction == pytest.approx(0.3)  # the scene's own coefficient wins
+
+
+def test_colliders_of_one_body_with_different_material_densities_are_refused(tmp_path):
+    path = write_physics_scene(tmp_path / "mixed.usda", drop_height=3.0)
+    stage = Usd.Stage.Open(str(path))
+    second = UsdGeom.Cube.Define(stage, "/World/box/cap")
+    second.CreateSizeAttr(0.1)
+    second.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 0.4))
+    UsdPhysics.CollisionAPI.Apply(second.GetPrim())
+    _bind_physics_material(stage, "/World/box/shape", "/World/steel", density=5000.0)
+    _bind_physics_material(stage, "/World/box/cap", "/World/cork", density=200.0)
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/box: its colliders' physics materials give different densities"):
         io.load_scene(path)

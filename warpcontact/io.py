@@ -46,6 +46,10 @@ transform (a shear from a non-uniform scale above a rotated collider, or any col
 non-uniformly scaled body), its points are moved by its full world matrix instead (Mesh,
 Cube, Sphere, Capsule and Cylinder colliders). The initial state is read at the default time
 code; a body or collider transform with time samples but no default value is an error.
+Bound physics materials give density (per body) and dynamicFriction (the scene's one
+coefficient, unless warpcontact:friction is authored); values that differ where one is
+needed are errors, as are per-collider MassAPI properties beyond a single collider's
+mass or density.
 Stage metersPerUnit is applied to lengths
 (unauthored, USD's fallback of 0.01 applies: centimetres; zero, negative or NaN is an
 error), and the stage up axis only sets the default gravity when no PhysicsScene gives one.
@@ -514,6 +518,7 @@ def load_scene(path) -> Scene:
 
     static_bodies: dict[str, BodySpec] = {}
     colliders: dict[str, list] = {}  # rigid body path -> its collider prims
+    collider_materials: dict[str, list] = {}  # collider path -> its bound physics materials
     shape_kinds = [k for k in descs if k.endswith("Shape")]
     for kind in shape_kinds:
         for prim_path, desc in descs[kind]:
@@ -558,8 +563,10 @@ def load_scene(path) -> Scene:
             target.faces = np.concatenate([target.faces, faces + offset])
             if owner:
                 colliders.setdefault(owner, []).append(prim)
+            collider_materials[str(prim_path)] = [stage.GetPrimAtPath(m) for m in desc.materials]
     for owner, prims in colliders.items():
         _read_collider_mass(stage.GetPrimAtPath(owner), prims, bodies[owner], UsdPhysics, meters, source)
+        _read_material_density(prims, collider_materials, bodies[owner], UsdPhysics, meters, source)
 
     # Keep the stage's prim order, so bodies come back in the order they were authored.
     order = {str(prim.GetPath()): i for i, prim in enumerate(stage.Traverse())}
@@ -579,6 +586,7 @@ def load_scene(path) -> Scene:
     task = TaskSpec()
     if scene_prim is not None:
         _read_settings(scene_prim, settings, task, source)
+    _read_material_friction(collider_materials, scene_prim, settings, UsdPhysics, source)
     joints = _read_joints(stage, descs, {**bodies, **static_bodies}, meters, source, UsdPhysics)
     return Scene(bodies=all_bodies, gravity=gravity, settings=settings, task=task, source=source, joints=joints)
 
@@ -777,6 +785,58 @@ def _read_collider_mass(body_prim, collider_prims, body: BodySpec, UsdPhysics, m
             "is not supported (per-collider mass properties); author them on the rigid body prim"
         )
     _read_mass(prim, body, UsdPhysics, meters, source)
+
+
+def _material_value(material, name: str, UsdPhysics):
+    """A physics material's authored ``density`` or ``dynamicFriction``, else None."""
+    if not material or not material.HasAPI(UsdPhysics.MaterialAPI):
+        return None
+    attr = getattr(UsdPhysics.MaterialAPI(material), f"Get{name[0].upper()}{name[1:]}Attr")()
+    return float(attr.Get()) if attr and attr.HasAuthoredValue() else None
+
+
+def _read_material_density(collider_prims, collider_materials, body: BodySpec, UsdPhysics, meters: float, source: str):
+    """The density of the physics materials bound to a body's colliders (they were ignored:
+    5,000 kg/m^3 gave the default 1,000), where the body has no mass or density of its own.
+    Colliders of one body with different densities are refused: they are not combined."""
+    densities = {str(prim.GetPath()): [d for d in (_material_value(m, "density", UsdPhysics) for m in collider_materials[str(prim.GetPath())]) if d is not None][:1] for prim in collider_prims}
+    values = {d[0] for d in densities.values() if d}
+    if not values or body.mass is not None or body.density is not None:
+        return
+    if len(values) > 1 or any(not d for d in densities.values()):
+        listed = ", ".join(f"{path}: {d[0] if d else 'none'}" for path, d in densities.items())
+        raise ValueError(f"{source}: prim {body.path}: its colliders' physics materials give different densities ({listed}); author a mass or density on the rigid body prim")
+    density = values.pop()
+    if not np.isfinite(density) or density <= 0:
+        raise ValueError(f"{source}: prim {body.path}: its physics material's density must be positive, got {density}")
+    body.density = density / meters**3
+
+
+def _read_material_friction(collider_materials, scene_prim, settings: SimulationSettings, UsdPhysics, source: str):
+    """The dynamic friction of the colliders' physics materials as the scene's one friction
+    coefficient, unless ``warpcontact:friction`` is authored (it was ignored: 0.9 on every
+    collider simulated without friction). Different values are refused: one coefficient
+    holds for all contacts."""
+    values = {}
+    for path, materials in collider_materials.items():
+        for material in materials:
+            value = _material_value(material, "dynamicFriction", UsdPhysics)
+            if value is not None:
+                values[path] = value
+                break
+    if not values:
+        return
+    authored = scene_prim is not None and scene_prim.GetAttribute("warpcontact:friction").HasAuthoredValue()
+    if authored:
+        return
+    if len(set(values.values())) > 1:
+        listed = ", ".join(f"{path}: {value:.6g}" for path, value in values.items())
+        raise ValueError(f"{source}: colliders bind physics materials with different dynamicFriction ({listed}); one friction coefficient holds for all contacts: author warpcontact:friction on the PhysicsScene")
+    friction = next(iter(values.values()))
+    problem = contact_setting_problem("friction", friction)
+    if problem:
+        raise ValueError(f"{source}: physics material dynamicFriction: {problem}, got {friction}")
+    settings.friction = friction
 
 
 def target_problem(body: BodySpec) -> str | None:
