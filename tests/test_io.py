@@ -583,3 +583,22 @@ def test_colliders_of_one_body_with_different_material_densities_are_refused(tmp
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match=r"prim /World/box: its colliders' physics materials give different densities"):
         io.load_scene(path)
+
+
+def test_collision_filters_are_refused_naming_the_prim(tmp_path):
+    """They were ignored: the filtered bodies still pushed each other."""
+    path = write_physics_scene(tmp_path / "filtered.usda")
+    stage = Usd.Stage.Open(str(path))
+    UsdPhysics.FilteredPairsAPI.Apply(stage.GetPrimAtPath("/World/box")).CreateFilteredPairsRel().SetTargets(["/World/ground"])
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/box: physics:filteredPairs is not supported"):
+        io.load_scene(path)
+    UsdPhysics.FilteredPairsAPI(stage.GetPrimAtPath("/World/box")).GetFilteredPairsRel().ClearTargets(True)
+    group = UsdPhysics.CollisionGroup.Define(stage, "/World/group")
+    group.CreateFilteredGroupsRel().SetTargets(["/World/group"])
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/group: collision-group filtering is not supported"):
+        io.load_scene(path)
+    group.GetFilteredGroupsRel().ClearTargets(True)
+    stage.GetRootLayer().Save()
+    io.load_scene(path)  # a group that filters nothing loads

@@ -49,7 +49,7 @@ code; a body or collider transform with time samples but no default value is an 
 Bound physics materials give density (per body) and dynamicFriction (the scene's one
 coefficient, unless warpcontact:friction is authored); values that differ where one is
 needed are errors, as are per-collider MassAPI properties beyond a single collider's
-mass or density.
+mass or density. Collision filters (FilteredPairsAPI, CollisionGroup filtering) are errors.
 Stage metersPerUnit is applied to lengths
 (unauthored, USD's fallback of 0.01 applies: centimetres; zero, negative or NaN is an
 error), and the stage up axis only sets the default gravity when no PhysicsScene gives one.
@@ -464,6 +464,7 @@ def load_scene(path) -> Scene:
     up = UsdGeom.GetStageUpAxis(stage)
     parsed = _load_physics(stage, UsdPhysics)
     descs = {str(k): list(zip(v[0], v[1])) for k, v in parsed.items()}
+    _refuse_collision_filters(stage, UsdPhysics, source)
     for kind in ("FixedJoint", "DistanceJoint", "CustomJoint"):
         for prim_path, _ in descs.get(kind, []):
             raise ValueError(f"{source}: prim {prim_path}: {kind} is not supported (supported: revolute, prismatic, spherical and D6 joints)")
@@ -785,6 +786,20 @@ def _read_collider_mass(body_prim, collider_prims, body: BodySpec, UsdPhysics, m
             "is not supported (per-collider mass properties); author them on the rigid body prim"
         )
     _read_mass(prim, body, UsdPhysics, meters, source)
+
+
+def _refuse_collision_filters(stage, UsdPhysics, source: str) -> None:
+    """Collision filters (FilteredPairsAPI, CollisionGroup filtering) are refused, naming the
+    prim: every body pair interacts here, so ignoring a filter would add contact forces (and
+    far-field ones) the scene's author switched off."""
+    for prim in stage.Traverse():
+        if prim.HasAPI(UsdPhysics.FilteredPairsAPI) and UsdPhysics.FilteredPairsAPI(prim).GetFilteredPairsRel().GetTargets():
+            raise ValueError(f"{source}: prim {prim.GetPath()}: physics:filteredPairs is not supported (every body pair interacts); remove the filter")
+        if prim.IsA(UsdPhysics.CollisionGroup):
+            group = UsdPhysics.CollisionGroup(prim)
+            inverted = group.GetInvertFilteredGroupsAttr().Get() if group.GetInvertFilteredGroupsAttr() else False
+            if group.GetFilteredGroupsRel().GetTargets() or inverted:
+                raise ValueError(f"{source}: prim {prim.GetPath()}: collision-group filtering is not supported (every body pair interacts); remove physics:filteredGroups")
 
 
 def _material_value(material, name: str, UsdPhysics):
