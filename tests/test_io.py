@@ -602,3 +602,22 @@ def test_collision_filters_are_refused_naming_the_prim(tmp_path):
     group.GetFilteredGroupsRel().ClearTargets(True)
     stage.GetRootLayer().Save()
     io.load_scene(path)  # a group that filters nothing loads
+
+
+def test_an_animated_kinematic_body_is_refused(tmp_path):
+    """It loaded as a static body held at its default pose, its animation ignored."""
+    path = write_physics_scene(tmp_path / "platform.usda")
+    stage = Usd.Stage.Open(str(path))
+    box = stage.GetPrimAtPath("/World/box")
+    UsdPhysics.RigidBodyAPI(box).CreateKinematicEnabledAttr(True)
+    crate = UsdGeom.Cube.Define(stage, "/World/crate")
+    crate.CreateSizeAttr(0.2)
+    crate.AddTranslateOp().Set(Gf.Vec3d(1.5, 0.0, 0.5))
+    UsdPhysics.RigidBodyAPI.Apply(crate.GetPrim())
+    UsdPhysics.CollisionAPI.Apply(crate.GetPrim())
+    stage.GetRootLayer().Save()
+    assert io.load_scene(path).body("box").static  # not animated: a static body, as documented
+    UsdGeom.Xformable(box).GetOrderedXformOps()[0].Set(Gf.Vec3d(0.5, 0.0, 0.6), 10.0)
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/box: a kinematic body moved by time-sampled transforms is not supported"):
+        io.load_scene(path)

@@ -38,7 +38,8 @@ typo would otherwise fall back to the default silently).
 Primitive colliders are triangulated: Cube exactly (12 triangles), Sphere as an icosphere
 with ``SPHERE_SUBDIVISIONS`` = 2 (320 triangles), Capsule and Cylinder with 32 segments; use
 Mesh prims to control resolution. Polygons are fan-triangulated (exact for convex ones).
-Kinematic or disabled rigid bodies load as static bodies. Scales anywhere above a collider
+Kinematic or disabled rigid bodies load as static bodies (an animated kinematic body is an
+error). Scales anywhere above a collider
 apply as USD composes them; a rigid body's frame is its prim's with the scale removed (the
 nearest rotation where the scale is not uniform). Where UsdPhysics' description of a
 collider (a rigid pose and a scale along the collider's own axes) cannot hold its
@@ -363,20 +364,30 @@ def _scaled_along_own_axes(linear: np.ndarray) -> bool:
     return bool(np.abs(gram - np.diag(np.diag(gram))).max() <= 1e-9 * np.abs(gram).max())
 
 
+def _transform_attributes(prim, UsdGeom):
+    """The xformOp attributes that compose a prim's world transform: its own and its ancestors'."""
+    ancestor = prim
+    while ancestor and not ancestor.IsPseudoRoot():
+        if ancestor.IsA(UsdGeom.Xformable):
+            yield from (op.GetAttr() for op in UsdGeom.Xformable(ancestor).GetOrderedXformOps())
+        ancestor = ancestor.GetParent()
+
+
 def _require_default_transform(prim, UsdGeom, Usd, source: str) -> None:
     """Refuse a prim whose transform (or an ancestor's) is only time-sampled: the initial
     state is read at the default time, where such an op has no value and would silently
     count as the identity (a body authored at z = 1 m in samples loaded at the origin)."""
-    ancestor = prim
-    while ancestor and not ancestor.IsPseudoRoot():
-        for op in UsdGeom.Xformable(ancestor).GetOrderedXformOps() if ancestor.IsA(UsdGeom.Xformable) else ():
-            attr = op.GetAttr()
-            if attr.GetNumTimeSamples() and attr.Get(Usd.TimeCode.Default()) is None:
-                raise ValueError(
-                    f"{source}: prim {prim.GetPath()}: {attr.GetPath()} has time samples but no default value; the initial "
-                    "state is read at the default time (author the first frame's value as the default)"
-                )
-        ancestor = ancestor.GetParent()
+    for attr in _transform_attributes(prim, UsdGeom):
+        if attr.GetNumTimeSamples() and attr.Get(Usd.TimeCode.Default()) is None:
+            raise ValueError(
+                f"{source}: prim {prim.GetPath()}: {attr.GetPath()} has time samples but no default value; the initial "
+                "state is read at the default time (author the first frame's value as the default)"
+            )
+
+
+def _animated(prim, UsdGeom) -> bool:
+    """Whether a prim's world transform has time samples (its own ops or an ancestor's)."""
+    return any(attr.GetNumTimeSamples() for attr in _transform_attributes(prim, UsdGeom))
 
 
 def _world_pose(prim, UsdGeom, Usd) -> np.ndarray:
@@ -486,6 +497,11 @@ def load_scene(path) -> Scene:
     for prim_path, desc in descs.get("RigidBody", []):
         prim = stage.GetPrimAtPath(prim_path)
         _require_default_transform(prim, UsdGeom, Usd, source)
+        if desc.kinematicBody and _animated(prim, UsdGeom):
+            raise ValueError(
+                f"{source}: prim {prim_path}: a kinematic body moved by time-sampled transforms is not supported (it would be "
+                "held at its default pose as a static body); remove the animation or make the body dynamic"
+            )
         pose = _world_pose(prim, UsdGeom, Usd)
         pose[:3] *= meters
         body = BodySpec(
