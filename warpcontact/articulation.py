@@ -626,13 +626,6 @@ class ArticulationModel:
             out[b, 3:] = q / np.linalg.norm(q)
         return out
 
-    def chart_step(self, poses_from: np.ndarray, poses_to: np.ndarray) -> np.ndarray:
-        """Rigid coordinates (dp, dtheta) (nbodies, 6) that take ``poses_from`` to ``poses_to``."""
-        out = np.zeros((self.num_bodies, 6))
-        out[:, :3] = poses_to[:, :3] - poses_from[:, :3]
-        out[:, 3:] = rotation_vector_from_quat(quat_mul(poses_to[:, 3:], quat_conjugate(poses_from[:, 3:])))
-        return out
-
     def anchor_gaps(self, poses: np.ndarray) -> np.ndarray:
         """Distance (m) between each body joint's anchors in the parent and child (0 for roots)."""
         out = np.zeros(len(self.joints))

@@ -19,6 +19,7 @@ __all__ = [
     "axial",
     "pose_mul",
     "pose_inverse",
+    "rigid_step_between",
     "rigid_step_travel",
 ]
 
@@ -130,6 +131,15 @@ def pose_inverse(a) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64)
     q = quat_conjugate(a[..., 3:])
     return np.concatenate([-quat_rotate(q, a[..., :3]), q], axis=-1)
+
+
+def rigid_step_between(poses_from, poses_to) -> np.ndarray:
+    """The (..., 6) rigid coordinates (dp, dtheta) that take poses (..., 7) ``poses_from`` to
+    ``poses_to``: p + dp, exp([dtheta]x) R (world axes, the shorter rotation)."""
+    poses_from = np.asarray(poses_from, dtype=np.float64)
+    poses_to = np.asarray(poses_to, dtype=np.float64)
+    turn = rotation_vector_from_quat(quat_mul(poses_to[..., 3:], quat_conjugate(poses_from[..., 3:])))
+    return np.concatenate([poses_to[..., :3] - poses_from[..., :3], turn], axis=-1)
 
 
 def rigid_step_travel(step, reach) -> np.ndarray:

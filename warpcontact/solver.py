@@ -34,7 +34,7 @@ from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
 from .articulation import joint_limit_energy
 from .contact import LaggedFriction
-from .rotation import quat_conjugate, quat_from_matrix, quat_from_rotation_vector, quat_mul, rigid_step_travel, rotation_vector_from_quat
+from .rotation import quat_from_matrix, quat_from_rotation_vector, quat_mul, rigid_step_between, rigid_step_travel
 from .types import Control, Model, State
 
 __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
@@ -74,15 +74,6 @@ class StepInfo:
     objective: float
     min_separation: float
     friction_pairs: int
-
-
-def rigid_step_between(poses_from: np.ndarray, poses_to: np.ndarray) -> np.ndarray:
-    """The (nbodies, 6) rigid coordinates (dp, dtheta) that ``retract`` moves ``poses_from``
-    by to reach ``poses_to`` (the shorter rotation)."""
-    step = np.empty((len(poses_from), 6))
-    step[:, :3] = poses_to[:, :3] - poses_from[:, :3]
-    step[:, 3:] = rotation_vector_from_quat(quat_mul(poses_to[:, 3:], quat_conjugate(poses_from[:, 3:])))
-    return step
 
 
 def retract(poses: np.ndarray, step: np.ndarray) -> np.ndarray:
@@ -611,7 +602,7 @@ class ImplicitSolver:
                     # the straight path to each body's actual trial pose.
                     trial = art.retract(q, alpha * direction)
                     t_coords = coords + alpha * direction[art.coordinate_dof]
-                    certified = model.contact.advancement_limit(art.chart_step(q, trial), fraction=self.advancement_fraction, frame=frame)
+                    certified = model.contact.advancement_limit(rigid_step_between(q, trial), fraction=self.advancement_fraction, frame=frame)
                     if certified < 1.0:
                         alpha *= min(max(certified, 0.1), 0.9)
                         continue
