@@ -390,19 +390,22 @@ def _animated(prim, UsdGeom) -> bool:
     return any(attr.GetNumTimeSamples() for attr in _transform_attributes(prim, UsdGeom))
 
 
-def _world_pose(prim, UsdGeom, Usd) -> np.ndarray:
-    """A prim's world frame with its scale removed: (px, py, pz, qx, qy, qz, qw)."""
-    m = _world_matrix(prim, UsdGeom, Usd)
-    t = m.ExtractTranslation()
-    linear = _linear_part(m)
+def _nearest_rotation(linear: np.ndarray) -> np.ndarray:
+    """The rotation nearest to a linear part (its polar factor; row-vector convention)."""
+    u, _, vt = np.linalg.svd(linear)
+    return u @ vt
+
+
+def _frame(matrix) -> np.ndarray:
+    """A world matrix's frame with its scale removed: (px, py, pz, qx, qy, qz, qw), stage units."""
+    t = matrix.ExtractTranslation()
+    linear = _linear_part(matrix)
     if _unscaled(linear):
-        q = _quat_xyzw(m.ExtractRotationQuat())
+        q = _quat_xyzw(matrix.ExtractRotationQuat())
     else:
         # Gf's extraction tilts the rotation of a scaled frame (30 degrees about x came back as
-        # 34.2 under a scale of 2, and 30 about z as 32.5 under (1, 2, 3)); the polar factor
-        # is the nearest rotation.
-        u, _, vt = np.linalg.svd(linear)
-        q = quat_from_matrix((u @ vt).T)
+        # 34.2 under a scale of 2, and 30 about z as 32.5 under (1, 2, 3)).
+        q = quat_from_matrix(_nearest_rotation(linear).T)
     return np.array([t[0], t[1], t[2], *(q / np.linalg.norm(q))])
 
 
@@ -494,6 +497,7 @@ def load_scene(path) -> Scene:
         break
 
     bodies: dict[str, BodySpec] = {}
+    body_frames: dict[str, tuple] = {}  # rigid body path -> (frame in stage units, unscaled)
     for prim_path, desc in descs.get("RigidBody", []):
         prim = stage.GetPrimAtPath(prim_path)
         _require_default_transform(prim, UsdGeom, Usd, source)
@@ -502,7 +506,10 @@ def load_scene(path) -> Scene:
                 f"{source}: prim {prim_path}: a kinematic body moved by time-sampled transforms is not supported (it would be "
                 "held at its default pose as a static body); remove the animation or make the body dynamic"
             )
-        pose = _world_pose(prim, UsdGeom, Usd)
+        matrix = _world_matrix(prim, UsdGeom, Usd)
+        linear = _linear_part(matrix)
+        body_frames[str(prim_path)] = (_frame(matrix), _unscaled(linear))
+        pose = body_frames[str(prim_path)][0].copy()
         pose[:3] *= meters
         body = BodySpec(
             name=prim.GetName(),
@@ -522,12 +529,10 @@ def load_scene(path) -> Scene:
             # Velocities are authored "in the same space as the node's xform": its parent's.
             above = _linear_part(_world_matrix(parent, UsdGeom, Usd))
             if not np.array_equal(above, np.eye(3)):
-                u, _, vt = np.linalg.svd(above)
                 body.linear_velocity = body.linear_velocity @ above
-                body.angular_velocity = body.angular_velocity @ (u @ vt)
+                body.angular_velocity = body.angular_velocity @ _nearest_rotation(above)
         _read_mass(prim, body, UsdPhysics, meters, source)
-        linear = _linear_part(_world_matrix(prim, UsdGeom, Usd))
-        if body.center_of_mass is not None and not _unscaled(linear):
+        if body.center_of_mass is not None and not body_frames[str(prim_path)][1]:
             # centerOfMass is in the prim's local, scaled space; the body frame is unscaled.
             body.center_of_mass = body.center_of_mass @ linear @ quat_to_matrix(body.pose[3:])
         _read_warpcontact_body(prim, body, meters, source)
@@ -545,15 +550,15 @@ def load_scene(path) -> Scene:
             _require_default_transform(prim, UsdGeom, Usd, source)
             owner = str(desc.rigidBody) if desc.rigidBody and str(desc.rigidBody) in bodies else ""
             matrix = _world_matrix(prim, UsdGeom, Usd)
-            exact = not _scaled_along_own_axes(_linear_part(matrix)) or (owner and not _unscaled(_linear_part(_world_matrix(stage.GetPrimAtPath(owner), UsdGeom, Usd))))
-            if exact:
+            owner_frame, owner_unscaled = body_frames[owner] if owner else (None, True)
+            if not (_scaled_along_own_axes(_linear_part(matrix)) and owner_unscaled):
                 # UsdPhysics describes a collider by a rigid pose and a scale along its own axes,
                 # which cannot hold a shear (a box under a body scaled (1, 1, 3) and turned 45
                 # degrees inside it came out 0.5 m off at its corners); and a scaled body's frame
-                # is the polar one (``_world_pose``). Its points are then moved by the full world
+                # is the polar one (``_frame``). Its points are then moved by the full world
                 # matrix into the frame of its body (or its own).
                 vertices, faces = _local_triangles(kind, prim, UsdGeom, source)
-                frame = _world_pose(stage.GetPrimAtPath(owner) if owner else prim, UsdGeom, Usd)
+                frame = owner_frame if owner else _frame(matrix)
                 vertices = _in_frame(vertices, matrix, frame) * meters
                 local_pose = frame.copy()
                 local_pose[:3] *= meters
@@ -818,24 +823,28 @@ def _refuse_collision_filters(stage, UsdPhysics, source: str) -> None:
                 raise ValueError(f"{source}: prim {prim.GetPath()}: collision-group filtering is not supported (every body pair interacts); remove physics:filteredGroups")
 
 
-def _material_value(material, name: str, UsdPhysics):
-    """A physics material's authored ``density`` or ``dynamicFriction``, else None."""
-    if not material or not material.HasAPI(UsdPhysics.MaterialAPI):
-        return None
-    attr = getattr(UsdPhysics.MaterialAPI(material), f"Get{name[0].upper()}{name[1:]}Attr")()
-    return float(attr.Get()) if attr and attr.HasAuthoredValue() else None
+def _material_value(materials, name: str, UsdPhysics):
+    """The first of a collider's bound physics materials that authors ``density`` or
+    ``dynamicFriction`` (``name``): its value, else None."""
+    for material in materials:
+        if not material or not material.HasAPI(UsdPhysics.MaterialAPI):
+            continue
+        attr = getattr(UsdPhysics.MaterialAPI(material), f"Get{name[0].upper()}{name[1:]}Attr")()
+        if attr and attr.HasAuthoredValue():
+            return float(attr.Get())
+    return None
 
 
 def _read_material_density(collider_prims, collider_materials, body: BodySpec, UsdPhysics, meters: float, source: str):
     """The density of the physics materials bound to a body's colliders (they were ignored:
     5,000 kg/m^3 gave the default 1,000), where the body has no mass or density of its own.
     Colliders of one body with different densities are refused: they are not combined."""
-    densities = {str(prim.GetPath()): [d for d in (_material_value(m, "density", UsdPhysics) for m in collider_materials[str(prim.GetPath())]) if d is not None][:1] for prim in collider_prims}
-    values = {d[0] for d in densities.values() if d}
+    densities = {str(prim.GetPath()): _material_value(collider_materials[str(prim.GetPath())], "density", UsdPhysics) for prim in collider_prims}
+    values = {d for d in densities.values() if d is not None}
     if not values or body.mass is not None or body.density is not None:
         return
-    if len(values) > 1 or any(not d for d in densities.values()):
-        listed = ", ".join(f"{path}: {d[0] if d else 'none'}" for path, d in densities.items())
+    if len(values) > 1 or None in densities.values():
+        listed = ", ".join(f"{path}: {'none' if d is None else d}" for path, d in densities.items())
         raise ValueError(f"{source}: prim {body.path}: its colliders' physics materials give different densities ({listed}); author a mass or density on the rigid body prim")
     density = values.pop()
     if not np.isfinite(density) or density <= 0:
@@ -848,13 +857,8 @@ def _read_material_friction(collider_materials, scene_prim, settings: Simulation
     coefficient, unless ``warpcontact:friction`` is authored (it was ignored: 0.9 on every
     collider simulated without friction). Different values are refused: one coefficient
     holds for all contacts."""
-    values = {}
-    for path, materials in collider_materials.items():
-        for material in materials:
-            value = _material_value(material, "dynamicFriction", UsdPhysics)
-            if value is not None:
-                values[path] = value
-                break
+    values = {path: _material_value(materials, "dynamicFriction", UsdPhysics) for path, materials in collider_materials.items()}
+    values = {path: value for path, value in values.items() if value is not None}
     if not values:
         return
     authored = scene_prim is not None and scene_prim.GetAttribute("warpcontact:friction").HasAuthoredValue()
