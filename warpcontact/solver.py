@@ -452,11 +452,11 @@ class ImplicitSolver:
         coords = state_in.joint_q.numpy()
         if not np.isfinite(coords).all():
             raise ValueError("state_in.joint_q: contains non-finite values")
-        outside = self._limits_reached(coords)
-        if outside:
-            art = self._articulation
-            i = art.coordinate_names.index(outside[0])
-            raise ValueError(f"state_in.joint_q: coordinate {outside[0]!r} = {coords[i]:.6g} is not strictly inside its limits ({art.lower[i]:.6g}, {art.upper[i]:.6g})")
+        art = self._articulation
+        outside = np.flatnonzero((coords <= art.lower) | (coords >= art.upper))
+        if outside.size:
+            i = outside[0]
+            raise ValueError(f"state_in.joint_q: coordinate {art.coordinate_names[i]!r} = {coords[i]:.6g} is not strictly inside its limits ({art.lower[i]:.6g}, {art.upper[i]:.6g})")
         target = coords if control is None or control.joint_target is None else control.joint_target.numpy()
         if target.shape != (count,) or not np.isfinite(target).all():
             raise ValueError(f"control.joint_target: expected {count} finite joint targets")
@@ -555,7 +555,8 @@ class ImplicitSolver:
                 bad = np.flatnonzero(~np.isfinite(control.body_target.numpy()).all(axis=1) & self._dynamic)
                 if bad.size:
                     raise ValueError(f"control.body_target: the target of body {self.model.body_names[bad[0]]!r} (index {bad[0]}) is not finite")
-            raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs}; joint limits reached: {self._limits_reached(coords)})")
+            # Joint coordinates outside their limits were refused with the state (_joint_arrays).
+            raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs})")
         tol = self.tolerance * self._length_scale
         # Steps this short are in Newton's quadratic regime, where Armijo tests only rounding
         # noise; the cap keeps that true for loose tolerances (1e3 x 1e-6 would let full steps
@@ -713,13 +714,6 @@ class ImplicitSolver:
                         f"radii {radius[a[i]]:.3g} and {radius[b[i]]:.3g} m); the time step is too large for this impact, reduce dt"
                     )
         return None
-
-    def _limits_reached(self, coords: np.ndarray) -> list[str]:
-        art = self._articulation
-        if art is None:
-            return []
-        outside = (coords <= art.lower) | (coords >= art.upper)
-        return [art.coordinate_names[i] for i in np.flatnonzero(outside)]
 
     def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray) -> str:
         worst = np.argsort(-travel)[:3]
