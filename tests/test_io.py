@@ -520,6 +520,15 @@ def test_velocities_are_read_in_the_parent_s_space(tmp_path):
     np.testing.assert_allclose(box.angular_velocity, [-np.pi / 2, 0.0, 0.0], atol=1e-7)
 
 
+def _cube_collider(stage, path, size, position):
+    """A Cube collider prim of ``size`` at ``position`` in its parent's frame."""
+    cube = UsdGeom.Cube.Define(stage, path)
+    cube.CreateSizeAttr(size)
+    cube.AddTranslateOp().Set(Gf.Vec3d(*position))
+    UsdPhysics.CollisionAPI.Apply(cube.GetPrim())
+    return cube.GetPrim()
+
+
 def test_mass_properties_on_a_collider_are_used_or_refused(tmp_path):
     """A collider's MassAPI used to be ignored: density 5,000 kg/m^3 gave the default 1,000."""
     path = write_physics_scene(tmp_path / "dense.usda", drop_height=3.0)
@@ -533,10 +542,7 @@ def test_mass_properties_on_a_collider_are_used_or_refused(tmp_path):
     with pytest.raises(ValueError, match=r"prim /World/box/shape: physics:density, physics:centerOfMass on a collider of rigid body /World/box is not supported"):
         io.load_scene(path)
     shape_mass.GetCenterOfMassAttr().Clear()
-    second = UsdGeom.Cube.Define(stage, "/World/box/second")
-    second.CreateSizeAttr(0.1)
-    second.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 0.4))
-    UsdPhysics.CollisionAPI.Apply(second.GetPrim())
+    _cube_collider(stage, "/World/box/second", 0.1, (0.0, 0.0, 0.4))
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match=r"prim /World/box/shape: physics:density on a collider of rigid body /World/box is not supported"):
         io.load_scene(path)
@@ -574,10 +580,7 @@ def test_physics_materials_give_density_and_friction_or_are_refused(tmp_path):
 def test_colliders_of_one_body_with_different_material_densities_are_refused(tmp_path):
     path = write_physics_scene(tmp_path / "mixed.usda", drop_height=3.0)
     stage = Usd.Stage.Open(str(path))
-    second = UsdGeom.Cube.Define(stage, "/World/box/cap")
-    second.CreateSizeAttr(0.1)
-    second.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 0.4))
-    UsdPhysics.CollisionAPI.Apply(second.GetPrim())
+    _cube_collider(stage, "/World/box/cap", 0.1, (0.0, 0.0, 0.4))
     _bind_physics_material(stage, "/World/box/shape", "/World/steel", density=5000.0)
     _bind_physics_material(stage, "/World/box/cap", "/World/cork", density=200.0)
     stage.GetRootLayer().Save()
@@ -610,11 +613,7 @@ def test_an_animated_kinematic_body_is_refused(tmp_path):
     stage = Usd.Stage.Open(str(path))
     box = stage.GetPrimAtPath("/World/box")
     UsdPhysics.RigidBodyAPI(box).CreateKinematicEnabledAttr(True)
-    crate = UsdGeom.Cube.Define(stage, "/World/crate")
-    crate.CreateSizeAttr(0.2)
-    crate.AddTranslateOp().Set(Gf.Vec3d(1.5, 0.0, 0.5))
-    UsdPhysics.RigidBodyAPI.Apply(crate.GetPrim())
-    UsdPhysics.CollisionAPI.Apply(crate.GetPrim())
+    UsdPhysics.RigidBodyAPI.Apply(_cube_collider(stage, "/World/crate", 0.2, (1.5, 0.0, 0.5)))
     stage.GetRootLayer().Save()
     assert io.load_scene(path).body("box").static  # not animated: a static body, as documented
     UsdGeom.Xformable(box).GetOrderedXformOps()[0].Set(Gf.Vec3d(0.5, 0.0, 0.6), 10.0)
