@@ -607,7 +607,7 @@ def _pd_space_billiards():
         (("x", "x"), "pd_targets", r"\['x'\] control the same coordinate more than once"),
         (("yaw", "rz"), "pd_targets", r"\['rz', 'yaw'\] control the same coordinate more than once"),
         (("x", "vx"), "pd_targets", r"\['vx'\] are initial velocities, which pd_targets control does not use"),
-        (("x", "yaw"), "pd_targets", r"the PD targets of \['yaw'\] move nothing"),
+        (("x", "yaw"), "pd_targets", r"the PD targets of \['yaw'\] move nothing without a positive PD stiffness there .*got \{'yaw': 0.0\}"),
         (("x", "spin"), "initial_state", r"unknown control dofs \['spin'\]"),
     ],
 )
@@ -621,6 +621,13 @@ def test_control_dofs_that_move_nothing_are_refused(dofs, control, match):
         TaskProblem(scene)
     scene.bodies[0].control_dofs = ("x", "y", "vx") if control == "initial_state" else ("x", "y")
     TaskProblem(scene)  # the same body with dofs that move it
+
+
+def test_a_negative_pd_stiffness_is_reported_as_such():
+    scene = _pd_space_billiards()
+    scene.bodies[0].kp_linear = np.array([-400.0, 100.0, 100.0])
+    with pytest.raises(ValueError, match=r"PD targets of \['x'\] move nothing without a positive PD stiffness there .*got \{'x': -400.0\}"):
+        TaskProblem(scene)
 
 
 _CHECKPOINTED_RUNS = {

@@ -438,9 +438,13 @@ def _check_control_dofs(body, control: str, source: str):
     if velocities:
         raise ValueError(f"{where}: {velocities} are initial velocities, which pd_targets control does not use")
     kp_linear = np.broadcast_to(np.asarray(body.kp_linear, dtype=np.float64), (3,))
-    undriven = [d for d in dofs if (d in _ROTATION_DOFS and not body.kp_angular > 0) or (d in _POSITION_DOFS and not kp_linear[_POSITION_DOFS.index(d)] > 0)]
+    stiffness = {d: float(body.kp_angular if d in _ROTATION_DOFS else kp_linear[_POSITION_DOFS.index(d)]) for d in dofs}
+    undriven = {d: kp for d, kp in stiffness.items() if not kp > 0}
     if undriven:
-        raise ValueError(f"{where}: the PD targets of {undriven} move nothing, since the body's PD stiffness there is 0 (warpcontact:pd:kpLinear / kpAngular)")
+        raise ValueError(
+            f"{where}: the PD targets of {list(undriven)} move nothing without a positive PD stiffness there "
+            f"(warpcontact:pd:kpLinear / kpAngular), got {undriven}"
+        )
 
 
 class TaskProblem:
