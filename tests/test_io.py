@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import trimesh
 import warp as wp
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdShade
 
@@ -619,4 +620,117 @@ def test_an_animated_kinematic_body_is_refused(tmp_path):
     UsdGeom.Xformable(box).GetOrderedXformOps()[0].Set(Gf.Vec3d(0.5, 0.0, 0.6), 10.0)
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match=r"prim /World/box: a kinematic body moved by time-sampled transforms is not supported"):
+        io.load_scene(path)
+
+
+def _mesh_box_collider(stage, path, *, left_handed=False, extra_hole=False):
+    """A closed 0.5 m Mesh box collider: counter-clockwise (outward) triangles, or clockwise
+    ones authored as leftHanded; ``extra_hole`` adds a 1 m flap face listed in holeIndices."""
+    box = trimesh.creation.box(extents=(0.5, 0.5, 0.5))
+    faces = np.asarray(box.faces)[:, ::-1] if left_handed else np.asarray(box.faces)
+    points = [Gf.Vec3f(*map(float, p)) for p in box.vertices]
+    indices = [int(i) for i in faces.ravel()]
+    counts = [3] * len(faces)
+    if extra_hole:
+        points += [Gf.Vec3f(1.0, 0.0, 0.0), Gf.Vec3f(1.0, 1.0, 0.0), Gf.Vec3f(0.0, 1.0, 0.0)]
+        indices += [8, 9, 10]
+        counts.append(3)
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr(points)
+    mesh.CreateFaceVertexCountsAttr(counts)
+    mesh.CreateFaceVertexIndicesAttr(indices)
+    if left_handed:
+        mesh.CreateOrientationAttr(UsdGeom.Tokens.leftHanded)
+    if extra_hole:
+        mesh.CreateHoleIndicesAttr([len(faces)])
+    UsdPhysics.CollisionAPI.Apply(mesh.GetPrim())
+    return mesh
+
+
+@pytest.mark.parametrize(
+    "body_scale, shape_scale, left_handed",
+    [
+        ((-1.0, 1.0, 1.0), None, False),  # refused: "needs a closed, outward-oriented mesh"
+        ((-1.0, 2.0, 1.0), None, False),
+        (None, (1.0, -2.0, 1.0), False),
+        ((-1.0, 1.0, 1.0), (1.0, -1.0, 1.0), False),  # mirrored twice: not mirrored
+        (None, None, True),  # leftHanded winding: refused the same way
+        ((1.0, 1.0, -1.0), None, True),
+    ],
+)
+def test_mirrored_and_left_handed_meshes_load_outward_with_their_mass(tmp_path, body_scale, shape_scale, left_handed):
+    path = write_physics_scene(tmp_path / "mirror.usda", drop_height=2.0)
+    stage = Usd.Stage.Open(str(path))
+    stage.RemovePrim("/World/box/shape")
+    mesh = _mesh_box_collider(stage, "/World/box/shape", left_handed=left_handed)
+    body = UsdGeom.Xformable(stage.GetPrimAtPath("/World/box"))
+    body.AddRotateZOp().Set(30.0)
+    if body_scale:
+        body.AddScaleOp().Set(Gf.Vec3f(*body_scale))
+    if shape_scale:
+        mesh.AddScaleOp().Set(Gf.Vec3f(*shape_scale))
+    stage.GetRootLayer().Save()
+    matrix = mesh.ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    expected = np.array([list(matrix.Transform(Gf.Vec3d(*p))) for p in mesh.GetPointsAttr().Get()])
+    box = io.load_scene(path).body("box")
+    np.testing.assert_allclose(box.vertices @ quat_matrix(box.pose[3:]).T + box.pose[:3], expected, atol=1e-12)
+    volume = 0.125 * abs(np.linalg.det(_linear(matrix)))
+    assert io.load_scene(path).build_model().body_mass.numpy()[1] == pytest.approx(1000.0 * volume, rel=1e-9)
+
+
+def _linear(matrix):
+    return np.array([[matrix[i][j] for j in range(3)] for i in range(3)])
+
+
+def test_hole_faces_are_not_collided(tmp_path):
+    path = write_physics_scene(tmp_path / "holes.usda", drop_height=2.0)
+    stage = Usd.Stage.Open(str(path))
+    stage.RemovePrim("/World/box/shape")
+    _mesh_box_collider(stage, "/World/box/shape", extra_hole=True)
+    stage.GetRootLayer().Save()
+    box = io.load_scene(path).body("box")
+    assert len(box.faces) == 12 and box.faces.max() < 8  # the flap was collided before
+    assert io.load_scene(path).build_model().body_mass.numpy()[1] == pytest.approx(125.0)
+
+
+def test_a_joint_on_a_mirrored_body_is_refused(tmp_path):
+    """Its anchor came out 0.6 m from where USD puts it under a scale of (-1, 1, 1)."""
+    path = write_physics_scene(tmp_path / "hinged.usda", drop_height=3.0)
+    stage = Usd.Stage.Open(str(path))
+    UsdGeom.Xformable(stage.GetPrimAtPath("/World/box")).AddScaleOp().Set(Gf.Vec3f(-1.0, 1.0, 1.0))
+    hinge = UsdPhysics.RevoluteJoint.Define(stage, "/World/hinge")
+    hinge.CreateBody1Rel().SetTargets(["/World/box"])
+    hinge.CreateLocalPos0Attr(Gf.Vec3f(0.4, 0.2, 3.5))
+    hinge.CreateLocalPos1Attr(Gf.Vec3f(0.3, 0.2, 0.5))
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/hinge: body1 /World/box is mirrored \(a negative scale in its transform\)"):
+        io.load_scene(path)
+
+
+def test_velocities_under_a_mirroring_parent(tmp_path):
+    """An angular velocity is a pseudovector: a parent mirrored in x turns a spin about z
+    around (it was carried over unchanged)."""
+    path = write_physics_scene(tmp_path / "spin.usda", drop_height=3.0)
+    stage = Usd.Stage.Open(str(path))
+    UsdGeom.Xform.Define(stage, "/World").AddScaleOp().Set(Gf.Vec3f(-1.0, 1.0, 1.0))
+    rigid = UsdPhysics.RigidBodyAPI(stage.GetPrimAtPath("/World/box"))
+    rigid.CreateVelocityAttr(Gf.Vec3f(1.0, 0.0, 0.0))
+    rigid.CreateAngularVelocityAttr(Gf.Vec3f(0.0, 0.0, 90.0))
+    stage.GetRootLayer().Save()
+    box = io.load_scene(path).body("box")
+    np.testing.assert_allclose(box.linear_velocity, [-1.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(box.angular_velocity, [0.0, 0.0, -np.pi / 2], atol=1e-7)
+
+
+@pytest.mark.parametrize("approximation", ["convexHull", "boundingSphere", "boundingCube"])
+def test_collision_approximations_that_change_the_shape_are_refused(tmp_path, approximation):
+    path = write_physics_scene(tmp_path / "approx.usda")
+    stage = Usd.Stage.Open(str(path))
+    api = UsdPhysics.MeshCollisionAPI.Apply(stage.GetPrimAtPath("/World/ground"))
+    api.CreateApproximationAttr("convexDecomposition")  # stands in for the triangles: loads as they are
+    stage.GetRootLayer().Save()
+    assert len(io.load_scene(path).body("ground").faces) == 32
+    api.GetApproximationAttr().Set(approximation)
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=rf"prim /World/ground: physics:approximation '{approximation}' \(a different shape than the mesh\) is not supported"):
         io.load_scene(path)

@@ -45,7 +45,12 @@ nearest rotation where the scale is not uniform). Where UsdPhysics' description 
 collider (a rigid pose and a scale along the collider's own axes) cannot hold its
 transform (a shear from a non-uniform scale above a rotated collider, or any collider of a
 non-uniformly scaled body), its points are moved by its full world matrix instead (Mesh,
-Cube, Sphere, Capsule and Cylinder colliders). The initial state is read at the default time
+Cube, Sphere, Capsule and Cylinder colliders). A mirroring transform (negative
+determinant) or a leftHanded Mesh reverses the triangles' winding, so closed meshes stay
+outward-oriented for mass from density; a joint on a mirrored body is an error. Faces in
+holeIndices are not collided. MeshCollisionAPI approximations that stand in for the exact
+triangles (convexDecomposition, meshSimplification, sdf) collide the triangles themselves;
+convexHull, boundingSphere and boundingCube, a different shape, are errors. The initial state is read at the default time
 code; a body or collider transform with time samples but no default value is an error.
 Bound physics materials give density (per body) and dynamicFriction (the scene's one
 coefficient, unless warpcontact:friction is authored); values that differ where one is
@@ -297,6 +302,7 @@ def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"{where}: point {bad} is not finite")
     if counts.sum() != len(indices) or (indices < 0).any() or (indices >= len(points)).any():
         raise ValueError(f"{where}: faceVertexIndices do not match faceVertexCounts and points")
+    holes = set(int(h) for h in (mesh.GetHoleIndicesAttr().Get() or []))
     faces = []
     start = 0
     for f, n in enumerate(counts):
@@ -304,10 +310,17 @@ def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
             raise ValueError(f"{where}: face {f} has {n} vertices; cannot be triangulated")
         poly = indices[start : start + n]
         start += n
+        if f in holes:
+            continue
         # Fan triangulation: exact for convex polygons, the common case for authored meshes.
         for k in range(1, n - 1):
             faces.append((poly[0], poly[k], poly[k + 1]))
+    if not faces:
+        raise ValueError(f"{where}: every face is a hole (holeIndices)")
     faces = np.asarray(faces, dtype=np.int64)
+    if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
+        # Clockwise winding: reversed, so that a closed mesh stays outward-oriented for its mass.
+        faces = faces[:, ::-1]
     tri = points[faces]
     area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     if not (area2 > 0).any():
@@ -354,8 +367,9 @@ def _linear_part(m) -> np.ndarray:
 
 
 def _unscaled(linear: np.ndarray) -> bool:
-    """Whether x L is a rotation (the only case Gf's rotation extraction is exact for)."""
-    return bool(np.abs(linear @ linear.T - np.eye(3)).max() <= 1e-9)
+    """Whether x L is a rotation (the only case Gf's rotation extraction is exact for): not
+    scaled, and not mirrored."""
+    return bool(np.abs(linear @ linear.T - np.eye(3)).max() <= 1e-9 and np.linalg.det(linear) > 0)
 
 
 def _scaled_along_own_axes(linear: np.ndarray) -> bool:
@@ -390,9 +404,19 @@ def _animated(prim, UsdGeom) -> bool:
     return any(attr.GetNumTimeSamples() for attr in _transform_attributes(prim, UsdGeom))
 
 
-def _nearest_rotation(linear: np.ndarray) -> np.ndarray:
-    """The rotation nearest to a linear part (its polar factor; row-vector convention)."""
+def _polar_factor(linear: np.ndarray) -> np.ndarray:
+    """The orthogonal matrix nearest to a linear part (row-vector convention); a reflection
+    where the part mirrors (negative determinant)."""
     u, _, vt = np.linalg.svd(linear)
+    return u @ vt
+
+
+def _nearest_rotation(linear: np.ndarray) -> np.ndarray:
+    """The rotation nearest to a linear part; for a mirroring part, the one that differs from
+    its polar factor only along the least-stretched axis."""
+    u, _, vt = np.linalg.svd(linear)
+    if np.linalg.det(u @ vt) < 0:
+        u[:, -1] = -u[:, -1]
     return u @ vt
 
 
@@ -407,6 +431,22 @@ def _frame(matrix) -> np.ndarray:
         # 34.2 under a scale of 2, and 30 about z as 32.5 under (1, 2, 3)).
         q = quat_from_matrix(_nearest_rotation(linear).T)
     return np.array([t[0], t[1], t[2], *(q / np.linalg.norm(q))])
+
+
+# physics:approximation tokens (MeshCollisionAPI) that stand in for the exact triangles in
+# engines that cannot collide a dynamic triangle mesh; this contact model collides the
+# triangles themselves. The other tokens (convexHull, boundingSphere, boundingCube) ask for
+# a different, coarser shape, which is refused rather than silently replaced.
+_EXACT_APPROXIMATIONS = ("none", "convexDecomposition", "meshSimplification", "sdf")
+
+
+def _check_approximation(kind, desc, prim, source: str) -> None:
+    approximation = str(desc.approximation) if kind == "MeshShape" else "none"
+    if approximation not in _EXACT_APPROXIMATIONS:
+        raise ValueError(
+            f"{source}: prim {prim.GetPath()}: physics:approximation {approximation!r} (a different shape than the mesh) is not "
+            f"supported; author one of {_EXACT_APPROXIMATIONS}, which collide the mesh's own triangles, or model the shape as its own Mesh"
+        )
 
 
 def _local_triangles(kind, prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
@@ -498,6 +538,7 @@ def load_scene(path) -> Scene:
 
     bodies: dict[str, BodySpec] = {}
     body_frames: dict[str, tuple] = {}  # rigid body path -> (frame in stage units, unscaled)
+    mirrored: set[str] = set()  # paths of bodies whose world matrix mirrors (negative determinant)
     for prim_path, desc in descs.get("RigidBody", []):
         prim = stage.GetPrimAtPath(prim_path)
         _require_default_transform(prim, UsdGeom, Usd, source)
@@ -509,6 +550,8 @@ def load_scene(path) -> Scene:
         matrix = _world_matrix(prim, UsdGeom, Usd)
         linear = _linear_part(matrix)
         body_frames[str(prim_path)] = (_frame(matrix), _unscaled(linear))
+        if np.linalg.det(linear) < 0:
+            mirrored.add(str(prim_path))
         pose = body_frames[str(prim_path)][0].copy()
         pose[:3] *= meters
         body = BodySpec(
@@ -530,7 +573,9 @@ def load_scene(path) -> Scene:
             above = _linear_part(_world_matrix(parent, UsdGeom, Usd))
             if not np.array_equal(above, np.eye(3)):
                 body.linear_velocity = body.linear_velocity @ above
-                body.angular_velocity = body.angular_velocity @ _nearest_rotation(above)
+                # An angular velocity is a pseudovector: a mirroring parent also reverses it.
+                reflection = _polar_factor(above)
+                body.angular_velocity = np.linalg.det(reflection) * (body.angular_velocity @ reflection)
         _read_mass(prim, body, UsdPhysics, meters, source)
         if body.center_of_mass is not None and not body_frames[str(prim_path)][1]:
             # centerOfMass is in the prim's local, scaled space; the body frame is unscaled.
@@ -549,17 +594,24 @@ def load_scene(path) -> Scene:
                 continue
             _require_default_transform(prim, UsdGeom, Usd, source)
             owner = str(desc.rigidBody) if desc.rigidBody and str(desc.rigidBody) in bodies else ""
+            _check_approximation(kind, desc, prim, source)
             matrix = _world_matrix(prim, UsdGeom, Usd)
+            linear = _linear_part(matrix)
             owner_frame, owner_unscaled = body_frames[owner] if owner else (None, True)
-            if not (_scaled_along_own_axes(_linear_part(matrix)) and owner_unscaled):
+            if not (_scaled_along_own_axes(linear) and np.linalg.det(linear) > 0 and owner_unscaled):
                 # UsdPhysics describes a collider by a rigid pose and a scale along its own axes,
                 # which cannot hold a shear (a box under a body scaled (1, 1, 3) and turned 45
                 # degrees inside it came out 0.5 m off at its corners); and a scaled body's frame
                 # is the polar one (``_frame``). Its points are then moved by the full world
-                # matrix into the frame of its body (or its own).
+                # matrix into the frame of its body (or its own); a mirroring matrix also
+                # reverses the triangles' winding, which keeps a closed mesh outward-oriented.
                 vertices, faces = _local_triangles(kind, prim, UsdGeom, source)
                 frame = owner_frame if owner else _frame(matrix)
                 vertices = _in_frame(vertices, matrix, frame) * meters
+                if np.linalg.det(linear) < 0:
+                    faces = faces[:, ::-1]
+                    if not owner:
+                        mirrored.add(str(prim_path))
                 local_pose = frame.copy()
                 local_pose[:3] *= meters
             else:
@@ -609,7 +661,7 @@ def load_scene(path) -> Scene:
     if scene_prim is not None:
         _read_settings(scene_prim, settings, task, source)
     _read_material_friction(collider_materials, scene_prim, settings, UsdPhysics, source)
-    joints = _read_joints(stage, descs, {**bodies, **static_bodies}, meters, source, UsdPhysics)
+    joints = _read_joints(stage, descs, {**bodies, **static_bodies}, mirrored, meters, source, UsdPhysics)
     return Scene(bodies=all_bodies, gravity=gravity, settings=settings, task=task, source=source, joints=joints)
 
 
@@ -637,9 +689,10 @@ def _axis_token(value) -> str:
     return str(value).split(".")[-1].upper()[-1]
 
 
-def _read_joints(stage, descs, bodies: dict, meters: float, source: str, UsdPhysics) -> list[JointSpec]:
+def _read_joints(stage, descs, bodies: dict, mirrored: set, meters: float, source: str, UsdPhysics) -> list[JointSpec]:
     """UsdPhysics joints -> JointSpec. Angles in degrees and angular gains per degree (UsdPhysics)
-    become radians and gains per radian; lengths scale by metersPerUnit."""
+    become radians and gains per radian; lengths scale by metersPerUnit. A joint on a
+    ``mirrored`` body is refused: its frame on that body would be a reflection."""
     joints = []
     kinds = [("RevoluteJoint", "revolute"), ("PrismaticJoint", "prismatic"), ("SphericalJoint", "ball"), ("D6Joint", "d6")]
     for usd_kind, kind in kinds:
@@ -652,6 +705,12 @@ def _read_joints(stage, descs, bodies: dict, meters: float, source: str, UsdPhys
                 raise ValueError(f"{where}: body1 {child_path or '(none)'} is not a rigid body with a collider (every link needs a mesh)")
             if parent_path and parent_path not in bodies:
                 raise ValueError(f"{where}: body0 {parent_path} is not a rigid body or collider")
+            for label, path in (("body0", parent_path), ("body1", child_path)):
+                if path in mirrored:
+                    raise ValueError(
+                        f"{where}: {label} {path} is mirrored (a negative scale in its transform), which a joint frame "
+                        "cannot follow; mirror its points in the mesh instead"
+                    )
             frames = []
             for position, orientation in ((desc.localPose0Position, desc.localPose0Orientation), (desc.localPose1Position, desc.localPose1Orientation)):
                 frame = np.array([*(np.asarray(position, dtype=np.float64) * meters), *_quat_xyzw(orientation)])
