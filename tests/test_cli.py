@@ -152,6 +152,11 @@ def test_bench_accuracy_writes_results_and_plot(tmp_path):
         (["run", "push", "--model", "gb", "--seed", "-1"], "--seed: must be a whole number >= 0, got -1"),
         (["bench", "contact", "--eps", "nan"], "--eps: must be a positive finite number, got nan"),
         (["bench", "frame", "--frames", "0"], "--frames: must be a whole number >= 1, got 0"),
+        # Accepted before: a negative warm-up, a negative or NaN IPC support.
+        (["bench", "frame", "--warmup", "-1"], "--warmup: must be a whole number >= 0, got -1"),
+        (["bench", "frame", "--brute-max-triangles", "-5"], "--brute-max-triangles: must be a whole number >= 0, got -5"),
+        (["bench", "contact", "--ipc-dhat", "-0.01"], "--ipc-dhat: must be a finite number >= 0, got -0.01"),
+        (["bench", "contact", "--ipc-dhat", "nan"], "--ipc-dhat: must be a finite number >= 0, got nan"),
         (["bench", "accuracy", "--eps", "-1"], "--eps: must be a positive finite number, got -1"),
     ],
 )

@@ -523,17 +523,27 @@ def _whole_number(low: int):
 
 
 _positive_int = _whole_number(1)
-_seed = _whole_number(0)
+_non_negative_int = _whole_number(0)
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text!r}") from None
-    if not np.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text}")
-    return value
+def _finite_number(*, zero: bool):
+    """An argparse type: a finite number > 0, or >= 0 with ``zero``."""
+    wanted = "a finite number >= 0" if zero else "a positive finite number"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {wanted}, got {text!r}") from None
+        if not np.isfinite(value) or value < 0 or (value == 0 and not zero):
+            raise argparse.ArgumentTypeError(f"must be {wanted}, got {text}")
+        return value
+
+    return parse
+
+
+_positive_float = _finite_number(zero=False)
+_non_negative_float = _finite_number(zero=True)
 
 
 def _model_list(text: str) -> list:
@@ -555,7 +565,7 @@ def _add_task_arguments(parser):
     )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--quick", action="store_true", help="short horizons and few iterations (minutes on a CPU)")
-    parser.add_argument("--seed", type=_seed, default=0, help="seed of the gb model's samples and of --init-samples")
+    parser.add_argument("--seed", type=_non_negative_int, default=0, help="seed of the gb model's samples and of --init-samples")
     parser.add_argument(
         "--init-samples",
         type=_positive_int,
@@ -631,7 +641,7 @@ def build_parser() -> argparse.ArgumentParser:
     contact.add_argument("--gaps", type=_positive_float, nargs="+", default=[1e-3, 1e-2, 1e-1])
     contact.add_argument("--subdivisions", type=int, default=1, choices=range(0, 4))
     contact.add_argument("--repeats", type=_positive_int, default=3)
-    contact.add_argument("--ipc-dhat", type=float, default=1e-2, help="IPC Toolkit barrier support (m) for the side-by-side ipc rows (CPU); 0 skips them")
+    contact.add_argument("--ipc-dhat", type=_non_negative_float, default=1e-2, help="IPC Toolkit barrier support (m) for the side-by-side ipc rows (CPU); 0 skips them")
     contact.add_argument("--centred-weights", nargs="+", choices=CENTRED_WEIGHTS, default=["paper"], help="centred-term weights of the bsh rows (docs/architecture.md, 'Centred weights')")
     contact.add_argument("--device", default="cpu")
     _writes(contact, "outputs/bench", "contact.json", "contact.csv", "contact.png")
@@ -639,7 +649,7 @@ def build_parser() -> argparse.ArgumentParser:
     scaling = bench_sub.add_parser("scaling", help="contact cost against triangle count (16-ball rack)")
     scaling.add_argument("--points", type=_positive_int, nargs="+", default=[18, 42, 82, 196], help="points per ball (2N-4 faces)")
     scaling.add_argument("--eps", type=_positive_float, default=0.5)
-    scaling.add_argument("--brute-max-triangles", type=int, default=2560)
+    scaling.add_argument("--brute-max-triangles", type=_non_negative_int, default=2560)
     scaling.add_argument("--repeats", type=_positive_int, default=3)
     scaling.add_argument("--device", default="cpu")
     _writes(scaling, "outputs/bench", "scaling.json", "scaling.csv", "scaling.png")
@@ -653,12 +663,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     frame.add_argument("--models", nargs="+", choices=["bsh", "brute", "ipc"], default=["bsh", "brute", "ipc"])
     frame.add_argument("--frames", type=_positive_int, default=3, help="timed frames (medians over them)")
-    frame.add_argument("--warmup", type=int, default=1, help="untimed frames first, from the same start")
+    frame.add_argument("--warmup", type=_non_negative_int, default=1, help="untimed frames first, from the same start")
     frame.add_argument("--eps", type=_positive_float, default=None, help="BSH blend margin (default: each scene's)")
     frame.add_argument("--gap", type=_positive_float, default=0.02, help="striker's start distance from the struck body (m)")
     frame.add_argument("--speed", type=_positive_float, default=1.0, help="striker's speed into it (m/s)")
-    frame.add_argument("--brute-max-triangles", type=int, default=512, help="brute force runs whole frames up to this many dynamic triangles")
-    frame.add_argument("--brute-eval-max-triangles", type=int, default=6208, help="above that, only its contact evaluation is timed, up to this many")
+    frame.add_argument("--brute-max-triangles", type=_non_negative_int, default=512, help="brute force runs whole frames up to this many dynamic triangles")
+    frame.add_argument("--brute-eval-max-triangles", type=_non_negative_int, default=6208, help="above that, only its contact evaluation is timed, up to this many")
     frame.add_argument("--ipc-stiffness", type=_positive_float, default=1e3, help="IPC barrier stiffness (replaces the scene's mu for ipc)")
     frame.add_argument("--leaf-precision", choices=LEAF_PRECISIONS, default="float64", help="plane search precision of bsh and brute (ipc: float64)")
     frame.add_argument("--scene-dir", default=None, help="folder of NAME.usda scenes (default: the shipped scenes)")
