@@ -660,6 +660,19 @@ def test_a_taped_step_names_a_state_without_gradient_arrays():
     assert tape.launches
 
 
+@pytest.mark.parametrize("name", ["body_kp_linear", "body_kd_angular", "body_unit_second_moment"])
+def test_a_taped_step_refuses_a_gradient_of_a_model_array_it_does_not_differentiate(name):
+    """A PD gain with requires_grad set kept a zero gradient through the tape."""
+    model, _ = _cube_shot_at_a_resting_cube(1.0)
+    getattr(model, name).requires_grad = True
+    state_out = model.state()
+    before = state_out.body_q.numpy().copy()
+    with wp.Tape(), pytest.raises(ValueError, match=rf"model.{name}: requires_grad is set, but the step's backward does not differentiate it .*gradients reach model.body_mass, model.contact_stiffness, model.friction"):
+        wc.ImplicitSolver(model).step(model.state(), state_out, None, 0.04)
+    np.testing.assert_array_equal(state_out.body_q.numpy(), before)
+    wc.ImplicitSolver(model).step(model.state(), state_out, None, 0.04)  # no tape: no gradient asked for
+
+
 def test_builder_warns_about_bodies_the_barrier_would_hold_far_above_a_support():
     """A 1 cm cube at the default mu 1e-6 (estimate ~0.14 m) was thrown 0.69 m up and rested
     0.25 m above the table after 16 s (measured); the builder names it. A 0.3 m cube at the

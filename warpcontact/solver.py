@@ -20,7 +20,9 @@ Differentiation: inside ``with wp.Tape()``, each step records its backward with
 ``tape.record_func``. By the implicit function theorem, with H = d2L/dq2 at the solution
 and lambda solving H lambda = -(adjoint of q^{t+1}), the adjoint of any input y is
 lambda^T d(grad_q L)/dy; it is pushed into q^t, q^{t-1}, the PD targets, the masses, mu and
-the friction coefficient, and into ball-joint targets and (through their damping) q^t.
+the friction coefficient, and into ball-joint targets and (through their damping) q^t. A
+recorded step refuses a model array that asks for a gradient it does not compute (PD gains,
+second moments), which would otherwise stay zero.
 """
 
 from dataclasses import dataclass
@@ -38,6 +40,11 @@ from .rotation import quat_from_matrix, quat_from_rotation_vector, quat_mul, rig
 from .types import Control, Model, State
 
 __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
+
+# Model arrays a recorded step's backward pushes adjoints into, and those it does not (a
+# gradient requested of one of those is refused rather than left at zero).
+_DIFFERENTIATED_MODEL_ARRAYS = ("body_mass", "contact_stiffness", "friction")
+_UNDIFFERENTIATED_MODEL_ARRAYS = ("body_unit_second_moment", "body_kp_linear", "body_kd_linear", "body_kp_angular", "body_kd_angular")
 
 
 # The friction-exact model is minimised to this fraction of its step's travel, within this
@@ -426,7 +433,9 @@ class ImplicitSolver:
         if Newton does not converge, or if its solution moves one body through another
         (``_pass_through``: dt too large for the impact). Nothing is written then.
         Inside ``with wp.Tape()``, records the step's implicit-function-theorem backward; the
-        states must then have gradient arrays (ValueError before anything is written).
+        states must then have gradient arrays, and no model array other than body_mass,
+        contact_stiffness and friction may have requires_grad set (ValueError before anything
+        is written).
         """
         with paused_tape() as tape:
             if tape is not None:
@@ -435,6 +444,12 @@ class ImplicitSolver:
                         raise ValueError(
                             f"{label}: has no gradient array, but the step is recorded on a wp.Tape; make the states with "
                             "model.state(requires_grad=True), or step outside the tape"
+                        )
+                for name in _UNDIFFERENTIATED_MODEL_ARRAYS:
+                    if getattr(self.model, name).requires_grad:
+                        raise ValueError(
+                            f"model.{name}: requires_grad is set, but the step's backward does not differentiate it (its gradient "
+                            f"would stay zero); gradients reach {', '.join('model.' + n for n in _DIFFERENTIATED_MODEL_ARRAYS)}"
                         )
             info, record = self._solve(state_in, state_out, control, dt)
         if tape is not None:
@@ -754,7 +769,7 @@ class ImplicitSolver:
             predicted_rotation = wp.clone(self._predicted_rotation)
             sensitivity = wp.clone(self._prediction_sensitivity)
         bodies = step_in.bodies
-        arrays = [array for _, array in self._taped_state_arrays(state_in, state_out)] + [model.body_mass, model.contact_stiffness, model.friction]
+        arrays = [array for _, array in self._taped_state_arrays(state_in, state_out)] + [getattr(model, name) for name in _DIFFERENTIATED_MODEL_ARRAYS]
         if control is not None and control.body_target.requires_grad:
             arrays.append(control.body_target)
         joints = art is not None and art.num_coordinates > 0
