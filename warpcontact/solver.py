@@ -45,6 +45,10 @@ __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
 # gradient requested of one of those is refused rather than left at zero).
 _DIFFERENTIATED_MODEL_ARRAYS = ("body_mass", "contact_stiffness", "friction")
 _UNDIFFERENTIATED_MODEL_ARRAYS = ("body_unit_second_moment", "body_kp_linear", "body_kd_linear", "body_kp_angular", "body_kd_angular")
+# The wp.Tape attribute in which recorded steps note their state arrays:
+# {id(array): (index of the step's backward in tape.launches, that backward)}, which stays
+# valid until tape.reset() replaces the launches.
+_TAPED_STEP_ARRAYS = "_warpcontact_step_arrays"
 
 
 # The friction-exact model is minimised to this fraction of its step's travel, within this
@@ -439,22 +443,40 @@ class ImplicitSolver:
         """
         with paused_tape() as tape:
             if tape is not None:
-                for label, array in self._taped_state_arrays(state_in, state_out):
-                    if isinstance(array, wp.array) and not array.requires_grad:
-                        raise ValueError(
-                            f"{label}: has no gradient array, but the step is recorded on a wp.Tape; make the states with "
-                            "model.state(requires_grad=True), or step outside the tape"
-                        )
-                for name in _UNDIFFERENTIATED_MODEL_ARRAYS:
-                    if getattr(self.model, name).requires_grad:
-                        raise ValueError(
-                            f"model.{name}: requires_grad is set, but the step's backward does not differentiate it (its gradient "
-                            f"would stay zero); gradients reach {', '.join('model.' + n for n in _DIFFERENTIATED_MODEL_ARRAYS)}"
-                        )
+                self._check_taped_step(tape, state_in, state_out)
             info, record = self._solve(state_in, state_out, control, dt)
         if tape is not None:
             tape.record_func(*record())
+            steps = tape.__dict__.setdefault(_TAPED_STEP_ARRAYS, {})
+            for _, array in self._taped_state_arrays(state_in, state_out):
+                steps[id(array)] = (len(tape.launches) - 1, tape.launches[-1])
         return info
+
+    def _check_taped_step(self, tape: wp.Tape, state_in: State, state_out: State):
+        """Refuse, before anything is written, a step whose recorded backward would be wrong."""
+        for label, array in self._taped_state_arrays(state_in, state_out):
+            if isinstance(array, wp.array) and not array.requires_grad:
+                raise ValueError(
+                    f"{label}: has no gradient array, but the step is recorded on a wp.Tape; make the states with "
+                    "model.state(requires_grad=True), or step outside the tape"
+                )
+        for name in _UNDIFFERENTIATED_MODEL_ARRAYS:
+            if getattr(self.model, name).requires_grad:
+                raise ValueError(
+                    f"model.{name}: requires_grad is set, but the step's backward does not differentiate it (its gradient "
+                    f"would stay zero); gradients reach {', '.join('model.' + n for n in _DIFFERENTIATED_MODEL_ARRAYS)}"
+                )
+        # A backward reads the adjoint its output's gradient holds when it runs; an output
+        # buffer that an earlier recorded step also read or wrote (two states swapped back
+        # and forth) mixes their adjoints: the gradient came out 4x too large, silently.
+        steps = tape.__dict__.get(_TAPED_STEP_ARRAYS, {})
+        for label, array in self._taped_state_arrays(state_in, state_out):
+            index, entry = steps.get(id(array), (None, None))
+            if label.startswith("state_out") and index is not None and index < len(tape.launches) and tape.launches[index] is entry:
+                raise ValueError(
+                    f"{label}: an earlier step recorded on this wp.Tape already uses this array, and its backward would read "
+                    "this step's adjoints; make a new State for every time step (model.state()) while recording"
+                )
 
     def _joint_arrays(self, state_in: State, state_out: State, control: Control | None):
         """Current joint coordinates and joint targets (numpy); checks the joint buffers."""
