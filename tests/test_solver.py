@@ -683,6 +683,24 @@ def test_a_taped_step_refuses_a_state_buffer_an_earlier_recorded_step_used():
     solver.step(a, b, None, 0.04)  # off the tape: nothing to mix
 
 
+def test_a_taped_step_refuses_a_control_rewritten_since_an_earlier_recorded_step_used_it():
+    """Its gradient would be the sum of both steps' adjoints, under one array; a target held
+    constant over several steps is fine (that sum is its gradient)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.3, 0.3, 0.3), density=500.0, name="driven", kp_linear=100.0, kd_linear=10.0)
+    model = b.finalize()
+    solver = wc.ImplicitSolver(model)
+    states = [model.state() for _ in range(4)]
+    control = model.control()
+    with wp.Tape():
+        solver.step(states[0], states[1], control, 0.04)
+        solver.step(states[1], states[2], control, 0.04)  # unchanged: accepted
+        control.body_target.assign(wp.array([[0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]], dtype=wp.transformd))
+        with pytest.raises(ValueError, match=r"control.body_target: its values changed since an earlier step recorded on this wp.Tape used it"):
+            solver.step(states[2], states[3], control, 0.04)
+        solver.step(states[2], states[3], model.control(), 0.04)
+
+
 @pytest.mark.parametrize("name", ["body_kp_linear", "body_kd_angular", "body_unit_second_moment"])
 def test_a_taped_step_refuses_a_gradient_of_a_model_array_it_does_not_differentiate(name):
     """A PD gain with requires_grad set kept a zero gradient through the tape."""

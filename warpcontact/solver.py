@@ -45,10 +45,18 @@ __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
 # gradient requested of one of those is refused rather than left at zero).
 _DIFFERENTIATED_MODEL_ARRAYS = ("body_mass", "contact_stiffness", "friction")
 _UNDIFFERENTIATED_MODEL_ARRAYS = ("body_unit_second_moment", "body_kp_linear", "body_kd_linear", "body_kp_angular", "body_kd_angular")
-# The wp.Tape attribute in which recorded steps note their state arrays:
-# {id(array): (index of the step's backward in tape.launches, that backward)}, which stays
-# valid until tape.reset() replaces the launches.
+# The wp.Tape attribute in which recorded steps note their state and control arrays:
+# {id(array): (index of the step's backward in tape.launches, that backward, a copy of a
+# control array's values or None)}, which stays valid until tape.reset() replaces the launches.
 _TAPED_STEP_ARRAYS = "_warpcontact_step_arrays"
+
+
+def _taped_control_arrays(control: Control | None) -> list[tuple[str, wp.array]]:
+    """The control arrays a recorded step's backward writes gradients into, by name."""
+    if control is None:
+        return []
+    named = (("control.body_target", control.body_target), ("control.joint_target", control.joint_target), ("control.ball_target", control.ball_target))
+    return [(label, array) for label, array in named if isinstance(array, wp.array) and array.requires_grad]
 
 
 # The friction-exact model is minimised to this fraction of its step's travel, within this
@@ -443,16 +451,18 @@ class ImplicitSolver:
         """
         with paused_tape() as tape:
             if tape is not None:
-                self._check_taped_step(tape, state_in, state_out)
+                self._check_taped_step(tape, state_in, state_out, control)
             info, record = self._solve(state_in, state_out, control, dt)
         if tape is not None:
             tape.record_func(*record())
             steps = tape.__dict__.setdefault(_TAPED_STEP_ARRAYS, {})
             for _, array in self._taped_state_arrays(state_in, state_out):
-                steps[id(array)] = (len(tape.launches) - 1, tape.launches[-1])
+                steps[id(array)] = (len(tape.launches) - 1, tape.launches[-1], None)
+            for _, array in _taped_control_arrays(control):
+                steps[id(array)] = (len(tape.launches) - 1, tape.launches[-1], wp.clone(array, requires_grad=False))
         return info
 
-    def _check_taped_step(self, tape: wp.Tape, state_in: State, state_out: State):
+    def _check_taped_step(self, tape: wp.Tape, state_in: State, state_out: State, control: Control | None):
         """Refuse, before anything is written, a step whose recorded backward would be wrong."""
         for label, array in self._taped_state_arrays(state_in, state_out):
             if isinstance(array, wp.array) and not array.requires_grad:
@@ -470,12 +480,26 @@ class ImplicitSolver:
         # buffer that an earlier recorded step also read or wrote (two states swapped back
         # and forth) mixes their adjoints: the gradient came out 4x too large, silently.
         steps = tape.__dict__.get(_TAPED_STEP_ARRAYS, {})
+
+        def earlier(array):
+            index, entry, snapshot = steps.get(id(array), (None, None, None))
+            recorded = index is not None and index < len(tape.launches) and tape.launches[index] is entry
+            return recorded, snapshot
+
         for label, array in self._taped_state_arrays(state_in, state_out):
-            index, entry = steps.get(id(array), (None, None))
-            if label.startswith("state_out") and index is not None and index < len(tape.launches) and tape.launches[index] is entry:
+            if label.startswith("state_out") and earlier(array)[0]:
                 raise ValueError(
                     f"{label}: an earlier step recorded on this wp.Tape already uses this array, and its backward would read "
                     "this step's adjoints; make a new State for every time step (model.state()) while recording"
+                )
+        # A control shared by several recorded steps gets the sum of their adjoints: right for
+        # a target held constant, but not for one rewritten in place between steps.
+        for label, array in _taped_control_arrays(control):
+            recorded, snapshot = earlier(array)
+            if recorded and not np.array_equal(snapshot.numpy(), array.numpy()):
+                raise ValueError(
+                    f"{label}: its values changed since an earlier step recorded on this wp.Tape used it, and its gradient "
+                    "would add up both steps' adjoints; make a new Control for every time step (model.control()) while recording"
                 )
 
     def _joint_arrays(self, state_in: State, state_out: State, control: Control | None):
