@@ -198,6 +198,8 @@ def test_bad_scenes_name_the_prim_and_problem(tmp_path, kwargs, match):
     [
         ("centredWeight", "count", r"w\.usda: prim .*warpcontact:centredWeight must be one of \('paper', 'pairs'\), got 'count'"),
         ("leafPrecision", "half", r"w\.usda: prim .*warpcontact:leafPrecision must be one of \('float64', 'float32'\), got 'half'"),
+        # Named no attribute and left out 'ipc', which loads.
+        ("contactMode", "exact", r"w\.usda: prim .*warpcontact:contactMode must be one of \('bsh', 'brute', 'sdrs', 'ipc'\), got 'exact'"),
     ],
 )
 def test_unknown_setting_token_names_the_file_prim_and_attribute(tmp_path, attribute, value, match):

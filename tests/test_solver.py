@@ -630,6 +630,11 @@ def test_builder_rejects_a_flat_closed_mesh_with_density_quietly():
             wc.ModelBuilder().add_body((flat, _BOX.faces), density=1.0, name="flat")
 
 
+def test_builder_names_its_contact_modes_ipc_included():
+    with pytest.raises(ValueError, match=r"contact_mode: 'exact' is not one of \('bsh', 'brute', 'sdrs', 'ipc'\)"):
+        wc.ModelBuilder(contact_mode="exact")
+
+
 def test_builder_rejects_open_mesh_with_density():
     b = wc.ModelBuilder()
     V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]])

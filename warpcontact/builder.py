@@ -9,13 +9,13 @@ import warp as wp
 
 from ._runtime import resolve_device
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, frame_in_body
-from .contact import ContactModel
+from .contact import CONTACT_MODES, ContactModel
 from .leaf import float32_search
 from .rotation import pose_mul, quat_rotate
 from .sphere_tree import validated_mesh
 from .types import Model
 
-__all__ = ["ModelBuilder"]
+__all__ = ["MODEL_CONTACT_MODES", "ModelBuilder"]
 
 
 @dataclass
@@ -40,6 +40,8 @@ def _second_moment_from_inertia(inertia: np.ndarray) -> np.ndarray:
 
 
 _ARTICULATION_CONTACT = ("nonadjacent", "all", "none")
+# The contact models a ModelBuilder makes: ContactModel's modes and the IPC baseline.
+MODEL_CONTACT_MODES = (*CONTACT_MODES, "ipc")
 
 
 def contact_setting_problem(name: str, value: float) -> str | None:
@@ -126,6 +128,8 @@ class ModelBuilder:
         self.friction_smoothing = float(friction_smoothing)
         self.eps = eps
         self.centred_weight = centred_weight
+        if contact_mode not in MODEL_CONTACT_MODES:
+            raise ValueError(f"contact_mode: {contact_mode!r} is not one of {MODEL_CONTACT_MODES}")
         self.contact_mode = contact_mode
         float32_search(leaf_precision, mode=contact_mode)
         self.leaf_precision = leaf_precision

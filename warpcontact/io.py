@@ -72,7 +72,7 @@ import numpy as np
 import trimesh
 
 from ._validate import is_real
-from .builder import ModelBuilder, contact_setting_problem
+from .builder import MODEL_CONTACT_MODES, ModelBuilder, contact_setting_problem
 from .contact import CENTRED_WEIGHTS
 from .leaf import LEAF_PRECISIONS
 from .rotation import pose_mul, quat_from_matrix, quat_rotate, quat_to_matrix
@@ -1061,6 +1061,8 @@ def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: s
             raise ValueError(f"{where}: warpcontact:{attr_name} {problem}, got {value}")
     if settings.frames < 1:
         raise ValueError(f"{where}: warpcontact:frames must be >= 1, got {settings.frames}")
+    if settings.contact_mode not in MODEL_CONTACT_MODES:
+        raise ValueError(f"{where}: warpcontact:contactMode must be one of {MODEL_CONTACT_MODES}, got {settings.contact_mode!r}")
     if settings.centred_weight not in CENTRED_WEIGHTS:
         raise ValueError(f"{where}: warpcontact:centredWeight must be one of {CENTRED_WEIGHTS}, got {settings.centred_weight!r}")
     if settings.leaf_precision not in LEAF_PRECISIONS:
