@@ -46,9 +46,19 @@ __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
 _DIFFERENTIATED_MODEL_ARRAYS = ("body_mass", "contact_stiffness", "friction")
 _UNDIFFERENTIATED_MODEL_ARRAYS = ("body_unit_second_moment", "body_kp_linear", "body_kd_linear", "body_kp_angular", "body_kd_angular")
 # The wp.Tape attribute in which recorded steps note their state and control arrays:
-# {id(array): (index of the step's backward in tape.launches, that backward, a copy of a
-# control array's values or None)}, which stays valid until tape.reset() replaces the launches.
+# (the tape.launches list they were recorded into, {id(array): a copy of a control array's
+# values, or None for a state array}). tape.reset() replaces the launches list, which
+# retires the notes; the tape keeps every noted array alive, so its id is not reused.
 _TAPED_STEP_ARRAYS = "_warpcontact_step_arrays"
+
+
+def _taped_step_arrays(tape: wp.Tape) -> dict:
+    """The arrays the steps recorded on ``tape`` since its last reset noted (see above)."""
+    launches, noted = tape.__dict__.get(_TAPED_STEP_ARRAYS, (None, None))
+    if launches is not tape.launches:
+        launches, noted = tape.launches, {}
+        tape.__dict__[_TAPED_STEP_ARRAYS] = (launches, noted)
+    return noted
 
 
 def _taped_control_arrays(control: Control | None) -> list[tuple[str, wp.array]]:
@@ -56,7 +66,8 @@ def _taped_control_arrays(control: Control | None) -> list[tuple[str, wp.array]]
     if control is None:
         return []
     named = (("control.body_target", control.body_target), ("control.joint_target", control.joint_target), ("control.ball_target", control.ball_target))
-    return [(label, array) for label, array in named if isinstance(array, wp.array) and array.requires_grad]
+    # A model without joints (or ball joints) has empty target arrays, without gradients.
+    return [(label, array) for label, array in named if isinstance(array, wp.array) and array.requires_grad and array.size]
 
 
 # The friction-exact model is minimised to this fraction of its step's travel, within this
@@ -455,11 +466,11 @@ class ImplicitSolver:
             info, record = self._solve(state_in, state_out, control, dt)
         if tape is not None:
             tape.record_func(*record())
-            steps = tape.__dict__.setdefault(_TAPED_STEP_ARRAYS, {})
+            noted = _taped_step_arrays(tape)
             for _, array in self._taped_state_arrays(state_in, state_out):
-                steps[id(array)] = (len(tape.launches) - 1, tape.launches[-1], None)
+                noted[id(array)] = None
             for _, array in _taped_control_arrays(control):
-                steps[id(array)] = (len(tape.launches) - 1, tape.launches[-1], wp.clone(array, requires_grad=False))
+                noted[id(array)] = wp.clone(array, requires_grad=False)
         return info
 
     def _check_taped_step(self, tape: wp.Tape, state_in: State, state_out: State, control: Control | None):
@@ -479,15 +490,9 @@ class ImplicitSolver:
         # A backward reads the adjoint its output's gradient holds when it runs; an output
         # buffer that an earlier recorded step also read or wrote (two states swapped back
         # and forth) mixes their adjoints: the gradient came out 4x too large, silently.
-        steps = tape.__dict__.get(_TAPED_STEP_ARRAYS, {})
-
-        def earlier(array):
-            index, entry, snapshot = steps.get(id(array), (None, None, None))
-            recorded = index is not None and index < len(tape.launches) and tape.launches[index] is entry
-            return recorded, snapshot
-
+        noted = _taped_step_arrays(tape)
         for label, array in self._taped_state_arrays(state_in, state_out):
-            if label.startswith("state_out") and earlier(array)[0]:
+            if label.startswith("state_out") and id(array) in noted:
                 raise ValueError(
                     f"{label}: an earlier step recorded on this wp.Tape already uses this array, and its backward would read "
                     "this step's adjoints; make a new State for every time step (model.state()) while recording"
@@ -495,8 +500,7 @@ class ImplicitSolver:
         # A control shared by several recorded steps gets the sum of their adjoints: right for
         # a target held constant, but not for one rewritten in place between steps.
         for label, array in _taped_control_arrays(control):
-            recorded, snapshot = earlier(array)
-            if recorded and not np.array_equal(snapshot.numpy(), array.numpy()):
+            if id(array) in noted and not np.array_equal(noted[id(array)].numpy(), array.numpy()):
                 raise ValueError(
                     f"{label}: its values changed since an earlier step recorded on this wp.Tape used it, and its gradient "
                     "would add up both steps' adjoints; make a new Control for every time step (model.control()) while recording"
@@ -824,16 +828,11 @@ class ImplicitSolver:
             sensitivity = wp.clone(self._prediction_sensitivity)
         bodies = step_in.bodies
         arrays = [array for _, array in self._taped_state_arrays(state_in, state_out)] + [getattr(model, name) for name in _DIFFERENTIATED_MODEL_ARRAYS]
-        if control is not None and control.body_target.requires_grad:
-            arrays.append(control.body_target)
+        arrays += [array for _, array in _taped_control_arrays(control)]
         joints = art is not None and art.num_coordinates > 0
-        if joints:
-            if control is not None and control.joint_target is not None and control.joint_target.requires_grad:
-                arrays.append(control.joint_target)
         balls = art is not None and art.has_ball_drives
         ball_target_grad = balls and control is not None and control.ball_target is not None and control.ball_target.requires_grad
         if ball_target_grad:
-            arrays.append(control.ball_target)
             ball_target_arr = wp.array(step_in.ball_target, dtype=wp.quatd, device=dev)
 
         def backward():
