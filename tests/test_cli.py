@@ -220,6 +220,25 @@ def test_simulate_writes_the_frames_before_a_failed_step(tmp_path, capsys, monke
     assert summary["frames"] == 0 and summary["newton_iterations_mean"] is None and summary["stopped"]["frame"] == 0
 
 
+def test_simulate_interrupted_by_hand_writes_the_frames_it_simulated(tmp_path, capsys, monkeypatch):
+    """Ctrl-C used to end `simulate` with a traceback and nothing written."""
+    from warpcontact.solver import ImplicitSolver
+
+    step, calls = ImplicitSolver.step, []
+
+    def interrupted_fourth(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 4:
+            raise KeyboardInterrupt
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(ImplicitSolver, "step", interrupted_fourth)
+    assert main(["simulate", "push", "--frames", "6", "--out", str(tmp_path)]) == 130
+    assert "error: frame 3: interrupted; the outputs hold the 3 frames before it" in capsys.readouterr().err
+    assert json.loads((tmp_path / "summary.json").read_text())["stopped"] == {"frame": 3, "error": "interrupted"}
+    assert Usd.Stage.Open(str(tmp_path / "trajectory.usda")).GetEndTimeCode() == 3
+
+
 @pytest.mark.parametrize(
     "argv",
     [["demo", "--gaps", "0.1"], ["simulate", "push", "--frames", "1"], ["bench", "leaf", "--pairs", "2"], ["bench", "scaling", "--points", "18"], ["run", "push", "--quick", "--iters", "1"], ["compare", "push", "--quick", "--iters", "1", "--models", "sdrs"]],

@@ -93,6 +93,10 @@ def _simulate(args) -> int:
             # The frames before it are written: they are what one looks at to see why.
             stopped = {"frame": frame, "error": str(exc)}
             break
+        except KeyboardInterrupt:
+            # A long run stopped by hand keeps what it simulated.
+            stopped = {"frame": frame, "error": "interrupted"}
+            break
         states.append(nxt)
         iterations.append(info.iterations)
         if (frame + 1) % max(1, frames // 10) == 0 or frame + 1 == frames:
@@ -121,7 +125,7 @@ def _simulate(args) -> int:
     print(f"wrote {trajectory} and {out / 'summary.json'} ({seconds:.1f} s{newton})")
     if stopped:
         print(f"error: frame {stopped['frame']}: {stopped['error']}; the outputs hold the {stopped['frame']} frames before it", file=sys.stderr)
-        return 1
+        return 130 if stopped["error"] == "interrupted" else 1
     return 0
 
 
