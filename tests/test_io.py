@@ -736,3 +736,22 @@ def test_collision_approximations_that_change_the_shape_are_refused(tmp_path, ap
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match=rf"prim /World/ground: physics:approximation '{approximation}' \(a different shape than the mesh\) is not supported"):
         io.load_scene(path)
+
+
+def test_a_stage_that_does_not_compose_is_refused(tmp_path):
+    """A missing reference or sublayer loaded with a USD warning and without its bodies."""
+    path = write_physics_scene(tmp_path / "refs.usda")
+    stage = Usd.Stage.Open(str(path))
+    crate = UsdGeom.Xform.Define(stage, "/World/crate")
+    crate.GetPrim().GetReferences().AddReference("./missing_crate.usda")
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"refs\.usda: the stage does not compose: Could not open asset @.*missing_crate\.usda@ for reference"):
+        io.load_scene(path)
+    crate.GetPrim().GetReferences().ClearReferences()
+    stage.GetRootLayer().subLayerPaths.append("./missing_layer.usda")
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"the stage does not compose: Could not load sublayer @.*missing_layer\.usda@"):
+        io.load_scene(path)
+    stage.GetRootLayer().subLayerPaths.clear()
+    stage.GetRootLayer().Save()
+    io.load_scene(path)  # composes again

@@ -56,7 +56,8 @@ Bound physics materials give density (per body) and dynamicFriction (the scene's
 coefficient, unless warpcontact:friction is authored); values that differ where one is
 needed are errors, as are per-collider MassAPI properties beyond a single collider's
 mass or density. Collision filters (FilteredPairsAPI, CollisionGroup filtering) are errors.
-Stage metersPerUnit is applied to lengths
+A stage that does not compose (a missing reference, payload or sublayer, which USD only
+warns about) is an error listing what is missing. Stage metersPerUnit is applied to lengths
 (unauthored, USD's fallback of 0.01 applies: centimetres; zero, negative or NaN is an
 error), and the stage up axis only sets the default gravity when no PhysicsScene gives one.
 """
@@ -511,6 +512,13 @@ def load_scene(path) -> Scene:
         raise ValueError(f"{source}: not a readable USD stage ({_usd_error_text(exc)})") from None
     if stage is None:
         raise ValueError(f"{source}: not a readable USD stage")
+    # USD composes around a missing reference, payload or sublayer with only a warning, and
+    # the scene would silently lack the bodies it holds.
+    composition_errors = stage.GetCompositionErrors() if hasattr(stage, "GetCompositionErrors") else []
+    if composition_errors:
+        listed = "; ".join(str(error).strip() for error in composition_errors[:3])
+        more = f" (and {len(composition_errors) - 3} more)" if len(composition_errors) > 3 else ""
+        raise ValueError(f"{source}: the stage does not compose: {listed}{more}")
     # Unauthored, USD's fallback applies: 0.01 (centimetres).
     meters = float(UsdGeom.GetStageMetersPerUnit(stage))
     if not (np.isfinite(meters) and meters > 0):
