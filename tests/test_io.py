@@ -755,3 +755,24 @@ def test_a_stage_that_does_not_compose_is_refused(tmp_path):
     stage.GetRootLayer().subLayerPaths.clear()
     stage.GetRootLayer().Save()
     io.load_scene(path)  # composes again
+
+
+def test_gravity_that_is_not_finite_and_several_physics_scenes_are_refused(tmp_path):
+    """An infinite or NaN gravity magnitude was replaced by 9.81 m/s^2 silently, and of two
+    PhysicsScenes the first was taken."""
+    path = write_physics_scene(tmp_path / "g.usda")
+    stage = Usd.Stage.Open(str(path))
+    physics = UsdPhysics.Scene(stage.GetPrimAtPath("/World/physicsScene"))
+    physics.GetGravityMagnitudeAttr().Set(-1.0)  # negative: Earth's gravity, as UsdPhysics says
+    stage.GetRootLayer().Save()
+    np.testing.assert_allclose(io.load_scene(path).gravity, [0.0, 0.0, -9.81])
+    for magnitude in (float("inf"), float("nan")):
+        physics.GetGravityMagnitudeAttr().Set(magnitude)
+        stage.GetRootLayer().Save()
+        with pytest.raises(ValueError, match=rf"prim /World/physicsScene: gravity must be finite, got direction \[0.0, 0.0, -1.0\], magnitude {magnitude}"):
+            io.load_scene(path)
+    physics.GetGravityMagnitudeAttr().Set(3.71)
+    UsdPhysics.Scene.Define(stage, "/World/moon").CreateGravityMagnitudeAttr(1.62)
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"several PhysicsScene prims \(/World/physicsScene, /World/moon\)"):
+        io.load_scene(path)

@@ -60,6 +60,8 @@ A stage that does not compose (a missing reference, payload or sublayer, which U
 warns about) is an error listing what is missing. Stage metersPerUnit is applied to lengths
 (unauthored, USD's fallback of 0.01 applies: centimetres; zero, negative or NaN is an
 error), and the stage up axis only sets the default gravity when no PhysicsScene gives one.
+A stage holds at most one PhysicsScene; a non-finite gravity magnitude is an error (a
+negative one means Earth's gravity, as UsdPhysics specifies).
 """
 
 from __future__ import annotations
@@ -531,18 +533,24 @@ def load_scene(path) -> Scene:
         for prim_path, _ in descs.get(kind, []):
             raise ValueError(f"{source}: prim {prim_path}: {kind} is not supported (supported: revolute, prismatic, spherical and D6 joints)")
 
-    # Gravity: the first PhysicsScene, else standard gravity along -up.
+    # Gravity: the PhysicsScene's, else standard gravity along -up.
     gravity = np.array([0.0, 0.0, -9.81]) if up == UsdGeom.Tokens.z else np.array([0.0, -9.81, 0.0])
     scene_prim = None
-    for prim_path, desc in descs.get("Scene", []):
+    physics_scenes = descs.get("Scene", [])
+    if len(physics_scenes) > 1:
+        # Bodies may belong to different scenes (simulationOwner), with their own gravity.
+        paths = ", ".join(str(prim_path) for prim_path, _ in physics_scenes)
+        raise ValueError(f"{source}: several PhysicsScene prims ({paths}); a stage here holds one scene")
+    for prim_path, desc in physics_scenes:
         scene_prim = stage.GetPrimAtPath(prim_path)
         direction = np.asarray(desc.gravityDirection, dtype=np.float64)
         magnitude = float(desc.gravityMagnitude)
-        if np.linalg.norm(direction) > 0 and np.isfinite(magnitude):
-            # UsdPhysics reports an unauthored magnitude as -inf: use standard gravity.
+        if np.isnan(magnitude) or magnitude == np.inf or not np.isfinite(direction).all():
+            raise ValueError(f"{source}: prim {prim_path}: gravity must be finite, got direction {direction.tolist()}, magnitude {magnitude}")
+        if np.linalg.norm(direction) > 0:
+            # UsdPhysics: a negative magnitude (unauthored: -inf) means Earth's gravity.
             magnitude = 9.81 if magnitude < 0 else magnitude * meters
             gravity = direction / np.linalg.norm(direction) * magnitude
-        break
 
     bodies: dict[str, BodySpec] = {}
     body_frames: dict[str, tuple] = {}  # rigid body path -> (frame in stage units, unscaled)
