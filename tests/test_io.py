@@ -283,6 +283,7 @@ def write_hinged_box(path, *, limits=(-30.0, 60.0), stiffness=2.0, cone=None, co
     latter two."""
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     UsdPhysics.Scene.Define(stage, "/World/physicsScene")
     box = UsdGeom.Xform.Define(stage, "/World/box")
     box.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 1.0))
@@ -776,3 +777,48 @@ def test_gravity_that_is_not_finite_and_several_physics_scenes_are_refused(tmp_p
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match=r"several PhysicsScene prims \(/World/physicsScene, /World/moon\)"):
         io.load_scene(path)
+
+
+@pytest.mark.filterwarnings("ignore:contact_stiffness .* holds these bodies")
+def test_mass_and_drive_units_follow_the_stage_s_meters_and_kilograms(tmp_path):
+    """A stage in centimetres and grams: masses and inertias were read as kilograms and
+    kg m^2 scaled by lengths only, and drive gains divided by metersPerUnit (a prismatic
+    drive of 300 g/s^2 became 30,000 N/m instead of 0.3)."""
+    path = write_physics_scene(tmp_path / "cgs.usda", meters=0.01, drop_height=2.0)
+    stage = Usd.Stage.Open(str(path))
+    UsdPhysics.SetStageKilogramsPerUnit(stage, 0.001)
+    mass = UsdPhysics.MassAPI.Apply(stage.GetPrimAtPath("/World/box"))
+    mass.CreateMassAttr(500.0)  # g
+    mass.CreateDiagonalInertiaAttr(Gf.Vec3f(2.0e4, 3.0e4, 4.0e4))  # g cm^2
+    slider = UsdPhysics.PrismaticJoint.Define(stage, "/World/slider")
+    slider.CreateAxisAttr("X")
+    slider.CreateBody1Rel().SetTargets(["/World/box"])
+    slider.CreateLocalPos0Attr(Gf.Vec3f(10.0, 0.0, 200.0))  # cm, at the box's centre
+    slider.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.0))
+    drive = UsdPhysics.DriveAPI.Apply(slider.GetPrim(), "linear")
+    drive.CreateStiffnessAttr(300.0)  # g / s^2
+    drive.CreateDampingAttr(40.0)  # g / s
+    stage.GetRootLayer().Save()
+    model = io.load_scene(path).build_model()
+    assert model.body_mass.numpy()[1] == pytest.approx(0.5)
+    inertia = model.body_mass.numpy()[1] * np.trace(model.body_unit_second_moment.numpy()[1]) * np.ones(3) - model.body_mass.numpy()[1] * np.diag(model.body_unit_second_moment.numpy()[1])
+    np.testing.assert_allclose(inertia, np.array([2.0e4, 3.0e4, 4.0e4]) * 1e-3 * 1e-4, rtol=1e-6)
+    art = model.articulation
+    np.testing.assert_allclose([art.kp[0], art.kd[0]], [0.3, 0.04], rtol=1e-6)
+    UsdPhysics.MassAPI(stage.GetPrimAtPath("/World/box")).GetMassAttr().Clear()
+    UsdPhysics.MassAPI(stage.GetPrimAtPath("/World/box")).GetDiagonalInertiaAttr().Clear()
+    UsdPhysics.MassAPI(stage.GetPrimAtPath("/World/box")).CreateDensityAttr(2.0)  # g / cm^3
+    stage.RemovePrim("/World/slider")
+    hinge = UsdPhysics.RevoluteJoint.Define(stage, "/World/hinge")
+    hinge.CreateAxisAttr("Y")
+    hinge.CreateBody1Rel().SetTargets(["/World/box"])
+    hinge.CreateLocalPos0Attr(Gf.Vec3f(10.0, 0.0, 200.0))
+    hinge.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.0))
+    turn = UsdPhysics.DriveAPI.Apply(hinge.GetPrim(), "angular")
+    turn.CreateStiffnessAttr(5.0e6)  # g cm^2 / degree / s^2
+    turn.CreateDampingAttr(1.0e5)  # g cm^2 / degree / s
+    stage.GetRootLayer().Save()
+    model = io.load_scene(path).build_model()
+    assert model.body_mass.numpy()[1] == pytest.approx(2000.0 * 0.5**3)  # kg / m^3 times the 0.5 m cube
+    per_radian = 1e-3 * 1e-4 * 180.0 / np.pi
+    np.testing.assert_allclose([model.articulation.kp[0], model.articulation.kd[0]], [5.0e6 * per_radian, 1.0e5 * per_radian], rtol=1e-6)

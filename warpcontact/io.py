@@ -59,7 +59,11 @@ mass or density. Collision filters (FilteredPairsAPI, CollisionGroup filtering) 
 A stage that does not compose (a missing reference, payload or sublayer, which USD only
 warns about) is an error listing what is missing. Stage metersPerUnit is applied to lengths
 (unauthored, USD's fallback of 0.01 applies: centimetres; zero, negative or NaN is an
-error), and the stage up axis only sets the default gravity when no PhysicsScene gives one.
+error), and UsdPhysics' kilogramsPerUnit (fallback 1) to masses; densities, inertias and
+DriveAPI gains (linear: mass/s^2 and mass/s; angular: mass distance^2 per degree, per s^2
+and per s) take both, and become SI per radian. warpcontact: attributes other than target
+positions and tolerances are SI. The stage up axis only sets the default gravity when no
+PhysicsScene gives one.
 A stage holds at most one PhysicsScene; a non-finite gravity magnitude is an error (a
 negative one means Earth's gravity, as UsdPhysics specifies).
 """
@@ -525,6 +529,10 @@ def load_scene(path) -> Scene:
     meters = float(UsdGeom.GetStageMetersPerUnit(stage))
     if not (np.isfinite(meters) and meters > 0):
         raise ValueError(f"{source}: metersPerUnit must be positive and finite, got {meters}")
+    kilograms = float(UsdPhysics.GetStageKilogramsPerUnit(stage))
+    if not (np.isfinite(kilograms) and kilograms > 0):
+        raise ValueError(f"{source}: kilogramsPerUnit must be positive and finite, got {kilograms}")
+    units = _Units(meters, kilograms)
     up = UsdGeom.GetStageUpAxis(stage)
     parsed = _load_physics(stage, UsdPhysics)
     descs = {str(k): list(zip(v[0], v[1])) for k, v in parsed.items()}
@@ -592,7 +600,7 @@ def load_scene(path) -> Scene:
                 # An angular velocity is a pseudovector: a mirroring parent also reverses it.
                 reflection = _polar_factor(above)
                 body.angular_velocity = np.linalg.det(reflection) * (body.angular_velocity @ reflection)
-        _read_mass(prim, body, UsdPhysics, meters, source)
+        _read_mass(prim, body, UsdPhysics, units, source)
         if body.center_of_mass is not None and not body_frames[str(prim_path)][1]:
             # centerOfMass is in the prim's local, scaled space; the body frame is unscaled.
             body.center_of_mass = body.center_of_mass @ linear @ quat_to_matrix(body.pose[3:])
@@ -655,8 +663,8 @@ def load_scene(path) -> Scene:
                 colliders.setdefault(owner, []).append(prim)
             collider_materials[str(prim_path)] = [stage.GetPrimAtPath(m) for m in desc.materials]
     for owner, prims in colliders.items():
-        _read_collider_mass(stage.GetPrimAtPath(owner), prims, bodies[owner], UsdPhysics, meters, source)
-        _read_material_density(prims, collider_materials, bodies[owner], UsdPhysics, meters, source)
+        _read_collider_mass(stage.GetPrimAtPath(owner), prims, bodies[owner], UsdPhysics, units, source)
+        _read_material_density(prims, collider_materials, bodies[owner], UsdPhysics, units, source)
 
     # Keep the stage's prim order, so bodies come back in the order they were authored.
     order = {str(prim.GetPath()): i for i, prim in enumerate(stage.Traverse())}
@@ -677,12 +685,33 @@ def load_scene(path) -> Scene:
     if scene_prim is not None:
         _read_settings(scene_prim, settings, task, source)
     _read_material_friction(collider_materials, scene_prim, settings, UsdPhysics, source)
-    joints = _read_joints(stage, descs, {**bodies, **static_bodies}, mirrored, meters, source, UsdPhysics)
+    joints = _read_joints(stage, descs, {**bodies, **static_bodies}, mirrored, units, source, UsdPhysics)
     return Scene(bodies=all_bodies, gravity=gravity, settings=settings, task=task, source=source, joints=joints)
 
 
 _AXES = {"X": np.array([1.0, 0.0, 0.0]), "Y": np.array([0.0, 1.0, 0.0]), "Z": np.array([0.0, 0.0, 1.0])}
 _DEGREE = np.pi / 180.0
+
+
+@dataclass(frozen=True)
+class _Units:
+    """A stage's units in SI: metersPerUnit and UsdPhysics' kilogramsPerUnit."""
+
+    meters: float
+    kilograms: float
+
+    @property
+    def density(self) -> float:
+        return self.kilograms / self.meters**3
+
+    @property
+    def inertia(self) -> float:
+        return self.kilograms * self.meters**2
+
+    def drive_gain(self, angular: bool) -> float:
+        """The SI factor of a DriveAPI stiffness or damping: mass/s^2 and mass/s for a linear
+        drive; mass distance^2/degree/s^2 and /s for an angular one (to per radian)."""
+        return self.kilograms * self.meters**2 / _DEGREE if angular else self.kilograms
 _BALL_DRIVE_AXES = ("RotX", "RotY", "RotZ")  # DriveAPI instances rotX, rotY, rotZ
 # D6 axes (LimitAPI / DriveAPI instance names, capitalised) and the base-joint DOF of each.
 _D6_AXIS_DOF = {"TransX": "x", "TransY": "y", "TransZ": "z", "RotX": "rx", "RotY": "ry", "RotZ": "rz"}
@@ -705,9 +734,9 @@ def _axis_token(value) -> str:
     return str(value).split(".")[-1].upper()[-1]
 
 
-def _read_joints(stage, descs, bodies: dict, mirrored: set, meters: float, source: str, UsdPhysics) -> list[JointSpec]:
+def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, source: str, UsdPhysics) -> list[JointSpec]:
     """UsdPhysics joints -> JointSpec. Angles in degrees and angular gains per degree (UsdPhysics)
-    become radians and gains per radian; lengths scale by metersPerUnit. A joint on a
+    become radians and gains per radian; lengths and gains take the stage's units. A joint on a
     ``mirrored`` body is refused: its frame on that body would be a reflection."""
     joints = []
     kinds = [("RevoluteJoint", "revolute"), ("PrismaticJoint", "prismatic"), ("SphericalJoint", "ball"), ("D6Joint", "d6")]
@@ -729,7 +758,7 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, meters: float, sourc
                     )
             frames = []
             for position, orientation in ((desc.localPose0Position, desc.localPose0Orientation), (desc.localPose1Position, desc.localPose1Orientation)):
-                frame = np.array([*(np.asarray(position, dtype=np.float64) * meters), *_quat_xyzw(orientation)])
+                frame = np.array([*(np.asarray(position, dtype=np.float64) * units.meters), *_quat_xyzw(orientation)])
                 frame[3:] /= np.linalg.norm(frame[3:])
                 frames.append(frame)
             spec = JointSpec(
@@ -743,11 +772,12 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, meters: float, sourc
             )
             if kind in ("revolute", "prismatic"):
                 spec.axes = _AXES[_axis_token(desc.axis)][None]
-                scale = _DEGREE if kind == "revolute" else meters
+                scale = _DEGREE if kind == "revolute" else units.meters
                 if desc.limit.enabled and np.isfinite([desc.limit.lower, desc.limit.upper]).all():
                     spec.limits = [(desc.limit.lower * scale, desc.limit.upper * scale)]
                 drive = desc.drive
-                gains = (drive.stiffness / scale, drive.damping / scale) if drive.enabled else (0.0, 0.0)
+                gain = units.drive_gain(angular=kind == "revolute")
+                gains = (drive.stiffness * gain, drive.damping * gain) if drive.enabled else (0.0, 0.0)
                 spec.kp, spec.kd = np.array([gains[0]]), np.array([gains[1]])
             elif kind == "ball":
                 spec.axes = _AXES[_axis_token(desc.axis)][None]
@@ -764,14 +794,14 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, meters: float, sourc
                     if prim.HasAPI(UsdPhysics.DriveAPI, token):
                         drive = UsdPhysics.DriveAPI(prim, token)
                         drives[axis] = (float(drive.GetStiffnessAttr().Get() or 0.0), float(drive.GetDampingAttr().Get() or 0.0))
-                spec.kp, spec.kd = _ball_gains(drives, where)
+                spec.kp, spec.kd = _ball_gains(drives, units, where)
             else:
-                _read_d6(desc, spec, where, meters)
+                _read_d6(desc, spec, where, units)
             joints.append(spec)
     return joints
 
 
-def _ball_gains(drives: dict, where: str) -> tuple[np.ndarray, np.ndarray]:
+def _ball_gains(drives: dict, units: _Units, where: str) -> tuple[np.ndarray, np.ndarray]:
     """A ball joint's (kp, kd) per radian from its angular drives {"RotX": (stiffness, damping)
     per degree, ...}: none, or all three axes with equal gains, since one gain pair drives
     the whole relative rotation (no per-axis gains)."""
@@ -781,10 +811,11 @@ def _ball_gains(drives: dict, where: str) -> tuple[np.ndarray, np.ndarray]:
     if any(g is None for g in gains) or not all(np.allclose(g, gains[0], rtol=1e-6, atol=0.0) for g in gains):
         found = ", ".join(f"{axis} " + ("missing" if g is None else f"stiffness {g[0]:g} damping {g[1]:g}") for axis, g in zip(_BALL_DRIVE_AXES, gains, strict=True))
         raise ValueError(f"{where}: a ball joint's drives need equal stiffness and damping on rotX, rotY and rotZ (one gain pair drives its whole rotation); got {found}")
-    return np.array([gains[0][0] / _DEGREE]), np.array([gains[0][1] / _DEGREE])
+    gain = units.drive_gain(angular=True)
+    return np.array([gains[0][0] * gain]), np.array([gains[0][1] * gain])
 
 
-def _read_d6(desc, spec: JointSpec, where: str, meters: float):
+def _read_d6(desc, spec: JointSpec, where: str, units: _Units):
     """A D6 joint: locked axes have low > high. Free rotations make a revolute (1), universal
     (2, in X, Y, Z order) or ball (3) joint; free translations are allowed only on a joint to
     the world with world-aligned axes, which makes a base joint."""
@@ -810,22 +841,23 @@ def _read_d6(desc, spec: JointSpec, where: str, meters: float):
         raise ValueError(f"{where}: a D6 joint with every axis locked is a fixed joint, which is not supported (merge the two bodies)")
     bounds, kp, kd = [], [], []
     for axis in coordinates:
-        scale = meters if axis.startswith("Trans") else _DEGREE
+        scale = units.meters if axis.startswith("Trans") else _DEGREE
         limit = limits.get(axis)
         bounded = limit is not None and limit.enabled and np.isfinite([limit.lower, limit.upper]).all()
         bounds.append((limit.lower * scale, limit.upper * scale) if bounded else (-np.inf, np.inf))
         drive = drives.get(axis)
-        kp.append(drive.stiffness / scale if drive is not None and drive.enabled else 0.0)
-        kd.append(drive.damping / scale if drive is not None and drive.enabled else 0.0)
+        gain = units.drive_gain(angular=axis.startswith("Rot"))
+        kp.append(drive.stiffness * gain if drive is not None and drive.enabled else 0.0)
+        kd.append(drive.damping * gain if drive is not None and drive.enabled else 0.0)
     if spec.kind == "ball" and any(axis in limits and limits[axis].enabled for axis in rotations):
         raise ValueError(f"{where}: a D6 joint with three free rotations is a ball joint, which takes no rotation limits here")
     spec.limits = bounds if any(np.isfinite(b).all() for b in bounds) else None
     spec.kp, spec.kd = np.array(kp), np.array(kd)
     if spec.kind == "ball":
-        spec.kp, spec.kd = _ball_gains({axis: (drive.stiffness, drive.damping) for axis, drive in drives.items() if axis in _BALL_DRIVE_AXES and drive.enabled}, where)
+        spec.kp, spec.kd = _ball_gains({axis: (drive.stiffness, drive.damping) for axis, drive in drives.items() if axis in _BALL_DRIVE_AXES and drive.enabled}, units, where)
 
 
-def _read_mass(prim, body: BodySpec, UsdPhysics, meters: float, source: str):
+def _read_mass(prim, body: BodySpec, UsdPhysics, units: _Units, source: str):
     if not prim.HasAPI(UsdPhysics.MassAPI):
         return
     api = UsdPhysics.MassAPI(prim)
@@ -835,21 +867,21 @@ def _read_mass(prim, body: BodySpec, UsdPhysics, meters: float, source: str):
         mass = float(mass_attr.Get())
         if not np.isfinite(mass) or mass <= 0:
             raise ValueError(f"{where}: mass must be positive, got {mass}")
-        body.mass = mass
+        body.mass = mass * units.kilograms
     density_attr = api.GetDensityAttr()
     if density_attr and density_attr.HasAuthoredValue():
         density = float(density_attr.Get())
         if not np.isfinite(density) or density <= 0:
             raise ValueError(f"{where}: density must be positive, got {density}")
-        body.density = density / meters**3
+        body.density = density * units.density
     com_attr = api.GetCenterOfMassAttr()
     if com_attr and com_attr.HasAuthoredValue():
-        body.center_of_mass = np.asarray(com_attr.Get(), dtype=np.float64) * meters
+        body.center_of_mass = np.asarray(com_attr.Get(), dtype=np.float64) * units.meters
         if not np.isfinite(body.center_of_mass).all():
             raise ValueError(f"{where}: centerOfMass must be finite, got {body.center_of_mass.tolist()}")
     diag_attr = api.GetDiagonalInertiaAttr()
     if diag_attr and diag_attr.HasAuthoredValue():
-        diag = np.asarray(diag_attr.Get(), dtype=np.float64) * meters**2
+        diag = np.asarray(diag_attr.Get(), dtype=np.float64) * units.inertia
         axes_attr = api.GetPrincipalAxesAttr()
         q = _quat_xyzw(axes_attr.Get()) if axes_attr and axes_attr.HasAuthoredValue() else np.array([0.0, 0.0, 0.0, 1.0])
         R = quat_to_matrix(q)
@@ -858,7 +890,7 @@ def _read_mass(prim, body: BodySpec, UsdPhysics, meters: float, source: str):
         body.inertia = R @ np.diag(diag) @ R.T
 
 
-def _read_collider_mass(body_prim, collider_prims, body: BodySpec, UsdPhysics, meters: float, source: str):
+def _read_collider_mass(body_prim, collider_prims, body: BodySpec, UsdPhysics, units: _Units, source: str):
     """MassAPI authored on a body's collider prims rather than on the body prim (UsdPhysics
     allows both): it used to be ignored, so a collider's density of 5,000 kg/m^3 gave the
     default 1,000. The mass or density of a body's only collider is the body's when the body
@@ -881,7 +913,7 @@ def _read_collider_mass(body_prim, collider_prims, body: BodySpec, UsdPhysics, m
             f"{source}: prim {prim.GetPath()}: physics:{', physics:'.join(names)} on a collider of rigid body {body_prim.GetPath()} "
             "is not supported (per-collider mass properties); author them on the rigid body prim"
         )
-    _read_mass(prim, body, UsdPhysics, meters, source)
+    _read_mass(prim, body, UsdPhysics, units, source)
 
 
 def _refuse_collision_filters(stage, UsdPhysics, source: str) -> None:
@@ -910,7 +942,7 @@ def _material_value(materials, name: str, UsdPhysics):
     return None
 
 
-def _read_material_density(collider_prims, collider_materials, body: BodySpec, UsdPhysics, meters: float, source: str):
+def _read_material_density(collider_prims, collider_materials, body: BodySpec, UsdPhysics, units: _Units, source: str):
     """The density of the physics materials bound to a body's colliders (they were ignored:
     5,000 kg/m^3 gave the default 1,000), where the body has no mass or density of its own.
     Colliders of one body with different densities are refused: they are not combined."""
@@ -924,7 +956,7 @@ def _read_material_density(collider_prims, collider_materials, body: BodySpec, U
     density = values.pop()
     if not np.isfinite(density) or density <= 0:
         raise ValueError(f"{source}: prim {body.path}: its physics material's density must be positive, got {density}")
-    body.density = density / meters**3
+    body.density = density * units.density
 
 
 def _read_material_friction(collider_materials, scene_prim, settings: SimulationSettings, UsdPhysics, source: str):
