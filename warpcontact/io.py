@@ -25,7 +25,8 @@ warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``Body
             (per control DOF, in warpcontact:control:dofs order: the box that
             ``--init-samples`` draws initial-state controls from)
     on a rigid-body prim
-        warpcontact:target:position (double3, m)  warpcontact:target:tolerance (double, m)
+        warpcontact:target:position (double3)     warpcontact:target:tolerance (double)
+            (stage units, like the prim's own transform)
         warpcontact:pd:kpLinear (double3)         warpcontact:pd:kdLinear (double3)
         warpcontact:pd:kpAngular (double)         warpcontact:pd:kdAngular (double)
         warpcontact:control:dofs (string[]: the optimised DOFs, each once: x y z rx ry rz
