@@ -822,3 +822,28 @@ def test_mass_and_drive_units_follow_the_stage_s_meters_and_kilograms(tmp_path):
     assert model.body_mass.numpy()[1] == pytest.approx(2000.0 * 0.5**3)  # kg / m^3 times the 0.5 m cube
     per_radian = 1e-3 * 1e-4 * 180.0 / np.pi
     np.testing.assert_allclose([model.articulation.kp[0], model.articulation.kd[0]], [5.0e6 * per_radian, 1.0e5 * per_radian], rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "author, match",
+    [
+        (lambda joint: joint.CreateCollisionEnabledAttr(True), r"physics:collisionEnabled is not supported: a joint's two bodies never collide here"),
+        (lambda joint: joint.CreateBreakForceAttr(50.0), r"breakable joints are not supported \(physics:breakForce 50, physics:breakTorque inf\)"),
+    ],
+)
+def test_joint_collision_and_breaking_are_refused(tmp_path, author, match):
+    """Both were ignored: the joint's bodies never collided, and the joint never broke."""
+    path = write_physics_scene(tmp_path / "links.usda", drop_height=3.0)
+    stage = Usd.Stage.Open(str(path))
+    UsdPhysics.RigidBodyAPI.Apply(_cube_collider(stage, "/World/link", 0.2, (1.0, 0.0, 3.0)))
+    joint = UsdPhysics.RevoluteJoint.Define(stage, "/World/hinge")
+    joint.CreateBody0Rel().SetTargets(["/World/box"])
+    joint.CreateBody1Rel().SetTargets(["/World/link"])
+    joint.CreateLocalPos0Attr(Gf.Vec3f(0.5, 0.0, 0.0))
+    joint.CreateLocalPos1Attr(Gf.Vec3f(-0.4, 0.0, 0.0))
+    stage.GetRootLayer().Save()
+    assert len(io.load_scene(path).joints) == 1
+    author(joint)
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/hinge: " + match):
+        io.load_scene(path)

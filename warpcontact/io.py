@@ -751,6 +751,16 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
                 raise ValueError(f"{where}: body1 {child_path or '(none)'} is not a rigid body with a collider (every link needs a mesh)")
             if parent_path and parent_path not in bodies:
                 raise ValueError(f"{where}: body0 {parent_path} is not a rigid body or collider")
+            if desc.collisionEnabled and parent_path:
+                raise ValueError(
+                    f"{where}: physics:collisionEnabled is not supported: a joint's two bodies never collide here "
+                    "(ModelBuilder's articulation_contact sets that for every joint); remove it"
+                )
+            if np.isfinite(desc.breakForce) or np.isfinite(desc.breakTorque):
+                raise ValueError(
+                    f"{where}: breakable joints are not supported (physics:breakForce {desc.breakForce:g}, physics:breakTorque "
+                    f"{desc.breakTorque:g}); the joint would never break"
+                )
             for label, path in (("body0", parent_path), ("body1", child_path)):
                 if path in mirrored:
                     raise ValueError(
