@@ -798,13 +798,14 @@ def test_mass_and_drive_units_follow_the_stage_s_meters_and_kilograms(tmp_path):
     drive = UsdPhysics.DriveAPI.Apply(slider.GetPrim(), "linear")
     drive.CreateStiffnessAttr(300.0)  # g / s^2
     drive.CreateDampingAttr(40.0)  # g / s
+    drive.CreateTargetPositionAttr(5.0)  # cm
     stage.GetRootLayer().Save()
     model = io.load_scene(path).build_model()
     assert model.body_mass.numpy()[1] == pytest.approx(0.5)
     inertia = model.body_mass.numpy()[1] * np.trace(model.body_unit_second_moment.numpy()[1]) * np.ones(3) - model.body_mass.numpy()[1] * np.diag(model.body_unit_second_moment.numpy()[1])
     np.testing.assert_allclose(inertia, np.array([2.0e4, 3.0e4, 4.0e4]) * 1e-3 * 1e-4, rtol=1e-6)
     art = model.articulation
-    np.testing.assert_allclose([art.kp[0], art.kd[0]], [0.3, 0.04], rtol=1e-6)
+    np.testing.assert_allclose([art.kp[0], art.kd[0], art.default_targets[0]], [0.3, 0.04, 0.05], rtol=1e-6)
     UsdPhysics.MassAPI(stage.GetPrimAtPath("/World/box")).GetMassAttr().Clear()
     UsdPhysics.MassAPI(stage.GetPrimAtPath("/World/box")).GetDiagonalInertiaAttr().Clear()
     UsdPhysics.MassAPI(stage.GetPrimAtPath("/World/box")).CreateDensityAttr(2.0)  # g / cm^3
@@ -846,4 +847,63 @@ def test_joint_collision_and_breaking_are_refused(tmp_path, author, match):
     author(joint)
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match=r"prim /World/hinge: " + match):
+        io.load_scene(path)
+
+
+def _hinge_drive(stage):
+    return UsdPhysics.DriveAPI(stage.GetPrimAtPath("/World/hinge"), "angular")
+
+
+@pytest.mark.filterwarnings("ignore:contact_stiffness .* holds these bodies")
+def test_a_drive_s_target_position_is_the_default_joint_target_and_round_trips(tmp_path):
+    """A revolute drive targeting 30 degrees held its joint at the initial 0 instead (target
+    positions were not read): the hanging box now swings up towards 30 degrees, less the
+    sag of its weight (~23 degrees at 2 N m/degree)."""
+    path = write_hinged_box(tmp_path / "aim.usda")
+    stage = Usd.Stage.Open(str(path))
+    _hinge_drive(stage).CreateTargetPositionAttr(30.0)
+    stage.GetRootLayer().Save()
+    scene = io.load_scene(path)
+    model = scene.build_model()
+    control = model.control(requires_grad=False)
+    np.testing.assert_allclose(control.joint_target.numpy(), np.radians([30.0]), rtol=1e-6)
+    np.testing.assert_allclose(model.state().joint_q.numpy(), [0.0], atol=1e-9)  # the state starts where it is
+    solver, state = wc.ImplicitSolver(model), model.state(requires_grad=False)
+    angles = []
+    for _ in range(200):
+        nxt = model.state(requires_grad=False)
+        solver.step(state, nxt, control, 0.01)
+        state = nxt
+        angles.append(state.joint_q.numpy()[0])
+    assert 0.3 < np.mean(angles[-50:]) < 0.5
+    io.save_scene(scene, tmp_path / "again.usda")
+    again = io.load_scene(tmp_path / "again.usda").build_model()
+    np.testing.assert_allclose(again.control(requires_grad=False).joint_target.numpy(), np.radians([30.0]), rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "author, match",
+    [
+        (lambda drive: drive.CreateTargetVelocityAttr(10.0), r"drive:angular:physics:targetVelocity 10 is not supported"),
+        (lambda drive: drive.CreateTypeAttr("acceleration"), r"drive:angular:physics:type 'acceleration' is not supported"),
+        (lambda drive: drive.CreateMaxForceAttr(5.0), r"drive:angular:physics:maxForce 5 is not supported"),
+    ],
+)
+def test_drive_features_a_pd_drive_cannot_follow_are_refused(tmp_path, author, match):
+    """Each was ignored: the drive damped towards rest, used force gains, and was unlimited."""
+    path = write_hinged_box(tmp_path / "drive.usda")
+    stage = Usd.Stage.Open(str(path))
+    author(_hinge_drive(stage))
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/hinge: " + match):
+        io.load_scene(path)
+
+
+def test_a_ball_joint_drive_target_is_refused(tmp_path):
+    drives = {token: (2.0, 0.1) for token in ("rotX", "rotY", "rotZ")}
+    path = write_hinged_box(tmp_path / "ball.usda", cone=45.0, ball_drives=drives)
+    stage = Usd.Stage.Open(str(path))
+    UsdPhysics.DriveAPI(stage.GetPrimAtPath("/World/hinge"), "rotY").CreateTargetPositionAttr(20.0)
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/hinge: drive:rotY:physics:targetPosition 20 is not supported on a ball joint"):
         io.load_scene(path)

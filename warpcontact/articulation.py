@@ -102,6 +102,9 @@ class Joint:
     limit_stiffness: np.ndarray | None = None
     kp: np.ndarray | None = None
     kd: np.ndarray | None = None
+    # Per coordinate, the PD target of ``ArticulationModel.default_targets`` (rad or m);
+    # None or NaN: the initial coordinates.
+    target: np.ndarray | None = None
     cone_limit: float = np.inf  # ball joints: largest angle (rad) between the axis in parent and child
 
     def num_coordinates(self) -> int:
@@ -176,8 +179,9 @@ class ArticulationModel:
         num_dofs: m, the number of reduced coordinates.
         num_coordinates: the number of joint coordinates (revolute and prismatic DOFs), each
             with PD gains and limits; ``coordinate_names``, ``coordinate_dof``,
-            ``initial_coordinates``, ``kp``, ``kd``, ``lower``, ``upper``,
-            ``limit_margin``, ``limit_stiffness`` are (num_coordinates,) arrays.
+            ``initial_coordinates``, ``default_targets`` (each joint's ``target``, else the
+            initial coordinates), ``kp``, ``kd``, ``lower``, ``upper``, ``limit_margin``,
+            ``limit_stiffness`` are (num_coordinates,) arrays.
         identity: True when every body is a free body (J = I, no curvature).
         num_ball_joints: the number of ball joints, each with a relative rotation that PD
             gains may drive; ``ball_joint_names``, ``ball_kp`` (N m/rad), ``ball_kd``
@@ -211,7 +215,7 @@ class ArticulationModel:
         self.identity = all(joint.kind == "free" for joint in self.joints)
 
         kind, axis_body, axis_local, point_local, owner, group, coord = [], [], [], [], [], [], []
-        names, q0, kp, kd, lower, upper, margin, stiffness = [], [], [], [], [], [], [], []
+        names, q0, targets, kp, kd, lower, upper, margin, stiffness = [], [], [], [], [], [], [], [], []
         self.joint_dofs = []
         tol = _ANCHOR_TOLERANCE * max(length_scale, 1e-300)
         for joint in self.joints:
@@ -231,6 +235,8 @@ class ArticulationModel:
                     label = joint.base_dofs[coordinate] if joint.kind == "base" else str(coordinate)
                     names.append(f"{joint.name}:{label}")
                     q0.append(values[coordinate])
+                    targeted = joint.target is not None and not np.isnan(joint.target[coordinate])
+                    targets.append(float(joint.target[coordinate]) if targeted else values[coordinate])
                     for store, source in ((kp, joint.kp), (kd, joint.kd), (lower, joint.lower), (upper, joint.upper), (margin, joint.limit_margin), (stiffness, joint.limit_stiffness)):
                         store.append(float(source[coordinate]))
                     coordinate += 1
@@ -249,6 +255,7 @@ class ArticulationModel:
         self.num_coordinates = len(names)
         self.coordinate_dof = np.flatnonzero(self.dof_coordinate >= 0)
         self.initial_coordinates = np.array(q0, dtype=np.float64)
+        self.default_targets = np.array(targets, dtype=np.float64)
         self.kp, self.kd = np.array(kp), np.array(kd)
         self.lower, self.upper = np.array(lower), np.array(upper)
         self.limit_margin, self.limit_stiffness = np.array(margin), np.array(stiffness)

@@ -262,6 +262,7 @@ class ModelBuilder:
         limit_margin=None,
         limit_stiffness=1.0,
         cone_limit: float | None = None,
+        target=None,
         name: str | None = None,
     ) -> int:
         """Connect ``child`` to ``parent`` (a body index, or None for the world); returns the joint index.
@@ -290,6 +291,9 @@ class ModelBuilder:
                 0.1); limit_stiffness: its scale (J).
             cone_limit: ball joints: the largest swing (rad, in (0, pi)) between ``axis`` (in
                 the joint frame, default X) fixed in the parent and fixed in the child.
+            target: per coordinate, the PD target (rad or m) of ``Model.control()``'s
+                ``joint_target`` (a USD drive's targetPosition); default, or NaN for a
+                coordinate: the initial coordinates.
         """
         name = name or f"joint{len(self._joints)}"
         where = f"joint {name!r}"
@@ -382,6 +386,12 @@ class ModelBuilder:
         probe.lower, probe.upper = lower, upper
         probe.limit_margin, probe.limit_stiffness = gains["limit_margin"], gains["limit_stiffness"]
         probe.kp, probe.kd = gains["kp"], gains["kd"]
+        if target is not None:
+            if kind == "ball":
+                raise ValueError(f"{where}: ball joints have no coordinates to target (their targets are Control.ball_target rotations)")
+            probe.target = _per_coordinate(target, count, "target", where)
+            if np.isinf(probe.target).any():
+                raise ValueError(f"{where}: target must be finite (NaN: that coordinate's initial value), got {target!r}")
         if cone_limit is not None:
             if kind != "ball":
                 raise ValueError(f"{where}: cone_limit only applies to ball joints")

@@ -190,6 +190,7 @@ class JointSpec:
     kp: np.ndarray = field(default_factory=lambda: np.zeros(0))
     kd: np.ndarray = field(default_factory=lambda: np.zeros(0))
     cone_limit: float | None = None  # ball joints: swing limit about the first axis (rad)
+    targets: np.ndarray | None = None  # per coordinate, drive target positions (rad or m); None: the initial ones
 
 
 @dataclass
@@ -245,6 +246,8 @@ class Scene:
                 options["cone_limit"] = j.cone_limit
             if len(j.kp):
                 options.update(kp=j.kp, kd=j.kd)
+            if j.targets is not None:
+                options["target"] = j.targets
             try:
                 builder.add_joint(j.kind, child=index[j.child], parent=index[j.parent] if j.parent is not None else None, limits=j.limits, name=j.name, **options)
             except ValueError as exc:
@@ -790,6 +793,10 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
                 gain = units.drive_gain(angular=kind == "revolute")
                 gains = (drive.stiffness * gain, drive.damping * gain) if drive.enabled else (0.0, 0.0)
                 spec.kp, spec.kd = np.array([gains[0]]), np.array([gains[1]])
+                if drive.enabled:
+                    _check_drive(_drive_fields(drive), where, "angular" if kind == "revolute" else "linear")
+                    if drive.targetPosition:
+                        spec.targets = np.array([drive.targetPosition * scale])
             elif kind == "ball":
                 spec.axes = _AXES[_axis_token(desc.axis)][None]
                 if desc.limit.enabled and min(abs(desc.limit.lower), abs(desc.limit.upper)) < 180.0:
@@ -804,12 +811,46 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
                     token = _api_token(axis)
                     if prim.HasAPI(UsdPhysics.DriveAPI, token):
                         drive = UsdPhysics.DriveAPI(prim, token)
-                        drives[axis] = (float(drive.GetStiffnessAttr().Get() or 0.0), float(drive.GetDampingAttr().Get() or 0.0))
+                        fields = {name: getattr(drive, f"Get{attr}Attr")().Get() for name, attr in _DRIVE_API_ATTRIBUTES.items()}
+                        _check_drive(fields, where, token, ball=True)
+                        drives[axis] = (float(fields["stiffness"] or 0.0), float(fields["damping"] or 0.0))
                 spec.kp, spec.kd = _ball_gains(drives, units, where)
             else:
                 _read_d6(desc, spec, where, units)
             joints.append(spec)
     return joints
+
+
+# DriveAPI attributes by the names of UsdPhysics' parsed JointDrive fields.
+_DRIVE_API_ATTRIBUTES = {"stiffness": "Stiffness", "damping": "Damping", "targetPosition": "TargetPosition", "targetVelocity": "TargetVelocity", "type": "Type", "forceLimit": "MaxForce"}
+
+
+def _drive_fields(drive) -> dict:
+    """A parsed UsdPhysics JointDrive as the fields ``_check_drive`` reads."""
+    return {
+        "stiffness": drive.stiffness,
+        "damping": drive.damping,
+        "targetPosition": drive.targetPosition,
+        "targetVelocity": drive.targetVelocity,
+        "type": "acceleration" if drive.acceleration else "force",
+        "forceLimit": drive.forceLimit,
+    }
+
+
+def _check_drive(fields: dict, where: str, token: str, *, ball: bool = False) -> None:
+    """Refuse what a PD drive here cannot do, rather than drop it: a target velocity (the
+    damping acts on the joint velocity itself), an acceleration drive (its gains are scaled
+    by inertia), a force limit, and, on a ball joint, a target position (its targets are
+    Control.ball_target rotations)."""
+    name = f"drive:{token}"
+    if fields["targetVelocity"]:
+        raise ValueError(f"{where}: {name}:physics:targetVelocity {fields['targetVelocity']:g} is not supported (drives damp towards rest); remove it")
+    if fields["type"] == "acceleration":
+        raise ValueError(f"{where}: {name}:physics:type 'acceleration' is not supported (drives are force drives: gains in N m/rad or N/m)")
+    if fields["forceLimit"] is not None and np.isfinite(fields["forceLimit"]):
+        raise ValueError(f"{where}: {name}:physics:maxForce {fields['forceLimit']:g} is not supported (drive forces are not limited); remove it")
+    if ball and fields["targetPosition"]:
+        raise ValueError(f"{where}: {name}:physics:targetPosition {fields['targetPosition']:g} is not supported on a ball joint (its PD targets are Control.ball_target rotations)")
 
 
 def _ball_gains(drives: dict, units: _Units, where: str) -> tuple[np.ndarray, np.ndarray]:
@@ -850,20 +891,27 @@ def _read_d6(desc, spec: JointSpec, where: str, units: _Units):
         coordinates = rotations
     else:
         raise ValueError(f"{where}: a D6 joint with every axis locked is a fixed joint, which is not supported (merge the two bodies)")
-    bounds, kp, kd = [], [], []
+    for axis, drive in drives.items():
+        if drive.enabled:
+            _check_drive(_drive_fields(drive), where, _api_token(axis), ball=spec.kind == "ball")
+    bounds, kp, kd, targets = [], [], [], []
     for axis in coordinates:
         scale = units.meters if axis.startswith("Trans") else _DEGREE
         limit = limits.get(axis)
         bounded = limit is not None and limit.enabled and np.isfinite([limit.lower, limit.upper]).all()
         bounds.append((limit.lower * scale, limit.upper * scale) if bounded else (-np.inf, np.inf))
         drive = drives.get(axis)
+        driven = drive is not None and drive.enabled
         gain = units.drive_gain(angular=axis.startswith("Rot"))
-        kp.append(drive.stiffness * gain if drive is not None and drive.enabled else 0.0)
-        kd.append(drive.damping * gain if drive is not None and drive.enabled else 0.0)
+        kp.append(drive.stiffness * gain if driven else 0.0)
+        kd.append(drive.damping * gain if driven else 0.0)
+        targets.append(drive.targetPosition * scale if driven and drive.targetPosition else np.nan)
     if spec.kind == "ball" and any(axis in limits and limits[axis].enabled for axis in rotations):
         raise ValueError(f"{where}: a D6 joint with three free rotations is a ball joint, which takes no rotation limits here")
     spec.limits = bounds if any(np.isfinite(b).all() for b in bounds) else None
     spec.kp, spec.kd = np.array(kp), np.array(kd)
+    if not np.isnan(targets).all():
+        spec.targets = np.array(targets)  # NaN: that coordinate's initial value
     if spec.kind == "ball":
         spec.kp, spec.kd = _ball_gains({axis: (drive.stiffness, drive.damping) for axis, drive in drives.items() if axis in _BALL_DRIVE_AXES and drive.enabled}, units, where)
 
@@ -1324,7 +1372,7 @@ def _author_joint(stage, j: JointSpec, Gf, UsdPhysics):
             joint.CreateLowerLimitAttr(float(j.limits[0][0] / scale))
             joint.CreateUpperLimitAttr(float(j.limits[0][1] / scale))
         if len(j.kp) and (j.kp[0] or j.kd[0]):
-            _author_drive(prim, "angular" if j.kind == "revolute" else "linear", j.kp[0] * scale, j.kd[0] * scale, UsdPhysics)
+            _author_drive(prim, "angular" if j.kind == "revolute" else "linear", j.kp[0] * scale, j.kd[0] * scale, UsdPhysics, _target(j, 0, scale))
         return
     if j.kind == "ball":
         if len(j.kp) and (j.kp[0] or j.kd[0]):
@@ -1353,14 +1401,24 @@ def _author_joint(stage, j: JointSpec, Gf, UsdPhysics):
             limit.CreateLowAttr(float(j.limits[c][0] / scale))
             limit.CreateHighAttr(float(j.limits[c][1] / scale))
         if len(j.kp) and (j.kp[c] or j.kd[c]):
-            _author_drive(prim, token, j.kp[c] * scale, j.kd[c] * scale, UsdPhysics)
+            _author_drive(prim, token, j.kp[c] * scale, j.kd[c] * scale, UsdPhysics, _target(j, c, scale))
 
 
-def _author_drive(prim, token: str, stiffness: float, damping: float, UsdPhysics):
-    """A DriveAPI instance with gains already in UsdPhysics units (per degree for rotations)."""
+def _target(j: JointSpec, coordinate: int, scale: float) -> float | None:
+    """A joint coordinate's drive target in UsdPhysics units (degrees or stage units), or None."""
+    if j.targets is None or np.isnan(j.targets[coordinate]):
+        return None
+    return float(j.targets[coordinate] / scale)
+
+
+def _author_drive(prim, token: str, stiffness: float, damping: float, UsdPhysics, target: float | None = None):
+    """A DriveAPI instance with gains (and a target position) already in UsdPhysics units
+    (per degree and degrees for rotations)."""
     drive = UsdPhysics.DriveAPI.Apply(prim, token)
     drive.CreateStiffnessAttr(float(stiffness))
     drive.CreateDampingAttr(float(damping))
+    if target is not None:
+        drive.CreateTargetPositionAttr(target)
 
 
 def _write_warpcontact_body(prim, b: BodySpec, Sdf, Vt):

@@ -108,8 +108,9 @@ class Model:
     def num_joint_coordinates(self) -> int:
         return self.articulation.num_coordinates
 
-    def _coordinates(self, requires_grad: bool) -> wp.array:
-        return wp.array(self.articulation.initial_coordinates, dtype=wp.float64, device=self.device, requires_grad=requires_grad)
+    def _coordinates(self, requires_grad: bool, values: np.ndarray | None = None) -> wp.array:
+        values = self.articulation.initial_coordinates if values is None else values
+        return wp.array(values, dtype=wp.float64, device=self.device, requires_grad=requires_grad)
 
     def state(self, *, requires_grad: bool = True) -> State:
         """A state at the initial poses, at rest."""
@@ -121,10 +122,11 @@ class Model:
         )
 
     def control(self, *, requires_grad: bool = True) -> Control:
-        """A control whose PD targets are the initial poses, joint coordinates and ball-joint rotations."""
+        """A control whose PD targets are the initial poses, the joints' default targets (their
+        ``target``, else the initial coordinates) and the initial ball-joint rotations."""
         return Control(
             body_target=wp.array(self.initial_q, dtype=wp.transformd, device=self.device, requires_grad=requires_grad),
-            joint_target=self._coordinates(requires_grad),
+            joint_target=self._coordinates(requires_grad, self.articulation.default_targets),
             ball_target=wp.array(self.articulation.initial_ball_rotations, dtype=wp.quatd, device=self.device, requires_grad=requires_grad),
         )
 
