@@ -623,6 +623,21 @@ def test_control_dofs_that_move_nothing_are_refused(dofs, control, match):
     TaskProblem(scene)  # the same body with dofs that move it
 
 
+def test_rollout_refuses_values_of_the_wrong_shape():
+    """Fewer rows than frames were read out of bounds by the control kernel: the process
+    aborted ("corrupted double-linked list")."""
+    problem = TaskProblem(_pd_space_billiards(), settings=TaskSettings(horizon=3, receding_horizon=0, iterations=1, learning_rate=0.05))
+    q0 = problem.model.initial_q
+    assert problem.rollout(np.zeros((3, 2)), (q0, q0), 3)[1].shape == (3, 2)
+    for values in (np.zeros((2, 2)), np.zeros((3, 3)), np.zeros(2)):
+        with pytest.raises(ValueError, match=r"values: pd_targets control over 3 frames needs at least 3 rows of 2 values \(x, y\), got shape"):
+            problem.rollout(values, (q0, q0), 3)
+    with pytest.raises(ValueError, match=r"frames: must be a whole number >= 0, got -1"):
+        problem.rollout(np.zeros((3, 2)), (q0, q0), -1)
+    with pytest.raises(ValueError, match=r"start q: expected \(2, 7\) poses .*got shape \(1, 7\)"):
+        problem.rollout(np.zeros((3, 2)), (q0[:1], q0[:1]), 3)  # the missing pose was left as it was
+
+
 def test_a_negative_pd_stiffness_is_reported_as_such():
     scene = _pd_space_billiards()
     scene.bodies[0].kp_linear = np.array([-400.0, 100.0, 100.0])

@@ -510,7 +510,8 @@ class TaskProblem:
                 raise ValueError(f"{source}: joint_sine control needs joints with drives (PD gains); none found")
             self.dof_names = tuple(art.coordinate_names[c] for c in actuated)
             self._actuated = wp.array(actuated.astype(np.int32), dtype=wp.int32, device=device)
-            self._rest = wp.array(art.initial_coordinates, dtype=wp.float64, device=device)
+            # The sine waves play about each coordinate's default target (a USD drive's target, else its initial value).
+            self._rest = wp.array(art.default_targets, dtype=wp.float64, device=device)
         else:
             self.body = controlled
             body = scene.bodies[self.body]
@@ -527,6 +528,11 @@ class TaskProblem:
     # --- rollouts -------------------------------------------------------------------------
 
     def _state(self, q, q_prev) -> State:
+        shape = (self.model.num_bodies, 7)
+        for label, poses in (("start q", q), ("start q_prev", q_prev)):
+            if np.shape(poses) != shape:
+                # Warp's assign copies what it is given: two poses of three left the third as it was.
+                raise ValueError(f"{label}: expected {shape} poses (px, py, pz, qx, qy, qz, qw), one per body, got shape {np.shape(poses)}")
         state = self.model.state()
         state.body_q.assign(q)
         state.body_q_prev.assign(q_prev)
@@ -541,12 +547,25 @@ class TaskProblem:
         return values
 
     def rollout(self, values: np.ndarray, start: tuple, frames: int, *, gradient: bool = True):
-        """Simulate ``frames`` frames from ``start`` = (q, q_prev) under ``values``.
+        """Simulate ``frames`` frames from ``start`` = (q, q_prev), each (nbodies, 7), under ``values``.
 
+        ``values``: pd_targets, one row per frame of the control dofs' offsets (at least
+        ``frames`` rows); initial_state, one row; joint_sine, ``initial_values``' shape.
         Returns (loss, d loss / d values or None, trajectory (frames + 1, nbodies, 7)).
         """
         device = self.model.device
-        values_arr = wp.array(np.atleast_2d(values), dtype=wp.float64, device=device, requires_grad=True)
+        if not isinstance(frames, (int, np.integer)) or frames < 0:
+            raise ValueError(f"frames: must be a whole number >= 0, got {frames!r}")
+        shape = np.shape(values)
+        values = np.atleast_2d(np.asarray(values, dtype=np.float64))
+        expected = self.initial_values(max(frames, 1) if self.kind == "pd_targets" else 1).shape
+        wide = self.kind == "pd_targets" and values.ndim == 2 and values.shape[0] >= expected[0] and values.shape[1] == expected[1]
+        if not (values.shape == expected or wide):
+            # The control kernels index the rows by frame and dof: a smaller array was read
+            # out of bounds (a crash, "corrupted double-linked list").
+            rows = f"at least {expected[0]}" if self.kind == "pd_targets" else str(expected[0])
+            raise ValueError(f"values: {self.kind} control over {frames} frames needs {rows} rows of {expected[1]} values ({', '.join(self.dof_names)}), got shape {values.shape}")
+        values_arr = wp.array(values, dtype=wp.float64, device=device, requires_grad=True)
         # The solver writes every output state's poses; only the start needs filling.
         states = [self._state(*start)] + [self.model.state() for _ in range(frames)]
         controls = [self.model.control() for _ in range(frames)] if self.kind != "initial_state" else [None] * frames
@@ -580,7 +599,7 @@ class TaskProblem:
         grad = None
         if gradient:
             tape.backward(loss)
-            grad = values_arr.grad.numpy().reshape(np.shape(values))
+            grad = values_arr.grad.numpy().reshape(shape)
         trajectory = np.array([s.body_q.numpy() for s in states])
         return float(loss.numpy()[0]), grad, trajectory
 
