@@ -623,6 +623,15 @@ def test_control_dofs_that_move_nothing_are_refused(dofs, control, match):
     TaskProblem(scene)  # the same body with dofs that move it
 
 
+@pytest.mark.parametrize("index, label", [(1, "target"), (0, "controlled")])
+def test_a_static_target_or_controlled_body_is_refused(index, label):
+    """A kinematic target box ran the whole optimisation at one loss."""
+    scene = _pd_space_billiards()
+    scene.bodies[index].static = True
+    with pytest.raises(ValueError, match=rf"prim {scene.bodies[index].path}: a {label} body must be dynamic, but it is static"):
+        TaskProblem(scene)
+
+
 def test_rollout_refuses_values_of_the_wrong_shape():
     """Fewer rows than frames were read out of bounds by the control kernel: the process
     aborted ("corrupted double-linked list")."""

@@ -389,8 +389,9 @@ def validate_task(scene) -> tuple:
 
     Raises ValueError when the scene has no task metadata, no target bodies, a target
     position that is not 3 finite numbers or a tolerance that is negative or not finite, no
-    or several controlled bodies, an unknown control kind, or control dofs that are unknown,
-    repeated, or (for PD targets) velocities or coordinates without PD stiffness.
+    or several controlled bodies, a static target or controlled body, an unknown control
+    kind, or control dofs that are unknown, repeated, or (for PD targets) velocities or
+    coordinates without PD stiffness.
     """
     source = scene.source or "<scene>"
     task = scene.task
@@ -412,6 +413,11 @@ def validate_task(scene) -> tuple:
         problem = target_problem(scene.bodies[i])
         if problem:
             raise ValueError(f"{source}: prim {scene.bodies[i].path}: {problem}")
+    # A static body never moves: its loss term, or its controls, could never change.
+    for label, indices in (("target", targets), ("controlled", controlled)):
+        for i in indices:
+            if scene.bodies[i].static:
+                raise ValueError(f"{source}: prim {scene.bodies[i].path}: a {label} body must be dynamic, but it is static (kinematic or disabled)")
     return (controlled[0] if controlled else None), targets
 
 
