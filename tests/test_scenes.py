@@ -173,3 +173,17 @@ def test_resting_needs_a_closed_outward_convex_mesh():
 def test_unknown_scene_is_a_clear_error():
     with pytest.raises(ValueError, match="not one of"):
         scenes.build_scene("ant_walk")
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda: scenes.fibonacci_ball(3), r"num_points: must be a whole number >= 4, got 3"),  # was an IndexError
+        (lambda: scenes.fibonacci_ball(18, radius=0.0), r"radius: must be positive and finite, got 0.0"),  # was "point 4 is not in convex position"
+        (lambda: scenes.decimate(*scenes.fibonacci_ball(42), 0.0), r"cell: must be positive and finite, got 0.0"),  # was an empty mesh
+        (lambda: scenes.bunny_mesh(270, height=-1.0), r"height: must be positive and finite \(m\), got -1.0"),  # was a mirrored bunny
+    ],
+)
+def test_mesh_helpers_name_a_bad_argument(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()

@@ -70,8 +70,16 @@ def convex_hull_of_sphere_points(points: np.ndarray) -> np.ndarray:
     return np.array(faces, dtype=np.int64)
 
 
+def _require(ok: bool, name: str, wanted: str, value) -> None:
+    if not ok:
+        raise ValueError(f"{name}: must be {wanted}, got {value!r}")
+
+
 def fibonacci_ball(num_points: int, radius: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """A ball mesh: hull of ``num_points`` Fibonacci points on a sphere (2 N - 4 faces)."""
+    """A ball mesh: hull of ``num_points`` (>= 4) Fibonacci points on a sphere of ``radius``
+    (m, > 0): 2 N - 4 faces."""
+    _require(isinstance(num_points, (int, np.integer)) and num_points >= 4, "num_points", "a whole number >= 4", num_points)
+    _require(np.isfinite(radius) and radius > 0, "radius", "positive and finite", radius)
     k = np.arange(num_points) + 0.5
     z = 1.0 - 2.0 * k / num_points
     theta = np.pi * (1.0 + 5.0**0.5) * k
@@ -130,7 +138,8 @@ def rest_on_face(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, f
 
 def decimate(vertices: np.ndarray, faces: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
     """Vertex-clustering decimation: merge vertices per grid cell (mean position), drop
-    collapsed and duplicate triangles, keep unused vertices out."""
+    collapsed and duplicate triangles, keep unused vertices out. ``cell``: the grid's size (m, > 0)."""
+    _require(np.isfinite(cell) and cell > 0, "cell", "positive and finite", cell)
     keys = np.floor(vertices / cell).astype(np.int64)
     _, cluster = np.unique(keys, axis=0, return_inverse=True)
     cluster = cluster.reshape(-1)
@@ -153,6 +162,8 @@ def bunny_mesh(target_faces: int = 270, height: float = 0.3):
     Returns (vertices, faces, mass properties per unit density of the original mesh:
     volume, centre of mass, inertia), all in the decimated mesh's frame.
     """
+    _require(isinstance(target_faces, (int, np.integer)) and target_faces >= 4, "target_faces", "a whole number >= 4", target_faces)
+    _require(np.isfinite(height) and height > 0, "height", "positive and finite (m)", height)
     from pxr import Usd, UsdGeom
 
     import warp
