@@ -194,6 +194,7 @@ def ground_rectangle(size_x: float, size_y: float, cell: float | None = None, ce
     """A static rectangle of size_x by size_y m at z = 0: two triangles (every scene's
     ground), or squares of about ``cell`` m, two triangles each (a grid, for tests of
     contact across the seams between coplanar faces)."""
+    _require(cell is None or (np.isfinite(cell) and cell > 0), "cell", "positive and finite (m), or None", cell)
     nx, ny = (1, 1) if cell is None else (max(1, int(round(size_x / cell))), max(1, int(round(size_y / cell))))
     xs = np.linspace(-size_x / 2, size_x / 2, nx + 1) + centre[0]
     ys = np.linspace(-size_y / 2, size_y / 2, ny + 1) + centre[1]
