@@ -907,3 +907,26 @@ def test_a_ball_joint_drive_target_is_refused(tmp_path):
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match=r"prim /World/hinge: drive:rotY:physics:targetPosition 20 is not supported on a ball joint"):
         io.load_scene(path)
+
+
+def test_bodies_closer_than_the_plane_search_resolves_are_refused_with_a_hint(tmp_path):
+    """A 0.5 m box 1e-9 m above a 4 m table: the leaf plane Hessian of its side faces against
+    the table has a condition number of ~4e15. It used to fail at the first step as
+    'objective is not finite at the start pose (unsolved leaf pairs: ...)'."""
+    from warpcontact import scenes
+
+    box = trimesh.creation.box(extents=(0.5, 0.5, 0.5))
+    for gap, refused in ((1e-7, False), (1e-9, True)):
+        body = io.BodySpec("box", "/World/box", np.asarray(box.vertices), np.asarray(box.faces), np.array([0.0, 0.0, 0.25 + gap, 0.0, 0.0, 0.0, 1.0]))
+        scene = io.Scene(bodies=[scenes.ground_rectangle(4.0, 4.0), body])
+        if not refused:
+            scene.build_model()
+            continue
+        with pytest.raises(ValueError, match=r"in the initial pose, /World/ground and /World/box: their leaf plane searches did not converge, most likely because they are closer than float64 resolves"):
+            scene.build_model()
+        b = wc.ModelBuilder()
+        b.add_body((scene.bodies[0].vertices, scene.bodies[0].faces), static=True, name="ground")
+        b.add_body((body.vertices, body.faces), density=1000.0, name="box", pose=body.pose)
+        model = b.finalize()
+        with pytest.raises(wc.SolverError, match=r"objective is not finite at the start pose: ground and box: their leaf plane searches did not converge"):
+            wc.ImplicitSolver(model).step(model.state(requires_grad=False), model.state(requires_grad=False), None, 0.04)

@@ -42,6 +42,14 @@ CONTACT_MODES = ("bsh", "brute", "sdrs")
 # How a cluster pair's centred term counts (ContactModel, centred_weight).
 CENTRED_WEIGHTS = ("paper", "pairs")
 
+# Why a leaf plane search fails in practice, for errors about unsolved pairs: a vertex 1e-8 m
+# over a 4 m triangle (perpendicular to it) leaves the plane Hessian with a condition
+# number of ~4e15, which float64 cannot solve (docs/architecture.md, "The leaf potential").
+UNSOLVED_HINT = (
+    "their leaf plane searches did not converge, most likely because they are closer than float64 resolves against "
+    "their triangles' size (a gap below about 1e-8 of it); start them farther apart"
+)
+
 # Quaternions within this distance of unit norm are normalised; others are rejected as
 # almost certainly not rotations (e.g. an unnormalised optimiser step or a wrong layout).
 QUATERNION_TOLERANCE = 1e-6

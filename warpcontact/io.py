@@ -81,7 +81,7 @@ import trimesh
 
 from ._validate import is_real
 from .builder import MODEL_CONTACT_MODES, ModelBuilder, contact_setting_problem
-from .contact import CENTRED_WEIGHTS
+from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .leaf import LEAF_PRECISIONS
 from .rotation import pose_mul, quat_from_matrix, quat_rotate, quat_to_matrix
 
@@ -257,10 +257,13 @@ class Scene:
         except ValueError as exc:
             raise ValueError(f"{self.source or '<scene>'}: {exc}") from None
         start = model.contact.evaluate(model.initial_q)
+        paths = {b.name: b.path for b in self.bodies}
         if start.contact_pairs:
-            paths = {b.name: b.path for b in self.bodies}
             pairs = ", ".join(f"{paths[a]} and {paths[b]}" for a, b in start.contact_pairs)
             raise ValueError(f"{self.source or '<scene>'}: bodies intersect in the initial pose: {pairs}")
+        if start.unsolved_pairs:
+            pairs = ", ".join(f"{paths[a]} and {paths[b]}" for a, b in start.unsolved_pairs)
+            raise ValueError(f"{self.source or '<scene>'}: in the initial pose, {pairs}: {UNSOLVED_HINT}")
         return model
 
     def initial_velocities(self) -> tuple[np.ndarray, np.ndarray]:

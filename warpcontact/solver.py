@@ -35,7 +35,7 @@ from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
 from .articulation import joint_limit_energy
-from .contact import LaggedFriction
+from .contact import UNSOLVED_HINT, LaggedFriction
 from .rotation import quat_from_matrix, quat_from_rotation_vector, quat_mul, rigid_step_between, rigid_step_travel
 from .types import Control, Model, State
 
@@ -621,7 +621,8 @@ class ImplicitSolver:
                 if bad.size:
                     raise ValueError(f"control.body_target: the target of body {self.model.body_names[bad[0]]!r} (index {bad[0]}) is not finite")
             # Joint coordinates outside their limits were refused with the state (_joint_arrays).
-            raise SolverError(f"objective is not finite at the start pose (unsolved leaf pairs: {contact.unsolved_pairs})")
+            pairs = ", ".join(f"{a} and {b}" for a, b in contact.unsolved_pairs)
+            raise SolverError(f"objective is not finite at the start pose: {pairs}: {UNSOLVED_HINT}")
         tol = self.tolerance * self._length_scale
         # Steps this short are in Newton's quadratic regime, where Armijo tests only rounding
         # noise; the cap keeps that true for loose tolerances (1e3 x 1e-6 would let full steps
