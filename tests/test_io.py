@@ -725,8 +725,40 @@ def test_velocities_under_a_mirroring_parent(tmp_path):
     np.testing.assert_allclose(box.angular_velocity, [0.0, 0.0, -np.pi / 2], atol=1e-7)
 
 
-@pytest.mark.parametrize("approximation", ["convexHull", "boundingSphere", "boundingCube"])
-def test_collision_approximations_that_change_the_shape_are_refused(tmp_path, approximation):
+def _l_shaped_mesh(stage, path):
+    """A closed L-shaped prism (concave): two 0.5 m cubes side by side and one on top of the first."""
+    l_shape = trimesh.util.concatenate([trimesh.creation.box(extents=(0.5, 0.5, 0.5), transform=trimesh.transformations.translation_matrix(offset)) for offset in ((0, 0, 0), (0.5, 0, 0), (0, 0, 0.5))])
+    mesh = UsdGeom.Mesh.Define(stage, path)
+    mesh.CreatePointsAttr([Gf.Vec3f(*map(float, p)) for p in l_shape.vertices])
+    mesh.CreateFaceVertexCountsAttr([3] * len(l_shape.faces))
+    mesh.CreateFaceVertexIndicesAttr([int(i) for i in l_shape.faces.ravel()])
+    UsdPhysics.CollisionAPI.Apply(mesh.GetPrim())
+    return mesh
+
+
+def test_a_convex_hull_approximation_collides_the_hull_of_the_mesh(tmp_path):
+    """It was ignored: the concave mesh itself collided."""
+    path = write_physics_scene(tmp_path / "hull.usda", drop_height=2.0)
+    stage = Usd.Stage.Open(str(path))
+    stage.RemovePrim("/World/box/shape")
+    mesh = _l_shaped_mesh(stage, "/World/box/shape")
+    UsdPhysics.MassAPI.Apply(stage.GetPrimAtPath("/World/box")).CreateMassAttr(3.0)
+    UsdPhysics.MeshCollisionAPI.Apply(mesh.GetPrim()).CreateApproximationAttr("convexHull")
+    UsdGeom.Xformable(stage.GetPrimAtPath("/World/box")).AddScaleOp().Set(Gf.Vec3f(1.0, 2.0, 1.0))  # the hull of the scaled points
+    stage.GetRootLayer().Save()
+    box = io.load_scene(path).body("box")
+    hull = trimesh.Trimesh(box.vertices, box.faces, process=False)
+    assert hull.is_watertight and hull.is_convex and hull.volume > 0
+    # The L's 3 cubes (0.125 m^3 each, doubled in y) and the wedge its hull adds: 0.25 x 0.5 x 0.5 x 2 / 2.
+    assert hull.volume == pytest.approx(2 * 3 * 0.125 + 2 * 0.5 * 0.5 * 0.5 * 0.5, rel=1e-9)
+    mesh.GetPointsAttr().Set([Gf.Vec3f(float(x), float(y), 0.0) for x, y, _ in mesh.GetPointsAttr().Get()])  # flattened
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/box/shape: physics:approximation 'convexHull': points: they span no volume \(all in one plane\); author 'none'"):
+        io.load_scene(path)
+
+
+@pytest.mark.parametrize("approximation", ["boundingSphere", "boundingCube"])
+def test_bounding_shape_approximations_are_refused(tmp_path, approximation):
     path = write_physics_scene(tmp_path / "approx.usda")
     stage = Usd.Stage.Open(str(path))
     api = UsdPhysics.MeshCollisionAPI.Apply(stage.GetPrimAtPath("/World/ground"))
@@ -735,7 +767,7 @@ def test_collision_approximations_that_change_the_shape_are_refused(tmp_path, ap
     assert len(io.load_scene(path).body("ground").faces) == 32
     api.GetApproximationAttr().Set(approximation)
     stage.GetRootLayer().Save()
-    with pytest.raises(ValueError, match=rf"prim /World/ground: physics:approximation '{approximation}' \(a different shape than the mesh\) is not supported"):
+    with pytest.raises(ValueError, match=rf"prim /World/ground: physics:approximation '{approximation}' is not supported \(its fit is the engine's choice\)"):
         io.load_scene(path)
 
 

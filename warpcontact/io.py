@@ -51,7 +51,7 @@ determinant) or a leftHanded Mesh reverses the triangles' winding, so closed mes
 outward-oriented for mass from density; a joint on a mirrored body is an error. Faces in
 holeIndices are not collided. MeshCollisionAPI approximations that stand in for the exact
 triangles (convexDecomposition, meshSimplification, sdf) collide the triangles themselves;
-convexHull, boundingSphere and boundingCube, a different shape, are errors. The initial state is read at the default time
+convexHull collides the hull of the mesh's points; boundingSphere and boundingCube are errors. The initial state is read at the default time
 code; a body or collider transform with time samples but no default value is an error.
 Bound physics materials give density (per body) and dynamicFriction (the scene's one
 coefficient, unless warpcontact:friction is authored); values that differ where one is
@@ -82,6 +82,7 @@ import trimesh
 from ._validate import is_real
 from .builder import MODEL_CONTACT_MODES, ModelBuilder, contact_setting_problem
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
+from .hull import convex_hull
 from .leaf import LEAF_PRECISIONS
 from .rotation import pose_mul, quat_from_matrix, quat_rotate, quat_to_matrix
 
@@ -449,18 +450,28 @@ def _frame(matrix) -> np.ndarray:
 
 # physics:approximation tokens (MeshCollisionAPI) that stand in for the exact triangles in
 # engines that cannot collide a dynamic triangle mesh; this contact model collides the
-# triangles themselves. The other tokens (convexHull, boundingSphere, boundingCube) ask for
-# a different, coarser shape, which is refused rather than silently replaced.
+# triangles themselves. convexHull asks for the hull of the mesh's points, which is built;
+# boundingSphere and boundingCube, whose fits engines choose differently, are refused
+# rather than guessed.
 _EXACT_APPROXIMATIONS = ("none", "convexDecomposition", "meshSimplification", "sdf")
+_SUPPORTED_APPROXIMATIONS = (*_EXACT_APPROXIMATIONS, "convexHull")
 
 
-def _check_approximation(kind, desc, prim, source: str) -> None:
+def _approximation(kind, desc, prim, source: str) -> str:
+    """A collider's physics:approximation ("none" for primitives); refuses unsupported ones."""
     approximation = str(desc.approximation) if kind == "MeshShape" else "none"
-    if approximation not in _EXACT_APPROXIMATIONS:
+    if approximation not in _SUPPORTED_APPROXIMATIONS:
         raise ValueError(
-            f"{source}: prim {prim.GetPath()}: physics:approximation {approximation!r} (a different shape than the mesh) is not "
-            f"supported; author one of {_EXACT_APPROXIMATIONS}, which collide the mesh's own triangles, or model the shape as its own Mesh"
+            f"{source}: prim {prim.GetPath()}: physics:approximation {approximation!r} is not supported (its fit is the "
+            f"engine's choice); author one of {_SUPPORTED_APPROXIMATIONS}, or model the shape as its own Mesh"
         )
+    return approximation
+
+
+def _hull_of(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The convex hull of a collider's points, as a mesh of the points it uses."""
+    used, faces = np.unique(convex_hull(vertices), return_inverse=True)
+    return vertices[used], faces.reshape(-1, 3)
 
 
 def _local_triangles(kind, prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
@@ -625,7 +636,7 @@ def load_scene(path) -> Scene:
                 continue
             _require_default_transform(prim, UsdGeom, Usd, source)
             owner = str(desc.rigidBody) if desc.rigidBody and str(desc.rigidBody) in bodies else ""
-            _check_approximation(kind, desc, prim, source)
+            approximation = _approximation(kind, desc, prim, source)
             matrix = _world_matrix(prim, UsdGeom, Usd)
             linear = _linear_part(matrix)
             owner_frame, owner_unscaled = body_frames[owner] if owner else (None, True)
@@ -656,6 +667,11 @@ def load_scene(path) -> Scene:
                 vertices = vertices * meters
                 if owner:
                     vertices = quat_rotate(local_pose[3:], vertices) + local_pose[:3]
+            if approximation == "convexHull":
+                try:
+                    vertices, faces = _hull_of(vertices)
+                except ValueError as exc:
+                    raise ValueError(f"{source}: prim {prim_path}: physics:approximation 'convexHull': {exc}; author 'none' to collide the mesh's own triangles") from None
             if owner:
                 target = bodies[owner]
             else:

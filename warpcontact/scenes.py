@@ -29,6 +29,7 @@ import numpy as np
 import trimesh
 
 from .articulation import frame_in_body
+from .hull import convex_hull
 from .io import BodySpec, JointSpec, Scene, SimulationSettings, TaskSpec, save_scene
 from .robots import AntSpec, ant_description
 
@@ -40,34 +41,6 @@ SCENE_NAMES = ("billiards", "push", "ant_push", "sort", "gather", "gather_bunny"
 
 _IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
 _REST_GAP = 1e-3  # bodies start 1 mm above their support (docs: initial gaps)
-
-
-def convex_hull_of_sphere_points(points: np.ndarray) -> np.ndarray:
-    """Outward-oriented triangles of the convex hull of points in convex position (incremental)."""
-    points = np.asarray(points, dtype=np.float64)
-    a, b, c, d = 0, 1, 2, 3
-    faces = [(a, b, c), (a, c, d), (a, d, b), (b, d, c)]
-    centre = points[:4].mean(axis=0)
-
-    def outward(f):
-        i, j, k = f
-        n = np.cross(points[j] - points[i], points[k] - points[i])
-        return f if np.dot(n, points[i] - centre) > 0 else (i, k, j)
-
-    faces = [outward(f) for f in faces]
-    for p in range(4, len(points)):
-        visible = []
-        for f in faces:
-            i, j, k = f
-            n = np.cross(points[j] - points[i], points[k] - points[i])
-            if np.dot(n, points[p] - points[i]) > 1e-12 * np.linalg.norm(n):
-                visible.append(f)
-        if not visible:
-            raise ValueError(f"point {p} is not in convex position")
-        edges = {(f[e], f[(e + 1) % 3]) for f in visible for e in range(3)}
-        horizon = [(u, v) for (u, v) in edges if (v, u) not in edges]
-        faces = [f for f in faces if f not in visible] + [(u, v, p) for (u, v) in horizon]
-    return np.array(faces, dtype=np.int64)
 
 
 def _require(ok: bool, name: str, wanted: str, value) -> None:
@@ -85,7 +58,7 @@ def fibonacci_ball(num_points: int, radius: float = 0.5) -> tuple[np.ndarray, np
     theta = np.pi * (1.0 + 5.0**0.5) * k
     r = np.sqrt(1.0 - z * z)
     points = radius * np.stack([r * np.cos(theta), r * np.sin(theta), z], axis=1)
-    return points, convex_hull_of_sphere_points(points)
+    return points, convex_hull(points, all_on_hull=True)
 
 
 def rest_on_face(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float]:

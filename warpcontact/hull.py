@@ -1,0 +1,89 @@
+"""Convex hulls of point sets (host side, numpy): outward-oriented triangles.
+
+One home for the scenes' Fibonacci balls (points in convex position) and for USD colliders
+authored with ``physics:approximation = "convexHull"``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["convex_hull"]
+
+# A point closer than this fraction of the points' extent to a face's plane, on its outer
+# side, counts as on the hull already (not in convex position).
+_PLANE_TOLERANCE = 1e-12
+
+
+def convex_hull(points, *, all_on_hull: bool = False) -> np.ndarray:
+    """Outward-oriented triangles (indices into ``points``) of the convex hull of ``points``.
+
+    Incremental: from a tetrahedron (the first four points where they span one), each point
+    in turn replaces the faces it sees with a fan from their horizon. Points inside the hull
+    or on it (within 1e-12 of the points' extent) are left out, or with ``all_on_hull``
+    (points meant to be in convex position) are an error.
+
+    Args:
+        points: (N, 3) coordinates, N >= 4, finite.
+
+    Raises ValueError for fewer than 4 points, non-finite points, or points that span no
+    volume (collinear or coplanar).
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4:
+        raise ValueError(f"points: expected (N, 3) with N >= 4, got shape {points.shape}")
+    if not np.isfinite(points).all():
+        raise ValueError("points: not all finite")
+    tolerance = _PLANE_TOLERANCE * max(float(np.ptp(points, axis=0).max()), np.finfo(np.float64).tiny)
+    seed = _seed_tetrahedron(points, tolerance)
+    centre = points[list(seed)].mean(axis=0)
+    a, b, c, d = seed
+    faces = []
+    for f in ((a, b, c), (a, c, d), (a, d, b), (b, d, c)):
+        i, j, k = f
+        normal = np.cross(points[j] - points[i], points[k] - points[i])
+        faces.append(f if np.dot(normal, points[i] - centre) > 0 else (i, k, j))
+    faces = np.array(faces, dtype=np.int64)
+    rest = [p for p in range(len(points)) if p not in seed]
+    for p in rest:
+        corner = points[faces[:, 0]]
+        normal = np.cross(points[faces[:, 1]] - corner, points[faces[:, 2]] - corner)
+        height = np.einsum("ij,ij->i", normal, points[p] - corner)
+        visible = height > tolerance * np.linalg.norm(normal, axis=1)
+        if not visible.any():
+            if all_on_hull:
+                raise ValueError(f"point {p} is not in convex position")
+            continue
+        edges = {(int(f[e]), int(f[(e + 1) % 3])) for f in faces[visible] for e in range(3)}
+        horizon = [(u, v, p) for (u, v) in edges if (v, u) not in edges]
+        faces = np.concatenate([faces[~visible], np.array(horizon, dtype=np.int64).reshape(-1, 3)])
+    return faces
+
+
+def _seed_tetrahedron(points: np.ndarray, tolerance: float) -> tuple[int, int, int, int]:
+    """The first four points where they span a tetrahedron, else four extreme points."""
+    if _tetrahedron_height(points, (0, 1, 2), 3) > tolerance:
+        return 0, 1, 2, 3
+    first = int(np.argmin(points[:, 0]))
+    second = int(np.argmax(np.linalg.norm(points - points[first], axis=1)))
+    axis = points[second] - points[first]
+    axis /= max(np.linalg.norm(axis), np.finfo(np.float64).tiny)
+    offsets = points - points[first]
+    off_line = offsets - np.outer(offsets @ axis, axis)
+    third = int(np.argmax(np.linalg.norm(off_line, axis=1)))
+    if np.linalg.norm(off_line[third]) <= tolerance:
+        raise ValueError("points: they span no volume (all on one line)")
+    heights = [_tetrahedron_height(points, (first, second, third), p) for p in range(len(points))]
+    fourth = int(np.argmax(heights))
+    if heights[fourth] <= tolerance:
+        raise ValueError("points: they span no volume (all in one plane)")
+    return first, second, third, fourth
+
+
+def _tetrahedron_height(points: np.ndarray, base: tuple, apex: int) -> float:
+    """Distance of ``points[apex]`` from the plane through the three ``base`` points (0 for
+    a degenerate base)."""
+    i, j, k = base
+    normal = np.cross(points[j] - points[i], points[k] - points[i])
+    length = np.linalg.norm(normal)
+    return 0.0 if length == 0.0 else float(abs(np.dot(normal, points[apex] - points[i])) / length)
