@@ -962,3 +962,15 @@ def test_bodies_closer_than_the_plane_search_resolves_are_refused_with_a_hint(tm
         model = b.finalize()
         with pytest.raises(wc.SolverError, match=r"objective is not finite at the start pose: ground and box: their leaf plane searches did not converge"):
             wc.ImplicitSolver(model).step(model.state(requires_grad=False), model.state(requires_grad=False), None, 0.04)
+
+
+def test_physx_body_damping_is_named_in_a_warning(tmp_path):
+    """Isaac assets author PhysX damping, which changes a body's motion and is not modelled."""
+    path = write_physics_scene(tmp_path / "damped.usda")
+    stage = Usd.Stage.Open(str(path))
+    box = stage.GetPrimAtPath("/World/box")
+    box.CreateAttribute("physxRigidBody:angularDamping", Sdf.ValueTypeNames.Float).Set(0.05)
+    box.CreateAttribute("physxRigidBody:linearDamping", Sdf.ValueTypeNames.Float).Set(0.0)  # zero: nothing ignored
+    stage.GetRootLayer().Save()
+    with pytest.warns(UserWarning, match=r"damped\.usda: PhysX body damping is not modelled and is ignored: /World/box angularDamping 0.05$"):
+        io.load_scene(path)

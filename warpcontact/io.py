@@ -57,6 +57,7 @@ Bound physics materials give density (per body) and dynamicFriction (the scene's
 coefficient, unless warpcontact:friction is authored); values that differ where one is
 needed are errors, as are per-collider MassAPI properties beyond a single collider's
 mass or density. Collision filters (FilteredPairsAPI, CollisionGroup filtering) are errors.
+PhysX schema attributes are not read; non-zero PhysX body damping is named in a warning.
 A stage that does not compose (a missing reference, payload or sublayer, which USD only
 warns about) is an error listing what is missing. Stage metersPerUnit is applied to lengths
 (unauthored, USD's fallback of 0.01 applies: centimetres; zero, negative or NaN is an
@@ -73,6 +74,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -555,6 +557,7 @@ def load_scene(path) -> Scene:
     parsed = _load_physics(stage, UsdPhysics)
     descs = {str(k): list(zip(v[0], v[1])) for k, v in parsed.items()}
     _refuse_collision_filters(stage, UsdPhysics, source)
+    _warn_ignored_damping(stage, source)
     for kind in ("FixedJoint", "DistanceJoint", "CustomJoint"):
         for prim_path, _ in descs.get(kind, []):
             raise ValueError(f"{source}: prim {prim_path}: {kind} is not supported (supported: revolute, prismatic, spherical and D6 joints)")
@@ -992,6 +995,23 @@ def _read_collider_mass(body_prim, collider_prims, body: BodySpec, UsdPhysics, u
             "is not supported (per-collider mass properties); author them on the rigid body prim"
         )
     _read_mass(prim, body, UsdPhysics, units, source)
+
+
+# PhysX schema attributes (Isaac assets author them) that change a body's motion and that
+# this simulator does not model; the rest of that schema tunes PhysX's own solver.
+_PHYSX_DAMPING = ("physxRigidBody:linearDamping", "physxRigidBody:angularDamping")
+
+
+def _warn_ignored_damping(stage, source: str) -> None:
+    """Warn, naming the prims, about non-zero PhysX body damping, which is not modelled."""
+    found = []
+    for prim in stage.Traverse():
+        for name in _PHYSX_DAMPING:
+            attr = prim.GetAttribute(name)
+            if attr and attr.HasAuthoredValue() and attr.Get():
+                found.append(f"{prim.GetPath()} {name.split(':')[1]} {attr.Get():g}")
+    if found:
+        warnings.warn(f"{source}: PhysX body damping is not modelled and is ignored: {', '.join(found[:5])}{' ...' if len(found) > 5 else ''}", stacklevel=3)
 
 
 def _refuse_collision_filters(stage, UsdPhysics, source: str) -> None:
