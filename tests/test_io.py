@@ -974,3 +974,41 @@ def test_physx_body_damping_is_named_in_a_warning(tmp_path):
     stage.GetRootLayer().Save()
     with pytest.warns(UserWarning, match=r"damped\.usda: PhysX body damping is not modelled and is ignored: /World/box angularDamping 0.05$"):
         io.load_scene(path)
+
+
+@pytest.mark.parametrize("axis", ["Z", "Y", "X"])
+def test_a_plane_collider_becomes_a_large_square_under_the_scene(tmp_path, axis):
+    """Plane colliders (infinite in UsdPhysics) were refused, so a typical ground plane
+    could not load."""
+    path = write_physics_scene(tmp_path / "plane.usda")
+    stage = Usd.Stage.Open(str(path))
+    stage.RemovePrim("/World/ground")
+    plane = UsdGeom.Plane.Define(stage, "/World/groundPlane")
+    plane.CreateAxisAttr(axis)
+    plane.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, -0.5))
+    if axis != "Z":  # turn the plane so that its axis points up (+z)
+        plane.AddRotateXYZOp().Set(Gf.Vec3f(-90.0, 0.0, 0.0) if axis == "Y" else Gf.Vec3f(0.0, -90.0, 0.0))
+    UsdPhysics.CollisionAPI.Apply(plane.GetPrim())
+    stage.GetRootLayer().Save()
+    scene = io.load_scene(path)
+    ground = scene.body("groundPlane")
+    assert ground.static and len(ground.faces) == 2
+    corners = ground.vertices @ quat_matrix(ground.pose[3:]).T + ground.pose[:3]
+    np.testing.assert_allclose(corners[:, 2], -0.5, atol=1e-12)
+    box = scene.body("box")
+    box_corners = box.vertices + box.pose[:3]
+    side = io.PLANE_SIZE_FACTOR * np.linalg.norm(np.ptp(np.vstack([box_corners]), axis=0))
+    np.testing.assert_allclose(np.ptp(corners[:, :2], axis=0), [side, side], rtol=1e-9)
+    np.testing.assert_allclose(corners[:, :2].mean(axis=0), box.pose[:2], atol=1e-9)  # centred under the box
+    model, q = simulate(scene, 30)
+    assert q[-1, 0, 2] == pytest.approx(-0.25, abs=1e-3)  # the box rests on it
+
+
+def test_a_plane_collider_on_a_rigid_body_is_refused(tmp_path):
+    path = write_physics_scene(tmp_path / "plane_body.usda")
+    stage = Usd.Stage.Open(str(path))
+    plane = UsdGeom.Plane.Define(stage, "/World/box/flat")
+    UsdPhysics.CollisionAPI.Apply(plane.GetPrim())
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/box/flat: a Plane collider is infinite; it cannot belong to rigid body /World/box"):
+        io.load_scene(path)

@@ -38,7 +38,8 @@ typo would otherwise fall back to the default silently).
 
 Primitive colliders are triangulated: Cube exactly (12 triangles), Sphere as an icosphere
 with ``SPHERE_SUBDIVISIONS`` = 2 (320 triangles), Capsule and Cylinder with 32 segments; use
-Mesh prims to control resolution. Polygons are fan-triangulated (exact for convex ones).
+Mesh prims to control resolution. A static Plane (infinite) becomes a square of
+``PLANE_SIZE_FACTOR`` times the other bodies' extent, centred under them. Polygons are fan-triangulated (exact for convex ones).
 Kinematic or disabled rigid bodies load as static bodies (an animated kinematic body is an
 error). Scales anywhere above a collider
 apply as USD composes them; a rigid body's frame is its prim's with the scale removed (the
@@ -101,6 +102,7 @@ __all__ = [
     "export_trajectory",
     "model_to_scene_poses",
     "SPHERE_SUBDIVISIONS",
+    "PLANE_SIZE_FACTOR",
     "ROUND_SEGMENTS",
 ]
 
@@ -476,6 +478,33 @@ def _hull_of(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return vertices[used], faces.reshape(-1, 3)
 
 
+# A Plane collider (infinite in UsdPhysics) becomes a square this many times the diagonal of
+# the other bodies' bounding box, centred under them (two triangles).
+PLANE_SIZE_FACTOR = 100.0
+# A Plane's in-plane axes (u, v, with u x v = its normal) per axis token.
+_PLANE_AXES = {"X": (1, 2), "Y": (2, 0), "Z": (0, 1)}
+
+
+def _plane_body(path: str, frame: np.ndarray, axis: str, meters: float, others: list) -> BodySpec:
+    """A static square standing in for the infinite Plane at ``path``: PLANE_SIZE_FACTOR times
+    the diagonal of the ``others``' bounding box (posed vertices), centred on their centre's
+    projection onto the plane, its triangles facing the plane's axis."""
+    pose = frame.copy()
+    pose[:3] *= meters
+    rotation = quat_to_matrix(pose[3:])
+    posed = np.concatenate([b.vertices @ quat_to_matrix(b.pose[3:]).T + b.pose[:3] for b in others if len(b.vertices)])
+    low, high = posed.min(axis=0), posed.max(axis=0)
+    half = 0.5 * PLANE_SIZE_FACTOR * np.linalg.norm(high - low)
+    centre = (0.5 * (low + high) - pose[:3]) @ rotation  # in the plane's frame
+    u, v = _PLANE_AXES[axis]
+    corners = np.zeros((4, 3))
+    for k, (su, sv) in enumerate(((-1, -1), (1, -1), (1, 1), (-1, 1))):
+        corners[k, u] = centre[u] + su * half
+        corners[k, v] = centre[v] + sv * half
+    faces = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int64)
+    return BodySpec(name=path.rsplit("/", 1)[-1], path=path, vertices=corners, faces=faces, pose=pose, static=True)
+
+
 def _local_triangles(kind, prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
     """A collider's triangles in its own prim frame, from its unscaled attributes."""
     if kind == "MeshShape":
@@ -631,6 +660,7 @@ def load_scene(path) -> Scene:
     static_bodies: dict[str, BodySpec] = {}
     colliders: dict[str, list] = {}  # rigid body path -> its collider prims
     collider_materials: dict[str, list] = {}  # collider path -> its bound physics materials
+    planes = []  # (path, world frame in stage units, axis token) of Plane colliders
     shape_kinds = [k for k in descs if k.endswith("Shape")]
     for kind in shape_kinds:
         for prim_path, desc in descs[kind]:
@@ -639,6 +669,13 @@ def load_scene(path) -> Scene:
                 continue
             _require_default_transform(prim, UsdGeom, Usd, source)
             owner = str(desc.rigidBody) if desc.rigidBody and str(desc.rigidBody) in bodies else ""
+            collider_materials[str(prim_path)] = [stage.GetPrimAtPath(m) for m in desc.materials]
+            if kind == "PlaneShape":
+                if owner:
+                    raise ValueError(f"{source}: prim {prim_path}: a Plane collider is infinite; it cannot belong to rigid body {owner}")
+                # Its size depends on every other body: built after them.
+                planes.append((str(prim_path), _frame(_world_matrix(prim, UsdGeom, Usd)), _axis_token(desc.axis)))
+                continue
             approximation = _approximation(kind, desc, prim, source)
             matrix = _world_matrix(prim, UsdGeom, Usd)
             linear = _linear_part(matrix)
@@ -687,7 +724,8 @@ def load_scene(path) -> Scene:
             target.faces = np.concatenate([target.faces, faces + offset])
             if owner:
                 colliders.setdefault(owner, []).append(prim)
-            collider_materials[str(prim_path)] = [stage.GetPrimAtPath(m) for m in desc.materials]
+    for path, frame, axis in planes:
+        static_bodies[path] = _plane_body(path, frame, axis, meters, [*bodies.values(), *static_bodies.values()])
     for owner, prims in colliders.items():
         _read_collider_mass(stage.GetPrimAtPath(owner), prims, bodies[owner], UsdPhysics, units, source)
         _read_material_density(prims, collider_materials, bodies[owner], UsdPhysics, units, source)
