@@ -1012,3 +1012,27 @@ def test_a_plane_collider_on_a_rigid_body_is_refused(tmp_path):
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match=r"prim /World/box/flat: a Plane collider is infinite; it cannot belong to rigid body /World/box"):
         io.load_scene(path)
+
+
+@pytest.mark.parametrize("scaled", [False, True])
+def test_a_cone_collider_loads_where_usd_puts_it(tmp_path, scaled):
+    """Cone colliders were refused. UsdGeom's cone is centred on its origin with its apex
+    towards +axis; under a body scaled (1, 2, 1) its points take the exact path."""
+    path = write_physics_scene(tmp_path / "cone.usda", drop_height=2.0)
+    stage = Usd.Stage.Open(str(path))
+    cone = UsdGeom.Cone.Define(stage, "/World/box/tip")
+    cone.CreateRadiusAttr(0.2)
+    cone.CreateHeightAttr(0.4)
+    cone.CreateAxisAttr("X")
+    cone.AddTranslateOp().Set(Gf.Vec3d(0.5, 0.0, 0.0))
+    UsdPhysics.CollisionAPI.Apply(cone.GetPrim())
+    if scaled:
+        UsdGeom.Xformable(stage.GetPrimAtPath("/World/box")).AddScaleOp().Set(Gf.Vec3f(1.0, 2.0, 1.0))
+    stage.GetRootLayer().Save()
+    box = io.load_scene(path).body("box")
+    world = box.vertices @ quat_matrix(box.pose[3:]).T + box.pose[:3]
+    matrix = cone.ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    apex = np.array(matrix.Transform(Gf.Vec3d(0.2, 0.0, 0.0)))
+    rim = np.array(matrix.Transform(Gf.Vec3d(-0.2, 0.0, 0.2)))
+    assert np.linalg.norm(world - apex, axis=1).min() < 1e-7
+    assert np.linalg.norm(world - rim, axis=1).min() < 1e-7  # a rim point at angle 90 degrees

@@ -38,7 +38,7 @@ typo would otherwise fall back to the default silently).
 
 Primitive colliders are triangulated: Cube exactly (12 triangles), Sphere as an icosphere
 with ``SPHERE_SUBDIVISIONS`` = 2 (320 triangles), Capsule and Cylinder with 32 segments; use
-Mesh prims to control resolution. A static Plane (infinite) becomes a square of
+Mesh prims to control resolution; Cone with 32 segments. A static Plane (infinite) becomes a square of
 ``PLANE_SIZE_FACTOR`` times the other bodies' extent, centred under them. Polygons are fan-triangulated (exact for convex ones).
 Kinematic or disabled rigid bodies load as static bodies (an animated kinematic body is an
 error). Scales anywhere above a collider
@@ -361,9 +361,18 @@ def _shape_triangles(desc, kind, prim, UsdGeom, source):
     elif kind in ("CylinderShape", "Cylinder1Shape"):
         m = trimesh.creation.cylinder(radius=float(desc.radius), height=2.0 * float(desc.halfHeight), sections=ROUND_SEGMENTS)
         m = _align_axis(m, str(desc.axis))
+    elif kind == "ConeShape":
+        m = _align_axis(_cone(float(desc.radius), 2.0 * float(desc.halfHeight)), str(desc.axis))
     else:
-        raise ValueError(f"{source}: prim {prim.GetPath()}: collider type {kind} is not supported (use a Mesh, Cube, Sphere, Capsule or Cylinder)")
+        raise ValueError(f"{source}: prim {prim.GetPath()}: collider type {kind} is not supported (use a Mesh, Cube, Sphere, Capsule, Cylinder, Cone or Plane)")
     return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
+
+
+def _cone(radius: float, height: float):
+    """UsdGeom's cone: centred on its origin, its apex up the +z spine (trimesh's stands on z = 0)."""
+    m = trimesh.creation.cone(radius=radius, height=height, sections=ROUND_SEGMENTS)
+    m.apply_translation((0.0, 0.0, -0.5 * height))
+    return m
 
 
 def _align_axis(mesh, axis: str):
@@ -521,10 +530,13 @@ def _local_triangles(kind, prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarra
         shape = UsdGeom.Cylinder(prim)
         m = trimesh.creation.cylinder(radius=float(shape.GetRadiusAttr().Get()), height=float(shape.GetHeightAttr().Get()), sections=ROUND_SEGMENTS)
         m = _align_axis(m, str(shape.GetAxisAttr().Get()))
+    elif kind == "ConeShape":
+        shape = UsdGeom.Cone(prim)
+        m = _align_axis(_cone(float(shape.GetRadiusAttr().Get()), float(shape.GetHeightAttr().Get())), str(shape.GetAxisAttr().Get()))
     else:
         raise ValueError(
             f"{source}: prim {prim.GetPath()}: a {kind} collider under a non-uniform scale or a shear is not supported "
-            "(use a Mesh, Cube, Sphere, Capsule or Cylinder there, or move the scale onto the collider)"
+            "(use a Mesh, Cube, Sphere, Capsule, Cylinder or Cone there, or move the scale onto the collider)"
         )
     return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
 
