@@ -1036,3 +1036,37 @@ def test_a_cone_collider_loads_where_usd_puts_it(tmp_path, scaled):
     rim = np.array(matrix.Transform(Gf.Vec3d(-0.2, 0.0, 0.2)))
     assert np.linalg.norm(world - apex, axis=1).min() < 1e-7
     assert np.linalg.norm(world - rim, axis=1).min() < 1e-7  # a rim point at angle 90 degrees
+
+
+def test_tapered_capsule_and_cylinder_colliders_load(tmp_path):
+    """Capsule_1 and Cylinder_1 (different top and bottom radii) failed with an AttributeError."""
+    path = write_physics_scene(tmp_path / "tapered.usda", drop_height=2.0)
+    stage = Usd.Stage.Open(str(path))
+    stage.RemovePrim("/World/box/shape")
+    frustum = UsdGeom.Cylinder_1.Define(stage, "/World/box/shape")
+    frustum.CreateRadiusBottomAttr(0.15)
+    frustum.CreateRadiusTopAttr(0.05)
+    frustum.CreateHeightAttr(0.3)
+    UsdPhysics.CollisionAPI.Apply(frustum.GetPrim())
+    stage.GetRootLayer().Save()
+    body = io.load_scene(path).body("box")
+    area = [0.5 * io.ROUND_SEGMENTS * r * r * np.sin(2 * np.pi / io.ROUND_SEGMENTS) for r in (0.15, 0.05)]
+    volume = 0.3 / 3 * (area[0] + area[1] + np.sqrt(area[0] * area[1]))  # a 32-gon frustum
+    assert trimesh.Trimesh(body.vertices, body.faces).volume == pytest.approx(volume, rel=1e-6)  # float32 radii
+    stage.RemovePrim("/World/box/shape")
+    capsule = UsdGeom.Capsule_1.Define(stage, "/World/box/shape")
+    capsule.CreateRadiusBottomAttr(0.2)
+    capsule.CreateRadiusTopAttr(0.1)
+    capsule.CreateHeightAttr(0.4)
+    capsule.CreateAxisAttr("X")
+    UsdPhysics.CollisionAPI.Apply(capsule.GetPrim())
+    stage.GetRootLayer().Save()
+    body = io.load_scene(path).body("box")
+    posed = body.vertices + body.pose[:3] - [0.1, 0.0, 2.0]  # the body's origin
+    np.testing.assert_allclose([posed[:, 0].min(), posed[:, 0].max()], [-0.4, 0.3], atol=1e-7)  # -0.2 - 0.2 and 0.2 + 0.1
+    assert trimesh.Trimesh(body.vertices, body.faces).is_convex
+    capsule.CreateRadiusTopAttr(0.0)
+    capsule.CreateRadiusBottomAttr(0.0)
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/box/shape: radii must be >= 0 \(one of them > 0\) and height >= 0, got radii 0, 0"):
+        io.load_scene(path)

@@ -38,7 +38,8 @@ typo would otherwise fall back to the default silently).
 
 Primitive colliders are triangulated: Cube exactly (12 triangles), Sphere as an icosphere
 with ``SPHERE_SUBDIVISIONS`` = 2 (320 triangles), Capsule and Cylinder with 32 segments; use
-Mesh prims to control resolution; Cone with 32 segments. A static Plane (infinite) becomes a square of
+Mesh prims to control resolution; Cone with 32 segments; Capsule_1 and Cylinder_1 (two end
+radii) as the hull of their end spheres or rings. A static Plane (infinite) becomes a square of
 ``PLANE_SIZE_FACTOR`` times the other bodies' extent, centred under them. Polygons are fan-triangulated (exact for convex ones).
 Kinematic or disabled rigid bodies load as static bodies (an animated kinematic body is an
 error). Scales anywhere above a collider
@@ -355,17 +356,37 @@ def _shape_triangles(desc, kind, prim, UsdGeom, source):
         m = trimesh.creation.box(extents=2.0 * np.asarray(desc.halfExtents, dtype=np.float64))
     elif kind == "SphereShape":
         m = trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=float(desc.radius))
-    elif kind in ("CapsuleShape", "Capsule1ShapeDesc", "Capsule1Shape"):
+    elif kind == "CapsuleShape":
         m = trimesh.creation.capsule(height=2.0 * float(desc.halfHeight), radius=float(desc.radius), count=[ROUND_SEGMENTS, ROUND_SEGMENTS])
         m = _align_axis(m, str(desc.axis))
-    elif kind in ("CylinderShape", "Cylinder1Shape"):
+    elif kind == "CylinderShape":
         m = trimesh.creation.cylinder(radius=float(desc.radius), height=2.0 * float(desc.halfHeight), sections=ROUND_SEGMENTS)
+        m = _align_axis(m, str(desc.axis))
+    elif kind in ("Capsule1Shape", "Cylinder1Shape"):
+        m = _tapered(float(desc.bottomRadius), float(desc.topRadius), 2.0 * float(desc.halfHeight), rounded=kind == "Capsule1Shape", where=f"{source}: prim {prim.GetPath()}")
         m = _align_axis(m, str(desc.axis))
     elif kind == "ConeShape":
         m = _align_axis(_cone(float(desc.radius), 2.0 * float(desc.halfHeight)), str(desc.axis))
     else:
         raise ValueError(f"{source}: prim {prim.GetPath()}: collider type {kind} is not supported (use a Mesh, Cube, Sphere, Capsule, Cylinder, Cone or Plane)")
     return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
+
+
+def _tapered(bottom: float, top: float, height: float, *, rounded: bool, where: str):
+    """UsdGeom's Cylinder_1 (a frustum) or Capsule_1 (the hull of its two end spheres) of
+    radii ``bottom`` and ``top`` (at -height/2 and +height/2 on the z spine): the convex hull
+    of two rings, or two spheres, of ROUND_SEGMENTS segments."""
+    if not (min(bottom, top) >= 0.0 and max(bottom, top) > 0.0 and height >= 0.0 and np.isfinite([bottom, top, height]).all()):
+        raise ValueError(f"{where}: radii must be >= 0 (one of them > 0) and height >= 0, got radii {bottom:g}, {top:g} and height {height:g}")
+    if rounded:
+        unit = np.asarray(trimesh.creation.uv_sphere(radius=1.0, count=[ROUND_SEGMENTS, ROUND_SEGMENTS]).vertices)
+    else:
+        angle = 2.0 * np.pi * np.arange(ROUND_SEGMENTS) / ROUND_SEGMENTS
+        unit = np.stack([np.cos(angle), np.sin(angle), np.zeros_like(angle)], axis=1)
+    lift = np.array([0.0, 0.0, 0.5 * height])
+    points = np.vstack([unit * bottom - lift, unit * top + lift])
+    used, faces = np.unique(convex_hull(points), return_inverse=True)
+    return trimesh.Trimesh(points[used], faces.reshape(-1, 3), process=False)
 
 
 def _cone(radius: float, height: float):
@@ -529,6 +550,16 @@ def _local_triangles(kind, prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarra
     elif kind == "CylinderShape":
         shape = UsdGeom.Cylinder(prim)
         m = trimesh.creation.cylinder(radius=float(shape.GetRadiusAttr().Get()), height=float(shape.GetHeightAttr().Get()), sections=ROUND_SEGMENTS)
+        m = _align_axis(m, str(shape.GetAxisAttr().Get()))
+    elif kind in ("Capsule1Shape", "Cylinder1Shape"):
+        shape = UsdGeom.Capsule_1(prim) if kind == "Capsule1Shape" else UsdGeom.Cylinder_1(prim)
+        m = _tapered(  # magnitudes, as UsdPhysics reads them
+            abs(float(shape.GetRadiusBottomAttr().Get())),
+            abs(float(shape.GetRadiusTopAttr().Get())),
+            abs(float(shape.GetHeightAttr().Get())),
+            rounded=kind == "Capsule1Shape",
+            where=f"{source}: prim {prim.GetPath()}",
+        )
         m = _align_axis(m, str(shape.GetAxisAttr().Get()))
     elif kind == "ConeShape":
         shape = UsdGeom.Cone(prim)
