@@ -964,15 +964,18 @@ def test_bodies_closer_than_the_plane_search_resolves_are_refused_with_a_hint(tm
             wc.ImplicitSolver(model).step(model.state(requires_grad=False), model.state(requires_grad=False), None, 0.04)
 
 
-def test_physx_body_damping_is_named_in_a_warning(tmp_path):
-    """Isaac assets author PhysX damping, which changes a body's motion and is not modelled."""
+def test_unmodelled_damping_and_restitution_are_named_in_a_warning(tmp_path):
+    """Isaac assets author PhysX damping, and materials restitution: both change how bodies
+    move, and neither is modelled (they were ignored silently)."""
     path = write_physics_scene(tmp_path / "damped.usda")
     stage = Usd.Stage.Open(str(path))
     box = stage.GetPrimAtPath("/World/box")
     box.CreateAttribute("physxRigidBody:angularDamping", Sdf.ValueTypeNames.Float).Set(0.05)
     box.CreateAttribute("physxRigidBody:linearDamping", Sdf.ValueTypeNames.Float).Set(0.0)  # zero: nothing ignored
     stage.GetRootLayer().Save()
-    with pytest.warns(UserWarning, match=r"damped\.usda: PhysX body damping is not modelled and is ignored: /World/box angularDamping 0.05$"):
+    _bind_physics_material(stage, "/World/box/shape", "/World/rubber", restitution=0.8)
+    stage.GetRootLayer().Save()
+    with pytest.warns(UserWarning, match=r"damped\.usda: not modelled, so ignored: /World/box physxRigidBody:angularDamping 0.05, /World/rubber physics:restitution 0.8$"):
         io.load_scene(path)
 
 

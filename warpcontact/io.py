@@ -59,7 +59,8 @@ Bound physics materials give density (per body) and dynamicFriction (the scene's
 coefficient, unless warpcontact:friction is authored); values that differ where one is
 needed are errors, as are per-collider MassAPI properties beyond a single collider's
 mass or density. Collision filters (FilteredPairsAPI, CollisionGroup filtering) are errors.
-PhysX schema attributes are not read; non-zero PhysX body damping is named in a warning.
+PhysX schema attributes are not read; non-zero PhysX body damping and material restitution
+(contacts are inelastic) are named in a warning.
 A stage that does not compose (a missing reference, payload or sublayer, which USD only
 warns about) is an error listing what is missing. Stage metersPerUnit is applied to lengths
 (unauthored, USD's fallback of 0.01 applies: centimetres; zero, negative or NaN is an
@@ -629,7 +630,6 @@ def load_scene(path) -> Scene:
     parsed = _load_physics(stage, UsdPhysics)
     descs = {str(k): list(zip(v[0], v[1])) for k, v in parsed.items()}
     _refuse_collision_filters(stage, UsdPhysics, source)
-    _warn_ignored_damping(stage, source)
     for kind in ("FixedJoint", "DistanceJoint", "CustomJoint"):
         for prim_path, _ in descs.get(kind, []):
             raise ValueError(f"{source}: prim {prim_path}: {kind} is not supported (supported: revolute, prismatic, spherical and D6 joints)")
@@ -792,6 +792,7 @@ def load_scene(path) -> Scene:
     if scene_prim is not None:
         _read_settings(scene_prim, settings, task, source)
     _read_material_friction(collider_materials, scene_prim, settings, UsdPhysics, source)
+    _warn_unmodelled(stage, collider_materials, UsdPhysics, source)
     joints = _read_joints(stage, descs, {**bodies, **static_bodies}, mirrored, units, source, UsdPhysics)
     return Scene(bodies=all_bodies, gravity=gravity, settings=settings, task=task, source=source, joints=joints)
 
@@ -1083,16 +1084,23 @@ def _read_collider_mass(body_prim, collider_prims, body: BodySpec, UsdPhysics, u
 _PHYSX_DAMPING = ("physxRigidBody:linearDamping", "physxRigidBody:angularDamping")
 
 
-def _warn_ignored_damping(stage, source: str) -> None:
-    """Warn, naming the prims, about non-zero PhysX body damping, which is not modelled."""
+def _warn_unmodelled(stage, collider_materials: dict, UsdPhysics, source: str) -> None:
+    """Warn, naming the prims, about authored physics this simulator does not model: non-zero
+    PhysX body damping, and restitution of the colliders' physics materials (contacts here
+    are inelastic: the implicit step dissipates the normal impact velocity)."""
     found = []
     for prim in stage.Traverse():
         for name in _PHYSX_DAMPING:
             attr = prim.GetAttribute(name)
             if attr and attr.HasAuthoredValue() and attr.Get():
-                found.append(f"{prim.GetPath()} {name.split(':')[1]} {attr.Get():g}")
+                found.append(f"{prim.GetPath()} {name} {attr.Get():g}")
+    materials = {str(m.GetPath()): m for bound in collider_materials.values() for m in bound if m and m.HasAPI(UsdPhysics.MaterialAPI)}
+    for path, material in materials.items():
+        attr = UsdPhysics.MaterialAPI(material).GetRestitutionAttr()
+        if attr and attr.HasAuthoredValue() and attr.Get():
+            found.append(f"{path} physics:restitution {attr.Get():g}")
     if found:
-        warnings.warn(f"{source}: PhysX body damping is not modelled and is ignored: {', '.join(found[:5])}{' ...' if len(found) > 5 else ''}", stacklevel=3)
+        warnings.warn(f"{source}: not modelled, so ignored: {', '.join(found[:5])}{' ...' if len(found) > 5 else ''}", stacklevel=3)
 
 
 def _refuse_collision_filters(stage, UsdPhysics, source: str) -> None:
