@@ -21,7 +21,9 @@ def convex_hull(points, *, all_on_hull: bool = False) -> np.ndarray:
     Incremental: from a tetrahedron (the first four points where they span one), each point
     in turn replaces the faces it sees with a fan from their horizon. Points inside the hull
     or on it (within 1e-12 of the points' extent) are left out, or with ``all_on_hull``
-    (points meant to be in convex position) are an error.
+    (points meant to be in convex position) are an error. Each point is tested against every
+    face, so the cost grows as points x hull faces (this 2-core CPU: 0.07 s for 642 points
+    all on the hull, 0.5 s for 2,562, 6 s for 10,242; a 3,000-point cloud in a box, 0.1 s).
 
     Args:
         points: (N, 3) coordinates, N >= 4, finite.
@@ -44,20 +46,30 @@ def convex_hull(points, *, all_on_hull: bool = False) -> np.ndarray:
         normal = np.cross(points[j] - points[i], points[k] - points[i])
         faces.append(f if np.dot(normal, points[i] - centre) > 0 else (i, k, j))
     faces = np.array(faces, dtype=np.int64)
+    # Per face: its first corner and its normal scaled to unit length over the tolerance, so
+    # that a point sees the face where (p - corner) . scaled > 1.
+    corner, scaled = _face_planes(points, faces, tolerance)
     rest = [p for p in range(len(points)) if p not in seed]
     for p in rest:
-        corner = points[faces[:, 0]]
-        normal = np.cross(points[faces[:, 1]] - corner, points[faces[:, 2]] - corner)
-        height = np.einsum("ij,ij->i", normal, points[p] - corner)
-        visible = height > tolerance * np.linalg.norm(normal, axis=1)
+        visible = np.einsum("ij,ij->i", scaled, points[p] - corner) > 1.0
         if not visible.any():
             if all_on_hull:
                 raise ValueError(f"point {p} is not in convex position")
             continue
         edges = {(int(f[e]), int(f[(e + 1) % 3])) for f in faces[visible] for e in range(3)}
-        horizon = [(u, v, p) for (u, v) in edges if (v, u) not in edges]
-        faces = np.concatenate([faces[~visible], np.array(horizon, dtype=np.int64).reshape(-1, 3)])
+        horizon = np.array([(u, v, p) for (u, v) in edges if (v, u) not in edges], dtype=np.int64).reshape(-1, 3)
+        new_corner, new_scaled = _face_planes(points, horizon, tolerance)
+        faces = np.concatenate([faces[~visible], horizon])
+        corner = np.concatenate([corner[~visible], new_corner])
+        scaled = np.concatenate([scaled[~visible], new_scaled])
     return faces
+
+
+def _face_planes(points: np.ndarray, faces: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each face's first corner and its unit normal divided by ``tolerance``."""
+    corner = points[faces[:, 0]]
+    normal = np.cross(points[faces[:, 1]] - corner, points[faces[:, 2]] - corner)
+    return corner, normal / (tolerance * np.linalg.norm(normal, axis=1, keepdims=True))
 
 
 def _seed_tetrahedron(points: np.ndarray, tolerance: float) -> tuple[int, int, int, int]:
