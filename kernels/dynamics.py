@@ -216,6 +216,10 @@ def body_energy_kernel(
     if kp_ang != wp.float64(0.0):
         e_a, g_a, h_a = _alignment_terms(r_target, r, half * kp_ang)
         energy += e_a + wp.float64(1.5) * kp_ang
+        if wp.length(wp.transform_get_rotation(body_target[b])) == wp.float64(0.0):
+            # No rotation to drive to (it normalises to zero, and drove nothing): the step
+            # reports a non-finite objective, and the solver names the target.
+            energy = wp.float64(wp.inf)
         g_rot += g_a
         h_rot += h_a
     kd_ang = bodies.kd_angular[b]

@@ -668,6 +668,22 @@ def test_a_step_whose_bodies_fall_thousands_of_radii_says_to_reduce_dt():
         solver.step(model.state(requires_grad=False), model.state(requires_grad=False), None, 0.02)
 
 
+def test_a_zero_rotation_pd_target_is_refused():
+    """It normalised to a zero matrix and drove no rotation at all, silently; a target
+    quaternion of any other norm is normalised."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.3, 0.3, 0.3), density=500.0, name="driven", kp_linear=100.0, kd_linear=10.0, kp_angular=50.0, kd_angular=5.0)
+    model = b.finalize()
+    control = model.control(requires_grad=False)
+    control.body_target.assign(wp.array([[0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]], dtype=wp.transformd))
+    state_out = model.state(requires_grad=False)
+    with pytest.raises(ValueError, match=r"control.body_target: the target of body 'driven' \(index 0\) has a zero rotation quaternion"):
+        wc.ImplicitSolver(model).step(model.state(requires_grad=False), state_out, control, 0.04)
+    control.body_target.assign(wp.array([[0.1, 0.0, 0.0, 0.0, 0.0, 2.0 * np.sin(0.3), 2.0 * np.cos(0.3)]], dtype=wp.transformd))
+    wc.ImplicitSolver(model).step(model.state(requires_grad=False), state_out, control, 0.04)  # any other norm normalises
+    assert state_out.body_q.numpy()[0, 5] > 0.0  # turning towards the target
+
+
 def test_builder_names_its_contact_modes_ipc_included():
     with pytest.raises(ValueError, match=r"contact_mode: 'exact' is not one of \('bsh', 'brute', 'sdrs', 'ipc'\)"):
         wc.ModelBuilder(contact_mode="exact")

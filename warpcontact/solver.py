@@ -616,10 +616,15 @@ class ImplicitSolver:
             q, value, grad, hess, contact, q_lists = self._warm_start(q, value, grad, hess, contact, coords, step_in)
         if not np.isfinite(value):
             if control is not None:
-                # Read back only on failure: a non-finite PD target is the caller's error.
-                bad = np.flatnonzero(~np.isfinite(control.body_target.numpy()).all(axis=1) & self._dynamic)
+                # Read back only on failure: a non-finite PD target, or a zero rotation for a
+                # body with rotational PD stiffness, is the caller's error.
+                targets = control.body_target.numpy()
+                bad = np.flatnonzero(~np.isfinite(targets).all(axis=1) & self._dynamic)
                 if bad.size:
                     raise ValueError(f"control.body_target: the target of body {self.model.body_names[bad[0]]!r} (index {bad[0]}) is not finite")
+                unrotated = np.flatnonzero((np.linalg.norm(targets[:, 3:], axis=1) == 0.0) & (self.model.body_kp_angular.numpy() != 0.0) & self._dynamic)
+                if unrotated.size:
+                    raise ValueError(f"control.body_target: the target of body {self.model.body_names[unrotated[0]]!r} (index {unrotated[0]}) has a zero rotation quaternion")
             # Joint coordinates outside their limits were refused with the state (_joint_arrays).
             pairs = ", ".join(f"{a} and {b}" for a, b in contact.unsolved_pairs)
             raise SolverError(f"objective is not finite at the start pose: {pairs}: {UNSOLVED_HINT}")
