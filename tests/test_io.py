@@ -180,7 +180,6 @@ def test_trajectory_export_opens_with_time_samples(tmp_path):
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        (dict(mass=0.0), r"/World/box: mass must be positive"),
         (dict(mass=-2.0), r"/World/box: mass must be positive"),
         (dict(joint="RevoluteJoint"), r"/World/joint: body1 \(none\) is not a rigid body with a collider \(every link needs a mesh\)"),
         (dict(joint="FixedJoint"), r"/World/joint: FixedJoint is not supported"),
@@ -1072,4 +1071,26 @@ def test_tapered_capsule_and_cylinder_colliders_load(tmp_path):
     capsule.CreateRadiusBottomAttr(0.0)
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match=r"prim /World/box/shape: radii must be >= 0 \(one of them > 0\) and height >= 0, got radii 0, 0"):
+        io.load_scene(path)
+
+
+def test_mass_properties_authored_at_their_unspecified_values_are_not_specified(tmp_path):
+    """UsdPhysics: mass, density and diagonalInertia mean something only if non-zero, and a
+    centre of mass of -inf is none. Exported assets author these defaults; a mass of 0 was
+    refused as "mass must be positive"."""
+    path = write_physics_scene(tmp_path / "defaults.usda", mass=0.0)
+    stage = Usd.Stage.Open(str(path))
+    mass = UsdPhysics.MassAPI(stage.GetPrimAtPath("/World/box"))
+    mass.CreateDensityAttr(0.0)
+    mass.CreateCenterOfMassAttr(Gf.Vec3f(-np.inf, -np.inf, -np.inf))
+    mass.CreateDiagonalInertiaAttr(Gf.Vec3f(0.0, 0.0, 0.0))
+    mass.CreatePrincipalAxesAttr(Gf.Quatf(0.0, 0.0, 0.0, 0.0))
+    _bind_physics_material(stage, "/World/box/shape", "/World/plain", density=0.0)
+    stage.GetRootLayer().Save()
+    box = io.load_scene(path).body("box")
+    assert box.mass is None and box.density is None and box.center_of_mass is None and box.inertia is None
+    assert io.load_scene(path).build_model().body_mass.numpy()[1] == pytest.approx(1000.0 * 0.5**3)  # the default density
+    mass.GetDiagonalInertiaAttr().Set(Gf.Vec3f(1.0, 0.0, 1.0))  # partly zero: not a default
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/box: diagonalInertia must be positive \(or 0 on every axis: not specified\)"):
         io.load_scene(path)

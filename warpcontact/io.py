@@ -1020,36 +1020,59 @@ def _read_d6(desc, spec: JointSpec, where: str, units: _Units):
         spec.kp, spec.kd = _ball_gains({axis: (drive.stiffness, drive.damping) for axis, drive in drives.items() if axis in _BALL_DRIVE_AXES and drive.enabled}, units, where)
 
 
+# MassAPI attributes and the value that, authored or not, means "not specified" (UsdPhysics:
+# "if non-zero, ..."; a centre of mass of -inf): exported assets often author these.
+_MASS_UNSPECIFIED = {
+    "mass": 0.0,
+    "density": 0.0,
+    "centerOfMass": (-np.inf, -np.inf, -np.inf),
+    "diagonalInertia": (0.0, 0.0, 0.0),
+    "principalAxes": (0.0, 0.0, 0.0, 0.0),
+}
+
+
+def _mass_properties(api) -> dict:
+    """A MassAPI's specified properties: {name: value} of those authored with a value other
+    than the one meaning "not specified" (``_MASS_UNSPECIFIED``); quaternions as (x, y, z, w)."""
+    found = {}
+    for name, unspecified in _MASS_UNSPECIFIED.items():
+        attr = getattr(api, f"Get{name[0].upper()}{name[1:]}Attr")()
+        if not (attr and attr.HasAuthoredValue()):
+            continue
+        value = attr.Get()
+        value = _quat_xyzw(value) if name == "principalAxes" else np.asarray(value, dtype=np.float64)
+        if name == "principalAxes" and not value.any():
+            continue
+        if name != "principalAxes" and np.array_equal(value, unspecified):
+            continue
+        found[name] = value
+    return found
+
+
 def _read_mass(prim, body: BodySpec, UsdPhysics, units: _Units, source: str):
     if not prim.HasAPI(UsdPhysics.MassAPI):
         return
-    api = UsdPhysics.MassAPI(prim)
+    specified = _mass_properties(UsdPhysics.MassAPI(prim))
     where = f"{source}: prim {prim.GetPath()}"
-    mass_attr = api.GetMassAttr()
-    if mass_attr and mass_attr.HasAuthoredValue():
-        mass = float(mass_attr.Get())
+    if "mass" in specified:
+        mass = float(specified["mass"])
         if not np.isfinite(mass) or mass <= 0:
-            raise ValueError(f"{where}: mass must be positive, got {mass}")
+            raise ValueError(f"{where}: mass must be positive (or 0: not specified), got {mass}")
         body.mass = mass * units.kilograms
-    density_attr = api.GetDensityAttr()
-    if density_attr and density_attr.HasAuthoredValue():
-        density = float(density_attr.Get())
+    if "density" in specified:
+        density = float(specified["density"])
         if not np.isfinite(density) or density <= 0:
-            raise ValueError(f"{where}: density must be positive, got {density}")
+            raise ValueError(f"{where}: density must be positive (or 0: not specified), got {density}")
         body.density = density * units.density
-    com_attr = api.GetCenterOfMassAttr()
-    if com_attr and com_attr.HasAuthoredValue():
-        body.center_of_mass = np.asarray(com_attr.Get(), dtype=np.float64) * units.meters
+    if "centerOfMass" in specified:
+        body.center_of_mass = specified["centerOfMass"] * units.meters
         if not np.isfinite(body.center_of_mass).all():
-            raise ValueError(f"{where}: centerOfMass must be finite, got {body.center_of_mass.tolist()}")
-    diag_attr = api.GetDiagonalInertiaAttr()
-    if diag_attr and diag_attr.HasAuthoredValue():
-        diag = np.asarray(diag_attr.Get(), dtype=np.float64) * units.inertia
-        axes_attr = api.GetPrincipalAxesAttr()
-        q = _quat_xyzw(axes_attr.Get()) if axes_attr and axes_attr.HasAuthoredValue() else np.array([0.0, 0.0, 0.0, 1.0])
-        R = quat_to_matrix(q)
+            raise ValueError(f"{where}: centerOfMass must be finite (or -inf on every axis: not specified), got {body.center_of_mass.tolist()}")
+    if "diagonalInertia" in specified:
+        diag = specified["diagonalInertia"] * units.inertia
+        R = quat_to_matrix(specified.get("principalAxes", np.array([0.0, 0.0, 0.0, 1.0])))
         if not (np.isfinite(diag).all() and (diag > 0).all()):
-            raise ValueError(f"{where}: diagonalInertia must be positive, got {diag}")
+            raise ValueError(f"{where}: diagonalInertia must be positive (or 0 on every axis: not specified), got {diag}")
         body.inertia = R @ np.diag(diag) @ R.T
 
 
@@ -1062,9 +1085,7 @@ def _read_collider_mass(body_prim, collider_prims, body: BodySpec, UsdPhysics, u
     for prim in collider_prims:
         if prim == body_prim or not prim.HasAPI(UsdPhysics.MassAPI):
             continue
-        api = UsdPhysics.MassAPI(prim)
-        names = [name for name, attr in (("mass", api.GetMassAttr()), ("density", api.GetDensityAttr()), ("centerOfMass", api.GetCenterOfMassAttr()),
-                                          ("diagonalInertia", api.GetDiagonalInertiaAttr()), ("principalAxes", api.GetPrincipalAxesAttr())) if attr and attr.HasAuthoredValue()]
+        names = list(_mass_properties(UsdPhysics.MassAPI(prim)))
         if names:
             authored.append((prim, names))
     if not authored:
@@ -1134,6 +1155,8 @@ def _read_material_density(collider_prims, collider_materials, body: BodySpec, U
     5,000 kg/m^3 gave the default 1,000), where the body has no mass or density of its own.
     Colliders of one body with different densities are refused: they are not combined."""
     densities = {str(prim.GetPath()): _material_value(collider_materials[str(prim.GetPath())], "density", UsdPhysics) for prim in collider_prims}
+    # A material density of 0 means "not specified" (UsdPhysics: "if non-zero").
+    densities = {path: (None if d == 0.0 else d) for path, d in densities.items()}
     values = {d for d in densities.values() if d is not None}
     if not values or body.mass is not None or body.density is not None:
         return
