@@ -58,7 +58,8 @@ code; a body or collider transform with time samples but no default value is an 
 Bound physics materials give density (per body) and dynamicFriction (the scene's one
 coefficient, unless warpcontact:friction is authored); values that differ where one is
 needed are errors, as are per-collider MassAPI properties beyond a single collider's
-mass or density. Collision filters (FilteredPairsAPI, CollisionGroup filtering) are errors.
+mass or density; mass properties authored at UsdPhysics' "not specified" values (a mass,
+density or inertia of 0, a centre of mass of -inf) are read as not specified. Collision filters (FilteredPairsAPI, CollisionGroup filtering) are errors.
 PhysX schema attributes are not read; non-zero PhysX body damping and material restitution
 (contacts are inelastic) are named in a warning.
 A stage that does not compose (a missing reference, payload or sublayer, which USD only
