@@ -1006,6 +1006,21 @@ def test_a_plane_collider_becomes_a_large_square_under_the_scene(tmp_path, axis)
     assert q[-1, 0, 2] == pytest.approx(-0.25, abs=1e-3)  # the box rests on it
 
 
+def test_two_plane_colliders_are_each_sized_by_the_other_bodies(tmp_path):
+    """A floor and a wall: the second was sized by the first's 100-fold square as well."""
+    path = write_physics_scene(tmp_path / "planes.usda")
+    stage = Usd.Stage.Open(str(path))
+    for name, ops in (("floor", []), ("wall", [("Translate", (3.0, 0.0, 0.0)), ("RotateY", -90.0)])):
+        plane = UsdGeom.Plane.Define(stage, f"/World/{name}")
+        for op, value in ops:
+            getattr(plane, f"Add{op}Op")().Set(Gf.Vec3d(*value) if op == "Translate" else value)
+        UsdPhysics.CollisionAPI.Apply(plane.GetPrim())
+    stage.GetRootLayer().Save()
+    scene = io.load_scene(path)
+    sides = [np.ptp(scene.body(name).vertices, axis=0).max() for name in ("floor", "wall")]
+    assert sides[0] == pytest.approx(sides[1], rel=1e-9)
+
+
 def test_a_plane_collider_on_a_rigid_body_is_refused(tmp_path):
     path = write_physics_scene(tmp_path / "plane_body.usda")
     stage = Usd.Stage.Open(str(path))

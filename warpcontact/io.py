@@ -768,8 +768,9 @@ def load_scene(path) -> Scene:
             target.faces = np.concatenate([target.faces, faces + offset])
             if owner:
                 colliders.setdefault(owner, []).append(prim)
+    others = [*bodies.values(), *static_bodies.values()]  # without the planes: each sized by the rest alone
     for path, frame, axis in planes:
-        static_bodies[path] = _plane_body(path, frame, axis, meters, [*bodies.values(), *static_bodies.values()])
+        static_bodies[path] = _plane_body(path, frame, axis, meters, others)
     for owner, prims in colliders.items():
         _read_collider_mass(stage.GetPrimAtPath(owner), prims, bodies[owner], UsdPhysics, units, source)
         _read_material_density(prims, collider_materials, bodies[owner], UsdPhysics, units, source)
