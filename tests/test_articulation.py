@@ -280,6 +280,27 @@ def two_boxes():
     return b, a, c
 
 
+def test_a_joint_target_is_the_default_control_and_is_checked():
+    """``add_joint(target=...)`` (a USD drive's targetPosition) is what Model.control() drives
+    to: the pendulum settles where a control target of 0.4 rad took it; NaN keeps a
+    coordinate's initial value."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    rod = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, -0.5, 0, 0, 0, 1), name="rod")
+    b.add_joint("revolute", child=rod, anchor=(0, 0, 0), axis=(0, 1, 0), kp=200.0, kd=20.0, target=0.4)
+    model = b.finalize()
+    np.testing.assert_array_equal(model.control(requires_grad=False).joint_target.numpy(), [0.4])
+    states, _ = simulate(model, model.state(requires_grad=False), 300, 0.01, model.control(requires_grad=False))
+    a = states[-1].joint_q.numpy()[0]
+    assert 200.0 * (0.4 - a) == pytest.approx(9.81 * 0.5 * np.sin(a), rel=1e-3)
+    b, a_body, c = two_boxes()
+    b.add_joint("universal", child=a_body, anchor=(0, 0, 1.2), axis=[(1, 0, 0), (0, 1, 0)], target=[np.nan, 0.2])
+    np.testing.assert_allclose(b.finalize().articulation.default_targets, [0.0, 0.2], atol=1e-12)
+    for kind, target, match in (("revolute", [0.1, 0.2], r"target needs 1 value, got shape \(2,\)"), ("revolute", np.inf, r"target must be finite"), ("ball", 0.1, r"ball joints have no coordinates to target")):
+        b, a_body, c = two_boxes()
+        with pytest.raises(ValueError, match=match):
+            b.add_joint(kind, child=a_body, anchor=(0, 0, 1.2), axis=(0, 1, 0), target=target)
+
+
 def test_bad_joints_get_clear_errors():
     b, a, c = two_boxes()
     with pytest.raises(ValueError, match="unknown joint type 'hinge'"):

@@ -59,7 +59,8 @@ def _per_coordinate(value, count: int, label: str, where: str) -> np.ndarray:
     try:
         arr = np.broadcast_to(arr, (count,)).copy()
     except ValueError:
-        raise ValueError(f"{where}: {label} needs 1 or {count} values, got {arr.shape}") from None
+        wanted = "1 value" if count == 1 else f"1 or {count} values"
+        raise ValueError(f"{where}: {label} needs {wanted}, got shape {arr.shape}") from None
     return arr
 
 
