@@ -182,7 +182,8 @@ def test_trajectory_export_opens_with_time_samples(tmp_path):
     [
         (dict(mass=-2.0), r"/World/box: mass must be positive"),
         (dict(joint="RevoluteJoint"), r"/World/joint: body1 \(none\) is not a rigid body with a collider \(every link needs a mesh\)"),
-        (dict(joint="FixedJoint"), r"/World/joint: FixedJoint is not supported"),
+        (dict(joint="FixedJoint"), r"/World/joint: the fixed joint's frames on /World/box and on the world disagree by 0.608 m"),
+        (dict(joint="DistanceJoint"), r"/World/joint: DistanceJoint is not supported"),
         (dict(face_counts=[2] * 16), r"/World/ground: .*face 0 has 2 vertices"),
         (dict(drop_height=0.2), r"intersect in the initial pose: /World/ground and /World/box"),
     ],
@@ -1108,4 +1109,31 @@ def test_mass_properties_authored_at_their_unspecified_values_are_not_specified(
     mass.GetDiagonalInertiaAttr().Set(Gf.Vec3f(1.0, 0.0, 1.0))  # partly zero: not a default
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match=r"prim /World/box: diagonalInertia must be positive \(or 0 on every axis: not specified\)"):
+        io.load_scene(path)
+
+
+def test_a_body_welded_to_the_world_by_a_fixed_joint_is_static(tmp_path):
+    """An articulated robot's fixed base (a FixedJoint from the world) was refused as
+    "FixedJoint is not supported"; a fixed joint between two rigid bodies still is."""
+    path = write_physics_scene(tmp_path / "welded.usda", drop_height=3.0)
+    stage = Usd.Stage.Open(str(path))
+    weld = UsdPhysics.FixedJoint.Define(stage, "/World/root_joint")
+    weld.CreateBody1Rel().SetTargets(["/World/box"])
+    weld.CreateLocalPos0Attr(Gf.Vec3f(0.1, 0.0, 3.0))  # the box's place in the world
+    UsdPhysics.RigidBodyAPI.Apply(_cube_collider(stage, "/World/link", 0.2, (0.6, 0.0, 3.0)))
+    hinge = UsdPhysics.RevoluteJoint.Define(stage, "/World/hinge")
+    hinge.CreateAxisAttr("Y")
+    hinge.CreateBody0Rel().SetTargets(["/World/box"])
+    hinge.CreateBody1Rel().SetTargets(["/World/link"])
+    hinge.CreateLocalPos0Attr(Gf.Vec3f(0.3, 0.0, 0.0))
+    hinge.CreateLocalPos1Attr(Gf.Vec3f(-0.2, 0.0, 0.0))
+    stage.GetRootLayer().Save()
+    scene = io.load_scene(path)
+    assert scene.body("box").static and not scene.body("link").static
+    model, q = simulate(scene, 20)
+    np.testing.assert_array_equal(q[-1, 1], q[0, 1])  # the base holds
+    assert q[-1, 2, 2] < q[0, 2, 2] - 0.05  # the link swings down about the hinge
+    weld.CreateBody0Rel().SetTargets(["/World/link"])
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/root_joint: this fixed joint joins two rigid bodies \(merge them into one body\)"):
         io.load_scene(path)

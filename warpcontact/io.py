@@ -631,9 +631,10 @@ def load_scene(path) -> Scene:
     parsed = _load_physics(stage, UsdPhysics)
     descs = {str(k): list(zip(v[0], v[1])) for k, v in parsed.items()}
     _refuse_collision_filters(stage, UsdPhysics, source)
-    for kind in ("FixedJoint", "DistanceJoint", "CustomJoint"):
+    for kind in ("DistanceJoint", "CustomJoint"):
         for prim_path, _ in descs.get(kind, []):
-            raise ValueError(f"{source}: prim {prim_path}: {kind} is not supported (supported: revolute, prismatic, spherical and D6 joints)")
+            raise ValueError(f"{source}: prim {prim_path}: {kind} is not supported (supported: revolute, prismatic, spherical and D6 joints, and fixed joints to the world)")
+    welds = _world_welds(descs, source)
 
     # Gravity: the PhysicsScene's, else standard gravity along -up.
     gravity = np.array([0.0, 0.0, -9.81]) if up == UsdGeom.Tokens.z else np.array([0.0, -9.81, 0.0])
@@ -678,7 +679,7 @@ def load_scene(path) -> Scene:
             vertices=np.zeros((0, 3)),
             faces=np.zeros((0, 3), dtype=np.int64),
             pose=pose,
-            static=bool(desc.kinematicBody) or not bool(desc.rigidBodyEnabled),
+            static=bool(desc.kinematicBody) or not bool(desc.rigidBodyEnabled) or str(prim_path) in welds,
             linear_velocity=np.asarray(desc.linearVelocity, dtype=np.float64) * meters,
             angular_velocity=np.radians(np.asarray(desc.angularVelocity, dtype=np.float64)),
         )
@@ -768,6 +769,8 @@ def load_scene(path) -> Scene:
             target.faces = np.concatenate([target.faces, faces + offset])
             if owner:
                 colliders.setdefault(owner, []).append(prim)
+    for body_path, (joint_path, desc) in welds.items():
+        _check_weld(stage, bodies[body_path], joint_path, desc, static_bodies, meters, UsdGeom, Usd, source)
     others = [*bodies.values(), *static_bodies.values()]  # without the planes: each sized by the rest alone
     for path, frame, axis in planes:
         static_bodies[path] = _plane_body(path, frame, axis, meters, others)
@@ -842,6 +845,51 @@ def _coordinate_axes(free: list) -> list:
 
 def _axis_token(value) -> str:
     return str(value).split(".")[-1].upper()[-1]
+
+
+def _world_welds(descs: dict, source: str) -> dict:
+    """{rigid body path: (joint path, desc)} of the enabled FixedJoints that weld a rigid body
+    to the world (or to a collider without a rigid body): such a body never moves, so it
+    loads as a static body (an articulated robot's fixed base). A fixed joint between two
+    rigid bodies is refused: merge them into one body."""
+    rigid = {str(path) for path, _ in descs.get("RigidBody", [])}
+    welds = {}
+    for prim_path, desc in descs.get("FixedJoint", []):
+        if not desc.jointEnabled:
+            continue
+        moving = [str(end) for end in (desc.body0, desc.body1) if str(end) in rigid]
+        if len(moving) != 1:
+            what = "joins two rigid bodies (merge them into one body)" if moving else "joins no rigid body"
+            raise ValueError(f"{source}: prim {prim_path}: this fixed joint {what}; fixed joints are supported only to the world")
+        welds[moving[0]] = (str(prim_path), desc)
+    return welds
+
+
+def _check_weld(stage, body: BodySpec, joint_path: str, desc, static_bodies: dict, meters: float, UsdGeom, Usd, source: str) -> None:
+    """Refuse a world weld whose two joint frames disagree at the initial pose (the body
+    would be held where it is, not where the joint puts it)."""
+    poses = []
+    for end, position, orientation in ((desc.body0, desc.localPose0Position, desc.localPose0Orientation), (desc.body1, desc.localPose1Position, desc.localPose1Orientation)):
+        end = str(end)
+        if end == body.path:
+            owner = body.pose
+        elif end in static_bodies:
+            owner = static_bodies[end].pose
+        elif end:
+            owner = _frame(_world_matrix(stage.GetPrimAtPath(end), UsdGeom, Usd))
+            owner[:3] *= meters
+        else:
+            owner = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+        frame = np.array([*(np.asarray(position, dtype=np.float64) * meters), *_quat_xyzw(orientation)])
+        frame[3:] /= np.linalg.norm(frame[3:])
+        poses.append(pose_mul(owner, frame))
+    apart = float(np.linalg.norm(poses[0][:3] - poses[1][:3]))
+    turned = 2.0 * float(np.arccos(min(1.0, abs(np.dot(poses[0][3:], poses[1][3:])))))
+    if apart > 1e-5 * max(1.0, float(np.linalg.norm(poses[0][:3]))) or turned > 1e-5:
+        raise ValueError(
+            f"{source}: prim {joint_path}: the fixed joint's frames on {body.path} and on the world disagree by {apart:.3g} m and "
+            f"{np.degrees(turned):.3g} degrees in the initial pose; move the body to where the joint holds it"
+        )
 
 
 def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, source: str, UsdPhysics) -> list[JointSpec]:
