@@ -79,6 +79,7 @@ from __future__ import annotations
 import os
 import tempfile
 import warnings
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -786,9 +787,9 @@ def load_scene(path) -> Scene:
             raise ValueError(f"{source}: prim {b.path}: rigid body has no collider (apply PhysicsCollisionAPI to a Mesh or primitive under it)")
     if not any(not b.static for b in all_bodies):
         raise ValueError(f"{source}: no dynamic rigid bodies (apply PhysicsRigidBodyAPI to at least one prim)")
-    names = [b.name for b in all_bodies]
+    uses = Counter(b.name for b in all_bodies)
     for b in all_bodies:
-        if names.count(b.name) > 1:
+        if uses[b.name] > 1:
             b.name = b.path.strip("/").replace("/", "_")
 
     _check_namespace(stage, scene_prim, bodies, source)
