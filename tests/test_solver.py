@@ -758,6 +758,18 @@ def test_a_taped_step_refuses_a_control_rewritten_since_an_earlier_recorded_step
         with pytest.raises(ValueError, match=r"control.body_target: its values changed since an earlier step recorded on this wp.Tape used it"):
             solver.step(states[2], states[3], control, 0.04)
         solver.step(states[2], states[3], model.control(), 0.04)
+    # The same for joint targets.
+    b = wc.ModelBuilder()
+    rod = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, -0.5, 0, 0, 0, 1), name="rod")
+    b.add_joint("revolute", child=rod, anchor=(0, 0, 0), axis=(0, 1, 0), kp=200.0, kd=20.0)
+    model = b.finalize()
+    solver, states, control = wc.ImplicitSolver(model), [model.state() for _ in range(4)], model.control()
+    with wp.Tape():
+        solver.step(states[0], states[1], control, 0.01)
+        solver.step(states[1], states[2], control, 0.01)
+        control.joint_target.assign(np.array([0.3]))
+        with pytest.raises(ValueError, match=r"control.joint_target: its values changed since an earlier step recorded on this wp.Tape used it"):
+            solver.step(states[2], states[3], control, 0.01)
 
 
 @pytest.mark.parametrize("name", ["body_kp_linear", "body_kd_angular", "body_unit_second_moment"])

@@ -46,8 +46,8 @@ __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
 _DIFFERENTIATED_MODEL_ARRAYS = ("body_mass", "contact_stiffness", "friction")
 _UNDIFFERENTIATED_MODEL_ARRAYS = ("body_unit_second_moment", "body_kp_linear", "body_kd_linear", "body_kp_angular", "body_kd_angular")
 # The wp.Tape attribute in which recorded steps note their state and control arrays:
-# (the tape.launches list they were recorded into, {id(array): a copy of a control array's
-# values, or None for a state array}). tape.reset() replaces the launches list, which
+# (the tape.launches list they were recorded into, {id(array): a control array's values at
+# that step, on the device or the host, or None for a state array}). tape.reset() replaces the launches list, which
 # retires the notes; the tape keeps every noted array alive, so its id is not reused.
 _TAPED_STEP_ARRAYS = "_warpcontact_step_arrays"
 
@@ -59,6 +59,11 @@ def _taped_step_arrays(tape: wp.Tape) -> dict:
         launches, noted = tape.launches, {}
         tape.__dict__[_TAPED_STEP_ARRAYS] = (launches, noted)
     return noted
+
+
+def _host(values) -> np.ndarray:
+    """A noted control snapshot (a device copy, or values already read back) on the host."""
+    return values.numpy() if isinstance(values, wp.array) else values
 
 
 def _taped_control_arrays(control: Control | None) -> list[tuple[str, wp.array]]:
@@ -465,12 +470,12 @@ class ImplicitSolver:
                 self._check_taped_step(tape, state_in, state_out, control)
             info, record = self._solve(state_in, state_out, control, dt)
         if tape is not None:
-            tape.record_func(*record())
+            backward, arrays, control_values = record()
+            tape.record_func(backward, arrays)
             noted = _taped_step_arrays(tape)
             for _, array in self._taped_state_arrays(state_in, state_out):
                 noted[id(array)] = None
-            for _, array in _taped_control_arrays(control):
-                noted[id(array)] = wp.clone(array, requires_grad=False)
+            noted.update(control_values)
         return info
 
     def _check_taped_step(self, tape: wp.Tape, state_in: State, state_out: State, control: Control | None):
@@ -500,7 +505,7 @@ class ImplicitSolver:
         # A control shared by several recorded steps gets the sum of their adjoints: right for
         # a target held constant, but not for one rewritten in place between steps.
         for label, array in _taped_control_arrays(control):
-            if id(array) in noted and not np.array_equal(noted[id(array)].numpy(), array.numpy()):
+            if id(array) in noted and not np.array_equal(_host(noted[id(array)]), array.numpy()):
                 raise ValueError(
                     f"{label}: its values changed since an earlier step recorded on this wp.Tape used it, and its gradient "
                     "would add up both steps' adjoints; make a new Control for every time step (model.control()) while recording"
@@ -814,7 +819,10 @@ class ImplicitSolver:
         return [(f"{label}.{name}", getattr(states[label], name)) for label, name in names]
 
     def _backward_function(self, state_in, state_out, control, step_in, hess, jacobian, contact_grad, q_next, q_now, q_prev):
-        """The step's backward and the arrays it touches, for ``tape.record_func``."""
+        """The step's backward and the arrays it touches, for ``tape.record_func``, and the
+        values of its taped control arrays at this step ({id(array): values}, the backward's
+        own snapshots where it keeps the raw values), which ``_check_taped_step`` compares
+        with a later step's."""
         model = self.model
         dev = model.device
         n = model.num_bodies
@@ -840,6 +848,10 @@ class ImplicitSolver:
         ball_target_grad = balls and control is not None and control.ball_target is not None and control.ball_target.requires_grad
         if ball_target_grad:
             ball_target_arr = wp.array(step_in.ball_target, dtype=wp.quatd, device=dev)
+        # step_in.joint_target may be a view of the control's memory (.numpy() on a CPU), and
+        # step_in.ball_target is normalised: those get copies of their own.
+        own = {"control.body_target": target_arr, "control.joint_target": step_in.joint_target.copy()}
+        control_values = {id(array): own[label] if label in own else wp.clone(array, requires_grad=False) for label, array in _taped_control_arrays(control)}
 
         def backward():
             with wp.ScopedDevice(dev):
@@ -898,4 +910,4 @@ class ImplicitSolver:
                     if control is not None and control.joint_target is not None and control.joint_target.requires_grad:
                         control.joint_target.grad.assign(control.joint_target.grad.numpy() - art.kp * lam_coords)
 
-        return backward, arrays
+        return backward, arrays, control_values
