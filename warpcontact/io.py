@@ -351,28 +351,63 @@ def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
     return points, faces
 
 
-def _shape_triangles(desc, kind, prim, UsdGeom, source):
+def _shape_triangles(kind, prim, UsdGeom, source, desc=None) -> tuple[np.ndarray, np.ndarray]:
+    """A collider's triangles: with ``desc``, in UsdPhysics' description (its own-axis scale
+    folded into the dimensions, meshScale for a Mesh); without, in its prim frame from its
+    unscaled attributes (for the exact path, ``_in_frame``)."""
+    where = f"{source}: prim {prim.GetPath()}"
     if kind == "MeshShape":
         points, faces = _mesh_triangles(prim, UsdGeom, source)
-        return points * np.asarray(desc.meshScale, dtype=np.float64), faces
+        return (points if desc is None else points * np.asarray(desc.meshScale, dtype=np.float64)), faces
+    size = _primitive_size(kind, prim, UsdGeom, desc)
+    if size is None:
+        raise ValueError(f"{where}: collider type {kind} is not supported (use a Mesh, Cube, Sphere, Capsule, Cylinder, Cone or Plane)")
     if kind == "CubeShape":
-        m = trimesh.creation.box(extents=2.0 * np.asarray(desc.halfExtents, dtype=np.float64))
+        m = trimesh.creation.box(extents=size["extents"])
     elif kind == "SphereShape":
-        m = trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=float(desc.radius))
+        m = trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=size["radius"])
     elif kind == "CapsuleShape":
-        m = trimesh.creation.capsule(height=2.0 * float(desc.halfHeight), radius=float(desc.radius), count=[ROUND_SEGMENTS, ROUND_SEGMENTS])
-        m = _align_axis(m, str(desc.axis))
+        m = trimesh.creation.capsule(height=size["height"], radius=size["radius"], count=[ROUND_SEGMENTS, ROUND_SEGMENTS])
     elif kind == "CylinderShape":
-        m = trimesh.creation.cylinder(radius=float(desc.radius), height=2.0 * float(desc.halfHeight), sections=ROUND_SEGMENTS)
-        m = _align_axis(m, str(desc.axis))
-    elif kind in ("Capsule1Shape", "Cylinder1Shape"):
-        m = _tapered(float(desc.bottomRadius), float(desc.topRadius), 2.0 * float(desc.halfHeight), rounded=kind == "Capsule1Shape", where=f"{source}: prim {prim.GetPath()}")
-        m = _align_axis(m, str(desc.axis))
+        m = trimesh.creation.cylinder(radius=size["radius"], height=size["height"], sections=ROUND_SEGMENTS)
     elif kind == "ConeShape":
-        m = _align_axis(_cone(float(desc.radius), 2.0 * float(desc.halfHeight)), str(desc.axis))
+        m = _cone(size["radius"], size["height"])
     else:
-        raise ValueError(f"{source}: prim {prim.GetPath()}: collider type {kind} is not supported (use a Mesh, Cube, Sphere, Capsule, Cylinder, Cone or Plane)")
+        m = _tapered(size["bottom"], size["top"], size["height"], rounded=kind == "Capsule1Shape", where=where)
+    if "axis" in size:
+        m = _align_axis(m, size["axis"])
     return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
+
+
+def _primitive_size(kind, prim, UsdGeom, desc=None) -> dict | None:
+    """A primitive collider's dimensions (extents, radius, height, bottom / top radii, axis
+    token) from UsdPhysics' ``desc`` (scaled), else from the prim's own attributes; None for
+    a kind that is not built here."""
+    round_kinds = ("CapsuleShape", "CylinderShape", "ConeShape")
+    tapered_kinds = ("Capsule1Shape", "Cylinder1Shape")
+    if desc is not None:
+        if kind == "CubeShape":
+            return {"extents": 2.0 * np.asarray(desc.halfExtents, dtype=np.float64)}
+        if kind == "SphereShape":
+            return {"radius": float(desc.radius)}
+        if kind in round_kinds:
+            return {"radius": float(desc.radius), "height": 2.0 * float(desc.halfHeight), "axis": str(desc.axis)}
+        if kind in tapered_kinds:
+            return {"bottom": float(desc.bottomRadius), "top": float(desc.topRadius), "height": 2.0 * float(desc.halfHeight), "axis": str(desc.axis)}
+        return None
+    if kind == "CubeShape":
+        return {"extents": [float(UsdGeom.Cube(prim).GetSizeAttr().Get())] * 3}
+    if kind == "SphereShape":
+        return {"radius": float(UsdGeom.Sphere(prim).GetRadiusAttr().Get())}
+    schema = {"CapsuleShape": UsdGeom.Capsule, "CylinderShape": UsdGeom.Cylinder, "ConeShape": UsdGeom.Cone, "Capsule1Shape": UsdGeom.Capsule_1, "Cylinder1Shape": UsdGeom.Cylinder_1}.get(kind)
+    if schema is None:
+        return None
+    shape = schema(prim)
+    size = {"height": float(shape.GetHeightAttr().Get()), "axis": str(shape.GetAxisAttr().Get())}
+    if kind in round_kinds:
+        return {**size, "radius": float(shape.GetRadiusAttr().Get())}
+    # Magnitudes, as UsdPhysics reads them.
+    return {**size, "height": abs(size["height"]), "bottom": abs(float(shape.GetRadiusBottomAttr().Get())), "top": abs(float(shape.GetRadiusTopAttr().Get()))}
 
 
 def _tapered(bottom: float, top: float, height: float, *, rounded: bool, where: str):
@@ -538,43 +573,6 @@ def _plane_body(path: str, frame: np.ndarray, axis: str, meters: float, others: 
     return BodySpec(name=path.rsplit("/", 1)[-1], path=path, vertices=corners, faces=faces, pose=pose, static=True)
 
 
-def _local_triangles(kind, prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
-    """A collider's triangles in its own prim frame, from its unscaled attributes."""
-    if kind == "MeshShape":
-        return _mesh_triangles(prim, UsdGeom, source)
-    if kind == "CubeShape":
-        m = trimesh.creation.box(extents=[float(UsdGeom.Cube(prim).GetSizeAttr().Get())] * 3)
-    elif kind == "SphereShape":
-        m = trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=float(UsdGeom.Sphere(prim).GetRadiusAttr().Get()))
-    elif kind == "CapsuleShape":
-        shape = UsdGeom.Capsule(prim)
-        m = trimesh.creation.capsule(height=float(shape.GetHeightAttr().Get()), radius=float(shape.GetRadiusAttr().Get()), count=[ROUND_SEGMENTS, ROUND_SEGMENTS])
-        m = _align_axis(m, str(shape.GetAxisAttr().Get()))
-    elif kind == "CylinderShape":
-        shape = UsdGeom.Cylinder(prim)
-        m = trimesh.creation.cylinder(radius=float(shape.GetRadiusAttr().Get()), height=float(shape.GetHeightAttr().Get()), sections=ROUND_SEGMENTS)
-        m = _align_axis(m, str(shape.GetAxisAttr().Get()))
-    elif kind in ("Capsule1Shape", "Cylinder1Shape"):
-        shape = UsdGeom.Capsule_1(prim) if kind == "Capsule1Shape" else UsdGeom.Cylinder_1(prim)
-        m = _tapered(  # magnitudes, as UsdPhysics reads them
-            abs(float(shape.GetRadiusBottomAttr().Get())),
-            abs(float(shape.GetRadiusTopAttr().Get())),
-            abs(float(shape.GetHeightAttr().Get())),
-            rounded=kind == "Capsule1Shape",
-            where=f"{source}: prim {prim.GetPath()}",
-        )
-        m = _align_axis(m, str(shape.GetAxisAttr().Get()))
-    elif kind == "ConeShape":
-        shape = UsdGeom.Cone(prim)
-        m = _align_axis(_cone(float(shape.GetRadiusAttr().Get()), float(shape.GetHeightAttr().Get())), str(shape.GetAxisAttr().Get()))
-    else:
-        raise ValueError(
-            f"{source}: prim {prim.GetPath()}: a {kind} collider under a non-uniform scale or a shear is not supported "
-            "(use a Mesh, Cube, Sphere, Capsule, Cylinder or Cone there, or move the scale onto the collider)"
-        )
-    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
-
-
 def _in_frame(points: np.ndarray, matrix, frame: np.ndarray) -> np.ndarray:
     """Points of a prim's own frame, moved by its world ``matrix`` (scale and shear
     included), in the frame ``frame`` = (position, xyzw quaternion) of the same stage."""
@@ -733,7 +731,7 @@ def load_scene(path) -> Scene:
                 # is the polar one (``_frame``). Its points are then moved by the full world
                 # matrix into the frame of its body (or its own); a mirroring matrix also
                 # reverses the triangles' winding, which keeps a closed mesh outward-oriented.
-                vertices, faces = _local_triangles(kind, prim, UsdGeom, source)
+                vertices, faces = _shape_triangles(kind, prim, UsdGeom, source)
                 frame = owner_frame if owner else _frame(matrix)
                 vertices = _in_frame(vertices, matrix, frame) * meters
                 if np.linalg.det(linear) < 0:
@@ -743,7 +741,7 @@ def load_scene(path) -> Scene:
                 local_pose = frame.copy()
                 local_pose[:3] *= meters
             else:
-                vertices, faces = _shape_triangles(desc, kind, prim, UsdGeom, source)
+                vertices, faces = _shape_triangles(kind, prim, UsdGeom, source, desc)
                 # localPos / localRot place the collider in its rigid body's frame, or in the
                 # world for a collider without a rigid body (a static body of its own). Scale is
                 # already in the shape's dimensions (meshScale, radius, halfExtents).
