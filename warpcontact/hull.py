@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["convex_hull"]
+__all__ = ["convex_hull", "convex_hull_mesh"]
 
 # A point closer than this fraction of the points' extent to a face's plane, on its outer
 # side, counts as on the hull already (not in convex position).
@@ -70,6 +70,13 @@ def _face_planes(points: np.ndarray, faces: np.ndarray, tolerance: float) -> tup
     corner = points[faces[:, 0]]
     normal = np.cross(points[faces[:, 1]] - corner, points[faces[:, 2]] - corner)
     return corner, normal / (tolerance * np.linalg.norm(normal, axis=1, keepdims=True))
+
+
+def convex_hull_mesh(points) -> tuple[np.ndarray, np.ndarray]:
+    """The convex hull of ``points`` as a mesh of the points it uses: (vertices, faces)."""
+    points = np.asarray(points, dtype=np.float64)
+    used, faces = np.unique(convex_hull(points), return_inverse=True)
+    return points[used], faces.reshape(-1, 3)
 
 
 def _seed_tetrahedron(points: np.ndarray, tolerance: float) -> tuple[int, int, int, int]:

@@ -89,7 +89,7 @@ import trimesh
 from ._validate import is_real
 from .builder import MODEL_CONTACT_MODES, ModelBuilder, contact_setting_problem
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
-from .hull import convex_hull
+from .hull import convex_hull_mesh
 from .leaf import LEAF_PRECISIONS
 from .rotation import pose_mul, quat_from_matrix, quat_rotate, quat_to_matrix
 
@@ -423,8 +423,7 @@ def _tapered(bottom: float, top: float, height: float, *, rounded: bool, where: 
         unit = np.stack([np.cos(angle), np.sin(angle), np.zeros_like(angle)], axis=1)
     lift = np.array([0.0, 0.0, 0.5 * height])
     points = np.vstack([unit * bottom - lift, unit * top + lift])
-    used, faces = np.unique(convex_hull(points), return_inverse=True)
-    return trimesh.Trimesh(points[used], faces.reshape(-1, 3), process=False)
+    return trimesh.Trimesh(*convex_hull_mesh(points), process=False)
 
 
 def _cone(radius: float, height: float):
@@ -538,12 +537,6 @@ def _approximation(kind, desc, prim, source: str) -> str:
             f"engine's choice); author one of {_SUPPORTED_APPROXIMATIONS}, or model the shape as its own Mesh"
         )
     return approximation
-
-
-def _hull_of(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The convex hull of a collider's points, as a mesh of the points it uses."""
-    used, faces = np.unique(convex_hull(vertices), return_inverse=True)
-    return vertices[used], faces.reshape(-1, 3)
 
 
 # A Plane collider (infinite in UsdPhysics) becomes a square this many times the diagonal of
@@ -753,7 +746,7 @@ def load_scene(path) -> Scene:
                     vertices = quat_rotate(local_pose[3:], vertices) + local_pose[:3]
             if approximation == "convexHull":
                 try:
-                    vertices, faces = _hull_of(vertices)
+                    vertices, faces = convex_hull_mesh(vertices)
                 except ValueError as exc:
                     raise ValueError(f"{source}: prim {prim_path}: physics:approximation 'convexHull': {exc}; author 'none' to collide the mesh's own triangles") from None
             if owner:
