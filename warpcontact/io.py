@@ -857,11 +857,21 @@ def _world_welds(descs: dict, source: str) -> dict:
     return welds
 
 
+def _joint_frames(desc, meters: float) -> tuple[np.ndarray, np.ndarray]:
+    """A UsdPhysics joint's frames on body0 and body1, (7,) poses in metres."""
+    frames = []
+    for position, orientation in ((desc.localPose0Position, desc.localPose0Orientation), (desc.localPose1Position, desc.localPose1Orientation)):
+        frame = np.array([*(np.asarray(position, dtype=np.float64) * meters), *_quat_xyzw(orientation)])
+        frame[3:] /= np.linalg.norm(frame[3:])
+        frames.append(frame)
+    return frames[0], frames[1]
+
+
 def _check_weld(stage, body: BodySpec, joint_path: str, desc, static_bodies: dict, meters: float, UsdGeom, Usd, source: str) -> None:
     """Refuse a world weld whose two joint frames disagree at the initial pose (the body
     would be held where it is, not where the joint puts it)."""
     poses = []
-    for end, position, orientation in ((desc.body0, desc.localPose0Position, desc.localPose0Orientation), (desc.body1, desc.localPose1Position, desc.localPose1Orientation)):
+    for end, frame in zip((desc.body0, desc.body1), _joint_frames(desc, meters)):
         end = str(end)
         if end == body.path:
             owner = body.pose
@@ -872,8 +882,6 @@ def _check_weld(stage, body: BodySpec, joint_path: str, desc, static_bodies: dic
             owner[:3] *= meters
         else:
             owner = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
-        frame = np.array([*(np.asarray(position, dtype=np.float64) * meters), *_quat_xyzw(orientation)])
-        frame[3:] /= np.linalg.norm(frame[3:])
         poses.append(pose_mul(owner, frame))
     apart = float(np.linalg.norm(poses[0][:3] - poses[1][:3]))
     turned = 2.0 * float(np.arccos(min(1.0, abs(np.dot(poses[0][3:], poses[1][3:])))))
@@ -916,11 +924,7 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
                         f"{where}: {label} {path} is mirrored (a negative scale in its transform), which a joint frame "
                         "cannot follow; mirror its points in the mesh instead"
                     )
-            frames = []
-            for position, orientation in ((desc.localPose0Position, desc.localPose0Orientation), (desc.localPose1Position, desc.localPose1Orientation)):
-                frame = np.array([*(np.asarray(position, dtype=np.float64) * units.meters), *_quat_xyzw(orientation)])
-                frame[3:] /= np.linalg.norm(frame[3:])
-                frames.append(frame)
+            frames = _joint_frames(desc, units.meters)
             spec = JointSpec(
                 name=str(prim_path).rsplit("/", 1)[-1],
                 path=str(prim_path),
