@@ -560,17 +560,21 @@ class TaskProblem:
         Returns (loss, d loss / d values or None, trajectory (frames + 1, nbodies, 7)).
         """
         device = self.model.device
-        if not isinstance(frames, (int, np.integer)) or frames < 0:
+        if not is_whole(frames) or frames < 0:
             raise ValueError(f"frames: must be a whole number >= 0, got {frames!r}")
         shape = np.shape(values)
         values = np.atleast_2d(np.asarray(values, dtype=np.float64))
-        expected = self.initial_values(max(frames, 1) if self.kind == "pd_targets" else 1).shape
-        wide = self.kind == "pd_targets" and values.ndim == 2 and values.shape[0] >= expected[0] and values.shape[1] == expected[1]
-        if not (values.shape == expected or wide):
-            # The control kernels index the rows by frame and dof: a smaller array was read
-            # out of bounds (a crash, "corrupted double-linked list").
-            rows = f"at least {expected[0]}" if self.kind == "pd_targets" else str(expected[0])
-            raise ValueError(f"values: {self.kind} control over {frames} frames needs {rows} rows of {expected[1]} values ({', '.join(self.dof_names)}), got shape {values.shape}")
+        # The control kernels index the rows by frame and dof: a smaller array was read out
+        # of bounds (a crash, "corrupted double-linked list").
+        rows, columns = self.initial_values(1).shape
+        if self.kind == "pd_targets":
+            rows = max(frames, 1)
+            fits = values.ndim == 2 and values.shape[0] >= rows and values.shape[1] == columns
+        else:
+            fits = values.shape == (rows, columns)
+        if not fits:
+            wanted = f"at least {rows}" if self.kind == "pd_targets" else str(rows)
+            raise ValueError(f"values: {self.kind} control over {frames} frames needs {wanted} rows of {columns} values ({', '.join(self.dof_names)}), got shape {values.shape}")
         values_arr = wp.array(values, dtype=wp.float64, device=device, requires_grad=True)
         # The solver writes every output state's poses; only the start needs filling.
         states = [self._state(*start)] + [self.model.state() for _ in range(frames)]
