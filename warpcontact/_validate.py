@@ -2,12 +2,17 @@
 
 import numpy as np
 
-__all__ = ["as_float64_array", "is_real", "is_whole"]
+__all__ = ["as_float64_array", "is_positive_finite", "is_real", "is_whole"]
 
 
 def is_real(value) -> bool:
     """A Python or numpy real scalar, not a bool (which Python counts as an int)."""
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+
+
+def is_positive_finite(value) -> bool:
+    """A real scalar (``is_real``) that is finite and > 0."""
+    return is_real(value) and bool(np.isfinite(value)) and value > 0
 
 
 def is_whole(value) -> bool:

@@ -86,7 +86,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ._validate import is_real
+from ._validate import is_positive_finite, is_real
 from .builder import MODEL_CONTACT_MODES, ModelBuilder, contact_setting_problem
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
@@ -1656,7 +1656,7 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
         raise ValueError(f"poses: body {scene.bodies[body].name!r} has a zero rotation quaternion at frame {frame}")
     if fps is None:
         fps = 1.0 / scene.settings.time_step
-    if not is_real(fps) or not np.isfinite(fps) or fps <= 0:
+    if not is_positive_finite(fps):
         raise ValueError(f"fps: must be a positive finite number of frames per second, got {fps!r}")
     fps = float(fps)
 

@@ -29,6 +29,7 @@ import numpy as np
 import trimesh
 
 from .articulation import frame_in_body
+from ._validate import is_positive_finite, is_whole
 from .hull import convex_hull
 from .io import BodySpec, JointSpec, Scene, SimulationSettings, TaskSpec, save_scene
 from .robots import AntSpec, ant_description
@@ -51,8 +52,8 @@ def _require(ok: bool, name: str, wanted: str, value) -> None:
 def fibonacci_ball(num_points: int, radius: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """A ball mesh: hull of ``num_points`` (>= 4) Fibonacci points on a sphere of ``radius``
     (m, > 0): 2 N - 4 faces."""
-    _require(isinstance(num_points, (int, np.integer)) and num_points >= 4, "num_points", "a whole number >= 4", num_points)
-    _require(np.isfinite(radius) and radius > 0, "radius", "positive and finite", radius)
+    _require(is_whole(num_points) and num_points >= 4, "num_points", "a whole number >= 4", num_points)
+    _require(is_positive_finite(radius), "radius", "positive and finite", radius)
     k = np.arange(num_points) + 0.5
     z = 1.0 - 2.0 * k / num_points
     theta = np.pi * (1.0 + 5.0**0.5) * k
@@ -112,7 +113,7 @@ def rest_on_face(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, f
 def decimate(vertices: np.ndarray, faces: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
     """Vertex-clustering decimation: merge vertices per grid cell (mean position), drop
     collapsed and duplicate triangles, keep unused vertices out. ``cell``: the grid's size (m, > 0)."""
-    _require(np.isfinite(cell) and cell > 0, "cell", "positive and finite", cell)
+    _require(is_positive_finite(cell), "cell", "positive and finite", cell)
     keys = np.floor(vertices / cell).astype(np.int64)
     _, cluster = np.unique(keys, axis=0, return_inverse=True)
     cluster = cluster.reshape(-1)
@@ -135,8 +136,8 @@ def bunny_mesh(target_faces: int = 270, height: float = 0.3):
     Returns (vertices, faces, mass properties per unit density of the original mesh:
     volume, centre of mass, inertia), all in the decimated mesh's frame.
     """
-    _require(isinstance(target_faces, (int, np.integer)) and target_faces >= 4, "target_faces", "a whole number >= 4", target_faces)
-    _require(np.isfinite(height) and height > 0, "height", "positive and finite (m)", height)
+    _require(is_whole(target_faces) and target_faces >= 4, "target_faces", "a whole number >= 4", target_faces)
+    _require(is_positive_finite(height), "height", "positive and finite (m)", height)
     from pxr import Usd, UsdGeom
 
     import warp
@@ -167,7 +168,7 @@ def ground_rectangle(size_x: float, size_y: float, cell: float | None = None, ce
     """A static rectangle of size_x by size_y m at z = 0: two triangles (every scene's
     ground), or squares of about ``cell`` m, two triangles each (a grid, for tests of
     contact across the seams between coplanar faces)."""
-    _require(cell is None or (np.isfinite(cell) and cell > 0), "cell", "positive and finite (m), or None", cell)
+    _require(cell is None or is_positive_finite(cell), "cell", "positive and finite (m), or None", cell)
     nx, ny = (1, 1) if cell is None else (max(1, int(round(size_x / cell))), max(1, int(round(size_y / cell))))
     xs = np.linspace(-size_x / 2, size_x / 2, nx + 1) + centre[0]
     ys = np.linspace(-size_y / 2, size_y / 2, ny + 1) + centre[1]

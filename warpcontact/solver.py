@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ._validate import is_real
+from ._validate import is_positive_finite
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
@@ -553,7 +553,7 @@ class ImplicitSolver:
         return target / norms[:, None], start
 
     def _solve(self, state_in: State, state_out: State, control: Control | None, dt: float):
-        if not is_real(dt) or not np.isfinite(dt) or dt <= 0:
+        if not is_positive_finite(dt):
             raise ValueError(f"dt: must be a positive finite number of seconds, got {dt!r}")
         model = self.model
         if state_out is state_in:

@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from ._validate import is_real, is_whole
+from ._validate import is_positive_finite, is_real, is_whole
 from .bundle import BundleSettings, bundled_gradient
 from .io import target_problem
 from .kernels import task as task_kernels
@@ -159,7 +159,7 @@ class TaskSettings:
             ("receding_horizon", "a whole number >= 0", is_whole(self.receding_horizon) and self.receding_horizon >= 0),
             ("receding_stride", f"a whole number >= 1 and at most the window ({window})", is_whole(self.receding_stride) and window is not None and 1 <= self.receding_stride <= window),
             ("iterations", "a whole number >= 1", is_whole(self.iterations) and self.iterations >= 1),
-            ("learning_rate", "positive and finite", is_real(self.learning_rate) and bool(np.isfinite(self.learning_rate) and self.learning_rate > 0)),
+            ("learning_rate", "positive and finite", is_positive_finite(self.learning_rate)),
             ("betas", "two numbers in [0, 1)", len(betas) == 2 and all(unit_interval(b) for b in betas)),
             ("initial_samples", "a whole number >= 0", is_whole(self.initial_samples) and self.initial_samples >= 0),
             ("sample_seed", "a whole number >= 0", is_whole(self.sample_seed) and self.sample_seed >= 0),
