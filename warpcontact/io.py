@@ -1443,7 +1443,10 @@ def _atomic_save(stage_writer, path, overwrite: bool):
 
 
 def save_scene(scene: Scene, path, *, overwrite: bool = False):
-    """Write a scene as a .usda with UsdPhysics schemas and warpcontact attributes (round-trippable)."""
+    """Write a scene as a .usda with UsdPhysics schemas and warpcontact attributes (round-trippable).
+
+    Poses and ``warpcontact:`` attributes are doubles; what the schemas type as float (mesh
+    points, mass properties, velocities) is rounded to float32 (docs/architecture.md, "USD")."""
     Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
 
     def write(tmp: Path):
