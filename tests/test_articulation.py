@@ -326,6 +326,52 @@ def test_joint_cycle_is_refused():
         b.finalize()
 
 
+def test_articulation_contact_modes_exclude_the_right_pairs_with_a_static_parent():
+    """A static pedestal is a link of each arm hinged to it (a fixed robot base), but does not
+    join the two arms into one articulation."""
+
+    def pairs(mode):
+        b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), articulation_contact=mode)
+        pedestal = b.add_box((0.2, 0.2, 0.2), static=True, name="pedestal", pose=(0, 0, 1.0, 0, 0, 0, 1))
+        upper_left = b.add_box((0.3, 0.05, 0.05), mass=0.2, pose=(0.26, 0, 1.0, 0, 0, 0, 1), name="upper_left")
+        lower_left = b.add_box((0.3, 0.05, 0.05), mass=0.2, pose=(0.58, 0, 1.0, 0, 0, 0, 1), name="lower_left")
+        right = b.add_box((0.3, 0.05, 0.05), mass=0.2, pose=(-0.26, 0, 1.0, 0, 0, 0, 1), name="right")
+        b.add_sphere(0.1, density=100.0, pose=(0, 0, 2.0, 0, 0, 0, 1), name="loose")
+        b.add_joint("revolute", child=upper_left, parent=pedestal, anchor=(0.1, 0, 1.0), axis=(0, 1, 0))
+        b.add_joint("revolute", child=lower_left, parent=upper_left, anchor=(0.42, 0, 1.0), axis=(0, 1, 0))
+        b.add_joint("revolute", child=right, parent=pedestal, anchor=(-0.1, 0, 1.0), axis=(0, 1, 0))
+        model = b.finalize()
+        return {tuple(model.body_names[i] for i in pair) for pair in model.contact.body_pairs}
+
+    every = {(a, b) for i, a in enumerate(["pedestal", "upper_left", "lower_left", "right", "loose"]) for b in ["pedestal", "upper_left", "lower_left", "right", "loose"][i + 1 :]}
+    assert pairs("all") == every
+    # Before 2026-11-26 a static parent was dropped with the world: its links touched it.
+    assert pairs("nonadjacent") == every - {("pedestal", "upper_left"), ("upper_left", "lower_left"), ("pedestal", "right")}
+    assert pairs("none") == every - {("pedestal", "upper_left"), ("pedestal", "lower_left"), ("upper_left", "lower_left"), ("pedestal", "right")}
+
+
+def test_an_arm_hinged_to_a_static_block_swings_as_on_a_held_one():
+    """The arm's inner corner sweeps into its parent block as it falls: a static parent used
+    to hold it at 0.002 rad after 0.4 s."""
+
+    def swing(static):
+        b = wc.ModelBuilder()
+        if static:
+            block = b.add_box((0.2, 0.2, 0.2), static=True, name="block", pose=(0, 0, 1.0, 0, 0, 0, 1))
+        else:
+            block = b.add_box((0.2, 0.2, 0.2), mass=100.0, name="block", pose=(0, 0, 1.0, 0, 0, 0, 1))
+            b.add_joint("base", child=block, dofs=("z",), kp=1e6, kd=1e3)
+        arm = b.add_box((0.5, 0.05, 0.05), mass=0.2, pose=(0.351, 0, 1.0, 0, 0, 0, 1), name="arm")
+        b.add_joint("revolute", child=arm, parent=block, anchor=(0.1, 0, 1.0), axis=(0, 1, 0), name="hinge")
+        model = b.finalize()
+        states, _ = simulate(model, model.state(requires_grad=False), 40, 0.01, model.control(requires_grad=False))
+        return states[-1].joint_q.numpy()[-1]
+
+    held, fixed = swing(False), swing(True)
+    assert held > 1.5
+    assert fixed == pytest.approx(held, abs=2e-3)
+
+
 def test_violated_joint_and_limits_are_refused():
     b, a, c = two_boxes()
     frame = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)

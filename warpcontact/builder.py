@@ -112,7 +112,8 @@ class ModelBuilder:
         sdrs_dhat: barrier support of the ``"sdrs"`` baseline on vertex-to-plane gaps (m);
             triangles interact below 2 sdrs_dhat.
         articulation_contact: contact between bodies of one articulation: ``"nonadjacent"``
-            (default: all pairs except a joint's parent and child), ``"all"`` or ``"none"``.
+            (default: all pairs except a joint's parent and child), ``"all"`` or ``"none"``;
+            a static parent counts as a link of its joints.
     """
 
     def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, friction_smoothing: float = 1e-4, eps: float = 0.5, centred_weight: str = "paper", contact_mode: str = "bsh", leaf_precision: str = "float64", ipc_dhat: float = 1e-2, sdrs_dhat: float = 1e-2, articulation_contact: str = "nonadjacent"):
@@ -142,6 +143,9 @@ class ModelBuilder:
         self.sdrs_dhat = sdrs_dhat
         self._bodies: list[_Body] = []
         self._joints: list[Joint] = []
+        # Each joint's parent body as given (a static one too), for contact exclusion: a
+        # Joint holds a static parent as the world (-1).
+        self._joint_parents: list[int] = []
 
     def add_body(
         self,
@@ -401,6 +405,7 @@ class ModelBuilder:
             probe.cone_limit = float(cone_limit)
             probe.limit_stiffness = np.array([float(np.asarray(limit_stiffness).reshape(-1)[0])])
         self._joints.append(probe)
+        self._joint_parents.append(-1 if parent is None else int(parent))
         return len(self._joints) - 1
 
     def add_box(self, extents, **kwargs) -> int:
@@ -478,12 +483,15 @@ class ModelBuilder:
             )
 
     def _excluded_pairs(self) -> list[tuple[int, int]]:
-        """Body pairs without contact, from ``articulation_contact``."""
-        joints = [j for j in self._joints if j.parent >= 0]
-        if self.articulation_contact == "all" or not joints:
+        """Body pairs without contact, from ``articulation_contact``. A static parent counts
+        as a link of its joint (a robot's fixed base), but does not join the articulations
+        fixed to it into one: under ``"none"`` it is excluded from contact with each of them."""
+        links = [(parent, j.child) for parent, j in zip(self._joint_parents, self._joints) if parent >= 0]
+        if self.articulation_contact == "all" or not links:
             return []
         if self.articulation_contact == "nonadjacent":
-            return sorted({(min(j.parent, j.child), max(j.parent, j.child)) for j in joints})
+            return sorted({(min(a, b), max(a, b)) for a, b in links})
+        static = [body.static for body in self._bodies]
         root = list(range(len(self._bodies)))
 
         def find(b):
@@ -491,9 +499,13 @@ class ModelBuilder:
                 b = root[b]
             return b
 
-        for j in joints:
-            root[find(j.child)] = find(j.parent)
+        for parent, child in links:
+            if not static[parent]:
+                root[find(child)] = find(parent)
         members = {}
         for b in range(len(self._bodies)):
-            members.setdefault(find(b), []).append(b)
-        return sorted((a, b) for group in members.values() for i, a in enumerate(group) for b in group[i + 1 :])
+            if not static[b]:
+                members.setdefault(find(b), []).append(b)
+        pairs = {(a, b) for group in members.values() for i, a in enumerate(group) for b in group[i + 1 :]}
+        pairs |= {(min(parent, b), max(parent, b)) for parent, child in links if static[parent] for b in members[find(child)]}
+        return sorted(pairs)
