@@ -1,5 +1,7 @@
 """Articulations in reduced coordinates: derivatives, physics, limits, the ant, gradients, bad input."""
 
+import contextlib
+
 import numpy as np
 import pytest
 import warp as wp
@@ -313,9 +315,21 @@ def test_bad_joints_get_clear_errors():
         b.add_joint("revolute", child=a, parent=a, anchor=(0, 0, 0), axis=(0, 0, 1))
     with pytest.raises(ValueError, match="subset"):
         b.add_joint("base", child=a, dofs=("x", "q"))
+    # Wrong counts used to surface as numpy reshape errors naming no joint.
+    with pytest.raises(ValueError, match=r"joint 'tilted': expected 1 axis vector\(s\) of 3 values"):
+        b.add_joint("revolute", child=a, anchor=(0, 0, 0), axis=(0, 1, 0, 0), name="tilted")
+    with pytest.raises(ValueError, match="joint 'odd': limits must be 1 .lower, upper. pairs"):
+        b.add_joint("revolute", child=a, anchor=(0, 0, 0), axis=(0, 1, 0), limits=[0.0, 1.0, 2.0], name="odd")
     b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), name="first")
     with pytest.raises(ValueError, match="already has parent joint 'first'"):
         b.add_joint("ball", child=a, parent=c, anchor=(0.25, 0, 1))
+    b.add_joint("revolute", child=c, parent=a, anchor=(0.25, 0, 1), axis=(0, 1, 0), name="first")
+    with pytest.raises(ValueError, match=r"joint names must be unique; used more than once: \['first'\]"):
+        b.finalize()
+    b, a, c = two_boxes()
+    b.add_box((0.2, 0.2, 0.2), density=100.0, pose=(2, 0, 1, 0, 0, 0, 1), name="a")
+    with pytest.raises(ValueError, match=r"body names must be unique; used more than once: \['a'\]"):
+        b.finalize()
 
 
 def test_joint_cycle_is_refused():
@@ -386,13 +400,103 @@ def test_violated_joint_and_limits_are_refused():
 
 def test_a_state_outside_the_joint_limits_is_refused_naming_the_coordinate():
     """It used to reach the solver as 'objective is not finite at the start pose'."""
-    model, state = pendulum(limits=[(-1.0, 1.0)])
-    state.joint_q.assign(np.array([1.5]))
+    model, state = pendulum(angle=1.5, limits=[(-1.0, 1.0)])
     nxt = model.state(requires_grad=False)
     before = nxt.joint_q.numpy().copy()
     with pytest.raises(ValueError, match=r"state_in.joint_q: coordinate 'hinge0:0' = 1.5 is not strictly inside its limits \(-1, 1\)"):
         wc.ImplicitSolver(model).step(state, nxt, None, 0.01)
     np.testing.assert_array_equal(nxt.joint_q.numpy(), before)
+
+
+def test_a_state_whose_coordinates_disagree_with_its_poses_is_refused():
+    """The step reads poses for contact and coordinates for drives and limits: a hinge whose
+    joint_q said 0.5 rad while its rod hung at 0 was driven and limited as if at 0.5, and the
+    output state disagreed with itself. Angles agree modulo 2 pi."""
+    model, state = pendulum(angle=0.3, limits=[(-10.0, 10.0)])
+    solver = wc.ImplicitSolver(model)
+    nxt = model.state(requires_grad=False)
+    before = nxt.joint_q.numpy().copy()
+    state.joint_q.assign(np.array([0.5]))
+    with pytest.raises(ValueError, match=r"state_in: joint 'hinge0' \(world -> rod0\): state_in.joint_q gives it \[0.5\] but state_in.body_q puts it at \[0.3\]"):
+        solver.step(state, nxt, None, 0.01)
+    np.testing.assert_array_equal(nxt.joint_q.numpy(), before)
+    state.joint_q.assign(np.array([0.3 + 2 * np.pi]))  # one more turn: the same configuration
+    solver.step(state, nxt, None, 0.01)
+    assert nxt.joint_q.numpy()[0] == pytest.approx(0.3 + 2 * np.pi, abs=1e-3)
+    # A prismatic coordinate, and poses that break a joint.
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    slider = b.add_box((0.1, 0.1, 0.1), mass=1.0, name="slider")
+    b.add_joint("prismatic", child=slider, anchor=(0, 0, 0), axis=(1, 0, 0), name="rail")
+    model = b.finalize()
+    state = model.state(requires_grad=False)
+    state.joint_q.assign(np.array([0.2]))
+    with pytest.raises(ValueError, match=r"joint 'rail' .*joint_q gives it \[0.2\] but state_in.body_q puts it at \[0.\]"):
+        wc.ImplicitSolver(model).step(state, model.state(), None, 0.01)
+    state = model.state(requires_grad=False)
+    state.body_q.assign(np.array([[0.0, 0.3, 0.0, 0.0, 0.0, 0.0, 1.0]]))
+    with pytest.raises(ValueError, match="joint 'rail' .*state_in.body_q violate the prismatic joint"):
+        wc.ImplicitSolver(model).step(state, model.state(), None, 0.01)
+
+
+def test_start_state_gradient_along_a_consistent_perturbation_matches_finite_differences():
+    """body_q, body_q_prev and joint_q hold one configuration; their adjoints together give the
+    derivative along a perturbation of all three (a double pendulum with PD and a limit)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    upper = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, -0.5, 0, 0, 0, 1), name="upper")
+    lower = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, -1.5, 0, 0, 0, 1), name="lower")
+    b.add_joint("revolute", child=upper, anchor=(0, 0, 0), axis=(0, 1, 0), kp=30.0, kd=3.0, limits=[(-1.0, 1.0)], name="shoulder")
+    b.add_joint("revolute", child=lower, parent=upper, anchor=(0, 0, -1.0), axis=(0, 1, 0), kp=5.0, kd=0.5, name="elbow")
+    model = b.finalize()
+    art = model.articulation
+    solver = wc.ImplicitSolver(model, tolerance=1e-13)
+    weights = np.array([[0.3, 0.0, -0.7], [1.1, 0.0, 0.4]])
+    angles = np.array([0.4, -0.3])
+
+    def rollout(delta, tape=None):
+        state = model.state()
+        q = art.retract(model.initial_q, delta)
+        for arr in (state.body_q, state.body_q_prev):
+            arr.assign(q)
+        for arr in (state.joint_q, state.joint_q_prev):
+            arr.assign(art.initial_coordinates + delta)
+        states = [state] + [model.state() for _ in range(6)]
+        control = model.control()
+        control.joint_target.assign([0.9, 0.0])
+        with tape or contextlib.nullcontext():
+            for t in range(6):
+                solver.step(states[t], states[t + 1], control, 0.01)
+        return states
+
+    tape = wp.Tape()
+    states = rollout(angles, tape)
+    adjoint = np.zeros((2, 7))
+    adjoint[:, :3] = weights
+    states[-1].body_q.grad.assign(adjoint)
+    tape.backward()
+    start = states[0]
+    h = 1e-6
+    for i in range(2):
+        e = np.zeros(2)
+        e[i] = h
+        fd = (np.sum(weights * rollout(angles + e)[-1].body_q.numpy()[:, :3]) - np.sum(weights * rollout(angles - e)[-1].body_q.numpy()[:, :3])) / (2 * h)
+        pose_change = (art.retract(model.initial_q, angles + e) - art.retract(model.initial_q, angles - e)) / (2 * h)
+        taped = np.sum((start.body_q.grad.numpy() + start.body_q_prev.grad.numpy()) * pose_change) + (start.joint_q.grad.numpy()[i] + start.joint_q_prev.grad.numpy()[i])
+        assert taped == pytest.approx(fd, rel=1e-8)
+
+
+def test_joint_arrays_of_the_wrong_kind_and_overflowing_targets_get_named_errors():
+    model, state = pendulum(kp=50.0)
+    solver = wc.ImplicitSolver(model)
+    control = model.control(requires_grad=False)
+    # A numpy array used to raise AttributeError: 'numpy.ndarray' object has no attribute 'numpy'.
+    with pytest.raises(ValueError, match="control.joint_target: expected a wp.array of 1 joint targets .* got ndarray"):
+        solver.step(state, model.state(), wc.Control(control.body_target, joint_target=np.array([0.3])), 0.01)
+    with pytest.raises(ValueError, match="state_in.joint_q: expected a wp.array"):
+        solver.step(wc.State(state.body_q, state.body_q_prev, np.array([0.05]), state.joint_q_prev), model.state(), None, 0.01)
+    # A finite target whose PD energy overflows was blamed on leaf plane searches of no pair.
+    control.joint_target.assign(np.array([1e160]))
+    with pytest.raises(ValueError, match=r"control.joint_target: the PD energy of coordinate 'hinge0:0' overflows float64 \(target 1e\+160"):
+        solver.step(state, model.state(), control, 0.01)
 
 
 def test_static_child_and_missing_joint_state_are_refused():
@@ -406,12 +510,12 @@ def test_static_child_and_missing_joint_state_are_refused():
         wc.ImplicitSolver(model).step(broken, model.state(), None, 0.01)
 
 
-def ball_pendulum(swing, *, cone=0.3):
+def ball_pendulum(swing, *, cone=0.3, **options):
     """A rod hanging from a world ball joint with a swing (cone) limit about the vertical,
-    started at ``swing`` rad about x."""
+    started at ``swing`` rad about x; ``options`` go to ``add_joint``."""
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
     rod = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, -0.5, 0, 0, 0, 1), name="rod")
-    b.add_joint("ball", child=rod, anchor=(0, 0, 0), axis=(0, 0, 1), cone_limit=cone, name="shoulder")
+    b.add_joint("ball", child=rod, anchor=(0, 0, 0), axis=(0, 0, 1), cone_limit=cone, name="shoulder", **options)
     model = b.finalize()
     q = model.articulation.retract(model.initial_q, np.array([swing, 0.0, 0.0]))
     return model, q
@@ -432,6 +536,16 @@ def test_ball_joint_cone_barrier_derivatives_match_finite_differences():
     fd_hess = np.array([[(f(h2 * (ek + ej)) - f(h2 * (ek - ej)) - f(h2 * (ej - ek)) + f(-h2 * (ek + ej))) / (4 * h2 * h2) for ej in eye] for ek in eye])
     assert np.abs(fd_grad - grad).max() <= 1e-6 * np.abs(grad).max()
     assert np.abs(fd_hess - hess).max() <= 1e-4 * np.abs(hess).max()
+
+
+def test_a_ball_joint_s_cone_barrier_takes_the_given_margin_and_stiffness():
+    """Both used to be replaced: the margin by a tenth of the limit, silently."""
+    for options, active, value in (({}, False, None), ({"limit_margin": 0.25}, True, None), ({"limit_margin": 0.25, "limit_stiffness": 3.0}, True, 3.0)):
+        model, q = ball_pendulum(0.1, **options)
+        energy = model.articulation.cone_terms(q)[0]
+        assert (energy > 0) == active
+        if value:
+            assert energy == pytest.approx(value * ball_pendulum(0.1, limit_margin=0.25)[0].articulation.cone_terms(q)[0], rel=1e-12)
 
 
 def test_ball_joint_swing_never_crosses_its_cone_limit():
@@ -455,6 +569,15 @@ def test_bad_cone_limits_are_refused():
         b.add_joint("ball", child=a, anchor=(0, 0, 1.2), cone_limit=4.0)
     with pytest.raises(ValueError, match="no coordinate limits"):
         b.add_joint("ball", child=a, anchor=(0, 0, 1.2), limits=[(-1.0, 1.0)])
+    # The cone barrier's stiffness and margin were not checked, and a given margin was ignored:
+    # NaN or 0 ran 500 Newton iterations to "no convergence", -1 pulled the rod onto the limit.
+    for value in (np.nan, 0.0, -1.0):
+        with pytest.raises(ValueError, match="joint 'cone': limit_stiffness must be finite and positive"):
+            b.add_joint("ball", child=a, anchor=(0, 0, 1.2), cone_limit=0.5, limit_stiffness=value, name="cone")
+        with pytest.raises(ValueError, match="joint 'cone': limit_margin must be finite and positive"):
+            b.add_joint("ball", child=a, anchor=(0, 0, 1.2), cone_limit=0.5, limit_margin=value, name="cone")
+    with pytest.raises(ValueError, match="joint 'free': limit_margin applies to a ball joint's cone_limit, and it has none"):
+        b.add_joint("ball", child=a, anchor=(0, 0, 1.2), limit_margin=0.1, name="free")
     model_builder = wc.ModelBuilder()
     rod = model_builder.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, -0.5, 0, 0, 0, 1), name="rod")
     tilt = (0.0, np.sin(0.5), 0.0, np.cos(0.5))  # the child's joint frame turned by 1 rad about y

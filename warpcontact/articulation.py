@@ -154,6 +154,14 @@ def _signed_angle(q_rel: np.ndarray, axis: np.ndarray) -> float:
     return 2.0 * float(np.arctan2(sign * (q_rel[:3] @ axis), sign * q_rel[3]))
 
 
+def _joint_rotation(joint: "Joint", values: np.ndarray) -> np.ndarray:
+    """The relative rotation of a revolute joint at angle values[0], or of a universal one,
+    Rot(e1, values[0]) Rot(e2, values[1])."""
+    if joint.kind == "revolute":
+        return _rotation_about(joint.axes[0], values[0])
+    return quat_mul(_rotation_about(joint.axes[0], values[0]), _rotation_about(joint.axes[1], values[1]))
+
+
 def _rotation_gap(q_a: np.ndarray, q_b: np.ndarray) -> float:
     """Angle (rad) of the rotation between two unit quaternions."""
     return float(np.linalg.norm(rotation_vector_from_quat(quat_mul(q_a, quat_conjugate(q_b)))))
@@ -217,7 +225,7 @@ class ArticulationModel:
         kind, axis_body, axis_local, point_local, owner, group, coord = [], [], [], [], [], [], []
         names, q0, targets, kp, kd, lower, upper, margin, stiffness = [], [], [], [], [], [], [], [], []
         self.joint_dofs = []
-        tol = _ANCHOR_TOLERANCE * max(length_scale, 1e-300)
+        tol = self._anchor_tolerance = _ANCHOR_TOLERANCE * max(length_scale, 1e-300)
         for joint in self.joints:
             first = len(kind)
             values = self._initial_coordinates(joint, poses, tol)
@@ -325,8 +333,9 @@ class ArticulationModel:
         parent_pose = poses[joint.parent] if joint.parent >= 0 else np.array([0, 0, 0, 0, 0, 0, 1.0])
         return pose_mul(parent_pose, joint.parent_frame), pose_mul(poses[joint.child], joint.child_frame)
 
-    def _initial_coordinates(self, joint: Joint, poses: np.ndarray, tol: float) -> np.ndarray:
-        """Joint coordinates of the initial poses; errors if the poses violate the joint."""
+    def _initial_coordinates(self, joint: Joint, poses: np.ndarray, tol: float, poses_label: str = "the initial poses") -> np.ndarray:
+        """Joint coordinates of ``poses`` (revolute angles in (-pi, pi]); errors, naming the
+        poses by ``poses_label``, if they violate the joint."""
         if joint.kind in ("free", "base"):
             return np.zeros(joint.num_coordinates())
         world_parent, world_child = self._frames(joint, poses)
@@ -338,31 +347,52 @@ class ArticulationModel:
             value = float(offset @ axis)
             off_axis = float(np.linalg.norm(offset - value * axis))
             if off_axis > tol or _rotation_gap(q_rel, np.array([0, 0, 0, 1.0])) > _ANGLE_TOLERANCE:
-                raise ValueError(f"{where}: the initial poses violate the prismatic joint (off-axis offset {off_axis:.3g} m or relative rotation)")
+                raise ValueError(f"{where}: {poses_label} violate the prismatic joint (off-axis offset {off_axis:.3g} m or relative rotation)")
             return np.array([value])
         gap = float(np.linalg.norm(offset))
         if gap > tol:
-            raise ValueError(f"{where}: joint anchors are {gap:.3g} m apart in the initial poses")
+            raise ValueError(f"{where}: joint anchors are {gap:.3g} m apart in {poses_label}")
         if joint.kind == "ball":
             return np.zeros(0)
         if joint.kind == "revolute":
-            values = [_signed_angle(q_rel, joint.axes[0])]
-            rebuilt = _rotation_about(joint.axes[0], values[0])
+            values = np.array([_signed_angle(q_rel, joint.axes[0])])
         else:  # universal: R_rel = Rot(e1, q1) Rot(e2, q2)
             e1, e2 = joint.axes
             u = quat_rotate(q_rel, e2)
             q1 = float(np.arctan2(u @ np.cross(e1, e2), u @ e2))
-            q2 = _signed_angle(quat_mul(_rotation_about(e1, -q1), q_rel), e2)
-            values = [q1, q2]
-            rebuilt = quat_mul(_rotation_about(e1, q1), _rotation_about(e2, q2))
-        error = _rotation_gap(rebuilt, q_rel)
+            values = np.array([q1, _signed_angle(quat_mul(_rotation_about(e1, -q1), q_rel), e2)])
+        error = _rotation_gap(_joint_rotation(joint, values), q_rel)
         if error > _ANGLE_TOLERANCE:
-            raise ValueError(f"{where}: the initial relative rotation is not a {joint.kind} joint motion (off by {error:.3g} rad)")
-        return np.array(values)
+            raise ValueError(f"{where}: the relative rotation in {poses_label} is not a {joint.kind} joint motion (off by {error:.3g} rad)")
+        return values
+
+    def state_problem(self, poses: np.ndarray, coordinates: np.ndarray) -> str | None:
+        """Why body ``poses`` (nbodies, 7) and joint ``coordinates`` (num_coordinates,) are not
+        one configuration, or None: a joint the poses violate, or a revolute, prismatic or
+        universal coordinate that disagrees with them (angles modulo 2 pi). Base coordinates
+        are not recoverable from poses and are not compared."""
+        for j, joint in enumerate(self.joints):
+            if joint.kind in ("free", "base"):
+                continue
+            try:
+                values = self._initial_coordinates(joint, poses, self._anchor_tolerance, "state_in.body_q")
+            except ValueError as exc:
+                return str(exc)
+            if joint.kind == "ball":
+                continue
+            owned = self.dof_coordinate[self.joint_dofs[j]]
+            given = coordinates[owned[owned >= 0]]
+            if joint.kind == "prismatic":
+                agree = abs(float(given[0] - values[0])) <= self._anchor_tolerance
+            else:
+                agree = _rotation_gap(_joint_rotation(joint, given), _joint_rotation(joint, values)) <= _ANGLE_TOLERANCE
+            if not agree:
+                return f"joint {joint.name!r} ({self._link_names(joint)}): state_in.joint_q gives it {np.array2string(given, precision=6)} but state_in.body_q puts it at {np.array2string(values, precision=6)}"
+        return None
 
     def _cone(self, j: int, joint: Joint, poses: np.ndarray) -> dict:
         """A ball joint's swing limit: the axis fixed in the parent and in the child, the limit,
-        the barrier's margin (a tenth of the limit, at most 0.1 rad) and stiffness (J)."""
+        the barrier's margin (rad; default a tenth of the limit, at most 0.1) and stiffness (J)."""
         axis = joint.axes[0] if len(joint.axes) else np.array([1.0, 0.0, 0.0])
         cone = {
             "dofs": self.joint_dofs[j],
@@ -371,8 +401,8 @@ class ArticulationModel:
             "child": joint.child,
             "child_axis": quat_rotate(joint.child_frame[3:], axis),
             "limit": float(joint.cone_limit),
-            "margin": min(0.1 * float(joint.cone_limit), 0.1),
-            "stiffness": float(joint.limit_stiffness[0]) if joint.limit_stiffness is not None and len(joint.limit_stiffness) else 1.0,
+            "margin": float(joint.limit_margin[0]),
+            "stiffness": float(joint.limit_stiffness[0]),
         }
         angle = self._cone_angle(cone, poses)[0]
         if angle >= cone["limit"]:

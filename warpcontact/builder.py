@@ -1,6 +1,7 @@
 """ModelBuilder: bodies from trimesh meshes and primitives into a ``Model``."""
 
 import warnings
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,7 +66,10 @@ def _per_coordinate(value, count: int, label: str, where: str) -> np.ndarray:
 
 
 def _unit_axes(axis, count: int, where: str) -> np.ndarray:
-    axes = np.asarray(axis, dtype=np.float64).reshape(-1, 3) if axis is not None else np.zeros((0, 3))
+    axes = np.asarray(axis, dtype=np.float64) if axis is not None else np.zeros((0, 3))
+    if axes.size % 3:
+        raise ValueError(f"{where}: expected {count} axis vector(s) of 3 values, got {axis!r}")
+    axes = axes.reshape(-1, 3)
     if axes.shape[0] != count or not np.isfinite(axes).all():
         raise ValueError(f"{where}: expected {count} finite axis vector(s) of 3 values, got {axis!r}")
     norms = np.linalg.norm(axes, axis=1)
@@ -292,8 +296,8 @@ class ModelBuilder:
                 kp (1 - cos theta*) + kd/dt (1 - cos theta^t) (theta: angle to the target,
                 and to the rotation at the step's start); targets come from
                 ``Control.ball_target``.
-            limit_margin: support of the limit barrier (default: a tenth of the range, at most
-                0.1); limit_stiffness: its scale (J).
+            limit_margin: support of the limit barrier (default: a tenth of the range, or of a
+                ball joint's cone_limit, at most 0.1); limit_stiffness: its scale (J).
             cone_limit: ball joints: the largest swing (rad, in (0, pi)) between ``axis`` (in
                 the joint frame, default X) fixed in the parent and fixed in the child.
             target: per coordinate, the PD target (rad or m) of ``Model.control()``'s
@@ -370,20 +374,37 @@ class ModelBuilder:
         lower = np.full(count, -np.inf)
         upper = np.full(count, np.inf)
         if limits is not None:
-            pairs = np.asarray(limits, dtype=np.float64).reshape(-1, 2)
+            pairs = np.asarray(limits, dtype=np.float64)
+            if pairs.size % 2:
+                raise ValueError(f"{where}: limits must be {count} (lower, upper) pairs with lower < upper, got {limits!r}")
+            pairs = pairs.reshape(-1, 2)
             if pairs.shape[0] == 1 and count > 1:
                 pairs = np.repeat(pairs, count, axis=0)
             if pairs.shape[0] != count or np.isnan(pairs).any() or (pairs[:, 0] >= pairs[:, 1]).any():
                 raise ValueError(f"{where}: limits must be {count} (lower, upper) pairs with lower < upper, got {limits!r}")
             lower, upper = pairs[:, 0].copy(), pairs[:, 1].copy()
-        span = np.where(np.isfinite(upper - lower), upper - lower, np.inf)
-        margin = np.minimum(0.1 * span, 0.1) if limit_margin is None else _per_coordinate(limit_margin, count, "limit_margin", where)
+        if cone_limit is not None:
+            if kind != "ball":
+                raise ValueError(f"{where}: cone_limit only applies to ball joints")
+            if not 0.0 < float(cone_limit) < np.pi:
+                raise ValueError(f"{where}: cone_limit must be in (0, pi) rad, got {cone_limit!r}")
+            probe.cone_limit = float(cone_limit)
+        if kind == "ball":
+            if cone_limit is None and limit_margin is not None:
+                raise ValueError(f"{where}: limit_margin applies to a ball joint's cone_limit, and it has none")
+            # One barrier, on the swing angle, where a cone limit is given.
+            limit_count = 0 if cone_limit is None else 1
+            span = np.full(limit_count, probe.cone_limit)
+        else:
+            limit_count = count
+            span = np.where(np.isfinite(upper - lower), upper - lower, np.inf)
+        margin = np.minimum(0.1 * span, 0.1) if limit_margin is None else limit_margin
         if kind == "ball" and (np.size(kp) != 1 or np.size(kd) != 1):
             raise ValueError(f"{where}: a ball joint takes one kp and one kd (they drive its whole relative rotation), got kp={kp!r}, kd={kd!r}")
         # A ball joint's single gain pair drives its relative rotation (no coordinates).
         gain_count = 1 if kind == "ball" else count
         gains = {}
-        for label, value, size in (("kp", kp, gain_count), ("kd", kd, gain_count), ("limit_stiffness", limit_stiffness, count), ("limit_margin", margin, count)):
+        for label, value, size in (("kp", kp, gain_count), ("kd", kd, gain_count), ("limit_stiffness", limit_stiffness, limit_count), ("limit_margin", margin, limit_count)):
             arr = _per_coordinate(value, size, label, where)
             if not np.isfinite(arr).all() or (arr < 0).any() or (label.startswith("limit") and (arr <= 0).any()):
                 raise ValueError(f"{where}: {label} must be finite and {'positive' if label.startswith('limit') else '>= 0'}, got {value!r}")
@@ -397,13 +418,6 @@ class ModelBuilder:
             probe.target = _per_coordinate(target, count, "target", where)
             if np.isinf(probe.target).any():
                 raise ValueError(f"{where}: target must be finite (NaN: that coordinate's initial value), got {target!r}")
-        if cone_limit is not None:
-            if kind != "ball":
-                raise ValueError(f"{where}: cone_limit only applies to ball joints")
-            if not 0.0 < float(cone_limit) < np.pi:
-                raise ValueError(f"{where}: cone_limit must be in (0, pi) rad, got {cone_limit!r}")
-            probe.cone_limit = float(cone_limit)
-            probe.limit_stiffness = np.array([float(np.asarray(limit_stiffness).reshape(-1)[0])])
         self._joints.append(probe)
         self._joint_parents.append(-1 if parent is None else int(parent))
         return len(self._joints) - 1
@@ -445,8 +459,10 @@ class ModelBuilder:
         dev = resolve_device(device)
         bodies = self._bodies
         names = [b.name for b in bodies]
-        if len(set(names)) != len(names):
-            raise ValueError(f"ModelBuilder: body names must be unique, got {names}")
+        for kind, given in (("body", names), ("joint", [j.name for j in self._joints])):
+            repeated = sorted(name for name, count in Counter(given).items() if count > 1)
+            if repeated:
+                raise ValueError(f"ModelBuilder: {kind} names must be unique; used more than once: {repeated}")
         meshes = [(b.vertices, b.faces) for b in bodies]
         static = [b.static for b in bodies]
         initial_q = np.array([b.pose for b in bodies])

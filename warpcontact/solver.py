@@ -511,23 +511,32 @@ class ImplicitSolver:
                     "would add up both steps' adjoints; make a new Control for every time step (model.control()) while recording"
                 )
 
-    def _joint_arrays(self, state_in: State, state_out: State, control: Control | None):
-        """Current joint coordinates and joint targets (numpy); checks the joint buffers."""
+    def _joint_arrays(self, state_in: State, state_out: State, control: Control | None, poses: np.ndarray):
+        """Current joint coordinates and joint targets (numpy); checks the joint buffers and
+        that the coordinates agree with the current ``poses`` (normalised state_in.body_q)."""
         count = self.model.num_joint_coordinates
         if count == 0:
             return np.zeros(0), np.zeros(0)
         for label, arr in (("state_in.joint_q", state_in.joint_q), ("state_out.joint_q", state_out.joint_q), ("state_out.joint_q_prev", state_out.joint_q_prev)):
-            if arr is None or arr.shape != (count,):
-                raise ValueError(f"{label}: expected a float64 array of the model's {count} joint coordinates (use model.state())")
+            if not isinstance(arr, wp.array) or arr.shape != (count,):
+                raise ValueError(f"{label}: expected a wp.array of the model's {count} joint coordinates (float64; use model.state())")
         coords = state_in.joint_q.numpy()
         if not np.isfinite(coords).all():
             raise ValueError("state_in.joint_q: contains non-finite values")
         art = self._articulation
+        # The state holds each configuration twice; the step reads the poses for contact and
+        # the coordinates for drives and limits, so they must agree.
+        problem = art.state_problem(poses, coords)
+        if problem:
+            raise ValueError(f"state_in: {problem}; set both from one configuration (model.state() gives a consistent one)")
         outside = np.flatnonzero((coords <= art.lower) | (coords >= art.upper))
         if outside.size:
             i = outside[0]
             raise ValueError(f"state_in.joint_q: coordinate {art.coordinate_names[i]!r} = {coords[i]:.6g} is not strictly inside its limits ({art.lower[i]:.6g}, {art.upper[i]:.6g})")
-        target = coords if control is None or control.joint_target is None else control.joint_target.numpy()
+        supplied = None if control is None else control.joint_target
+        if supplied is not None and not isinstance(supplied, wp.array):
+            raise ValueError(f"control.joint_target: expected a wp.array of {count} joint targets (float64; use model.control()), got {type(supplied).__name__}")
+        target = coords if supplied is None else supplied.numpy()
         if target.shape != (count,) or not np.isfinite(target).all():
             raise ValueError(f"control.joint_target: expected {count} finite joint targets")
         return coords, target
@@ -575,14 +584,14 @@ class ImplicitSolver:
             targets = control.body_target
             if not isinstance(targets, wp.array) or targets.shape != (len(q_now),):
                 raise ValueError(f"control.body_target: expected a wp.array of {len(q_now)} wp.transformd, one per body (use model.control())")
-        coords_now, joint_target = self._joint_arrays(state_in, state_out, control)
+        q = q_now.copy()
+        q[:, 3:] /= np.linalg.norm(q[:, 3:], axis=1, keepdims=True)
+        coords_now, joint_target = self._joint_arrays(state_in, state_out, control, q)
         ball_target, ball_start = self._ball_arrays(control, q_now)
         mu = float(model.contact_stiffness.numpy()[0])
         dynamic = self._dynamic
         art = self._articulation
 
-        q = q_now.copy()
-        q[:, 3:] /= np.linalg.norm(q[:, 3:], axis=1, keepdims=True)
         q_start = q.copy()
         start = model.contact.evaluate(q, reuse=True)
         if start.contact_pairs:
@@ -631,6 +640,12 @@ class ImplicitSolver:
                 if unrotated.size:
                     raise ValueError(f"control.body_target: the target of body {self.model.body_names[unrotated[0]]!r} (index {unrotated[0]}) has a zero rotation quaternion")
             # Joint coordinates outside their limits were refused with the state (_joint_arrays).
+            if art is not None and art.num_coordinates:
+                with np.errstate(over="ignore"):
+                    overflow = np.flatnonzero(~np.isfinite(art.kp * (coords_now - joint_target) ** 2))
+                if overflow.size:
+                    c = overflow[0]
+                    raise ValueError(f"control.joint_target: the PD energy of coordinate {art.coordinate_names[c]!r} overflows float64 (target {joint_target[c]:.6g}, coordinate {coords_now[c]:.6g}, kp {art.kp[c]:.6g})")
             pairs = ", ".join(f"{a} and {b}" for a, b in contact.unsolved_pairs)
             raise SolverError(f"objective is not finite at the start pose: {pairs}: {UNSOLVED_HINT}")
         tol = self.tolerance * self._length_scale
