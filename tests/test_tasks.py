@@ -289,6 +289,8 @@ def test_receding_windows_execute_their_first_frames_and_hold_the_last_planned_a
     rollout = problem.rollout
 
     def recording(values, start, frames, **kwargs):
+        if frames == 5:  # the trivial plan's rollout, for the initial loss
+            return rollout(values, start, frames, **kwargs)
         if frames == 2 and (not windows or len(windows[-1]) == 2):
             windows.append([])
         loss, grad, trajectory = rollout(values, start, frames, **kwargs)
@@ -675,9 +677,10 @@ def _interrupted_after(problem, calls):
     problem.rollout = interrupting
 
 
-# Rollouts before the interruption: mid-window and at window starts; gb rolls out 3 times an
-# iteration (the loss, then 2 samples), and its first checkpoint follows its first 3.
-@pytest.mark.parametrize(("run", "calls"), [("receding", 2), ("receding", 5), ("receding", 9), ("bundles", 4), ("bundles", 8), ("bundles", 12)])
+# Rollouts before the interruption: mid-window and at window starts (a receding run's first
+# rollout is the trivial plan's, for its initial loss); gb rolls out 3 times an iteration
+# (the loss, then 2 samples), and its first checkpoint follows its first 3.
+@pytest.mark.parametrize(("run", "calls"), [("receding", 3), ("receding", 6), ("receding", 10), ("bundles", 4), ("bundles", 8), ("bundles", 12)])
 def test_an_interrupted_optimisation_resumes_bit_for_bit(tmp_path, run, calls):
     from warpcontact.bundle import BundleSettings
 
@@ -705,7 +708,7 @@ def test_a_checkpoint_is_never_overwritten_or_resumed_into_another_problem(tmp_p
     make_scene, settings, model = _CHECKPOINTED_RUNS["receding"]
     checkpoint = tmp_path / "checkpoint.npz"
     interrupted = TaskProblem(make_scene(), settings=settings)
-    _interrupted_after(interrupted, 4)
+    _interrupted_after(interrupted, 5)
     with pytest.raises(KeyboardInterrupt):
         interrupted.optimize(checkpoint=checkpoint)
     saved = checkpoint.read_bytes()
@@ -861,3 +864,168 @@ def test_a_checkpoint_knows_its_scene_by_content_not_by_path(tmp_path):
     with pytest.raises(ValueError, match="checkpoint of another problem .bodies:"):
         TaskProblem(io.load_scene(tmp_path / "moved.usda"), settings=settings).optimize(checkpoint=checkpoint, resume=True)
     assert TaskProblem(io.load_scene(tmp_path / "b.usda"), settings=settings).optimize(checkpoint=checkpoint, resume=True).loss_history
+
+
+def test_a_receding_run_s_initial_loss_is_the_trivial_plan_s_at_the_horizon():
+    """Where final_loss is measured: the first window's loss, at its own last frame, also
+    counted what the bodies do unpushed, and was reported as the initial loss."""
+    make_scene, settings, _ = _CHECKPOINTED_RUNS["receding"]
+    problem = TaskProblem(make_scene(), settings=settings)
+    result = problem.optimize()
+    q0 = problem.model.initial_q
+    trivial = problem.rollout(np.zeros((settings.horizon, 2)), (q0, q0), settings.horizon, gradient=False)[0]
+    assert result.initial_loss == trivial and abs(result.loss_history[0] - trivial) > 1e-3
+    # Without a gradient the plan stays trivial, and the executed frames are its rollout's.
+    sdrs = TaskProblem(make_scene(), settings=settings, model="sdrs").optimize()
+    assert sdrs.final_loss == sdrs.initial_loss
+
+
+def _rewritten(path, **changes):
+    """Rewrite checkpoint ``path`` with its meta (``meta=``, a JSON-able value) or arrays replaced."""
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    meta = changes.pop("meta", None)
+    if meta is not None:
+        arrays["meta"] = np.array(json.dumps(meta))
+    arrays.update(changes)
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [
+        ("truncated", r"not a readable checkpoint \(File is not a zip file\)"),
+        ("empty", "not a readable checkpoint"),
+        ("single array", r"not a readable checkpoint \(a single array, not an .npz archive\)"),
+        ("meta a list", r"not a readable checkpoint \(its meta is not a JSON object\)"),
+        ("meta without a fingerprint", r"not a complete checkpoint \(missing fingerprint\)"),
+        ("values reshaped", r"checkpoint array 'values' has shape \(7, 5\), expected \(2, 2\) for this problem"),
+    ],
+)
+def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path, damage, message):
+    """Each of these used to end in a traceback (BadZipFile, EOFError, TypeError,
+    AttributeError, KeyError, a broadcast error naming no file)."""
+    make_scene, settings, _ = _CHECKPOINTED_RUNS["receding"]
+    checkpoint = tmp_path / "checkpoint.npz"
+    interrupted = TaskProblem(make_scene(), settings=settings)
+    _interrupted_after(interrupted, 4)
+    with pytest.raises(KeyboardInterrupt):
+        interrupted.optimize(checkpoint=checkpoint)
+    if damage == "truncated":
+        checkpoint.write_bytes(checkpoint.read_bytes()[:500])
+    elif damage == "empty":
+        checkpoint.write_bytes(b"")
+    elif damage == "single array":
+        with open(checkpoint, "wb") as f:
+            np.save(f, np.zeros(3))
+    else:
+        with np.load(checkpoint) as data:
+            meta = json.loads(str(data["meta"]))
+        if damage == "meta a list":
+            _rewritten(checkpoint, meta=[meta])
+        elif damage == "meta without a fingerprint":
+            del meta["fingerprint"]
+            _rewritten(checkpoint, meta=meta)
+        else:
+            _rewritten(checkpoint, values=np.zeros((7, 5)))
+    with pytest.raises(ValueError, match=f"checkpoint.npz: {message}"):
+        TaskProblem(make_scene(), settings=settings).optimize(checkpoint=checkpoint, resume=True)
+    if damage != "values reshaped":  # a readable, complete file is described before it is resumed
+        with pytest.raises(ValueError, match=f"checkpoint.npz: {message}"):
+            TaskProblem(make_scene(), settings=settings).optimize(checkpoint=checkpoint)
+
+
+def test_numpy_integer_settings_checkpoint_and_resume_as_python_integers(tmp_path):
+    """np.int64 settings pass TaskSettings.check; the first checkpoint save failed on them
+    (not JSON serialisable), and their fingerprint was the string '1'."""
+    make_scene, settings, _ = _CHECKPOINTED_RUNS["receding"]
+    numpy_settings = dataclasses.replace(settings, horizon=np.int64(5), receding_horizon=np.int64(2), receding_stride=np.int64(1))
+    checkpoint = tmp_path / "checkpoint.npz"
+    interrupted = TaskProblem(make_scene(), settings=numpy_settings)
+    _interrupted_after(interrupted, 6)
+    with pytest.raises(KeyboardInterrupt):
+        interrupted.optimize(checkpoint=checkpoint)
+    resumed = TaskProblem(make_scene(), settings=settings).optimize(checkpoint=checkpoint, resume=True)
+    assert resumed.loss_history == TaskProblem(make_scene(), settings=settings).optimize().loss_history
+
+
+def test_cli_run_keeps_a_finished_run_until_its_results_are_written(tmp_path, capsys, monkeypatch):
+    """The optimisation used to remove its checkpoint before the results were written: Ctrl-C
+    while writing them, or a results name taken by a folder, lost the finished run."""
+    scene_path = tmp_path / "space.usda"
+    io.save_scene(space_billiards(), scene_path)
+    argv = ["run", str(scene_path), "--iters", "3"]
+    assert main([*argv, "--out", str(tmp_path / "full")]) == 0
+    out = tmp_path / "out"
+    export = io.export_trajectory
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(io, "export_trajectory", interrupted)
+    capsys.readouterr()
+    assert main([*argv, "--out", str(out)]) == 130
+    assert "interrupted while writing the results: the run is kept in" in capsys.readouterr().err
+    assert (out / cli.CHECKPOINT_NAME).exists()
+    monkeypatch.setattr(io, "export_trajectory", export)
+    assert main([*argv, "--out", str(out), "--resume"]) == 0
+    assert not (out / cli.CHECKPOINT_NAME).exists()
+    full, resumed = (json.loads((folder / "metrics.json").read_text()) for folder in (tmp_path / "full", out))
+    assert resumed["loss_history"] == full["loss_history"] and resumed["final_loss"] == full["final_loss"]
+    # A results or checkpoint name taken by a folder is refused before any work.
+    for name in ("trajectory.usda", cli.CHECKPOINT_NAME):
+        taken = tmp_path / f"taken_{name}"
+        (taken / name).mkdir(parents=True)
+        assert main([*argv, "--out", str(taken)]) == 2
+        assert f"{name}: exists and is not a file" in capsys.readouterr().err
+        assert sorted(p.name for p in taken.iterdir()) == [name]
+
+
+def test_receding_settings_of_a_task_that_cannot_recede_are_refused():
+    """An initial-state task with recedingHorizon below its horizon optimised one window of
+    the whole horizon, while its header and metrics.json reported windows and a stride."""
+    scene = space_billiards()
+    scene.task.receding_horizon = 5
+    with pytest.raises(ValueError, match="receding-horizon control applies to pd_targets tasks, and this task's control is initial_state"):
+        TaskProblem(scene)
+
+
+def test_generic_quick_caps_keep_the_stride_inside_the_window():
+    scene = _pd_space_billiards()
+    scene.task.horizon, scene.task.receding_horizon, scene.task.receding_stride = 40, 20, 10
+    capped = TaskSettings.from_task(scene, quick=True)
+    assert (capped.horizon, capped.window, capped.receding_stride) == (24, 8, 8)
+
+
+@pytest.mark.parametrize(
+    ("attribute", "type_name", "value", "message"),
+    [
+        ("task:horizon", "double", 5.7, "warpcontact:task:horizon must be a whole number, got 5.7"),
+        ("task:iterations", "bool", True, "warpcontact:task:iterations must be a whole number, got True"),
+        ("task:sampleLow", "string", "low", "warpcontact:task:sampleLow must be a list of numbers, got 'low'"),
+        ("target:tolerance", "string", "abc", "prim /World/target: warpcontact:target:tolerance must be a number, got 'abc'"),
+        ("target:position", "string", "here", "prim /World/target: warpcontact:target:position must be a list of numbers, got 'here'"),
+    ],
+)
+def test_task_metadata_of_the_wrong_type_is_refused_naming_the_attribute(tmp_path, attribute, type_name, value, message):
+    """A fractional horizon was truncated (5.7 ran 5 frames); a string tolerance or position
+    failed with a bare 'could not convert string to float'."""
+    from pxr import Sdf
+
+    path = tmp_path / "scene.usda"
+    io.save_scene(space_billiards(), path)
+    stage = Usd.Stage.Open(str(path))
+    prim = stage.GetPrimAtPath("/World/target" if attribute.startswith("target") else "/World/physicsScene")
+    prim.RemoveProperty("warpcontact:" + attribute)
+    prim.CreateAttribute("warpcontact:" + attribute, Sdf.ValueTypeNames.Find(type_name)).Set(value)
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=message):
+        io.load_scene(path)
+
+
+def test_settings_and_models_accept_numpy_betas_and_refuse_a_string_stiffness():
+    settings = dataclasses.replace(_CHECKPOINTED_RUNS["receding"][1], betas=np.array([0.3, 0.5]))
+    TaskProblem(_pd_space_billiards(), settings=settings)
+    with pytest.raises(ValueError, match="ipc_stiffness: must be positive and finite, got '1e5'"):
+        TaskProblem(_pd_space_billiards(), model="ipc", ipc_stiffness="1e5")

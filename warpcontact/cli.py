@@ -184,6 +184,14 @@ def _refuse_earlier_results(out: Path, names: tuple, overwrite: bool):
             raise FileExistsError(f"{out / name} holds an earlier run's results")
 
 
+def _refuse_unwritable_names(out: Path, names: tuple):
+    """ValueError when an output's name in OUT is taken by a folder (or anything but a file),
+    found before the work rather than when its results are written."""
+    for name in names:
+        if (out / name).exists() and not (out / name).is_file():
+            raise ValueError(f"{out / name}: exists and is not a file; the results cannot be written there")
+
+
 def _task_problem(scene, settings, model: str, args):
     """The TaskProblem of one model; gb's bundle is seeded by --seed (4 samples with --quick);
     ipc's barrier stiffness is --ipc-stiffness in place of the scene's mu."""
@@ -245,7 +253,7 @@ def _run(args) -> int:
     t = scene.task
     print(f"{scene_path}: task {t.name}, model {args.model}, control {t.control} of {problem.dof_names}, {_settings_line(settings)}{resumed}")
     try:
-        result = problem.optimize(progress=_progress(""), checkpoint=checkpoint.path, resume=args.resume)
+        result = problem.optimize(progress=_progress(""), checkpoint=checkpoint.path, resume=args.resume, keep_checkpoint=True)
     except KeyboardInterrupt:
         kept = f"progress kept in {checkpoint.path} ({checkpoint.describe()}); continue with the same command and --resume" if checkpoint.exists() else "nothing to keep yet"
         print(f"\ninterrupted: {kept}", file=sys.stderr)
@@ -268,9 +276,19 @@ def _run(args) -> int:
         **_settings_metrics(settings, args, [args.model]),
         **_result_metrics(result),
     }
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
-    plotted = _plot_convergence({args.model: result.loss_history}, out / "convergence.png", title=f"{t.name} ({args.model})")
-    io.export_trajectory(scene, io.model_to_scene_poses(scene, problem.model, result.trajectory), out / "trajectory.usda", overwrite=True)
+    # The checkpoint goes only once the results are written: an interrupted or failed
+    # write is resumed (the finished descent replays its last state), not run again.
+    try:
+        (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+        plotted = _plot_convergence({args.model: result.loss_history}, out / "convergence.png", title=f"{t.name} ({args.model})")
+        io.export_trajectory(scene, io.model_to_scene_poses(scene, problem.model, result.trajectory), out / "trajectory.usda", overwrite=True)
+    except KeyboardInterrupt:
+        print(f"\ninterrupted while writing the results: the run is kept in {checkpoint.path}; write them with the same command and --resume", file=sys.stderr)
+        return 130
+    except (OSError, ValueError) as exc:
+        print(f"error: writing the results failed ({exc}); the run is kept in {checkpoint.path}: write them with the same command and --resume", file=sys.stderr)
+        return 1
+    checkpoint.remove()
     print(f"loss {result.initial_loss:.6g} -> {result.final_loss:.6g}, success {result.success}, {result.seconds:.1f} s; wrote {out}/metrics.json, trajectory.usda, {_plot_name('convergence.png', plotted)}")
     stopped = result.extra.get("stopped")
     if stopped:
@@ -610,7 +628,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--resume",
         action="store_true",
-        help=f"continue the interrupted run whose progress is in OUT/{CHECKPOINT_NAME} (rewritten before every Adam iteration, removed when the run ends)",
+        help=f"continue the interrupted run whose progress is in OUT/{CHECKPOINT_NAME} (rewritten before every Adam iteration, removed once the results are written)",
     )
     run.set_defaults(func=_run)
 
@@ -704,6 +722,7 @@ def main(argv=None) -> int:
             # Every command that writes checks its folder and earlier results before any work;
             # a resumed run continues the one that was allowed to start there.
             out = _output_folder(args.out)
+            _refuse_unwritable_names(out, args.outputs)
             if not getattr(args, "resume", False):
                 _refuse_earlier_results(out, args.outputs, args.overwrite)
         return args.func(args)

@@ -1251,10 +1251,11 @@ def target_problem(body: BodySpec) -> str | None:
 
 
 def _read_warpcontact_body(prim, body: BodySpec, meters: float, source: str):
-    target = _attr(prim, _NS + "target:position")
+    target = _cast_attr(prim, "target:position", _numbers, source)
     if target is not None:
-        body.target_position = np.asarray(target, dtype=np.float64) * meters
-        body.target_tolerance = float(_attr(prim, _NS + "target:tolerance", 0.0)) * meters
+        body.target_position = target * meters
+        tolerance = _cast_attr(prim, "target:tolerance", float, source)
+        body.target_tolerance = (0.0 if tolerance is None else tolerance) * meters
         problem = target_problem(body)
         if problem:
             raise ValueError(f"{source}: prim {prim.GetPath()}: {problem}")
@@ -1264,14 +1265,36 @@ def _read_warpcontact_body(prim, body: BodySpec, meters: float, source: str):
 def _read_casts(prim, target, casts: dict, source: str):
     """Set ``target``'s fields from the authored ``warpcontact:`` attributes named in ``casts``."""
     for attr_name, (field_name, cast) in casts.items():
-        value = _attr(prim, _NS + attr_name)
-        if value is None:
-            continue
-        try:
-            setattr(target, field_name, cast(value))
-        except (TypeError, ValueError):
-            kind = {int: "an integer", float: "a number", _vector3: "1 or 3 numbers", _strings: "a list of strings"}.get(cast, cast.__name__)
-            raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:{attr_name} must be {kind}, got {value!r}") from None
+        value = _cast_attr(prim, attr_name, cast, source)
+        if value is not None:
+            setattr(target, field_name, value)
+
+
+def _cast_attr(prim, attr_name: str, cast, source: str):
+    """The authored ``warpcontact:`` attribute through ``cast``, or None when not authored;
+    ValueError naming the prim and attribute when the value does not fit."""
+    value = _attr(prim, _NS + attr_name)
+    if value is None:
+        return None
+    try:
+        return cast(value)
+    except (TypeError, ValueError, OverflowError):
+        kind = {_whole: "a whole number", float: "a number", _vector3: "1 or 3 numbers", _numbers: "a list of numbers", _strings: "a list of strings"}.get(cast, cast.__name__)
+        raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:{attr_name} must be {kind}, got {value!r}") from None
+
+
+def _whole(value) -> int:
+    """An integer, authored as one (or as a float without a fraction); a fraction used to be
+    truncated (a horizon of 5.7 ran 5 frames)."""
+    if isinstance(value, (bool, str, np.bool_)) or float(value) != int(value):
+        raise ValueError(value)
+    return int(value)
+
+
+def _numbers(value) -> np.ndarray:
+    if isinstance(value, str):
+        raise ValueError(value)
+    return np.asarray(value, dtype=np.float64).reshape(-1)
 
 
 def _vector3(value) -> np.ndarray:
@@ -1293,7 +1316,7 @@ def _strings(value) -> tuple:
 # apart (units, tuples).
 _SETTING_ATTRIBUTES = {
     "timeStep": ("time_step", float),
-    "frames": ("frames", int),
+    "frames": ("frames", _whole),
     "contactStiffness": ("contact_stiffness", float),
     "eps": ("eps", float),
     "centredWeight": ("centred_weight", str),
@@ -1305,16 +1328,16 @@ _SETTING_ATTRIBUTES = {
 _TASK_ATTRIBUTES = {
     "task:name": ("name", str),
     "task:control": ("control", str),
-    "task:horizon": ("horizon", int),
-    "task:recedingHorizon": ("receding_horizon", int),
+    "task:horizon": ("horizon", _whole),
+    "task:recedingHorizon": ("receding_horizon", _whole),
     "task:learningRate": ("learning_rate", float),
-    "task:iterations": ("iterations", int),
-    "task:recedingStride": ("receding_stride", int),
-    "task:quick:horizon": ("quick_horizon", int),
-    "task:quick:recedingHorizon": ("quick_receding_horizon", int),
+    "task:iterations": ("iterations", _whole),
+    "task:recedingStride": ("receding_stride", _whole),
+    "task:quick:horizon": ("quick_horizon", _whole),
+    "task:quick:recedingHorizon": ("quick_receding_horizon", _whole),
     "task:quick:learningRate": ("quick_learning_rate", float),
-    "task:quick:iterations": ("quick_iterations", int),
-    "task:quick:recedingStride": ("quick_receding_stride", int),
+    "task:quick:iterations": ("quick_iterations", _whole),
+    "task:quick:recedingStride": ("quick_receding_stride", _whole),
 }
 _BODY_ATTRIBUTES = {
     "pd:kpLinear": ("kp_linear", _vector3),
@@ -1322,7 +1345,7 @@ _BODY_ATTRIBUTES = {
     "pd:kpAngular": ("kp_angular", float),
     "pd:kdAngular": ("kd_angular", float),
     "control:dofs": ("control_dofs", _strings),
-    "group": ("group", int),
+    "group": ("group", _whole),
 }
 _SCENE_PRIM_NAMES = (*_SETTING_ATTRIBUTES, *_TASK_ATTRIBUTES, "task:sampleLow", "task:sampleHigh")
 _BODY_PRIM_NAMES = (*_BODY_ATTRIBUTES, "target:position", "target:tolerance")
@@ -1373,7 +1396,7 @@ def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: s
         raise ValueError(f"{where}: warpcontact:leafPrecision must be one of {LEAF_PRECISIONS}, got {settings.leaf_precision!r}")
     _read_casts(prim, task, _TASK_ATTRIBUTES, source)
     for attr_name, field_name in (("task:sampleLow", "sample_low"), ("task:sampleHigh", "sample_high")):
-        value = _attr(prim, _NS + attr_name)
+        value = _cast_attr(prim, attr_name, _numbers, source)
         if value is not None:
             setattr(task, field_name, tuple(float(v) for v in value))
 
