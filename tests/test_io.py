@@ -138,6 +138,24 @@ def test_round_trip_preserves_bodies_masses_meshes_and_poses(tmp_path):
     np.testing.assert_allclose(m1.initial_q, m0.initial_q, atol=1e-12)
 
 
+def test_an_authored_centre_of_mass_and_inertia_count_with_a_mass_from_density(tmp_path):
+    """UsdPhysics computes only what is not authored: without a mass, the authored centre of
+    mass and inertia were both dropped, and the exported trajectory started 0.2 m away from
+    the stage's pose (the export used the authored centre, the model the mesh's)."""
+    path = write_physics_scene(tmp_path / "com.usda")
+    stage = Usd.Stage.Open(str(path))
+    mass_api = UsdPhysics.MassAPI.Apply(stage.GetPrimAtPath("/World/box"))
+    mass_api.CreateCenterOfMassAttr(Gf.Vec3f(0.2, 0.0, 0.0))
+    mass_api.CreateDiagonalInertiaAttr(Gf.Vec3f(5.0, 5.0, 5.0))
+    stage.GetRootLayer().Save()
+    scene = io.load_scene(path)
+    model, q = simulate(scene, 1)
+    assert model.body_mass.numpy()[1] == pytest.approx(125.0)  # 1,000 kg/m^3 of a 0.5 m cube
+    np.testing.assert_allclose(model.body_center_of_mass[1], [0.2, 0.0, 0.0], atol=1e-7)
+    np.testing.assert_allclose(np.diag(model.body_unit_second_moment.numpy()[1]), 2.5 / 125.0, rtol=1e-6)  # S = tr(J)/2 - J
+    np.testing.assert_allclose(io.model_to_scene_poses(scene, model, q)[0, 1], scene.body("box").pose, atol=1e-12)
+
+
 def test_trajectory_export_opens_with_time_samples(tmp_path):
     scene = io.load_scene(write_physics_scene(tmp_path / "a.usda"))
     scene.body("box").target_position = np.array([1.0, 0.0, 0.25])

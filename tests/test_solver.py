@@ -590,6 +590,17 @@ def test_bad_input_raises_before_writing_state():
         (dict(density=1.0, pose=(0, 0, 0, 0, 0, 0, 2.0)), "quaternion"),
         (dict(static=True, kp_linear=1.0), "cannot be PD-actuated"),
         (dict(density=1.0, kp_linear=-1.0), "kp_linear"),
+        # Each of these used to be a numpy error naming no body, or to be ignored.
+        (dict(density=1.0, kp_linear=[1.0, 2.0]), r"'crate': kp_linear must be 1 or 3 numbers, each >= 0 and finite, got \[1.0, 2.0\]"),
+        (dict(density=1.0, kp_angular=[1.0, 2.0, 3.0]), r"'crate': kp_angular must be a number >= 0 and finite"),
+        (dict(density=1.0, kd_angular="10"), r"'crate': kd_angular must be a number >= 0 and finite, got '10'"),
+        (dict(mass=1.0, inertia=np.diag([np.inf, 1.0, 1.0])), r"'crate': inertia must be a finite, symmetric positive definite 3x3 matrix"),
+        (dict(mass=1.0, inertia=np.eye(3) * 1e308), r"'crate': inertia must be a finite"),
+        (dict(mass="1"), r"'crate': mass must be positive and finite, got '1'"),
+        (dict(density=1.0, mass=1.0), "give either a density or a mass, not both"),
+        (dict(density=1.0, center_of_mass=[0.0, 0.0]), r"'crate': center_of_mass must be 3 finite numbers \(m, mesh frame\), got \[0.0, 0.0\]"),
+        (dict(mass=1.0, center_of_mass=[np.nan, 0.0, 0.0]), r"'crate': center_of_mass must be 3 finite numbers"),
+        (dict(static=True, center_of_mass=[0.0, 0.0, 0.0]), r"'crate': a static body takes no mass properties, got center_of_mass"),
     ],
 )
 def test_builder_rejects_bad_bodies(kwargs, match):
@@ -618,6 +629,53 @@ def test_builder_names_bad_faces(faces, kwargs, match):
         wc.ModelBuilder().add_body((_BOX.vertices, faces), name="crate", **kwargs)
 
 
+def test_builder_mass_properties_ignore_unused_vertices_and_refuse_inward_faces():
+    """One face of a closed cube wound inward gave 500 kg at 1,000 kg/m^3 and a centre of
+    mass 0.25 m off; a vertex no face used moved the mass-and-inertia path's centre of mass
+    (to 11 m) and the body radius that scales the solver's tolerance (to 154 m)."""
+    flipped = _BOX.faces.copy()
+    flipped[0] = flipped[0, ::-1]
+    with pytest.raises(ValueError, match="'crate': mass from density needs a closed, consistently outward-oriented mesh"):
+        wc.ModelBuilder().add_body((_BOX.vertices, flipped), density=1000.0, name="crate")
+    stray = np.vstack([_BOX.vertices, [[100.0, 100.0, 100.0]]])
+    for kwargs in (dict(mass=2.0, inertia=np.eye(3)), dict(density=1000.0)):
+        b = wc.ModelBuilder()
+        b.add_body((stray, _BOX.faces), name="crate", **kwargs)
+        model = b.finalize()
+        np.testing.assert_allclose(model.body_center_of_mass[0], 0.0, atol=1e-15)
+        assert model.body_radius[0] == pytest.approx(np.sqrt(0.75))
+    # Without a volume the centre of mass is the surface's centroid, not the points' mean.
+    b = wc.ModelBuilder()
+    fan = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
+    b.add_body((fan, np.array([[0, 1, 2], [0, 3, 4]])), mass=1.0, inertia=np.eye(3), name="sheet")
+    area_weighted = (4.0 * np.array([2.0, 2.0, 0.0]) / 3 + 0.01 * np.array([0.1, 0.1, 0.0]) / 3) / 4.01
+    np.testing.assert_allclose(b.finalize().body_center_of_mass[0], area_weighted, rtol=1e-12)
+
+
+def test_builder_takes_an_authored_centre_of_mass_with_a_density():
+    b = wc.ModelBuilder()
+    b.add_body(_BOX, density=1000.0, center_of_mass=[0.2, 0.0, 0.0], name="weighted", pose=(1.0, 0, 0, 0, 0, 0, 1))
+    model = b.finalize()
+    assert model.body_mass.numpy()[0] == pytest.approx(1000.0)
+    np.testing.assert_allclose(model.initial_q[0, :3], [1.2, 0.0, 0.0])
+
+
+@pytest.mark.parametrize(
+    ("add", "match"),
+    [
+        (lambda b: b.add_box((0.0, 1.0, 1.0), density=1.0, name="slab"), r"'slab': box extents must be 3 positive finite numbers \(m\), got \(0.0, 1.0, 1.0\)"),
+        (lambda b: b.add_box((1.0, 1.0), density=1.0), r"'body0': box extents must be 3 positive finite numbers"),
+        (lambda b: b.add_sphere(-1.0, density=1.0), r"'body0': sphere radius must be positive and finite \(m\), got -1.0"),
+        (lambda b: b.add_sphere(1.0, subdivisions=0.5, density=1.0), r"sphere subdivisions must be a whole number from 0 to 6, got 0.5"),
+    ],
+)
+def test_builder_primitives_check_their_sizes(add, match):
+    """A negative radius built a sphere of 4,047 kg, a fractional subdivision count was
+    truncated, and a zero extent was blamed on the mesh not being closed."""
+    with pytest.raises(ValueError, match=match):
+        add(wc.ModelBuilder())
+
+
 def test_builder_rejects_a_flat_closed_mesh_with_density_quietly():
     """A closed mesh of zero volume (a box flattened to z = 0) has no mass from density; the
     check says so without trimesh's division warning."""
@@ -626,7 +684,7 @@ def test_builder_rejects_a_flat_closed_mesh_with_density_quietly():
     flat = _BOX.vertices * [1.0, 1.0, 0.0]
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        with pytest.raises(ValueError, match="'flat': mass from density needs a closed, outward-oriented mesh"):
+        with pytest.raises(ValueError, match="'flat': mass from density needs a closed, consistently outward-oriented mesh"):
             wc.ModelBuilder().add_body((flat, _BOX.faces), density=1.0, name="flat")
 
 
@@ -698,9 +756,9 @@ def test_builder_rejects_open_mesh_with_density():
 
 def test_builder_names_an_inside_out_mesh_for_density_and_for_a_mass_without_inertia():
     inside_out = (_BOX.vertices, _BOX.faces[:, ::-1])
-    with pytest.raises(ValueError, match="'inverted': mass from density needs a closed, outward-oriented mesh"):
+    with pytest.raises(ValueError, match="'inverted': mass from density needs a closed, consistently outward-oriented mesh"):
         wc.ModelBuilder().add_body(inside_out, density=1.0, name="inverted")
-    with pytest.raises(ValueError, match="'inverted': inertia is needed for a mesh that is not closed and outward-oriented"):
+    with pytest.raises(ValueError, match="'inverted': inertia is needed for a mesh that is not closed and consistently outward-oriented"):
         wc.ModelBuilder().add_body(inside_out, mass=1.0, name="inverted")
 
 

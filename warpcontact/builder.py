@@ -9,6 +9,7 @@ import trimesh
 import warp as wp
 
 from ._runtime import resolve_device
+from ._validate import is_positive_finite, is_whole
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, frame_in_body
 from .contact import CONTACT_MODES, ContactModel
 from .leaf import float32_search
@@ -82,10 +83,57 @@ def _unit_axes(axis, count: int, where: str) -> np.ndarray:
 
 
 def _encloses_volume(mesh: trimesh.Trimesh) -> bool:
-    """Whether the mesh is closed and outward-oriented around a positive volume; a flat
-    closed mesh has none (trimesh divides by its zero volume for the centre of mass)."""
+    """Whether the mesh is closed and consistently outward-oriented around a positive
+    volume. A closed mesh with some faces wound inward still has a positive signed volume,
+    but the wrong one (one flipped face of a unit cube gave 500 kg at 1,000 kg/m^3 and its
+    centre of mass 0.25 m off); a flat closed mesh has none (trimesh divides by it)."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        return bool(mesh.is_watertight and mesh.volume > 0)
+        return bool(mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0)
+
+
+def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia, center_of_mass) -> tuple[float, np.ndarray, np.ndarray]:
+    """(mass, centre of mass in the mesh frame, second moment about it) of a dynamic body
+    from ``add_body``'s arguments, each checked and named."""
+    where = f"body {name!r}"
+    closed = _encloses_volume(mesh)
+    if density is not None and mass is not None:
+        raise ValueError(f"{where}: give either a density or a mass, not both")
+    if density is None and mass is None:
+        raise ValueError(f"{where}: give a density or a mass (or mark it static)")
+    label, value = ("density", density) if density is not None else ("mass", mass)
+    if not is_positive_finite(value):
+        raise ValueError(f"{where}: {label} must be positive and finite, got {value!r}")
+    if density is not None and not closed:
+        raise ValueError(f"{where}: mass from density needs a closed, consistently outward-oriented mesh; give mass and inertia instead")
+    if inertia is None and not closed:
+        raise ValueError(f"{where}: inertia is needed for a mesh that is not closed and consistently outward-oriented (no volume to take it from)")
+    props = mesh.mass_properties if closed else None
+    body_mass = float(props["volume"]) * float(density) if density is not None else float(mass)
+    if center_of_mass is not None:
+        com = np.asarray(center_of_mass, dtype=np.float64)
+        if com.shape != (3,) or not np.isfinite(com).all():
+            raise ValueError(f"{where}: center_of_mass must be 3 finite numbers (m, mesh frame), got {center_of_mass!r}")
+    elif closed:
+        com = np.asarray(props["center_mass"], dtype=np.float64)
+    else:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            com = np.asarray(mesh.centroid, dtype=np.float64)
+        if not np.isfinite(com).all():  # no area either: the points themselves
+            com = mesh.vertices.mean(axis=0)
+    if inertia is None:
+        scale = float(density) if density is not None else body_mass / float(props["mass"])
+        inertia = np.asarray(props["inertia"], dtype=np.float64) * scale
+    try:
+        inertia = np.asarray(inertia, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: inertia must be a finite, symmetric positive definite 3x3 matrix (kg m^2), got {inertia!r}") from None
+    with np.errstate(over="ignore", invalid="ignore"):
+        second_moment = _second_moment_from_inertia(inertia) if inertia.shape == (3, 3) else None
+    if second_moment is None or not (np.isfinite(inertia).all() and np.isfinite(second_moment).all()) or not np.allclose(inertia, inertia.T) or np.linalg.eigvalsh(inertia).min() <= 0:
+        raise ValueError(f"{where}: inertia must be a finite, symmetric positive definite 3x3 matrix (kg m^2)")
+    if np.linalg.eigvalsh(second_moment).min() < -1e-12 * np.trace(inertia):
+        raise ValueError(f"{where}: inertia violates the triangle inequality (not physical)")
+    return body_mass, com, second_moment
 
 
 class ModelBuilder:
@@ -172,15 +220,17 @@ class ModelBuilder:
         Args:
             mesh: ``trimesh.Trimesh`` or (vertices (nv, 3), faces (nf, 3)) in the mesh frame (m).
             pose: (7,) pose of the mesh frame (px, py, pz, qx, qy, qz, qw).
-            density: kg/m^3; mass, centre of mass and inertia from the (watertight) mesh.
-            mass, inertia, center_of_mass: given values instead of a density (kg, kg m^2
-                about the centre of mass in the mesh frame's axes, m); inertia defaults to
-                that of the mesh volume scaled to ``mass``.
-            static: fixed in place; no degrees of freedom.
+            density: kg/m^3: the mass of the mesh's volume (a closed, consistently
+                outward-wound mesh); or ``mass`` (kg) instead.
+            inertia: kg m^2 about the centre of mass in the mesh frame's axes; default the
+                mesh volume's, scaled to the mass.
+            center_of_mass: (3,) in the mesh frame (m); default the mesh volume's centroid,
+                or for a mesh without a volume (given an inertia) its surface's centroid.
+            static: fixed in place; no degrees of freedom and no mass properties.
             kp_linear, kd_linear: PD gains per translation axis (scalar or 3 values).
             kp_angular, kd_angular: PD gains of the orientation.
         """
-        name = name or f"body{len(self._bodies)}"
+        name = self._body_name(name)
         if isinstance(mesh, trimesh.Trimesh):
             vertices, faces = mesh.vertices, mesh.faces
         else:
@@ -191,6 +241,10 @@ class ModelBuilder:
         # Checked before anything reads the mesh: trimesh would cast fractional indices to
         # integers and the mass properties would blame an index out of range on the shape.
         vertices, faces = validated_mesh(vertices, faces, name)
+        # Vertices no face uses are not part of the body: they moved the centre of mass of
+        # the mass and inertia path, and the body radius that sizes the solver's tolerance.
+        used, faces = np.unique(faces, return_inverse=True)
+        vertices, faces = vertices[used], faces.reshape(-1, 3)
         tm = trimesh.Trimesh(vertices, faces, process=False)
         pose = np.asarray(pose, dtype=np.float64)
         if pose.shape != (7,) or not np.isfinite(pose).all():
@@ -201,48 +255,26 @@ class ModelBuilder:
         pose[3:] /= qnorm
 
         if static:
-            if density is not None or mass is not None:
-                raise ValueError(f"body {name!r}: a static body takes no density or mass")
+            given = [label for label, value in (("density", density), ("mass", mass), ("inertia", inertia), ("center_of_mass", center_of_mass)) if value is not None]
+            if given:
+                raise ValueError(f"body {name!r}: a static body takes no mass properties, got {', '.join(given)}")
             com = vertices.mean(axis=0)
             body_mass, second_moment = 1.0, np.zeros((3, 3))
-        elif density is not None:
-            if mass is not None or inertia is not None:
-                raise ValueError(f"body {name!r}: give either density or mass/inertia, not both")
-            if not np.isfinite(density) or density <= 0:
-                raise ValueError(f"body {name!r}: density must be positive, got {density}")
-            if not _encloses_volume(tm):
-                raise ValueError(f"body {name!r}: mass from density needs a closed, outward-oriented mesh; give mass and inertia instead")
-            props = tm.mass_properties
-            body_mass = float(props["volume"]) * density
-            com = np.asarray(props["center_mass"], dtype=np.float64)
-            second_moment = _second_moment_from_inertia(np.asarray(props["inertia"], dtype=np.float64) * density)
-        elif mass is not None:
-            if not np.isfinite(mass) or mass <= 0:
-                raise ValueError(f"body {name!r}: mass must be positive, got {mass}")
-            body_mass = float(mass)
-            if inertia is None:
-                if not _encloses_volume(tm):
-                    raise ValueError(f"body {name!r}: inertia is needed for a mesh that is not closed and outward-oriented (no volume to take it from)")
-                props = tm.mass_properties
-                com = np.asarray(props["center_mass"], dtype=np.float64) if center_of_mass is None else np.asarray(center_of_mass, dtype=np.float64)
-                scale = body_mass / float(props["mass"])
-                inertia = np.asarray(props["inertia"], dtype=np.float64) * scale
-            else:
-                com = vertices.mean(axis=0) if center_of_mass is None else np.asarray(center_of_mass, dtype=np.float64)
-            inertia = np.asarray(inertia, dtype=np.float64)
-            if inertia.shape != (3, 3) or not np.allclose(inertia, inertia.T) or np.linalg.eigvalsh(inertia).min() <= 0:
-                raise ValueError(f"body {name!r}: inertia must be a symmetric positive definite 3x3 matrix")
-            second_moment = _second_moment_from_inertia(inertia)
-            if np.linalg.eigvalsh(second_moment).min() < -1e-12 * np.trace(inertia):
-                raise ValueError(f"body {name!r}: inertia violates the triangle inequality (not physical)")
         else:
-            raise ValueError(f"body {name!r}: give a density or a mass (or mark it static)")
+            body_mass, com, second_moment = _mass_properties(tm, name, density=density, mass=mass, inertia=inertia, center_of_mass=center_of_mass)
 
-        kp_lin = np.broadcast_to(np.asarray(kp_linear, dtype=np.float64), (3,)).copy()
-        kd_lin = np.broadcast_to(np.asarray(kd_linear, dtype=np.float64), (3,)).copy()
-        for label, value in (("kp_linear", kp_lin), ("kd_linear", kd_lin), ("kp_angular", kp_angular), ("kd_angular", kd_angular)):
-            if not np.all(np.isfinite(value)) or np.any(np.asarray(value) < 0):
-                raise ValueError(f"body {name!r}: {label} must be >= 0 and finite, got {value}")
+        gains = {}
+        for label, value, count in (("kp_linear", kp_linear, 3), ("kd_linear", kd_linear, 3), ("kp_angular", kp_angular, 1), ("kd_angular", kd_angular, 1)):
+            try:
+                gain = np.broadcast_to(np.asarray(value, dtype=np.float64), (count,)).copy()
+            except (TypeError, ValueError):
+                gain = None
+            if gain is None or not np.isfinite(gain).all() or (gain < 0).any() or isinstance(value, (str, bool)):
+                wanted = "1 or 3 numbers, each >= 0 and finite" if count == 3 else "a number >= 0 and finite"
+                raise ValueError(f"body {name!r}: {label} must be {wanted}, got {value!r}")
+            gains[label] = gain
+        kp_lin, kd_lin = gains["kp_linear"], gains["kd_linear"]
+        kp_angular, kd_angular = float(gains["kp_angular"][0]), float(gains["kd_angular"][0])
         if static and (kp_lin.any() or kd_lin.any() or kp_angular or kd_angular):
             raise ValueError(f"body {name!r}: a static body cannot be PD-actuated")
 
@@ -422,13 +454,29 @@ class ModelBuilder:
         self._joint_parents.append(-1 if parent is None else int(parent))
         return len(self._joints) - 1
 
+    def _body_name(self, name: str | None) -> str:
+        """The name a body being added gets: the given one, or body<index>."""
+        return name or f"body{len(self._bodies)}"
+
     def add_box(self, extents, **kwargs) -> int:
         """Add a box with the given (x, y, z) extents (m), centred on its frame."""
-        return self.add_body(trimesh.creation.box(extents=extents), **kwargs)
+        try:
+            sizes = np.asarray(extents, dtype=np.float64) if not isinstance(extents, str) else np.zeros(0)
+        except (TypeError, ValueError):
+            sizes = np.zeros(0)
+        if sizes.shape != (3,) or not (np.isfinite(sizes).all() and (sizes > 0).all()):
+            raise ValueError(f"body {self._body_name(kwargs.get('name'))!r}: box extents must be 3 positive finite numbers (m), got {extents!r}")
+        return self.add_body(trimesh.creation.box(extents=sizes), **kwargs)
 
     def add_sphere(self, radius: float, *, subdivisions: int = 2, **kwargs) -> int:
-        """Add an icosphere of the given radius (m)."""
-        return self.add_body(trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius), **kwargs)
+        """Add an icosphere of the given radius (m); ``subdivisions`` (0-6) refine it from 20
+        triangles, 4x each."""
+        where = f"body {self._body_name(kwargs.get('name'))!r}"
+        if not is_positive_finite(radius):
+            raise ValueError(f"{where}: sphere radius must be positive and finite (m), got {radius!r}")
+        if not is_whole(subdivisions) or not 0 <= subdivisions <= 6:
+            raise ValueError(f"{where}: sphere subdivisions must be a whole number from 0 to 6, got {subdivisions!r}")
+        return self.add_body(trimesh.creation.icosphere(subdivisions=int(subdivisions), radius=float(radius)), **kwargs)
 
     def _warn_floating_bodies(self, body_radius: np.ndarray) -> None:
         """Warn about dynamic bodies that the paper's potential would hold above a support by
@@ -487,6 +535,7 @@ class ModelBuilder:
                 body_kp_angular=wp.array([b.kp_angular for b in bodies], dtype=wp.float64),
                 body_kd_angular=wp.array([b.kd_angular for b in bodies], dtype=wp.float64),
                 body_radius=body_radius,
+                body_center_of_mass=np.array([b.center_of_mass for b in bodies]),
                 body_meshes=[(b.vertices, b.faces) for b in bodies],
                 gravity=self.gravity.copy(),
                 contact_stiffness=wp.array([self.contact_stiffness], dtype=wp.float64, requires_grad=True),

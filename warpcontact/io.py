@@ -240,8 +240,11 @@ class Scene:
             kwargs = dict(name=b.name, pose=b.pose, static=b.static)
             if not b.static:
                 kwargs.update(kp_linear=b.kp_linear, kd_linear=b.kd_linear, kp_angular=b.kp_angular, kd_angular=b.kd_angular)
+                # An authored inertia or centre of mass counts with a mass from density too
+                # (both were dropped: the trajectory then started 0.2 m off the stage's pose).
+                kwargs.update(inertia=b.inertia, center_of_mass=b.center_of_mass)
                 if b.mass is not None:
-                    kwargs.update(mass=b.mass, inertia=b.inertia, center_of_mass=b.center_of_mass)
+                    kwargs.update(mass=b.mass)
                 else:
                     kwargs.update(density=b.density if b.density is not None else 1000.0)
             try:
@@ -1712,25 +1715,11 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
 
 
 def model_to_scene_poses(scene: Scene, model, body_q) -> np.ndarray:
-    """Convert centre-of-mass poses of a ``Model`` back to the scene's prim-frame poses.
-
-    The builder moves each body frame to its centre of mass; the prim frame sits at
-    -R c from it (c: centre of mass in the prim frame).
-    """
+    """Convert centre-of-mass poses of a ``Model`` built from ``scene`` back to the scene's
+    prim-frame poses: the prim frame sits at -R c from the body frame (c: the model's
+    ``body_center_of_mass``, in the prim frame)."""
     body_q = np.asarray(body_q, dtype=np.float64)
     out = body_q.copy()
-    for i, b in enumerate(scene.bodies):
-        com = _scene_body_com(b)
-        out[..., i, :3] = body_q[..., i, :3] - quat_rotate(body_q[..., i, 3:], com)
+    for i in range(len(scene.bodies)):
+        out[..., i, :3] = body_q[..., i, :3] - quat_rotate(body_q[..., i, 3:], model.body_center_of_mass[i])
     return out
-
-
-def _scene_body_com(b: BodySpec) -> np.ndarray:
-    if b.static:
-        return np.asarray(b.vertices, dtype=np.float64).mean(axis=0)
-    if b.center_of_mass is not None:
-        return np.asarray(b.center_of_mass, dtype=np.float64)
-    if b.mass is not None and b.inertia is not None:
-        return np.asarray(b.vertices, dtype=np.float64).mean(axis=0)
-    mesh = trimesh.Trimesh(b.vertices, b.faces, process=False)
-    return np.asarray(mesh.mass_properties["center_mass"], dtype=np.float64)

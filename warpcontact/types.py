@@ -65,6 +65,8 @@ class Model:
         body_kp_angular / body_kd_angular: (nbodies,) float64 orientation PD gains
             (N m/rad, N m s/rad).
         body_radius: numpy (nbodies,) farthest vertex from the centre of mass (m).
+        body_center_of_mass: numpy (nbodies, 3) each body frame's origin in its mesh frame (m):
+            the centre of mass (a static body's: the mean of its vertices).
         body_meshes: list of (V, F) in the body frame.
         gravity: (3,) m/s^2.
         contact_stiffness: (1,) float64 mu, requires_grad.
@@ -86,6 +88,7 @@ class Model:
     body_kp_angular: wp.array
     body_kd_angular: wp.array
     body_radius: np.ndarray
+    body_center_of_mass: np.ndarray
     body_meshes: list
     gravity: np.ndarray
     contact_stiffness: wp.array
