@@ -194,6 +194,17 @@ def test_simulate_writes_trajectory_and_summary(tmp_path, capsys):
     assert json.loads((tmp_path / "named" / "summary.json").read_text())["scene"] == str(shipped_scene("push"))
 
 
+def test_simulate_reads_a_usdz_package(tmp_path):
+    """load_scene reads .usdz, but the CLI refused the name ("not a .usda file")."""
+    from pxr import UsdUtils
+
+    if not SCENES.is_dir():
+        pytest.skip("scenes/ not found next to tests/")
+    assert UsdUtils.CreateNewUsdzPackage(str(SCENES / "push.usda"), str(tmp_path / "push.usdz"))
+    assert main(["simulate", str(tmp_path / "push.usdz"), "--frames", "1", "--out", str(tmp_path / "out")]) == 0
+    assert (tmp_path / "out" / "trajectory.usda").is_file()
+
+
 def test_simulate_writes_the_frames_before_a_failed_step(tmp_path, capsys, monkeypatch):
     """A step that fails (here the third) ends the simulation with its earlier frames written
     and the failure named in summary.json and on stderr, exit status 1."""

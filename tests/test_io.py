@@ -206,7 +206,8 @@ def test_trajectory_export_opens_with_time_samples(tmp_path):
     "kwargs, match",
     [
         (dict(mass=-2.0), r"/World/box: mass must be positive"),
-        (dict(joint="RevoluteJoint"), r"/World/joint: body1 \(none\) is not a rigid body with a collider \(every link needs a mesh\)"),
+        # It used to say "body1 (none) is not a rigid body with a collider (every link needs a mesh)".
+        (dict(joint="RevoluteJoint"), r"/World/joint: physics:body1 is not set; a joint here moves the rigid body in body1"),
         (dict(joint="FixedJoint"), r"/World/joint: the fixed joint's frames on /World/box and on the world disagree by 0.608 m"),
         (dict(joint="DistanceJoint"), r"/World/joint: DistanceJoint is not supported"),
         (dict(face_counts=[2] * 16), r"/World/ground: .*face 0 has 2 vertices"),
@@ -1118,3 +1119,118 @@ def test_a_body_welded_to_the_world_by_a_fixed_joint_is_static(tmp_path):
     assert q[-1, 2, 2] < q[0, 2, 2] - 0.05  # the link swings down about the hinge
     weld.CreateBody0Rel().SetTargets(["/World/link"])
     _load_refused(stage, path, r"prim /World/root_joint: this fixed joint joins two rigid bodies \(merge them into one body\)")
+
+
+def _two_hinged_links(path):
+    """Two boxes, each hung from the world by a hinge prim named "hinge" under its own scope."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdPhysics.Scene.Define(stage, "/World/physicsScene")
+    for i, x in enumerate((0.0, 3.0)):
+        link = UsdGeom.Xform.Define(stage, f"/World/r{i}/link")
+        link.AddTranslateOp().Set(Gf.Vec3d(x, 0.0, 1.0))
+        UsdPhysics.RigidBodyAPI.Apply(link.GetPrim())
+        cube = UsdGeom.Cube.Define(stage, f"/World/r{i}/link/shape")
+        cube.CreateSizeAttr(0.2)
+        UsdPhysics.CollisionAPI.Apply(cube.GetPrim())
+        hinge = UsdPhysics.RevoluteJoint.Define(stage, f"/World/r{i}/hinge")
+        hinge.CreateAxisAttr("Y")
+        hinge.CreateBody1Rel().SetTargets([f"/World/r{i}/link"])
+        hinge.CreateLocalPos0Attr(Gf.Vec3f(x, 0.0, 1.5))
+        hinge.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.5))
+    stage.GetRootLayer().Save()
+    return stage
+
+
+def test_prims_of_one_name_get_their_paths_names_and_save_back_whole(tmp_path):
+    """Two joints named "hinge" (one per robot) kept that name: the model refused them, and
+    save_scene wrote one over the other, leaving a link free."""
+    path = tmp_path / "robots.usda"
+    _two_hinged_links(path)
+    scene = io.load_scene(path)
+    assert [j.name for j in scene.joints] == ["World_r0_hinge", "World_r1_hinge"]
+    assert [b.name for b in scene.bodies] == ["World_r0_link", "World_r1_link"]
+    assert scene.build_model().articulation.coordinate_names == ["World_r0_hinge:0", "World_r1_hinge:0"]
+    io.save_scene(scene, tmp_path / "saved.usda")
+    assert [(j.name, j.child) for j in io.load_scene(tmp_path / "saved.usda").joints] == [(j.name, j.child) for j in scene.joints]
+    # A path-derived name that another prim already has is refused, naming both.
+    stage = Usd.Stage.Open(str(path))
+    other = UsdGeom.Cube.Define(stage, "/World/World_r0_link")
+    other.AddTranslateOp().Set(Gf.Vec3d(6.0, 0.0, 1.0))
+    UsdPhysics.CollisionAPI.Apply(other.GetPrim())
+    _load_refused(stage, path, "prims /World/r0/link, /World/World_r0_link would all be the body named 'World_r0_link'; rename one")
+
+
+@pytest.mark.parametrize(
+    ("name", "writer", "match"),
+    [
+        ("ball-1", "save", r"body 'ball-1': not a valid USD prim name"),
+        ("2nd", "export", r"body '2nd': not a valid USD prim name"),
+        ("physicsScene", "save", r"body 'physicsScene': the name of a prim the writer uses itself"),
+        ("joints", "save", r"body 'joints': the name of a prim the writer uses itself"),
+        ("targets", "export", r"body 'targets': the name of a prim the writer uses itself"),
+    ],
+)
+def test_writers_refuse_body_names_that_cannot_be_their_prims(tmp_path, name, writer, match):
+    """These raised a raw pxr error, or wrote a body over the PhysicsScene (the file then
+    failed to load) or a target marker under a body."""
+    scene = io.load_scene(write_physics_scene(tmp_path / "a.usda"))
+    scene.body("box").name = name
+    with pytest.raises(ValueError, match=match):
+        if writer == "save":
+            io.save_scene(scene, tmp_path / "b.usda")
+        else:
+            io.export_trajectory(scene, np.array([[b.pose for b in scene.bodies]]), tmp_path / "b.usda")
+    assert not (tmp_path / "b.usda").exists()
+
+
+@pytest.mark.parametrize(
+    ("prim", "attribute", "kind", "value"),
+    [
+        ("/World/box", "physics:mass", Sdf.ValueTypeNames.Float, 7.0),
+        ("/World/box", "physics:velocity", Sdf.ValueTypeNames.Vector3f, Gf.Vec3f(1.0, 0.0, 0.0)),
+        ("/World/box/shape", "size", Sdf.ValueTypeNames.Double, 0.5),
+        ("/World/physicsScene", "physics:gravityMagnitude", Sdf.ValueTypeNames.Float, 5.0),
+    ],
+)
+def test_a_value_authored_only_as_time_samples_is_refused(tmp_path, prim, attribute, kind, value):
+    """The initial state is read at the default time: a sampled mass of 7 kg gave the
+    default density's 125 kg, a sampled velocity none, a sampled Cube size the fallback 2 m."""
+    path = write_physics_scene(tmp_path / "sampled.usda")
+    stage = Usd.Stage.Open(str(path))
+    attr = stage.GetPrimAtPath(prim).GetAttribute(attribute) or stage.GetPrimAtPath(prim).CreateAttribute(attribute, kind)
+    attr.Clear()
+    attr.Set(value, 0.0)
+    _load_refused(stage, path, f"prim {prim}: {prim}.{attribute} has time samples but no default value")
+
+
+def test_a_disabled_rigid_body_loads_static_with_its_collider_and_reset_stacks_keep_world_velocities(tmp_path):
+    """rigidBodyEnabled = false was refused ("rigid body has no collider": UsdPhysics gives
+    its colliders no body); a body that resets the transform stack had its velocity turned
+    by the parent whose transform it ignores."""
+    path = write_physics_scene(tmp_path / "disabled.usda")
+    stage = Usd.Stage.Open(str(path))
+    parent = UsdGeom.Xform.Define(stage, "/World/turned")
+    parent.AddTranslateOp().Set(Gf.Vec3d(5.0, 0.0, 0.0))
+    parent.AddRotateZOp().Set(90.0)
+    box = UsdGeom.Xform.Define(stage, "/World/turned/still")
+    box.SetResetXformStack(True)
+    box.AddTranslateOp().Set(Gf.Vec3d(2.0, 0.0, 1.0))
+    body = UsdPhysics.RigidBodyAPI.Apply(box.GetPrim())
+    body.CreateRigidBodyEnabledAttr(False)
+    body.CreateVelocityAttr(Gf.Vec3f(1.0, 0.0, 0.0))
+    cube = UsdGeom.Cube.Define(stage, "/World/turned/still/shape")
+    cube.CreateSizeAttr(0.4)
+    UsdPhysics.CollisionAPI.Apply(cube.GetPrim())
+    UsdPhysics.RigidBodyAPI(stage.GetPrimAtPath("/World/box")).CreateVelocityAttr(Gf.Vec3f(1.0, 0.0, 0.0))
+    stage.GetRootLayer().Save()
+    scene = io.load_scene(path)
+    still = scene.body("still")
+    assert still.static and len(still.faces) == 12
+    np.testing.assert_allclose(still.pose[:3], [2.0, 0.0, 1.0], atol=1e-12)
+    world = quat_matrix(still.pose[3:]) @ still.vertices.T
+    np.testing.assert_allclose(np.ptp(world, axis=1), [0.4, 0.4, 0.4], atol=1e-6)
+    np.testing.assert_allclose(still.linear_velocity, [1.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(scene.body("box").linear_velocity, [1.0, 0.0, 0.0])
+

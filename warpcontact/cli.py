@@ -134,7 +134,7 @@ def _resolve_scene_path(name: str) -> Path:
     from . import io
 
     path = Path(name)
-    if path.suffix in io.USD_SUFFIXES:
+    if path.suffix in io.USD_READ_SUFFIXES:
         return path
     from .scenes import SCENE_NAMES, shipped_scene
 

@@ -102,6 +102,7 @@ __all__ = [
     "load_scene",
     "target_problem",
     "USD_SUFFIXES",
+    "USD_READ_SUFFIXES",
     "save_scene",
     "export_trajectory",
     "model_to_scene_poses",
@@ -476,16 +477,33 @@ def _transform_attributes(prim, UsdGeom):
         ancestor = ancestor.GetParent()
 
 
-def _require_default_transform(prim, UsdGeom, Usd, source: str) -> None:
-    """Refuse a prim whose transform (or an ancestor's) is only time-sampled: the initial
-    state is read at the default time, where such an op has no value and would silently
-    count as the identity (a body authored at z = 1 m in samples loaded at the origin)."""
-    for attr in _transform_attributes(prim, UsdGeom):
-        if attr.GetNumTimeSamples() and attr.Get(Usd.TimeCode.Default()) is None:
+def _require_default_values(prim, UsdGeom, Usd, source: str) -> None:
+    """Refuse a prim with an attribute, or a transform (its own or an ancestor's), that is
+    only time-sampled: the initial state is read at the default time, where such a value is
+    missing and silently counted as its fallback (a body authored at z = 1 m in samples
+    loaded at the origin; a sampled mass of 7 kg gave the default density's, a sampled Cube
+    size of 0.5 the fallback 2)."""
+    for attr in (*_transform_attributes(prim, UsdGeom), *prim.GetAttributes()):
+        if attr.GetNumTimeSamples() and attr.GetResolveInfo(Usd.TimeCode.Default()).GetSource() != Usd.ResolveInfoSourceDefault:
             raise ValueError(
                 f"{source}: prim {prim.GetPath()}: {attr.GetPath()} has time samples but no default value; the initial "
                 "state is read at the default time (author the first frame's value as the default)"
             )
+
+
+def _disabled_owner(prim, disabled: set, UsdPhysics) -> str:
+    """The path of the disabled rigid body (``disabled``) that a collider prim lies under
+    (the prim itself included), or "" when the nearest rigid body above it is enabled or
+    there is none."""
+    ancestor = prim
+    while ancestor and not ancestor.IsPseudoRoot():
+        path = str(ancestor.GetPath())
+        if path in disabled:
+            return path
+        if ancestor.HasAPI(UsdPhysics.RigidBodyAPI):
+            return ""
+        ancestor = ancestor.GetParent()
+    return ""
 
 
 def _animated(prim, UsdGeom) -> bool:
@@ -630,6 +648,11 @@ def load_scene(path) -> Scene:
         for prim_path, _ in descs.get(kind, []):
             raise ValueError(f"{source}: prim {prim_path}: {kind} is not supported (supported: revolute, prismatic, spherical and D6 joints, and fixed joints to the world)")
     welds = _world_welds(descs, source)
+    # Bodies and colliders are checked where they are read (with their ancestors' transforms).
+    for kind, items in descs.items():
+        if kind == "Scene" or kind.endswith("Joint"):
+            for prim_path, _ in items:
+                _require_default_values(stage.GetPrimAtPath(prim_path), UsdGeom, Usd, source)
 
     # Gravity: the PhysicsScene's, else standard gravity along -up.
     gravity = np.array([0.0, 0.0, -9.81]) if up == UsdGeom.Tokens.z else np.array([0.0, -9.81, 0.0])
@@ -655,7 +678,7 @@ def load_scene(path) -> Scene:
     mirrored: set[str] = set()  # paths of bodies whose world matrix mirrors (negative determinant)
     for prim_path, desc in descs.get("RigidBody", []):
         prim = stage.GetPrimAtPath(prim_path)
-        _require_default_transform(prim, UsdGeom, Usd, source)
+        _require_default_values(prim, UsdGeom, Usd, source)
         if desc.kinematicBody and _animated(prim, UsdGeom):
             raise ValueError(
                 f"{source}: prim {prim_path}: a kinematic body moved by time-sampled transforms is not supported (it would be "
@@ -682,7 +705,8 @@ def load_scene(path) -> Scene:
             if not np.isfinite(value).all():
                 raise ValueError(f"{source}: prim {prim_path}: physics:{label} must be finite, got {np.asarray(value).tolist()}")
         parent = prim.GetParent()
-        if parent.IsA(UsdGeom.Xformable):
+        # A prim that resets the transform stack is placed in the world, not in its parent.
+        if parent.IsA(UsdGeom.Xformable) and not UsdGeom.Xformable(prim).GetResetXformStack():
             # Velocities are authored "in the same space as the node's xform": its parent's.
             above = _linear_part(_world_matrix(parent, UsdGeom, Usd))
             if not np.array_equal(above, np.eye(3)):
@@ -698,6 +722,7 @@ def load_scene(path) -> Scene:
         bodies[str(prim_path)] = body
 
     static_bodies: dict[str, BodySpec] = {}
+    disabled = {str(prim_path) for prim_path, desc in descs.get("RigidBody", []) if not desc.rigidBodyEnabled}
     colliders: dict[str, list] = {}  # rigid body path -> its collider prims
     collider_materials: dict[str, list] = {}  # collider path -> its bound physics materials
     planes = []  # (path, world frame in stage units, axis token) of Plane colliders
@@ -707,8 +732,13 @@ def load_scene(path) -> Scene:
             prim = stage.GetPrimAtPath(prim_path)
             if not desc.collisionEnabled:
                 continue
-            _require_default_transform(prim, UsdGeom, Usd, source)
+            _require_default_values(prim, UsdGeom, Usd, source)
             owner = str(desc.rigidBody) if desc.rigidBody and str(desc.rigidBody) in bodies else ""
+            # UsdPhysics gives a disabled body's colliders no body (rigidBodyEnabled = false
+            # loads as static, and was refused for having no collider): they are its all the
+            # same, placed by their world matrix, since their localPos is then the world's.
+            adopted = "" if owner else _disabled_owner(prim, disabled, UsdPhysics)
+            owner = owner or adopted
             collider_materials[str(prim_path)] = [stage.GetPrimAtPath(m) for m in desc.materials]
             if kind == "PlaneShape":
                 if owner:
@@ -720,7 +750,7 @@ def load_scene(path) -> Scene:
             matrix = _world_matrix(prim, UsdGeom, Usd)
             linear = _linear_part(matrix)
             owner_frame, owner_unscaled = body_frames[owner] if owner else (None, True)
-            if not (_scaled_along_own_axes(linear) and np.linalg.det(linear) > 0 and owner_unscaled):
+            if adopted or not (_scaled_along_own_axes(linear) and np.linalg.det(linear) > 0 and owner_unscaled):
                 # UsdPhysics describes a collider by a rigid pose and a scale along its own axes,
                 # which cannot hold a shear (a box under a body scaled (1, 1, 3) and turned 45
                 # degrees inside it came out 0.5 m off at its corners); and a scaled body's frame
@@ -781,10 +811,7 @@ def load_scene(path) -> Scene:
             raise ValueError(f"{source}: prim {b.path}: rigid body has no collider (apply PhysicsCollisionAPI to a Mesh or primitive under it)")
     if not any(not b.static for b in all_bodies):
         raise ValueError(f"{source}: no dynamic rigid bodies (apply PhysicsRigidBodyAPI to at least one prim)")
-    uses = Counter(b.name for b in all_bodies)
-    for b in all_bodies:
-        if uses[b.name] > 1:
-            b.name = b.path.strip("/").replace("/", "_")
+    _make_names_unique(all_bodies, "body", source)
 
     _check_namespace(stage, scene_prim, bodies, source)
     settings = SimulationSettings()
@@ -907,8 +934,10 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
             if not desc.jointEnabled:
                 continue
             parent_path, child_path = str(desc.body0), str(desc.body1)
+            if not child_path:
+                raise ValueError(f"{where}: physics:body1 is not set; a joint here moves the rigid body in body1 (and body0 empty joins it to the world)")
             if child_path not in bodies:
-                raise ValueError(f"{where}: body1 {child_path or '(none)'} is not a rigid body with a collider (every link needs a mesh)")
+                raise ValueError(f"{where}: body1 {child_path} is not a rigid body with a collider (every link needs a mesh)")
             if parent_path and parent_path not in bodies:
                 raise ValueError(f"{where}: body0 {parent_path} is not a rigid body or collider")
             if desc.collisionEnabled and parent_path:
@@ -971,7 +1000,22 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
             else:
                 _read_d6(desc, spec, where, units)
             joints.append(spec)
+    _make_names_unique(joints, "joint", source)
     return joints
+
+
+def _make_names_unique(specs: list, kind: str, source: str) -> None:
+    """Name each spec by its prim's name, or, where several share it, by its path
+    (/World/A/box -> World_A_box); ValueError naming the prims when a name still repeats
+    (a path-derived name that another prim has as its own)."""
+    uses = Counter(spec.name for spec in specs)
+    for spec in specs:
+        if uses[spec.name] > 1:
+            spec.name = spec.path.strip("/").replace("/", "_")
+    uses = Counter(spec.name for spec in specs)
+    clashes = [spec.path for spec in specs if uses[spec.name] > 1]
+    if clashes:
+        raise ValueError(f"{source}: prims {', '.join(clashes)} would all be the {kind} named {next(s.name for s in specs if uses[s.name] > 1)!r}; rename one")
 
 
 # DriveAPI attributes by the names of UsdPhysics' parsed JointDrive fields.
@@ -1440,8 +1484,10 @@ def _set_pose_ops(xformable, Gf, UsdGeom, pose, time=None):
         orient.Set(q, time)
 
 
-# The file names Usd.Stage reads and writes (text, either, binary).
+# The file names Usd.Stage reads and writes (text, either, binary), and the packages it
+# also reads (a .usdz loaded, but the CLI refused its name).
 USD_SUFFIXES = (".usda", ".usd", ".usdc")
+USD_READ_SUFFIXES = (*USD_SUFFIXES, ".usdz")
 
 
 def _atomic_save(stage_writer, path, overwrite: bool):
@@ -1474,6 +1520,8 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
     Poses and ``warpcontact:`` attributes are doubles; what the schemas type as float (mesh
     points, mass properties, velocities) is rounded to float32 (docs/architecture.md, "USD")."""
     Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
+    _check_prim_names(scene.bodies, "body", reserved=("physicsScene", "joints"), Sdf=Sdf)
+    _check_prim_names(scene.joints, "joint", reserved=(), Sdf=Sdf)
 
     def write(tmp: Path):
         stage = _new_stage(Usd, UsdGeom, tmp)
@@ -1551,6 +1599,22 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
         stage.GetRootLayer().Save()
 
     _atomic_save(write, path, overwrite)
+
+
+def _check_prim_names(specs: list, kind: str, *, reserved: tuple, Sdf) -> None:
+    """ValueError naming the first body or joint whose name cannot be its prim's name in a
+    written stage: not a USD identifier (a raw pxr error before), repeated (a prim written
+    twice: a joint was dropped), or one of the writer's own prims (a body named physicsScene
+    overwrote the scene's settings)."""
+    seen = set()
+    for spec in specs:
+        if not isinstance(spec.name, str) or not Sdf.Path.IsValidIdentifier(spec.name):
+            raise ValueError(f"{kind} {spec.name!r}: not a valid USD prim name (letters, digits and _, not starting with a digit)")
+        if spec.name in reserved:
+            raise ValueError(f"{kind} {spec.name!r}: the name of a prim the writer uses itself ({', '.join(reserved)}); rename the {kind}")
+        if spec.name in seen:
+            raise ValueError(f"{kind} {spec.name!r}: more than one {kind} has this name")
+        seen.add(spec.name)
 
 
 def _frames_along_x(j: JointSpec):
@@ -1676,6 +1740,7 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
     as small green spheres.
     """
     Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
+    _check_prim_names(scene.bodies, "body", reserved=("targets",), Sdf=Sdf)
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (len(scene.bodies), 7) or not np.isfinite(poses).all():
         raise ValueError(f"poses: expected finite (frames, {len(scene.bodies)}, 7), got {poses.shape}")
