@@ -534,6 +534,24 @@ def test_bad_model_input_raises_clear_errors():
         wc.ContactModel([icosphere(0), box()], static=[True])
     with pytest.raises(ValueError, match=r"meshes\[1\]"):
         wc.ContactModel([icosphere(0), "not a mesh"])
+    # Each of these was a TypeError, an unpacking error, or silently truncated.
+    for options, match in (
+        (dict(eps="a"), "eps: must be a positive finite number, got 'a'"),
+        (dict(max_leaf_iterations=None), "max_leaf_iterations: must be a whole number >= 1, got None"),
+        (dict(term_chunks=1.5), "term_chunks: must be a whole number >= 1, got 1.5"),
+        (dict(exclude_pairs=[(0,)]), r"exclude_pairs: \(0,\) is not a pair of distinct body indices in \[0, 2\)"),
+        (dict(exclude_pairs=[(0.7, 1.2)]), r"exclude_pairs: \(0.7, 1.2\) is not a pair"),
+        (dict(exclude_pairs=(0, 1)), r"exclude_pairs: expected a sequence of \(a, b\) body index pairs, got \(0, 1\)"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            wc.ContactModel([icosphere(0), box()], **options)
+    model = wc.ContactModel([icosphere(0), box()])
+    model.evaluate(identity_poses([[0, 0, 0], [3.0, 0, 0]]))
+    for fraction in (0.0, 2.0, "0.5"):
+        with pytest.raises(ValueError, match="fraction: must be a number in \\(0, 1\\)"):
+            model.advancement_limit(np.zeros((2, 6)), fraction=fraction)
+    with pytest.raises(ValueError, match="r: expected real numbers"):
+        wc.centered_potential([1 + 2j])
 
 
 def test_pair_separation_is_a_lower_bound_on_surface_distance():

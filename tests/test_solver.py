@@ -676,6 +676,35 @@ def test_builder_primitives_check_their_sizes(add, match):
         add(wc.ModelBuilder())
 
 
+def test_wrong_dtypes_velocities_and_overflowing_terms_get_named_errors():
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.2, 0.2, 0.2), mass=1.0, name="crate", kp_linear=10.0)
+    model = b.finalize()
+    solver = wc.ImplicitSolver(model)
+    state = model.state()
+    # float32 transforms failed inside Warp's launch ("expects ... transformd").
+    single = wc.State(wp.array(model.initial_q, dtype=wp.transformf), state.body_q_prev)
+    with pytest.raises(ValueError, match=r"state_in.body_q: expected a wp.array of 1 wp.transformd.*got transformf array of shape \(1,\)"):
+        solver.step(single, model.state(), None, 0.01)
+    with pytest.raises(ValueError, match="control.body_target: expected a wp.array of 1 wp.transformd.*got transformf"):
+        solver.step(state, model.state(), wc.Control(wp.array(model.initial_q, dtype=wp.transformf)), 0.01)
+    # A NaN velocity was written into body_q_prev silently.
+    with pytest.raises(ValueError, match=r"body 0's velocities give a non-finite previous pose \(linear \[nan, 0.0, 0.0\]"):
+        wc.set_body_velocity(state, wp.array([[np.nan, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(1, dtype=wp.vec3d), 0.01)
+    # Non-finite per-body terms were blamed on the leaf searches of no pair.
+    control = model.control()
+    targets = control.body_target.numpy()
+    targets[0, 0] = 1e200
+    control.body_target.assign(targets)
+    with pytest.raises(wc.SolverError, match=r"objective is not finite at the start pose, though its contact terms are: .* check dt and the control's targets"):
+        solver.step(model.state(), model.state(), control, 0.01)
+    for options, match in ((dict(tolerance=None), r"tolerance: must be a number in \(0, 1\), got None"), (dict(max_iterations=1.9), "max_iterations: must be a whole number >= 1, got 1.9")):
+        with pytest.raises(ValueError, match=match):
+            wc.ImplicitSolver(model, **options)
+    with pytest.raises(ValueError, match="contact_stiffness: must be positive and finite, got 1e-6"):
+        wc.ModelBuilder(contact_stiffness="1e-6")
+
+
 def test_builder_rejects_a_flat_closed_mesh_with_density_quietly():
     """A closed mesh of zero volume (a box flattened to z = 0) has no mass from density; the
     check says so without trimesh's division warning."""

@@ -9,7 +9,7 @@ import trimesh
 import warp as wp
 
 from ._runtime import resolve_device
-from ._validate import is_positive_finite, is_whole
+from ._validate import is_positive_finite, is_real, is_whole
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, frame_in_body
 from .contact import CONTACT_MODES, ContactModel
 from .leaf import float32_search
@@ -51,8 +51,8 @@ def contact_setting_problem(name: str, value: float) -> str | None:
     (contact_stiffness, friction, friction_smoothing or eps), or None. One rule for the
     builder and for ``io.load_scene``, which names the USD attribute."""
     if name == "friction":
-        return None if np.isfinite(value) and value >= 0 else "must be >= 0 and finite"
-    return None if np.isfinite(value) and value > 0 else "must be positive and finite"
+        return None if is_real(value) and np.isfinite(value) and value >= 0 else "must be >= 0 and finite"
+    return None if is_positive_finite(value) else "must be positive and finite"
 _IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 
 

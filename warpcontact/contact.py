@@ -31,7 +31,7 @@ from .kernels import reduction as reduction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels import traversal as traversal_kernels
 from ._runtime import HostReadback, LaunchCache, host_buffer, resolve_device, run_concurrently
-from ._validate import as_float64_array
+from ._validate import as_float64_array, is_positive_finite, is_real, is_whole
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus, float32_search
 from .rotation import rigid_step_travel
 from .sphere_tree import SphereTree, build_sphere_tree
@@ -47,7 +47,8 @@ CENTRED_WEIGHTS = ("paper", "pairs")
 # number of ~4e15, which float64 cannot solve (docs/architecture.md, "The leaf potential").
 UNSOLVED_HINT = (
     "their leaf plane searches did not converge, most likely because they are closer than float64 resolves against "
-    "their triangles' size (a gap below about 1e-8 of it); start them farther apart"
+    "their triangles' size (a gap below about 1e-8 of it); start them farther apart. Bodies far below a micrometre "
+    "meet this at any gap (the search is sized for 1e-6 m and up; docs/architecture.md, 'Its length scale')"
 )
 
 # Quaternions within this distance of unit norm are normalised; others are rejected as
@@ -178,10 +179,14 @@ def contact_body_pairs(static: np.ndarray, exclude_pairs=()) -> np.ndarray:
     """(npairs, 2) body pairs a < b with contact: not both static, not excluded."""
     n = len(static)
     excluded = set()
-    for pair in exclude_pairs:
+    try:
+        pairs = [tuple(pair) for pair in exclude_pairs]
+    except TypeError:
+        raise ValueError(f"exclude_pairs: expected a sequence of (a, b) body index pairs, got {exclude_pairs!r}") from None
+    for pair in pairs:
+        if len(pair) != 2 or not all(is_whole(i) for i in pair) or not (0 <= pair[0] < n and 0 <= pair[1] < n) or pair[0] == pair[1]:
+            raise ValueError(f"exclude_pairs: {pair!r} is not a pair of distinct body indices in [0, {n})")
         a, b = (int(i) for i in pair)
-        if not (0 <= a < n and 0 <= b < n) or a == b:
-            raise ValueError(f"exclude_pairs: ({a}, {b}) is not a pair of distinct body indices in [0, {n})")
         excluded.add((min(a, b), max(a, b)))
     return np.array(
         [(a, b) for a in range(n) for b in range(a + 1, n) if not (static[a] and static[b]) and (a, b) not in excluded],
@@ -257,16 +262,13 @@ class ContactModel:
             raise ValueError(f"mode: {mode!r} is not one of {CONTACT_MODES}")
         if centred_weight not in CENTRED_WEIGHTS:
             raise ValueError(f"centred_weight: {centred_weight!r} is not one of {CENTRED_WEIGHTS}")
-        if not np.isfinite(eps) or eps <= 0:
-            raise ValueError(f"eps: must be a positive finite number, got {eps}")
-        if not np.isfinite(dhat) or dhat <= 0:
-            raise ValueError(f"dhat: must be a positive finite distance (m), got {dhat}")
-        if int(max_leaf_iterations) < 1:
-            raise ValueError(f"max_leaf_iterations: must be >= 1, got {max_leaf_iterations}")
-        if top_replicas is not None and int(top_replicas) < 1:
-            raise ValueError(f"top_replicas: must be >= 1, got {top_replicas}")
-        if term_chunks is not None and int(term_chunks) < 1:
-            raise ValueError(f"term_chunks: must be >= 1, got {term_chunks}")
+        if not is_positive_finite(eps):
+            raise ValueError(f"eps: must be a positive finite number, got {eps!r}")
+        if not is_positive_finite(dhat):
+            raise ValueError(f"dhat: must be a positive finite distance (m), got {dhat!r}")
+        for label, count in (("max_leaf_iterations", max_leaf_iterations), ("top_replicas", top_replicas), ("term_chunks", term_chunks)):
+            if (count is not None or label == "max_leaf_iterations") and not (is_whole(count) and count >= 1):
+                raise ValueError(f"{label}: must be a whole number >= 1, got {count!r}")
         meshes = list(meshes)
         if len(meshes) < 1:
             raise ValueError("meshes: need at least one body")
@@ -785,6 +787,8 @@ class ContactModel:
         step = as_float64_array(step, "step", trailing_shape=(6,))
         if step.shape[0] != self.num_bodies:
             raise ValueError(f"step: expected {self.num_bodies} rows, got {step.shape[0]}")
+        if not (is_real(fraction) and 0 < fraction < 1):
+            raise ValueError(f"fraction: must be a number in (0, 1), got {fraction!r}")
         if frame is None:
             num_far, _, num_leaf, _ = self._counts
             frame = AdvancementFrame(self._rotation, self._position, self._far, num_far, self._leaf, self._leaf_plane, num_leaf, self._seed_separation, self._pair_separation)

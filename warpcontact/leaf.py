@@ -155,7 +155,10 @@ def _evaluate_scalar_kernel(kernel, x: np.ndarray, device):
 
 
 def _scalar_input(x, name: str) -> np.ndarray:
-    arr = np.asarray(x, dtype=np.float64) if not isinstance(x, np.ndarray) else x.astype(np.float64, copy=False)
+    raw = np.asarray(x)
+    if not (np.issubdtype(raw.dtype, np.floating) or np.issubdtype(raw.dtype, np.integer)):
+        raise ValueError(f"{name}: expected real numbers, got {x!r}")
+    arr = raw.astype(np.float64, copy=False)
     if np.isnan(arr).any():
         raise ValueError(f"{name}: contains NaN")
     return arr

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ._validate import is_positive_finite
+from ._validate import is_positive_finite, is_real, is_whole
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
@@ -191,12 +191,11 @@ class ImplicitSolver:
         advancement_fraction: float = 0.9,
         exact_friction_steps: bool = True,
     ):
-        if not (0 < tolerance < 1):
-            raise ValueError(f"tolerance: must be in (0, 1), got {tolerance}")
-        if int(max_iterations) < 1:
-            raise ValueError(f"max_iterations: must be >= 1, got {max_iterations}")
-        if not (0 < advancement_fraction < 1):
-            raise ValueError(f"advancement_fraction: must be in (0, 1), got {advancement_fraction}")
+        for label, value in (("tolerance", tolerance), ("advancement_fraction", advancement_fraction)):
+            if not (is_real(value) and 0 < value < 1):
+                raise ValueError(f"{label}: must be a number in (0, 1), got {value!r}")
+        if not (is_whole(max_iterations) and max_iterations >= 1):
+            raise ValueError(f"max_iterations: must be a whole number >= 1, got {max_iterations!r}")
         self.model = model
         self.tolerance = float(tolerance)
         self.max_iterations = int(max_iterations)
@@ -571,8 +570,9 @@ class ImplicitSolver:
         for label, state in (("state_in", state_in), ("state_out", state_out)):
             for name in ("body_q", "body_q_prev"):
                 poses = getattr(state, name, None)
-                if not isinstance(poses, wp.array) or poses.shape != (model.num_bodies,):
-                    raise ValueError(f"{label}.{name}: expected a wp.array of {model.num_bodies} wp.transformd, one per body of this model (use model.state())")
+                if not isinstance(poses, wp.array) or poses.shape != (model.num_bodies,) or poses.dtype != wp.transformd:
+                    got = f"{poses.dtype.__name__} array of shape {poses.shape}" if isinstance(poses, wp.array) else type(poses).__name__
+                    raise ValueError(f"{label}.{name}: expected a wp.array of {model.num_bodies} wp.transformd, one per body of this model (use model.state()), got {got}")
         q_now = state_in.body_q.numpy()
         q_prev = state_in.body_q_prev.numpy()
         for label, arr in (("state_in.body_q", q_now), ("state_in.body_q_prev", q_prev)):
@@ -583,8 +583,9 @@ class ImplicitSolver:
                 raise ValueError(f"{label}: body {model.body_names[unrotated[0]]!r} (index {unrotated[0]}) has a zero rotation quaternion")
         if control is not None:
             targets = control.body_target
-            if not isinstance(targets, wp.array) or targets.shape != (len(q_now),):
-                raise ValueError(f"control.body_target: expected a wp.array of {len(q_now)} wp.transformd, one per body (use model.control())")
+            if not isinstance(targets, wp.array) or targets.shape != (len(q_now),) or targets.dtype != wp.transformd:
+                got = f"{targets.dtype.__name__} array of shape {targets.shape}" if isinstance(targets, wp.array) else type(targets).__name__
+                raise ValueError(f"control.body_target: expected a wp.array of {len(q_now)} wp.transformd, one per body (use model.control()), got {got}")
         q = q_now.copy()
         q[:, 3:] /= np.linalg.norm(q[:, 3:], axis=1, keepdims=True)
         coords_now, joint_target = self._joint_arrays(state_in, state_out, control, q)
@@ -647,8 +648,14 @@ class ImplicitSolver:
                 if overflow.size:
                     c = overflow[0]
                     raise ValueError(f"control.joint_target: the PD energy of coordinate {art.coordinate_names[c]!r} overflows float64 (target {joint_target[c]:.6g}, coordinate {coords_now[c]:.6g}, kp {art.kp[c]:.6g})")
-            pairs = ", ".join(f"{a} and {b}" for a, b in contact.unsolved_pairs)
-            raise SolverError(f"objective is not finite at the start pose: {pairs}: {UNSOLVED_HINT}")
+            if contact.unsolved_pairs:
+                pairs = ", ".join(f"{a} and {b}" for a, b in contact.unsolved_pairs)
+                raise SolverError(f"objective is not finite at the start pose: {pairs}: {UNSOLVED_HINT}")
+            # Every contact term is finite: it was blamed on the leaf searches of no pair.
+            raise SolverError(
+                f"objective is not finite at the start pose, though its contact terms are: the bodies' inertia (over dt={dt}), "
+                "gravity or PD terms overflow float64; check dt and the control's targets"
+            )
         tol = self.tolerance * self._length_scale
         # Steps this short are in Newton's quadratic regime, where Armijo tests only rounding
         # noise; the cap keeps that true for loose tolerances (1e3 x 1e-6 would let full steps

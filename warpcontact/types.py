@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from ._validate import is_positive_finite
 from .articulation import ArticulationModel
 from .contact import ContactModel
 from .kernels import state as state_kernels
@@ -144,12 +145,16 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
 
     Recorded on an active ``wp.Tape``, so gradients reach the velocity arrays.
     """
+    for label in ("body_q", "body_q_prev"):
+        poses = getattr(state, label)
+        if not isinstance(poses, wp.array) or poses.dtype != wp.transformd or poses.ndim != 1:
+            raise ValueError(f"state.{label}: expected a wp.array of wp.transformd, one per body (use model.state())")
     n = state.body_q.shape[0]
     for label, arr in (("linear_velocity", linear_velocity), ("angular_velocity", angular_velocity)):
         if not isinstance(arr, wp.array) or arr.shape != (n,) or arr.dtype != wp.vec3d:
             raise ValueError(f"{label}: expected a wp.array of {n} vec3d")
-    if not np.isfinite(dt) or dt <= 0:
-        raise ValueError(f"dt: must be a positive finite number of seconds, got {dt}")
+    if not is_positive_finite(dt):
+        raise ValueError(f"dt: must be a positive finite number of seconds, got {dt!r}")
     wp.launch(
         state_kernels.previous_pose_from_velocity_kernel,
         dim=n,
@@ -157,3 +162,11 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
         outputs=[state.body_q_prev],
         device=state.body_q.device,
     )
+    # One read back per call (once per rollout): a NaN or overflowing velocity would reach
+    # the solver only as "state_in.body_q_prev: contains non-finite values".
+    bad = np.flatnonzero(~np.isfinite(state.body_q_prev.numpy()).all(axis=1))
+    if bad.size:
+        raise ValueError(
+            f"linear_velocity, angular_velocity: body {bad[0]}'s velocities give a non-finite previous pose "
+            f"(linear {linear_velocity.numpy()[bad[0]].tolist()} m/s, angular {angular_velocity.numpy()[bad[0]].tolist()} rad/s)"
+        )
