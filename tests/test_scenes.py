@@ -20,6 +20,25 @@ def test_every_named_scene_is_shipped():
     assert {p.stem for p in FILES} == set(scenes.SCENE_NAMES)
 
 
+def test_the_shipped_scenes_are_what_the_code_writes_and_are_never_overwritten_unasked(tmp_path, capsys):
+    """`python -m warpcontact.scenes FOLDER` overwrote whatever NAME.usda files FOLDER held,
+    and took --help for a folder name."""
+    if not SCENES.is_dir():
+        pytest.skip("scenes/ not found next to tests/")
+    assert scenes.main([str(tmp_path)]) == 0
+    for path in FILES:
+        assert (tmp_path / path.name).read_bytes() == path.read_bytes(), path.name
+    (tmp_path / "push.usda").write_text("mine")
+    assert scenes.main([str(tmp_path)]) == 2
+    assert "push.usda exists" in capsys.readouterr().err
+    assert (tmp_path / "push.usda").read_text() == "mine"
+    assert scenes.main([str(tmp_path), "--overwrite"]) == 0
+    assert (tmp_path / "push.usda").read_bytes() == (SCENES / "push.usda").read_bytes()
+    with pytest.raises(SystemExit) as exit_info:
+        scenes.main(["--help"])
+    assert exit_info.value.code == 0 and not Path("--help").exists()
+
+
 @pytest.mark.parametrize("path", FILES, ids=[p.stem for p in FILES])
 def test_scene_loads_steps_and_exports(path, tmp_path):
     scene = io.load_scene(path)

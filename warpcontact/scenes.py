@@ -446,18 +446,35 @@ def shipped_scene(name: str) -> Path:
 
 
 def write_scenes(folder, *, overwrite: bool = False) -> list[Path]:
-    """Write every scene in ``SCENE_NAMES`` to ``folder``/NAME.usda."""
+    """Write every scene in ``SCENE_NAMES`` to ``folder``/NAME.usda; FileExistsError, before
+    anything is written, when one of them exists and ``overwrite`` is not set."""
     folder = Path(folder)
+    paths = [folder / f"{name}.usda" for name in SCENE_NAMES]
+    existing = [p for p in paths if p.exists()]
+    if existing and not overwrite:
+        raise FileExistsError(f"{existing[0]} exists ({len(existing)} of the {len(paths)} scene files do); pass overwrite=True (--overwrite) to replace them")
     folder.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for name in SCENE_NAMES:
-        scene = build_scene(name)
-        path = folder / f"{name}.usda"
-        save_scene(scene, path, overwrite=overwrite)
-        paths.append(path)
+    for name, path in zip(SCENE_NAMES, paths):
+        save_scene(build_scene(name), path, overwrite=overwrite)
     return paths
 
 
+def main(argv=None) -> int:
+    """``python -m warpcontact.scenes [FOLDER] [--overwrite]``: write the shipped scenes."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m warpcontact.scenes", description="write the task scenes as USD files")
+    parser.add_argument("folder", nargs="?", default="scenes", help="output folder (default: scenes)")
+    parser.add_argument("--overwrite", action="store_true", help="replace scene files already there")
+    args = parser.parse_args(argv)
+    try:
+        for path in write_scenes(args.folder, overwrite=args.overwrite):
+            print(path)
+    except (FileExistsError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
 if __name__ == "__main__":
-    for p in write_scenes(sys.argv[1] if len(sys.argv) > 1 else "scenes", overwrite=True):
-        print(p)
+    sys.exit(main())
