@@ -30,7 +30,7 @@ def test_the_shipped_scenes_are_what_the_code_writes_and_are_never_overwritten_u
         assert (tmp_path / path.name).read_bytes() == path.read_bytes(), path.name
     (tmp_path / "push.usda").write_text("mine")
     assert scenes.main([str(tmp_path)]) == 2
-    assert "push.usda exists" in capsys.readouterr().err
+    assert "billiards.usda exists (10 of the 10 scene files do)" in capsys.readouterr().err
     assert (tmp_path / "push.usda").read_text() == "mine"
     assert scenes.main([str(tmp_path), "--overwrite"]) == 0
     assert (tmp_path / "push.usda").read_bytes() == (SCENES / "push.usda").read_bytes()
