@@ -1205,6 +1205,14 @@ def test_a_value_authored_only_as_time_samples_is_refused(tmp_path, prim, attrib
     _load_refused(stage, path, f"prim {prim}: {prim}.{attribute} has time samples but no default value")
 
 
+def test_animated_attributes_a_load_does_not_read_are_left_alone(tmp_path):
+    path = write_physics_scene(tmp_path / "visible.usda")
+    stage = Usd.Stage.Open(str(path))
+    UsdGeom.Imageable(stage.GetPrimAtPath("/World/box/shape")).CreateVisibilityAttr().Set(UsdGeom.Tokens.invisible, 3.0)
+    stage.GetRootLayer().Save()
+    assert io.load_scene(path).body("box").faces.shape == (12, 3)
+
+
 def test_a_disabled_rigid_body_loads_static_with_its_collider_and_reset_stacks_keep_world_velocities(tmp_path):
     """rigidBodyEnabled = false was refused ("rigid body has no collider": UsdPhysics gives
     its colliders no body); a body that resets the transform stack had its velocity turned

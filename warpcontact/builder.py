@@ -110,7 +110,10 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
     props = mesh.mass_properties if closed else None
     body_mass = float(props["volume"]) * float(density) if density is not None else float(mass)
     if center_of_mass is not None:
-        com = np.asarray(center_of_mass, dtype=np.float64)
+        try:
+            com = np.asarray(center_of_mass, dtype=np.float64)
+        except (TypeError, ValueError):
+            com = np.zeros(0)
         if com.shape != (3,) or not np.isfinite(com).all():
             raise ValueError(f"{where}: center_of_mass must be 3 finite numbers (m, mesh frame), got {center_of_mass!r}")
     elif closed:

@@ -477,13 +477,20 @@ def _transform_attributes(prim, UsdGeom):
         ancestor = ancestor.GetParent()
 
 
+# The attributes a load reads (besides transforms): animating others (visibility, colours)
+# is left alone.
+_READ_PREFIXES = ("physics:", "warpcontact:")
+_READ_GEOMETRY = ("points", "faceVertexCounts", "faceVertexIndices", "holeIndices", "orientation", "size", "radius", "height", "axis", "radiusTop", "radiusBottom")
+
+
 def _require_default_values(prim, UsdGeom, Usd, source: str) -> None:
     """Refuse a prim with an attribute, or a transform (its own or an ancestor's), that is
     only time-sampled: the initial state is read at the default time, where such a value is
     missing and silently counted as its fallback (a body authored at z = 1 m in samples
     loaded at the origin; a sampled mass of 7 kg gave the default density's, a sampled Cube
     size of 0.5 the fallback 2)."""
-    for attr in (*_transform_attributes(prim, UsdGeom), *prim.GetAttributes()):
+    read = [attr for attr in prim.GetAttributes() if attr.GetName().startswith(_READ_PREFIXES) or attr.GetName() in _READ_GEOMETRY]
+    for attr in (*_transform_attributes(prim, UsdGeom), *read):
         if attr.GetNumTimeSamples() and attr.GetResolveInfo(Usd.TimeCode.Default()).GetSource() != Usd.ResolveInfoSourceDefault:
             raise ValueError(
                 f"{source}: prim {prim.GetPath()}: {attr.GetPath()} has time samples but no default value; the initial "
