@@ -149,7 +149,9 @@ def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, s
             full = _median_seconds(lambda: launch(search32, True), repeats)
             iters = iterations.numpy()
             ok = status.numpy() == 0
-            result = (value.numpy(), grad.numpy(), hess.numpy(), ok)
+            # Copies: on a CPU .numpy() is a view of the buffers the next precision's launches
+            # overwrite (float32 rows were compared with themselves: errors of 0).
+            result = (value.numpy().copy(), grad.numpy().copy(), hess.numpy().copy(), ok)
             row = {
                 "precision": precision,
                 "median_seconds_value": value_only,
@@ -198,12 +200,18 @@ def rack_positions(*, radius: float, gap: float) -> np.ndarray:
 
 
 def contact_benchmark_scenes(*, subdivisions: int, gaps) -> list[dict]:
-    """Two icospheres and a 16-ball rack, each at the given surface gaps (m); balls of radius 0.5 m."""
+    """Two icospheres and a 16-ball rack, each at the given surface gaps (m); balls of radius
+    0.5 m. The pair's gap is exact at every subdivision; the rack's from 1 subdivision on (an
+    icosahedron's faces stand 0.075 m inside the circumscribed sphere along the rack's rows)."""
     ball = _icosphere(subdivisions, 0.5)
+    reach = float(ball[0][:, 0].max())  # the balls' extent along x, their line of centres
     scenes = []
     for gap in gaps:
-        two = _identity_poses([[0.0, 0.0, 0.0], [1.0 + gap, 0.0, 0.0]])
-        two[1, 3:] = [0.0, 0.0, np.sin(0.35), np.cos(0.35)]  # break the symmetry of the pair
+        two = _identity_poses([[0.0, 0.0, 0.0], [2.0 * reach + gap, 0.0, 0.0]])
+        # Turned about the line of centres, which keeps the facing features on it: the pair's
+        # symmetry is broken and the surfaces stay ``gap`` apart (a turn about z had moved
+        # them 2.9 cm apart at a nominal 1 mm).
+        two[1, 3:] = [np.sin(0.35), 0.0, 0.0, np.cos(0.35)]
         scenes.append({"scene": "two_icospheres", "gap": gap, "meshes": [ball, ball], "poses": two})
         scenes.append({"scene": "rack16", "gap": gap, "meshes": [ball] * 16, "poses": _identity_poses(rack_positions(radius=0.5, gap=gap))})
     return scenes
@@ -362,7 +370,7 @@ def run_scaling_benchmark(*, points_per_ball, eps: float, brute_max_triangles: i
                 {
                     "triangles": triangles,
                     "mode": mode,
-                    "eps": eps,
+                    "eps": eps if mode == "bsh" else None,  # brute force has no blend margin
                     "median_seconds": seconds,
                     "seconds_per_triangle": seconds / triangles,
                     "num_far": result.num_far,
@@ -385,8 +393,8 @@ def _plot_scaling(rows: list[dict], path: Path) -> bool:
         if sel:
             ax.loglog([r["triangles"] for r in sel], [r["median_seconds"] for r in sel], "o-", label=mode)
     t = np.array(sorted({r["triangles"] for r in rows}), dtype=float)
-    first = next(r for r in rows if r["mode"] == "bsh")
-    ax.loglog(t, first["median_seconds"] * t / t[0], "k:", label="linear")
+    first = min((r for r in rows if r["mode"] == "bsh"), key=lambda r: r["triangles"])
+    ax.loglog(t, first["median_seconds"] * t / first["triangles"], "k:", label="linear")
     ax.set_xlabel("triangles (16 balls)")
     ax.set_ylabel("seconds per evaluate (value, gradient, Hessian)")
     ax.grid(True, which="both", alpha=0.3)
@@ -779,7 +787,7 @@ def _plot_frame_benchmark(rows: list[dict], path: Path) -> bool:
             axes[1].loglog([r["triangles"] for r in sel], [r["contact_seconds"] for r in sel], marker, label=mode)
         paper = [(int(k.rsplit("_", 1)[1]) if k.startswith("billiards") else 2702, v[mode]) for k, v in PAPER_FRAME_SECONDS.items()]
         axes[0].loglog(*zip(*paper), marker, mfc="none", color="gray", label=f"paper {mode} (CPU)")
-    axes[0].set_ylabel("seconds per frame (median)")
+    axes[0].set_ylabel("median forward / backward seconds per frame")
     axes[1].set_ylabel("seconds per contact evaluation (value, gradient, Hessian)")
     for ax in axes:
         ax.set_xlabel("dynamic triangles")
@@ -840,9 +848,11 @@ def _accuracy_run(scene, controls, *, mode: str, eps: float, tolerance: float, f
     problem.solver = TimedSolver(problem.model, tolerance=tolerance)
     problem.solver.seconds, problem.solver.iterations = [], []
     q0 = problem.model.initial_q
-    (loss, grad, trajectory), total = _timed(lambda: problem.rollout(controls, (q0, q0), frames), dev)
-    forward = problem.solver.seconds
-    return loss, grad.reshape(-1), trajectory, forward, problem.solver.iterations, total - sum(forward), problem
+    timings = {}
+    loss, grad, trajectory = problem.rollout(controls, (q0, q0), frames, timings=timings)
+    # The backward alone: the rollout's time beyond its forward steps also counted the
+    # states' allocation, the loss and the trajectory's read back (31-41% more).
+    return loss, grad.reshape(-1), trajectory, problem.solver.seconds, problem.solver.iterations, timings["backward_seconds"], problem
 
 
 def run_accuracy_benchmark(

@@ -582,12 +582,14 @@ class TaskProblem:
         values[:, 1::3] = 2 * np.pi * np.arange(1, SINE_WAVES + 1)
         return values
 
-    def rollout(self, values: np.ndarray, start: tuple, frames: int, *, gradient: bool = True):
+    def rollout(self, values: np.ndarray, start: tuple, frames: int, *, gradient: bool = True, timings: dict | None = None):
         """Simulate ``frames`` frames from ``start`` = (q, q_prev), each (nbodies, 7), under ``values``.
 
         ``values``: pd_targets, one row per frame of the control dofs' offsets (at least
         ``frames`` rows); initial_state, one row; joint_sine, ``initial_values``' shape.
         Returns (loss, d loss / d values or None, trajectory (frames + 1, nbodies, 7)).
+        ``timings``, if given, receives ``backward_seconds``: the tape's backward and the
+        gradient's read back (benchmarks).
         """
         device = self.model.device
         if not is_whole(frames) or frames < 0:
@@ -638,8 +640,11 @@ class TaskProblem:
             )
         grad = None
         if gradient:
+            backward_start = time.perf_counter()
             tape.backward(loss)
             grad = values_arr.grad.numpy().reshape(shape)
+            if timings is not None:
+                timings["backward_seconds"] = time.perf_counter() - backward_start
         trajectory = np.array([s.body_q.numpy() for s in states])
         return float(loss.numpy()[0]), grad, trajectory
 
