@@ -518,6 +518,46 @@ def assert_frictional_gradients(out, loss, *, body, velocity, friction, mu, mu_s
     assert_close(out["states"][0].body_q.grad.numpy()[body, 0], central(lambda h: loss(start_x=h), 0.0, 1e-5))
 
 
+def test_the_friction_coefficient_has_a_gradient_at_zero_when_asked():
+    """A step without friction does no friction work, and its coefficient's gradient was
+    silently 0 (an optimiser started there could never move it). A model built without
+    friction keeps no gradient for it; asked for one (requires_grad), a taped step keeps the
+    friction data at coefficient 1 and returns d/d friction from the positive side (D is
+    linear in the coefficient), as the one-sided difference and the gradient at 1e-8 do."""
+
+    def slide(friction, tape=None, ask=False):
+        b = wc.ModelBuilder(contact_stiffness=1e-6, friction=friction, friction_smoothing=0.01)
+        b.add_body(grid_ground(), static=True, name="ground")
+        b.add_box((0.2, 0.2, 0.2), density=300.0, name="box", pose=(0.0, 0.0, 0.1029, 0.0, 0.0, 0.0, 1.0))
+        model = b.finalize()
+        if ask:
+            model.friction.requires_grad = True
+        solver = wc.ImplicitSolver(model, tolerance=1e-13)
+        states = [model.state() for _ in range(7)]
+        loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+
+        def forward():
+            velocity = wp.array([[0.0, 0.0, 0.0], [1.0, 0.3, 0.0]], dtype=wp.vec3d)
+            wc.set_body_velocity(states[0], velocity, wp.zeros(2, dtype=wp.vec3d), 0.02)
+            for t in range(6):
+                solver.step(states[t], states[t + 1], None, 0.02)
+            wp.launch(position_loss_kernel, dim=1, inputs=[states[-1].body_q, 1, wp.vec3d(2.0, 0.0, 0.0)], outputs=[loss])
+
+        record(forward, tape)
+        if tape is not None:
+            tape.backward(loss)
+        return model, float(loss.numpy()[0])
+
+    model, _ = slide(0.0, wp.Tape())
+    assert not model.friction.requires_grad
+    model, base = slide(0.0, wp.Tape(), ask=True)
+    at_zero = model.friction.grad.numpy()[0]
+    one_sided = (slide(1e-5)[1] - base) / 1e-5
+    assert at_zero > 0.1  # friction slows the box short of its goal
+    assert_close(at_zero, one_sided, rtol=1e-4)
+    assert_close(at_zero, slide(1e-8, wp.Tape())[0].friction.grad.numpy()[0], rtol=1e-6)
+
+
 def test_gradient_is_non_zero_when_balls_start_far_apart():
     # The effect is ~1e-6 of the loss: solve tightly so finite differences can resolve it.
     sim = Collision(gap=6.0, steps=20, tolerance=1e-14)

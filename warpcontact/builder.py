@@ -152,7 +152,8 @@ class ModelBuilder:
             ``finalize`` warns about dynamic bodies whose estimated gap exceeds a tenth of
             their radius (a 1 cm cube of 500 kg/m^3 at 1e-6: thrown 0.69 m up, resting 0.25 m
             above the table after 16 s).
-        friction: friction coefficient; 0 disables friction (and all its work).
+        friction: friction coefficient; 0 disables friction (and all its work, its gradient
+            included unless ``model.friction.requires_grad`` is set).
         friction_smoothing: slip speed (m/s) below which the friction law is smoothed.
         eps: blend margin of the hierarchical contact potential.
         centred_weight: ``"paper"`` or ``"pairs"``: how a far cluster pair's centred term
@@ -542,7 +543,9 @@ class ModelBuilder:
                 body_meshes=[(b.vertices, b.faces) for b in bodies],
                 gravity=self.gravity.copy(),
                 contact_stiffness=wp.array([self.contact_stiffness], dtype=wp.float64, requires_grad=True),
-                friction=wp.array([self.friction], dtype=wp.float64, requires_grad=True),
+                # Without friction its gradient costs a friction evaluation a taped step: asked
+                # for by setting requires_grad (ImplicitSolver._friction_rate_frame).
+                friction=wp.array([self.friction], dtype=wp.float64, requires_grad=self.friction > 0),
                 friction_smoothing=self.friction_smoothing,
                 contact=contact,
                 initial_q=initial_q,

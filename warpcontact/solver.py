@@ -61,6 +61,13 @@ def _taped_step_arrays(tape: wp.Tape) -> dict:
     return noted
 
 
+def _accumulate(array: wp.array, adjoint) -> None:
+    """Add a backward's adjoint to a model array's gradient, where one is kept (a model
+    built without friction keeps none for its coefficient unless asked)."""
+    if array.requires_grad:
+        array.grad.assign(array.grad.numpy() + adjoint)
+
+
 def _host(values) -> np.ndarray:
     """A noted control snapshot (a device copy, or values already read back) on the host."""
     return values.numpy() if isinstance(values, wp.array) else values
@@ -151,6 +158,9 @@ class _StepInputs:
     bodies: dynamics_kernels.BodyModel  # per-body terms' model at this dt
     mu: float
     friction: "LaggedFriction | None"
+    # A taped step without friction whose coefficient wants a gradient: the friction data at
+    # coefficient 1, for d/d friction at 0 (D is linear in it), else None.
+    friction_rate: "LaggedFriction | None"
     body_q: wp.array  # poses q^t
     body_target: wp.array  # body PD targets
     joint_q: np.ndarray  # joint coordinates at t
@@ -222,6 +232,7 @@ class ImplicitSolver:
         self._launches = LaunchCache(model.device)
         # (poses, value, gradient, Hessian) of the friction term at the last evaluation.
         self._friction_at_evaluation = None
+        self._unit_friction = None  # coefficient 1, for _friction_rate_frame
 
     # --- forward ------------------------------------------------------------------------------
 
@@ -246,6 +257,15 @@ class ImplicitSolver:
         if float(model.friction.numpy()[0]) == 0.0:
             return None
         return model.contact.friction_frame(mu, model.friction, model.friction_smoothing * dt)
+
+    def _friction_rate_frame(self, mu: float, dt: float) -> "LaggedFriction":
+        """The lagged friction data at q^t with coefficient 1: D is linear in the coefficient,
+        so d/d friction at 0 (one-sided: it cannot be negative) is the adjoint of this D. The
+        step itself stays frictionless; without it that gradient was silently 0."""
+        model = self.model
+        if self._unit_friction is None:
+            self._unit_friction = wp.array([1.0], dtype=wp.float64, device=model.device)
+        return model.contact.friction_frame(mu, self._unit_friction, model.friction_smoothing * dt)
 
     def _evaluate(self, poses: np.ndarray, coords: np.ndarray, step_in: "_StepInputs", contact=None):
         """L, its gradient and Hessian over the reduced coordinates, the contact evaluation and
@@ -468,7 +488,7 @@ class ImplicitSolver:
         with paused_tape() as tape:
             if tape is not None:
                 self._check_taped_step(tape, state_in, state_out, control)
-            info, record = self._solve(state_in, state_out, control, dt)
+            info, record = self._solve(state_in, state_out, control, dt, taped=tape is not None)
         if tape is not None:
             backward, arrays, control_values = record()
             tape.record_func(backward, arrays)
@@ -561,7 +581,7 @@ class ImplicitSolver:
             raise ValueError(f"control.ball_target: the target of ball joint {art.ball_joint_names[bad[0]]!r} has norm {norms[bad[0]]:.9g}; expected a unit quaternion")
         return target / norms[:, None], start
 
-    def _solve(self, state_in: State, state_out: State, control: Control | None, dt: float):
+    def _solve(self, state_in: State, state_out: State, control: Control | None, dt: float, *, taped: bool = False):
         if not is_positive_finite(dt):
             raise ValueError(f"dt: must be a positive finite number of seconds, got {dt!r}")
         model = self.model
@@ -599,11 +619,13 @@ class ImplicitSolver:
         if start.contact_pairs:
             names = ", ".join(f"{a} and {b}" for a, b in start.contact_pairs)
             raise ValueError(f"state_in: bodies intersect or touch at the start of the step: {names}")
+        friction = self._friction_frame(mu, dt)
         step_in = _StepInputs(
             dt=float(dt),
             bodies=self._body_model(dt),
             mu=mu,
-            friction=self._friction_frame(mu, dt),
+            friction=friction,
+            friction_rate=self._friction_rate_frame(mu, dt) if taped and friction is None and model.friction.requires_grad else None,
             body_q=state_in.body_q,
             body_target=control.body_target if control is not None else state_in.body_q,
             joint_q=coords_now,
@@ -864,7 +886,7 @@ class ImplicitSolver:
             predicted_rotation = wp.clone(self._predicted_rotation)
             sensitivity = wp.clone(self._prediction_sensitivity)
         bodies = step_in.bodies
-        arrays = [array for _, array in self._taped_state_arrays(state_in, state_out)] + [getattr(model, name) for name in _DIFFERENTIATED_MODEL_ARRAYS]
+        arrays = [array for _, array in self._taped_state_arrays(state_in, state_out)] + [getattr(model, name) for name in _DIFFERENTIATED_MODEL_ARRAYS if getattr(model, name).requires_grad]
         arrays += [array for _, array in _taped_control_arrays(control)]
         joints = art is not None and art.num_coordinates > 0
         balls = art is not None and art.has_ball_drives
@@ -906,8 +928,12 @@ class ImplicitSolver:
                 if friction is not None and friction.pairs:
                     adj_q, adj_friction, adj_mu = model.contact.friction_adjoint(friction, q_next, q_now, lam_full.reshape(n, 6))
                     adj_now.assign(adj_now.numpy() + adj_q)
-                    model.friction.grad.assign(model.friction.grad.numpy() + adj_friction)
+                    _accumulate(model.friction, adj_friction)
                     mu_adj += adj_mu
+                elif step_in.friction_rate is not None and step_in.friction_rate.pairs:
+                    # At coefficient 0 the step has no friction: only its coefficient moves it.
+                    _, adj_friction, _ = model.contact.friction_adjoint(step_in.friction_rate, q_next, q_now, lam_full.reshape(n, 6))
+                    _accumulate(model.friction, adj_friction)
                 if balls:
                     target_adj, start_adj = art.ball_drive_adjoint(q_next, q_now, lam_reduced, step_in.ball_target, dt)
                     adj_now.assign(adj_now.numpy() + start_adj)
@@ -917,8 +943,8 @@ class ImplicitSolver:
                 wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[q_prev_arr, adj_prev], outputs=[state_in.body_q_prev.grad])
                 if control is not None and control.body_target.requires_grad:
                     wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[target_arr, adj_target], outputs=[control.body_target.grad])
-                model.body_mass.grad.assign(model.body_mass.grad.numpy() + adj_mass.numpy())
-                model.contact_stiffness.grad.assign(model.contact_stiffness.grad.numpy() + mu_adj)
+                _accumulate(model.body_mass, adj_mass.numpy())
+                _accumulate(model.contact_stiffness, mu_adj)
                 # state_out.body_q_prev is a copy of state_in.body_q; static bodies stay put.
                 passthrough = state_out.body_q_prev.grad.numpy()
                 static_adj = out_adj.numpy()

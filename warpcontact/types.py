@@ -71,7 +71,8 @@ class Model:
         body_meshes: list of (V, F) in the body frame.
         gravity: (3,) m/s^2.
         contact_stiffness: (1,) float64 mu, requires_grad.
-        friction: (1,) float64 friction coefficient lambda, requires_grad (0 disables friction).
+        friction: (1,) float64 friction coefficient lambda, requires_grad when > 0 (0 disables
+            friction; set requires_grad for d/d lambda at 0, one friction setup a taped step).
         friction_smoothing: slip speed v_eps (m/s) below which friction is smoothed; the
             friction force reaches lambda N once slip speeds exceed a few v_eps.
         contact: the ``ContactModel`` over all bodies.
