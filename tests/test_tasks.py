@@ -489,6 +489,11 @@ def test_ant_push_sine_controls_get_long_range_gradients_and_lower_the_loss():
     assert loss > 0 and np.abs(grad[:, 0::3]).max() > 0
     result = problem.optimize()
     assert result.final_loss < result.initial_loss
+    # Another start would keep the initial joint coordinates under moved poses.
+    moved = q0.copy()
+    moved[:, 0] += 0.1
+    with pytest.raises(ValueError, match="start: an articulated scene's rollouts start from its initial poses at rest"):
+        problem.rollout(values, (moved, moved), 2)
 
 
 @pytest.mark.parametrize("name", ["push", "sort"])

@@ -569,6 +569,10 @@ class TaskProblem:
             if np.shape(poses) != shape:
                 # Warp's assign copies what it is given: two poses of three left the third as it was.
                 raise ValueError(f"{label}: expected {shape} poses (px, py, pz, qx, qy, qz, qw), one per body, got shape {np.shape(poses)}")
+        if self.model.num_joint_coordinates and not (np.array_equal(q, self.model.initial_q) and np.array_equal(q_prev, self.model.initial_q)):
+            # Its joint coordinates would stay the initial ones while the poses moved (the
+            # solver refuses such a state); base coordinates cannot be recovered from poses.
+            raise ValueError("start: an articulated scene's rollouts start from its initial poses at rest")
         state = self.model.state()
         state.body_q.assign(q)
         state.body_q_prev.assign(q_prev)
