@@ -669,8 +669,9 @@ _CHECKPOINTED_RUNS = {
 }
 
 
-def _interrupted_after(problem, calls):
-    """Make ``problem``'s rollouts raise KeyboardInterrupt from the ``calls``-th on."""
+def _interrupt(problem, calls, checkpoint):
+    """Run ``problem.optimize(checkpoint=checkpoint)`` until its ``calls``-th rollout raises
+    KeyboardInterrupt, as Ctrl-C there would."""
     rollout, count = problem.rollout, [0]
 
     def interrupting(*args, **kwargs):
@@ -680,6 +681,8 @@ def _interrupted_after(problem, calls):
         return rollout(*args, **kwargs)
 
     problem.rollout = interrupting
+    with pytest.raises(KeyboardInterrupt):
+        problem.optimize(checkpoint=checkpoint)
 
 
 # Rollouts before the interruption: mid-window and at window starts (a receding run's first
@@ -698,9 +701,7 @@ def test_an_interrupted_optimisation_resumes_bit_for_bit(tmp_path, run, calls):
     full = problem().optimize()
     checkpoint = tmp_path / "checkpoint.npz"
     interrupted = problem()
-    _interrupted_after(interrupted, calls)
-    with pytest.raises(KeyboardInterrupt):
-        interrupted.optimize(checkpoint=checkpoint)
+    _interrupt(interrupted, calls, checkpoint)
     assert checkpoint.exists()
     resumed = problem().optimize(checkpoint=checkpoint, resume=True)
     assert resumed.loss_history == full.loss_history and resumed.final_loss == full.final_loss
@@ -713,9 +714,7 @@ def test_a_checkpoint_is_never_overwritten_or_resumed_into_another_problem(tmp_p
     make_scene, settings, model = _CHECKPOINTED_RUNS["receding"]
     checkpoint = tmp_path / "checkpoint.npz"
     interrupted = TaskProblem(make_scene(), settings=settings)
-    _interrupted_after(interrupted, 5)
-    with pytest.raises(KeyboardInterrupt):
-        interrupted.optimize(checkpoint=checkpoint)
+    _interrupt(interrupted, 5, checkpoint)
     saved = checkpoint.read_bytes()
     with pytest.raises(ValueError, match=r"checkpoint.npz: holds an unfinished run \(task space_billiards, model ours, frame 0 of 5, 2 Adam iterations"):
         TaskProblem(make_scene(), settings=settings).optimize(checkpoint=checkpoint)
@@ -863,9 +862,7 @@ def test_a_checkpoint_knows_its_scene_by_content_not_by_path(tmp_path):
     io.save_scene(moved, tmp_path / "moved.usda")
     checkpoint = tmp_path / "checkpoint.npz"
     interrupted = TaskProblem(io.load_scene(tmp_path / "a.usda"), settings=settings)
-    _interrupted_after(interrupted, 4)
-    with pytest.raises(KeyboardInterrupt):
-        interrupted.optimize(checkpoint=checkpoint)
+    _interrupt(interrupted, 4, checkpoint)
     with pytest.raises(ValueError, match="checkpoint of another problem .bodies:"):
         TaskProblem(io.load_scene(tmp_path / "moved.usda"), settings=settings).optimize(checkpoint=checkpoint, resume=True)
     assert TaskProblem(io.load_scene(tmp_path / "b.usda"), settings=settings).optimize(checkpoint=checkpoint, resume=True).loss_history
@@ -914,9 +911,7 @@ def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path, damage, messa
     make_scene, settings, _ = _CHECKPOINTED_RUNS["receding"]
     checkpoint = tmp_path / "checkpoint.npz"
     interrupted = TaskProblem(make_scene(), settings=settings)
-    _interrupted_after(interrupted, 4)
-    with pytest.raises(KeyboardInterrupt):
-        interrupted.optimize(checkpoint=checkpoint)
+    _interrupt(interrupted, 4, checkpoint)
     if damage == "truncated":
         checkpoint.write_bytes(checkpoint.read_bytes()[:500])
     elif damage == "empty":
@@ -948,9 +943,7 @@ def test_numpy_integer_settings_checkpoint_and_resume_as_python_integers(tmp_pat
     numpy_settings = dataclasses.replace(settings, horizon=np.int64(5), receding_horizon=np.int64(2), receding_stride=np.int64(1))
     checkpoint = tmp_path / "checkpoint.npz"
     interrupted = TaskProblem(make_scene(), settings=numpy_settings)
-    _interrupted_after(interrupted, 6)
-    with pytest.raises(KeyboardInterrupt):
-        interrupted.optimize(checkpoint=checkpoint)
+    _interrupt(interrupted, 6, checkpoint)
     resumed = TaskProblem(make_scene(), settings=settings).optimize(checkpoint=checkpoint, resume=True)
     assert resumed.loss_history == TaskProblem(make_scene(), settings=settings).optimize().loss_history
 
