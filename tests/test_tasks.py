@@ -758,6 +758,10 @@ def test_cli_run_keeps_its_progress_when_interrupted_and_resumes_it(tmp_path, ca
     assert not (out / "metrics.json").exists()
     assert main([*argv, "--out", str(out)]) == 2
     assert "holds an unfinished run (task space_billiards, model ours, 1 Adam iteration, " in capsys.readouterr().err
+    # A checkpoint of other settings is refused before the header says it resumes.
+    assert main(["run", str(scene_path), "--iters", "5", "--out", str(out), "--resume"]) == 2
+    refused = capsys.readouterr()
+    assert "checkpoint of another problem" in refused.err and "resumed from" not in refused.out
     assert main([*argv, "--out", str(out), "--resume"]) == 0
     assert "resumed from" in capsys.readouterr().out
     metrics = json.loads((out / "metrics.json").read_text())

@@ -248,8 +248,10 @@ def _run(args) -> int:
     checkpoint = TaskCheckpoint(out / CHECKPOINT_NAME)
     if checkpoint.exists() and not args.resume:
         raise ValueError(f"{checkpoint.path} holds an unfinished run ({checkpoint.describe()}): continue it with --resume, or remove the file to start over")
-    resumed = f", resumed from {checkpoint.path} ({checkpoint.describe()})" if args.resume else ""
     problem = _task_problem(scene, settings, args.model, args)
+    if args.resume:
+        problem.resumable(checkpoint.path)  # refused before the header says it resumes
+    resumed = f", resumed from {checkpoint.path} ({checkpoint.describe()})" if args.resume else ""
     t = scene.task
     print(f"{scene_path}: task {t.name}, model {args.model}, control {t.control} of {problem.dof_names}, {_settings_line(settings)}{resumed}")
     try:

@@ -691,8 +691,7 @@ class TaskProblem:
         saved = None
         if store is not None:
             if resume:
-                saved = store.load(fingerprint)
-                self._check_saved_shapes(saved, store.path)
+                saved = self.resumable(store.path)
             elif store.exists():
                 raise ValueError(f"{store.path}: holds an unfinished run ({store.describe()}); resume it, or remove the file to start over")
         start_time = time.perf_counter() - (saved["seconds"] if saved else 0.0)
@@ -738,6 +737,14 @@ class TaskProblem:
         if store is not None and not keep_checkpoint:
             store.remove()
         return result
+
+    def resumable(self, checkpoint) -> dict:
+        """The state saved in ``checkpoint`` when it is a readable checkpoint of this problem;
+        ValueError naming the file otherwise (``optimize(resume=True)`` starts with this)."""
+        store = TaskCheckpoint(checkpoint)
+        saved = store.load(self._fingerprint())
+        self._check_saved_shapes(saved, store.path)
+        return saved
 
     def _check_saved_shapes(self, saved: dict, path) -> None:
         """ValueError naming the checkpoint when its arrays do not fit this problem (its
