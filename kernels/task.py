@@ -57,6 +57,7 @@ def initial_state_kernel(
     # Model:
     body: int,
     base_pose: wp.transformd,
+    base_velocity: wp.vec3d,
     dof_codes: wp.array(dtype=wp.int32),
     # Data in:
     values: wp.array2d(dtype=wp.float64),
@@ -64,11 +65,12 @@ def initial_state_kernel(
     body_q_out: wp.array(dtype=wp.transformd),
     linear_velocity_out: wp.array(dtype=wp.vec3d),
 ):
-    """Initial pose and velocity of ``body`` from the decision variables (row 0)."""
+    """Initial pose and velocity of ``body`` from the decision variables (row 0): offsets from
+    its base pose and base (authored) velocity."""
     dp, rv, dv = _offsets(values, 0, dof_codes)
     rot = quat_from_rotation_vector(rv) * wp.transform_get_rotation(base_pose)
     body_q_out[body] = wp.transformd(wp.transform_get_translation(base_pose) + dp, rot)
-    linear_velocity_out[body] = dv
+    linear_velocity_out[body] = base_velocity + dv
 
 
 @wp.kernel

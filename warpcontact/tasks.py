@@ -536,6 +536,17 @@ class TaskProblem:
         art = self.model.articulation
         if art.num_coordinates and self.settings.receding_horizon:
             raise ValueError(f"{source}: receding-horizon control of articulated scenes is not supported (set warpcontact:task:recedingHorizon to 0)")
+        # The scene's authored velocities start every rollout, as they start `simulate` (task
+        # runs used to start at rest whatever the scene said).
+        self._initial_velocity = scene.initial_velocities()
+        if np.any(self._initial_velocity[0]) or np.any(self._initial_velocity[1]):
+            if not art.identity:
+                raise ValueError(f"{source}: task rollouts of articulated scenes start at rest; remove the bodies' authored velocities (physics:velocity, physics:angularVelocity)")
+            state = self.model.state(requires_grad=False)
+            set_body_velocity(state, *(wp.array(v, dtype=wp.vec3d, device=device) for v in self._initial_velocity), self.dt)
+            self.start = (self.model.initial_q.copy(), state.body_q_prev.numpy().copy())
+        else:
+            self.start = (self.model.initial_q.copy(), self.model.initial_q.copy())
         if self.kind != "pd_targets" and self.settings.window < self.settings.horizon:
             # Only per-frame PD targets can be planned window by window; the run used to
             # optimise one window of the whole horizon while reporting the receding settings.
@@ -569,7 +580,7 @@ class TaskProblem:
             if np.shape(poses) != shape:
                 # Warp's assign copies what it is given: two poses of three left the third as it was.
                 raise ValueError(f"{label}: expected {shape} poses (px, py, pz, qx, qy, qz, qw), one per body, got shape {np.shape(poses)}")
-        if self.model.num_joint_coordinates and not (np.array_equal(q, self.model.initial_q) and np.array_equal(q_prev, self.model.initial_q)):
+        if self.model.num_joint_coordinates and not (np.array_equal(q, self.start[0]) and np.array_equal(q_prev, self.start[1])):
             # Its joint coordinates would stay the initial ones while the poses moved (the
             # solver refuses such a state); base coordinates cannot be recovered from poses.
             raise ValueError("start: an articulated scene's rollouts start from its initial poses at rest")
@@ -620,9 +631,11 @@ class TaskProblem:
         base = wp.transformd(*map(float, self.base_pose)) if self.kind != "joint_sine" else None
         with tape:
             if self.kind == "initial_state":
-                velocity = wp.zeros(self.model.num_bodies, dtype=wp.vec3d, device=device, requires_grad=True)
-                wp.launch(task_kernels.initial_state_kernel, dim=1, inputs=[self.body, base, self._dof_codes, values_arr], outputs=[states[0].body_q, velocity], device=device)
-                set_body_velocity(states[0], velocity, wp.zeros(self.model.num_bodies, dtype=wp.vec3d, device=device, requires_grad=True), self.dt)
+                # The controlled body's velocity is its authored one plus the control's offset.
+                velocity = wp.array(self._initial_velocity[0], dtype=wp.vec3d, device=device, requires_grad=True)
+                base_velocity = wp.vec3d(*map(float, self._initial_velocity[0][self.body]))
+                wp.launch(task_kernels.initial_state_kernel, dim=1, inputs=[self.body, base, base_velocity, self._dof_codes, values_arr], outputs=[states[0].body_q, velocity], device=device)
+                set_body_velocity(states[0], velocity, wp.array(self._initial_velocity[1], dtype=wp.vec3d, device=device, requires_grad=True), self.dt)
             for f in range(frames):
                 if self.kind == "pd_targets":
                     wp.launch(task_kernels.pd_target_kernel, dim=1, inputs=[self.body, base, self._dof_codes, values_arr, f], outputs=[controls[f].body_target], device=device)
@@ -696,7 +709,6 @@ class TaskProblem:
                 raise ValueError(f"{store.path}: holds an unfinished run ({store.describe()}); resume it, or remove the file to start over")
         start_time = time.perf_counter() - (saved["seconds"] if saved else 0.0)
         s = self.settings
-        q0 = self.model.initial_q.copy()
         history = [float(loss) for loss in saved["history"]] if saved else []
         rng = np.random.default_rng(self.bundle.seed) if self.bundle else None
         if saved and rng is not None:
@@ -728,8 +740,8 @@ class TaskProblem:
             values = self.initial_values(1 if self.kind == "initial_state" else s.horizon)
             first = None
             if s.initial_samples and not saved:
-                values, extra["initial_samples"], first = self._best_sample((q0, q0), s.horizon)
-            objective = objective_at((q0, q0), s.horizon, saved)
+                values, extra["initial_samples"], first = self._best_sample(self.start, s.horizon)
+            objective = objective_at(self.start, s.horizon, saved)
             final, values, traj = _descend(objective, values, s, history, progress, first=first, resume=saved, save=saver(objective))
             result = TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, values, traj, extra)
         else:
@@ -769,7 +781,7 @@ class TaskProblem:
         # The trivial plan's loss at the horizon, where the final loss is measured: the first
         # window's loss, at its own last frame, also counted what bodies do unpushed (settling
         # cubes: 2.48851 -> 2.48247 was reported for a gain of 1.1e-4 over the trivial plan).
-        initial_loss = self.rollout(np.zeros((s.horizon, len(self.dof_names))), (q0, q0), s.horizon, gradient=False)[0]
+        initial_loss = self.rollout(np.zeros((s.horizon, len(self.dof_names))), self.start, s.horizon, gradient=False)[0]
         if saved:
             t, plan, executed = saved["frame"], saved["plan"], list(saved["executed"])
         else:
@@ -778,7 +790,7 @@ class TaskProblem:
         stopped = None
         while t < s.horizon:
             # The state at the window's start: the last two executed frames.
-            current = (executed[-1], executed[-2]) if len(executed) > 1 else (q0, q0)
+            current = (executed[-1], executed[-2]) if len(executed) > 1 else self.start
             values = plan[t : t + window].copy()
             objective = objective_at(current, window, resume)
             save = saver(objective, frame=t, plan=plan, executed=np.array(executed))
