@@ -49,6 +49,26 @@ def test_infeasible_samples_are_dropped():
     assert np.all(nothing(np.array([[2.0]]))[1] == 0.0)
 
 
+def test_an_infeasible_iterate_takes_no_place_in_the_sigma_schedule():
+    """The descent halves an update whose rollout fails and calls the estimate again: each
+    failed call used to consume a sigma, so the schedule ran ahead of the iterations."""
+    def rollout(values, gradient=True):
+        if values[0, 0] > 1.0:
+            raise ValueError("bodies intersect at the start")
+        return quadratic(values, gradient)
+
+    sigmas = np.array([0.5, 0.25, 0.125])
+    estimate = bundled_gradient(rollout, sigmas=sigmas, samples=2, rng=np.random.default_rng(3))
+    estimate(np.array([[0.0]]))
+    with pytest.raises(ValueError):
+        estimate(np.array([[2.0]]))
+    assert estimate.calls == 1
+    _, grad, _ = estimate(np.array([[0.0]]))
+    rng = np.random.default_rng(3)
+    rng.standard_normal((2, 1, 1))
+    np.testing.assert_allclose(grad, np.mean(2.0 * sigmas[1] * rng.standard_normal((2, 1, 1)), axis=0))
+
+
 @pytest.mark.parametrize("model", MODELS)
 def test_each_model_runs_a_short_optimisation(model):
     scene = space_billiards()

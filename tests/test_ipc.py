@@ -61,3 +61,25 @@ def test_cli_run_with_ipc(tmp_path, capsys):
     scene.settings.friction = 0.5
     io.save_scene(scene, tmp_path / "friction.usda")
     assert main(["run", str(tmp_path / "friction.usda"), "--model", "ipc", "--iters", "1", "--out", str(tmp_path / "o")]) == 0
+
+
+def test_the_ccd_bound_follows_a_turning_body_s_arc():
+    """ipctk's CCD follows straight vertex paths: on the one chord of a 0.3 rad turn, a 1 m
+    rod's tip passes inside a 4 mm post that stands between the chord and the arc, and the
+    whole turn was allowed (the rod spun through the post in a step at 30 rad/s)."""
+    import trimesh
+
+    turn = 0.3
+    rod = trimesh.creation.box(extents=(1.0, 0.02, 0.02))
+    post = trimesh.creation.box(extents=(0.004, 0.004, 0.1))
+    radius = 0.25 * (1.0 + np.cos(turn / 2))  # between the tip's chord and its arc
+    poses = identity_poses([[0.0, 0.0, 0.0], [radius * np.cos(turn / 2), radius * np.sin(turn / 2), 0.0]])
+    model = IpcContactModel([(rod.vertices, rod.faces), (post.vertices, post.faces)], dhat=1e-3, static=[False, True])
+    assert np.isfinite(model.evaluate(poses).value)
+    step = np.zeros((2, 6))
+    step[0, 5] = turn
+    alpha = model.advancement_limit(step)
+    assert alpha * turn < turn / 2  # stopped before the turn reaches the post
+    turned = poses.copy()
+    turned[0, 3:] = quat([0.0, 0.0, 1.0], alpha * turn)
+    assert np.isfinite(model.evaluate(turned).value)
