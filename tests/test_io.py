@@ -1242,3 +1242,105 @@ def test_a_disabled_rigid_body_loads_static_with_its_collider_and_reset_stacks_k
     np.testing.assert_allclose(still.linear_velocity, [1.0, 0.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(scene.body("box").linear_velocity, [1.0, 0.0, 0.0])
 
+
+
+def _hinge_stage(path, *, joint="RevoluteJoint", lower=None, upper=None, target=None, locked=("transX", "transY", "transZ", "rotX", "rotZ")):
+    """A box hanging from a world hinge about y (for ``joint="D6"``, a D6 with the ``locked``
+    axes locked)."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdPhysics.Scene.Define(stage, "/World/physicsScene")
+    box = UsdGeom.Xform.Define(stage, "/World/box")
+    box.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 1.0))
+    UsdPhysics.RigidBodyAPI.Apply(box.GetPrim())
+    UsdPhysics.CollisionAPI.Apply(UsdGeom.Cube.Define(stage, "/World/box/shape").GetPrim())
+    stage.GetPrimAtPath("/World/box/shape").GetAttribute("size").Set(0.2)
+    if joint == "D6":
+        hinge = UsdPhysics.Joint.Define(stage, "/World/hinge")
+        for axis in locked:
+            lock = UsdPhysics.LimitAPI.Apply(hinge.GetPrim(), axis)
+            lock.CreateLowAttr(1.0)
+            lock.CreateHighAttr(-1.0)
+        if lower is not None:
+            limit = UsdPhysics.LimitAPI.Apply(hinge.GetPrim(), "rotY")
+            limit.CreateLowAttr(lower)
+            limit.CreateHighAttr(upper)
+        token = "rotY"
+    else:
+        hinge = UsdPhysics.RevoluteJoint.Define(stage, "/World/hinge")
+        hinge.CreateAxisAttr("Y")
+        if lower is not None:
+            hinge.CreateLowerLimitAttr(lower)
+            hinge.CreateUpperLimitAttr(upper)
+        token = "angular"
+    if target is not None:
+        drive = UsdPhysics.DriveAPI.Apply(hinge.GetPrim(), token)
+        drive.CreateStiffnessAttr(1.0)
+        drive.CreateTargetPositionAttr(target)
+    hinge.CreateBody1Rel().SetTargets(["/World/box"])
+    hinge.CreateLocalPos0Attr(Gf.Vec3f(0.0, 0.0, 1.5))
+    hinge.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.5))
+    stage.GetRootLayer().Save()
+    return stage
+
+
+@pytest.mark.parametrize("joint", ["RevoluteJoint", "D6"])
+def test_joint_limits_open_on_one_side_and_a_zero_drive_target_load(tmp_path, joint):
+    """UsdPhysics leaves a limit side open with -inf: such a limit was dropped whole (the
+    hinge swung to 74 degrees past a 10 degree stop), and a targetPosition of 0 was read as
+    none (the drive held the joint where it started)."""
+    path = tmp_path / "hinge.usda"
+    _hinge_stage(path, joint=joint, lower=-np.inf, upper=10.0, target=0.0)
+    scene = io.load_scene(path)
+    np.testing.assert_allclose(scene.joints[0].limits, [(-np.inf, np.radians(10.0))])
+    np.testing.assert_array_equal(scene.joints[0].targets, [0.0])
+    io.save_scene(scene, tmp_path / "saved.usda")
+    again = io.load_scene(tmp_path / "saved.usda").joints[0]
+    np.testing.assert_allclose(again.limits, scene.joints[0].limits, rtol=1e-6)
+    np.testing.assert_array_equal(again.targets, [0.0])
+
+
+@pytest.mark.parametrize(
+    ("author", "match"),
+    [
+        (lambda st: st.GetPrimAtPath("/World/hinge").GetAttribute("physics:lowerLimit").Set(float("nan")), r"prim /World/hinge: limit must be numbers \(-inf or inf for an open side\), got \(nan, 10.0\)"),
+        (lambda st: UsdPhysics.DriveAPI(st.GetPrimAtPath("/World/hinge"), "angular").GetTargetPositionAttr().Set(float("nan")), "drive:angular:physics:targetPosition must be finite, got nan"),
+        (lambda st: st.GetPrimAtPath("/World/hinge").GetRelationship("physics:body0").SetTargets(["/World/no_such_body"]), "physics:body0 targets /World/no_such_body, which does not exist"),
+        (lambda st: st.GetPrimAtPath("/World/hinge").GetRelationship("physics:body1").AddTarget("/World/box/shape"), "physics:body1 targets 2 prims"),
+    ],
+)
+def test_joint_values_the_parser_drops_are_refused(tmp_path, author, match):
+    """A NaN limit or target, and a body0 naming a prim that does not exist, loaded as no
+    limit, the initial value, and the world."""
+    path = tmp_path / "hinge.usda"
+    stage = _hinge_stage(path, lower=-30.0, upper=10.0, target=5.0)
+    author(stage)
+    _load_refused(stage, path, match)
+
+
+def test_d6_values_that_were_ignored_are_refused(tmp_path):
+    path = tmp_path / "d6.usda"
+    stage = _hinge_stage(path, joint="D6")
+    hinge = stage.GetPrimAtPath("/World/hinge")
+    distance = UsdPhysics.LimitAPI.Apply(hinge, "distance")
+    distance.CreateLowAttr(0.0)
+    distance.CreateHighAttr(0.05)
+    _load_refused(stage, path, "a D6 distance limit is not supported")
+    # Free translations make a base joint, whose rotations take no drives: they were dropped.
+    path = tmp_path / "base.usda"
+    stage = _hinge_stage(path, joint="D6", target=10.0, locked=("rotX", "rotZ"))
+    stage.GetPrimAtPath("/World/hinge").GetAttribute("physics:localPos0").Set(Gf.Vec3f(0.0, 0.0, 1.0))
+    stage.GetPrimAtPath("/World/hinge").GetAttribute("physics:localPos1").Set(Gf.Vec3f(0.0, 0.0, 0.0))
+    _load_refused(stage, path, r"a D6 joint with free translations \(a base joint\) takes no drives or limits on its rotations \(RotY\)")
+
+
+def test_a_joint_far_from_the_origin_loads_despite_float32_anchors(tmp_path):
+    """localPos is float32: a consistent joint at x = 13.7 m was refused, its anchors 1.9e-7 m
+    apart against a tolerance of 1e-6 of the 0.1 m box."""
+    path = tmp_path / "far.usda"
+    stage = _hinge_stage(path)
+    stage.GetPrimAtPath("/World/box").GetAttribute("xformOp:translate").Set(Gf.Vec3d(13.7, 0.0, 1.0))
+    stage.GetPrimAtPath("/World/hinge").GetAttribute("physics:localPos0").Set(Gf.Vec3f(13.7, 0.0, 1.5))
+    stage.GetRootLayer().Save()
+    assert io.load_scene(path).build_model().articulation.coordinate_names == ["hinge:0"]

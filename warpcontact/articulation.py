@@ -340,6 +340,9 @@ class ArticulationModel:
             return np.zeros(joint.num_coordinates())
         world_parent, world_child = self._frames(joint, poses)
         where = f"joint {joint.name!r} ({self._link_names(joint)})"
+        # Anchors far from the origin carry their coordinates' rounding (USD authors them as
+        # float32: 1.9e-7 m at 13.7 m refused a consistent joint).
+        tol = max(tol, _ANCHOR_TOLERANCE * float(np.linalg.norm(world_parent[:3])))
         q_rel = _relative_rotation(world_parent[3:], world_child[3:])
         offset = quat_rotate(quat_conjugate(world_parent[3:]), world_child[:3] - world_parent[:3])
         if joint.kind == "prismatic":

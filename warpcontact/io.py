@@ -940,6 +940,15 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
             where = f"{source}: prim {prim_path}"
             if not desc.jointEnabled:
                 continue
+            prim = stage.GetPrimAtPath(prim_path)
+            for label in ("body0", "body1"):
+                rel = prim.GetRelationship(f"physics:{label}")
+                targets = rel.GetTargets() if rel else []
+                if len(targets) > 1:
+                    raise ValueError(f"{where}: physics:{label} targets {len(targets)} prims; a joint joins one body on each side")
+                if targets and not stage.GetPrimAtPath(targets[0]):
+                    # The UsdPhysics parser reads such a body as none: body0 became the world.
+                    raise ValueError(f"{where}: physics:{label} targets {targets[0]}, which does not exist")
             parent_path, child_path = str(desc.body0), str(desc.body1)
             if not child_path:
                 raise ValueError(f"{where}: physics:body1 is not set; a joint here moves the rigid body in body1 (and body0 empty joins it to the world)")
@@ -976,25 +985,32 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
             if kind in ("revolute", "prismatic"):
                 spec.axes = _AXES[_axis_token(desc.axis)][None]
                 scale = _DEGREE if kind == "revolute" else units.meters
-                if desc.limit.enabled and np.isfinite([desc.limit.lower, desc.limit.upper]).all():
-                    spec.limits = [(desc.limit.lower * scale, desc.limit.upper * scale)]
+                # The parser disables a limit with an open side: its values are read instead.
+                bounds = _limit_bounds(desc.limit, scale, where, "limit")
+                spec.limits = [bounds] if bounds else None
                 drive = desc.drive
                 gain = units.drive_gain(angular=kind == "revolute")
                 gains = (drive.stiffness * gain, drive.damping * gain) if drive.enabled else (0.0, 0.0)
                 spec.kp, spec.kd = np.array([gains[0]]), np.array([gains[1]])
                 if drive.enabled:
-                    _check_drive(_drive_fields(drive), where, "angular" if kind == "revolute" else "linear")
-                    if drive.targetPosition:
-                        spec.targets = np.array([drive.targetPosition * scale])
+                    token = "angular" if kind == "revolute" else "linear"
+                    _check_drive(_drive_fields(drive), where, token)
+                    target = _drive_target(prim, token, drive, scale, where)
+                    if target is not None:
+                        spec.targets = np.array([target])
             elif kind == "ball":
                 spec.axes = _AXES[_axis_token(desc.axis)][None]
+                cones = [prim.GetAttribute(f"physics:coneAngle{i}Limit") for i in (0, 1)]
+                angles = [float(a.Get()) for a in cones if a and a.HasAuthoredValue()]
+                if any(np.isnan(angles)) or (len(angles) == 2 and (np.isfinite(angles[0]) != np.isfinite(angles[1]))):
+                    # The parser drops such a limit: it loaded as no limit at all.
+                    raise ValueError(f"{where}: cone limits must be numbers, both finite for a cone or both infinite for none, got {angles}")
                 if desc.limit.enabled and min(abs(desc.limit.lower), abs(desc.limit.upper)) < 180.0:
                     # coneAngle0Limit / coneAngle1Limit: only a circular cone is modelled
                     if abs(desc.limit.lower - desc.limit.upper) > 1e-6:
                         raise ValueError(f"{where}: elliptical cone limits ({desc.limit.lower} and {desc.limit.upper} degrees) are not supported; give both cone angles the same value")
                     spec.cone_limit = float(desc.limit.lower) * _DEGREE
                 # UsdPhysics parses no drives for spherical joints: read DriveAPI:rot* off the prim.
-                prim = stage.GetPrimAtPath(prim_path)
                 drives = {}
                 for axis in _BALL_DRIVE_AXES:
                     token = _api_token(axis)
@@ -1005,7 +1021,7 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
                         drives[axis] = (float(fields["stiffness"] or 0.0), float(fields["damping"] or 0.0))
                 spec.kp, spec.kd = _ball_gains(drives, units, where)
             else:
-                _read_d6(desc, spec, where, units)
+                _read_d6(desc, spec, where, units, prim)
             joints.append(spec)
     _make_names_unique(joints, "joint", source)
     return joints
@@ -1071,18 +1087,47 @@ def _ball_gains(drives: dict, units: _Units, where: str) -> tuple[np.ndarray, np
     return np.array([gains[0][0] * gain]), np.array([gains[0][1] * gain])
 
 
-def _read_d6(desc, spec: JointSpec, where: str, units: _Units):
+def _limit_bounds(limit, scale: float, where: str, name: str) -> tuple | None:
+    """An enabled UsdPhysics limit as (lower, upper) in SI units, one side infinite where
+    UsdPhysics leaves it open, or None with both open; a NaN side is refused. (A one-sided
+    limit used to be dropped whole, and a NaN one read as none.)"""
+    lower, upper = float(limit.lower), float(limit.upper)
+    if np.isnan(lower) or np.isnan(upper):
+        raise ValueError(f"{where}: {name} must be numbers (-inf or inf for an open side), got ({lower}, {upper})")
+    if not (np.isfinite(lower) or np.isfinite(upper)):
+        return None
+    return (lower * scale if np.isfinite(lower) else -np.inf, upper * scale if np.isfinite(upper) else np.inf)
+
+
+def _drive_target(prim, token: str, drive, scale: float, where: str) -> float | None:
+    """A drive's authored targetPosition in SI units, or None when it is not authored (the
+    coordinate then holds its initial value). An authored 0 used to be read as none."""
+    attr = prim.GetAttribute(f"drive:{token}:physics:targetPosition")
+    if not (attr and attr.HasAuthoredValue()):
+        return None
+    if not np.isfinite(drive.targetPosition):
+        raise ValueError(f"{where}: drive:{token}:physics:targetPosition must be finite, got {drive.targetPosition}")
+    return drive.targetPosition * scale
+
+
+def _read_d6(desc, spec: JointSpec, where: str, units: _Units, prim):
     """A D6 joint: locked axes have low > high. Free rotations make a revolute (1), universal
     (2, in X, Y, Z order) or ball (3) joint; free translations are allowed only on a joint to
     the world with world-aligned axes, which makes a base joint."""
     limits = {str(pair.first).split(".")[-1]: pair.second for pair in desc.jointLimits}
     drives = {str(pair.first).split(".")[-1]: pair.second for pair in desc.jointDrives}
+    if "Distance" in limits and limits["Distance"].enabled:
+        raise ValueError(f"{where}: a D6 distance limit is not supported (it was ignored); remove it")
     free = [axis for axis in _D6_AXIS_DOF if not (axis in limits and limits[axis].enabled and limits[axis].lower > limits[axis].upper)]
     translations = [a for a in free if a.startswith("Trans")]
     rotations = [a for a in free if a.startswith("Rot")]
     if translations:
         if spec.parent is not None or abs(abs(spec.parent_frame[6]) - 1.0) > 1e-9:
             raise ValueError(f"{where}: free translations are supported only on a D6 joint from the world (no body0) with world-aligned axes (a base joint)")
+        # A base joint's rotations turn the body about its centre of mass, with no PD or limits.
+        shaped = [a for a in rotations if (a in drives and drives[a].enabled) or (a in limits and limits[a].enabled)]
+        if shaped:
+            raise ValueError(f"{where}: a D6 joint with free translations (a base joint) takes no drives or limits on its rotations ({', '.join(shaped)}); they were ignored")
         spec.kind = "base"
         spec.dofs = tuple(_D6_AXIS_DOF[a] for a in free)
         coordinates = _coordinate_axes(free)
@@ -1102,17 +1147,18 @@ def _read_d6(desc, spec: JointSpec, where: str, units: _Units):
     for axis in coordinates:
         scale = units.meters if axis.startswith("Trans") else _DEGREE
         limit = limits.get(axis)
-        bounded = limit is not None and limit.enabled and np.isfinite([limit.lower, limit.upper]).all()
-        bounds.append((limit.lower * scale, limit.upper * scale) if bounded else (-np.inf, np.inf))
+        bounded = _limit_bounds(limit, scale, where, f"the {axis} limit") if limit is not None and limit.enabled else None
+        bounds.append(bounded or (-np.inf, np.inf))
         drive = drives.get(axis)
         driven = drive is not None and drive.enabled
         gain = units.drive_gain(angular=axis.startswith("Rot"))
         kp.append(drive.stiffness * gain if driven else 0.0)
         kd.append(drive.damping * gain if driven else 0.0)
-        targets.append(drive.targetPosition * scale if driven and drive.targetPosition else np.nan)
+        target = _drive_target(prim, _api_token(axis), drive, scale, where) if driven else None
+        targets.append(np.nan if target is None else target)
     if spec.kind == "ball" and any(axis in limits and limits[axis].enabled for axis in rotations):
         raise ValueError(f"{where}: a D6 joint with three free rotations is a ball joint, which takes no rotation limits here")
-    spec.limits = bounds if any(np.isfinite(b).all() for b in bounds) else None
+    spec.limits = bounds if np.isfinite(bounds).any() else None
     spec.kp, spec.kd = np.array(kp), np.array(kd)
     if not np.isnan(targets).all():
         spec.targets = np.array(targets)  # NaN: that coordinate's initial value
@@ -1665,7 +1711,7 @@ def _author_joint(stage, j: JointSpec, Gf, UsdPhysics):
         rot_attr(Gf.Quatf(float(frame[6]), Gf.Vec3f(*map(float, frame[3:6]))))
     if j.kind in ("revolute", "prismatic"):
         scale = _DEGREE if j.kind == "revolute" else 1.0
-        if j.limits is not None and np.isfinite(j.limits[0]).all():
+        if j.limits is not None and np.isfinite(j.limits[0]).any():
             joint.CreateLowerLimitAttr(float(j.limits[0][0] / scale))
             joint.CreateUpperLimitAttr(float(j.limits[0][1] / scale))
         if len(j.kp) and (j.kp[0] or j.kd[0]):
@@ -1693,7 +1739,7 @@ def _author_joint(stage, j: JointSpec, Gf, UsdPhysics):
             continue
         c = coordinates.index(axis)
         scale = _DEGREE if axis.startswith("Rot") else 1.0
-        if j.limits is not None and np.isfinite(j.limits[c]).all():
+        if j.limits is not None and np.isfinite(j.limits[c]).any():
             limit = UsdPhysics.LimitAPI.Apply(prim, token)
             limit.CreateLowAttr(float(j.limits[c][0] / scale))
             limit.CreateHighAttr(float(j.limits[c][1] / scale))
