@@ -302,11 +302,8 @@ def test_unreadable_files_are_clear_errors(tmp_path):
         io.load_scene(tmp_path)
 
 
-def write_hinged_box(path, *, limits=(-30.0, 60.0), stiffness=2.0, cone=None, cone1=None, d6_ball=False, ball_drives=None):
-    """A box hanging from a world revolute joint about y (UsdPhysics only: degrees, per-degree
-    gains), or from a spherical joint with a ``cone`` limit, or from a D6 joint with three free
-    rotations (``d6_ball``); ``ball_drives`` {"rotX": (stiffness, damping), ...} drive the
-    latter two."""
+def _hanging_box_stage(path):
+    """A metre stage with a 0.2 m box body at z = 1 m, for a joint to hang it from."""
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
@@ -317,6 +314,23 @@ def write_hinged_box(path, *, limits=(-30.0, 60.0), stiffness=2.0, cone=None, co
     cube = UsdGeom.Cube.Define(stage, "/World/box/shape")
     cube.CreateSizeAttr(0.2)
     UsdPhysics.CollisionAPI.Apply(cube.GetPrim())
+    return stage
+
+
+def _hang_and_save(stage, joint):
+    """Hang _hanging_box_stage's box from ``joint``, anchored 0.5 m above it, and save."""
+    joint.CreateBody1Rel().SetTargets(["/World/box"])
+    joint.CreateLocalPos0Attr(Gf.Vec3f(0.0, 0.0, 1.5))
+    joint.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.5))
+    stage.GetRootLayer().Save()
+
+
+def write_hinged_box(path, *, limits=(-30.0, 60.0), stiffness=2.0, cone=None, cone1=None, d6_ball=False, ball_drives=None):
+    """A box hanging from a world revolute joint about y (UsdPhysics only: degrees, per-degree
+    gains), or from a spherical joint with a ``cone`` limit, or from a D6 joint with three free
+    rotations (``d6_ball``); ``ball_drives`` {"rotX": (stiffness, damping), ...} drive the
+    latter two."""
+    stage = _hanging_box_stage(path)
     if d6_ball:
         joint = UsdPhysics.Joint.Define(stage, "/World/hinge")
         for axis in ("transX", "transY", "transZ"):
@@ -340,10 +354,7 @@ def write_hinged_box(path, *, limits=(-30.0, 60.0), stiffness=2.0, cone=None, co
         drive = UsdPhysics.DriveAPI.Apply(joint.GetPrim(), token)
         drive.CreateStiffnessAttr(drive_stiffness)
         drive.CreateDampingAttr(damping)
-    joint.CreateBody1Rel().SetTargets(["/World/box"])
-    joint.CreateLocalPos0Attr(Gf.Vec3f(0.0, 0.0, 1.5))
-    joint.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.5))
-    stage.GetRootLayer().Save()
+    _hang_and_save(stage, joint)
     return path
 
 
@@ -1247,15 +1258,7 @@ def test_a_disabled_rigid_body_loads_static_with_its_collider_and_reset_stacks_k
 def _hinge_stage(path, *, joint="RevoluteJoint", lower=None, upper=None, target=None, locked=("transX", "transY", "transZ", "rotX", "rotZ")):
     """A box hanging from a world hinge about y (for ``joint="D6"``, a D6 with the ``locked``
     axes locked)."""
-    stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
-    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    UsdPhysics.Scene.Define(stage, "/World/physicsScene")
-    box = UsdGeom.Xform.Define(stage, "/World/box")
-    box.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 1.0))
-    UsdPhysics.RigidBodyAPI.Apply(box.GetPrim())
-    UsdPhysics.CollisionAPI.Apply(UsdGeom.Cube.Define(stage, "/World/box/shape").GetPrim())
-    stage.GetPrimAtPath("/World/box/shape").GetAttribute("size").Set(0.2)
+    stage = _hanging_box_stage(path)
     if joint == "D6":
         hinge = UsdPhysics.Joint.Define(stage, "/World/hinge")
         for axis in locked:
@@ -1278,10 +1281,7 @@ def _hinge_stage(path, *, joint="RevoluteJoint", lower=None, upper=None, target=
         drive = UsdPhysics.DriveAPI.Apply(hinge.GetPrim(), token)
         drive.CreateStiffnessAttr(1.0)
         drive.CreateTargetPositionAttr(target)
-    hinge.CreateBody1Rel().SetTargets(["/World/box"])
-    hinge.CreateLocalPos0Attr(Gf.Vec3f(0.0, 0.0, 1.5))
-    hinge.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.5))
-    stage.GetRootLayer().Save()
+    _hang_and_save(stage, hinge)
     return stage
 
 
