@@ -1327,12 +1327,20 @@ def test_d6_values_that_were_ignored_are_refused(tmp_path):
     distance.CreateLowAttr(0.0)
     distance.CreateHighAttr(0.05)
     _load_refused(stage, path, "a D6 distance limit is not supported")
-    # Free translations make a base joint, whose rotations take no drives: they were dropped.
+    # Free translations and rotations make a base joint; three free rotations are one group,
+    # which takes no drives: they were dropped.
     path = tmp_path / "base.usda"
-    stage = _hinge_stage(path, joint="D6", target=10.0, locked=("rotX", "rotZ"))
+    stage = _hinge_stage(path, joint="D6", target=10.0, locked=())
     stage.GetPrimAtPath("/World/hinge").GetAttribute("physics:localPos0").Set(Gf.Vec3f(0.0, 0.0, 1.0))
     stage.GetPrimAtPath("/World/hinge").GetAttribute("physics:localPos1").Set(Gf.Vec3f(0.0, 0.0, 0.0))
-    _load_refused(stage, path, r"a D6 joint with free translations \(a base joint\) takes no drives or limits on its rotations \(RotY\)")
+    _load_refused(stage, path, r"a D6 joint with free translations and three free rotations takes no drives or limits on its rotations \(RotY\)")
+    # Locked translations with a free rotation turn the body about its centre of mass here:
+    # an anchor elsewhere (a pendulum on a sliding pivot) loaded and turned about the centre.
+    path = tmp_path / "pivot.usda"
+    stage = _hinge_stage(path, joint="D6", locked=("transY", "transZ", "rotX", "rotZ"))
+    io.load_scene(path)
+    with pytest.raises(ValueError, match="prim /World/hinge: a D6 joint from the world with locked translations and free rotations .* its anchor is 0.5 m from it"):
+        io.load_scene(path).build_model()
 
 
 def test_a_joint_far_from_the_origin_loads_despite_float32_anchors(tmp_path):

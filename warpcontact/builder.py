@@ -458,6 +458,11 @@ class ModelBuilder:
         self._joint_parents.append(-1 if parent is None else int(parent))
         return len(self._joints) - 1
 
+    def body_center_of_mass(self, index: int) -> np.ndarray:
+        """(3,) centre of mass of added body ``index`` in its mesh frame (m); a static body's
+        frame origin (the mean of its vertices)."""
+        return self._bodies[index].center_of_mass.copy()
+
     def _body_name(self, name: str | None) -> str:
         """The name a body being added gets: the given one, or body<index>."""
         return name or f"body{len(self._bodies)}"

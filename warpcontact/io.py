@@ -254,6 +254,17 @@ class Scene:
                 raise ValueError(f"{self.source or '<scene>'}: prim {b.path}: {exc}") from None
         index = {b.name: i for i, b in enumerate(self.bodies)}
         for j in self.joints:
+            if j.kind == "base" and set(j.dofs) & {"rx", "ry", "rz"} and not {"x", "y", "z"} <= set(j.dofs):
+                # A base joint turns the body about its centre of mass along world axes through
+                # it; a D6 anchor elsewhere, held by locked translations, would turn it about the
+                # anchor (it silently turned about the centre of mass instead).
+                off = float(np.linalg.norm(j.child_frame[:3] - builder.body_center_of_mass(index[j.child])))
+                if off > 1e-6 * max(1.0, float(np.linalg.norm(j.child_frame[:3]))):
+                    raise ValueError(
+                        f"{self.source or '<scene>'}: prim {j.path}: a D6 joint from the world with locked translations and free "
+                        f"rotations turns its body about the centre of mass here, but its anchor is {off:.3g} m from it; "
+                        "put localPos1 at the body's centre of mass"
+                    )
             options = {"dofs": j.dofs} if j.kind == "base" else {"parent_frame": j.parent_frame, "child_frame": j.child_frame, "axis": j.axes if len(j.axes) else None}
             if j.cone_limit is not None:
                 options["cone_limit"] = j.cone_limit
@@ -1124,10 +1135,11 @@ def _read_d6(desc, spec: JointSpec, where: str, units: _Units, prim):
     if translations:
         if spec.parent is not None or abs(abs(spec.parent_frame[6]) - 1.0) > 1e-9:
             raise ValueError(f"{where}: free translations are supported only on a D6 joint from the world (no body0) with world-aligned axes (a base joint)")
-        # A base joint's rotations turn the body about its centre of mass, with no PD or limits.
-        shaped = [a for a in rotations if (a in drives and drives[a].enabled) or (a in limits and limits[a].enabled)]
+        # Three free rotations of a base joint are one rotation group, with no coordinates
+        # to drive or limit (one or two are coordinates, with both).
+        shaped = [a for a in rotations if (a in drives and drives[a].enabled) or (a in limits and limits[a].enabled)] if len(rotations) == 3 else []
         if shaped:
-            raise ValueError(f"{where}: a D6 joint with free translations (a base joint) takes no drives or limits on its rotations ({', '.join(shaped)}); they were ignored")
+            raise ValueError(f"{where}: a D6 joint with free translations and three free rotations takes no drives or limits on its rotations ({', '.join(shaped)}); they were ignored")
         spec.kind = "base"
         spec.dofs = tuple(_D6_AXIS_DOF[a] for a in free)
         coordinates = _coordinate_axes(free)
