@@ -121,6 +121,10 @@ def test_bodies_beyond_the_support_cost_and_feel_nothing():
     assert np.isposinf(hit.value) and hit.contact_pairs == [("a", "b")]
     with pytest.raises(ValueError, match="dhat"):
         wc.ContactModel([icosphere(0)], mode="sdrs", dhat=-1.0)
+    # Far beyond any scene, the barriers overflowed: inf with no named error.
+    for make in (lambda: wc.ContactModel([icosphere(0)], mode="sdrs", dhat=1e103), lambda: wc.triangle_pair_potential(*(t[None] for t in parallel_faces(0.1)), dhat=1e103)):
+        with pytest.raises(ValueError, match="dhat: must be a positive finite distance of at most 1e\\+06 m, got 1e\\+103"):
+            make()
 
 
 def test_builder_selects_sdrs_with_friction():

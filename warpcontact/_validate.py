@@ -2,7 +2,11 @@
 
 import numpy as np
 
-__all__ = ["as_float64_array", "is_positive_finite", "is_real", "is_whole"]
+__all__ = ["MAX_BARRIER_SUPPORT", "as_float64_array", "check_barrier_support", "is_positive_finite", "is_real", "is_whole"]
+
+# Largest barrier support (m) of the locally supported baselines: their barriers overflow
+# float64 far beyond it (IPC's from ~1e76 m, SDRS's from ~1e103 m: inf with no named error).
+MAX_BARRIER_SUPPORT = 1e6
 
 
 def is_real(value) -> bool:
@@ -13,6 +17,13 @@ def is_real(value) -> bool:
 def is_positive_finite(value) -> bool:
     """A real scalar (``is_real``) that is finite and > 0."""
     return is_real(value) and bool(np.isfinite(value)) and value > 0
+
+
+def check_barrier_support(dhat, name: str = "dhat") -> None:
+    """ValueError naming ``name`` unless ``dhat`` is a positive finite distance (m) of at
+    most MAX_BARRIER_SUPPORT."""
+    if not is_positive_finite(dhat) or dhat > MAX_BARRIER_SUPPORT:
+        raise ValueError(f"{name}: must be a positive finite distance of at most {MAX_BARRIER_SUPPORT:g} m, got {dhat!r}")
 
 
 def is_whole(value) -> bool:

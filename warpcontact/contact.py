@@ -31,7 +31,7 @@ from .kernels import reduction as reduction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels import traversal as traversal_kernels
 from ._runtime import HostReadback, LaunchCache, host_buffer, resolve_device, run_concurrently
-from ._validate import as_float64_array, is_positive_finite, is_real, is_whole
+from ._validate import as_float64_array, check_barrier_support, is_positive_finite, is_real, is_whole
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus, float32_search
 from .rotation import rigid_step_travel
 from .sphere_tree import SphereTree, build_sphere_tree
@@ -267,8 +267,7 @@ class ContactModel:
             raise ValueError(f"centred_weight: {centred_weight!r} is not one of {CENTRED_WEIGHTS}")
         if not is_positive_finite(eps):
             raise ValueError(f"eps: must be a positive finite number, got {eps!r}")
-        if not is_positive_finite(dhat):
-            raise ValueError(f"dhat: must be a positive finite distance (m), got {dhat!r}")
+        check_barrier_support(dhat)
         for label, count in (("max_leaf_iterations", max_leaf_iterations), ("top_replicas", top_replicas), ("term_chunks", term_chunks)):
             if (count is not None or label == "max_leaf_iterations") and not (is_whole(count) and count >= 1):
                 raise ValueError(f"{label}: must be a whole number >= 1, got {count!r}")

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 from .contact import ContactEvaluation, LaggedFriction, contact_body_pairs
 from .rotation import quat_from_rotation_vector, quat_to_matrix, skew
-from ._validate import as_float64_array
+from ._validate import as_float64_array, check_barrier_support
 
 # A step's arc is checked in chord pieces whose bulge stays below this fraction of dhat.
 ARC_BULGE = 1e-3
@@ -74,8 +74,7 @@ class IpcContactModel:
 
         if str(device) != "cpu":
             raise ValueError(f"device: the ipc baseline runs on the CPU only (ipctk), got {device!r}")
-        if not np.isfinite(dhat) or dhat <= 0:
-            raise ValueError(f"dhat: must be positive, got {dhat}")
+        check_barrier_support(dhat)
         self._ipctk, self._sparse = ipctk, sp
         meshes = list(meshes)
         self.num_bodies = len(meshes)

@@ -8,7 +8,7 @@ import warp as wp
 from .kernels import blend as blend_kernels
 from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
-from ._validate import as_float64_array
+from ._validate import as_float64_array, check_barrier_support
 
 __all__ = [
     "LEAF_PRECISIONS",
@@ -103,8 +103,8 @@ def triangle_pair_potential(
         raise ValueError(f"A and B: pair counts differ ({a.shape[0]} vs {b.shape[0]})")
     if int(max_iterations) < 1:
         raise ValueError(f"max_iterations: must be >= 1, got {max_iterations}")
-    if dhat is not None and not (np.isfinite(dhat) and dhat > 0):
-        raise ValueError(f"dhat: must be a positive finite distance (m) or None, got {dhat}")
+    if dhat is not None:
+        check_barrier_support(dhat)
     search32 = float32_search(precision, mode="bsh" if dhat is None else "sdrs")
     n = a.shape[0]
     dev = resolve_device(device)
