@@ -41,9 +41,10 @@ def test_bench_leaf_writes_results(tmp_path):
     assert (tmp_path / "leaf.csv").read_text().count("\n") == 3
 
 
-def test_bench_contact_writes_results_and_plot(tmp_path):
+def test_bench_contact_writes_results_and_plot(tmp_path, capsys):
     args = ["bench", "contact", "--eps", "0.5", "--gaps", "0.1", "--subdivisions", "0", "--repeats", "1", "--centred-weights", "paper", "pairs", "--out", str(tmp_path)]
     assert main(args) == 0
+    assert "contact.csv, contact.png" in capsys.readouterr().out  # the plot was left out of the line
     data = json.loads((tmp_path / "contact.json").read_text())
     rows = data["rows"]
     assert {(r["scene"], r["mode"], r["centred_weight"]) for r in rows} == {

@@ -352,6 +352,14 @@ def _compare(args) -> int:
     return 0
 
 
+def _bench_plot_name(name: str) -> str:
+    """A bench plot's name in its "wrote ..." line: the benches plot whenever matplotlib is
+    installed (their lines used to leave the plot out)."""
+    from .bench import optional_pyplot
+
+    return _plot_name(name, optional_pyplot() is not None)
+
+
 def _plot_name(name: str, plotted: bool) -> str:
     """A plot's name in a "wrote ..." line, or why it was not written."""
     return name if plotted else f"not {name} (matplotlib is not installed: pip install 'warpcontact[plot]')"
@@ -433,7 +441,7 @@ def _bench_contact(args) -> int:
             f"{r['scene']:>15} {r['gap']:8.0e} {r['mode']:>6} {r['centred_weight'] or '-':>6} {eps:>6} {r['median_seconds']:9.4f} {_fmt(r['value_ratio'], '11.4f')} {r['num_far']:7d} {r['num_blend']:7d} "
             f"{r['num_leaf']:7d} {_fmt(r['force_error_median'], '10.2e')} {_fmt(r['force_error_max'], '10.2e')} {_fmt(r['force_cosine_min'], '10.6f')} {_fmt(r['torque_error_max'], '10.2e')}"
         )
-    print(f"wrote {Path(args.out) / 'contact.json'}, contact.csv (ipc rows: median_seconds is ipctk's collision build + barrier value/gradient/Hessian)")
+    print(f"wrote {Path(args.out) / 'contact.json'}, contact.csv, {_bench_plot_name('contact.png')} (ipc rows: median_seconds is ipctk's collision build + barrier value/gradient/Hessian)")
     return 0
 
 
@@ -451,7 +459,7 @@ def _bench_scaling(args) -> int:
     print(f"{'triangles':>9} {'mode':>6} {'seconds':>9} {'us/triangle':>11} {'far':>7} {'blend':>7} {'leaf':>8}")
     for r in rows:
         print(f"{r['triangles']:9d} {r['mode']:>6} {r['median_seconds']:9.4f} {1e6 * r['seconds_per_triangle']:11.2f} {r['num_far']:7d} {r['num_blend']:7d} {r['num_leaf']:8d}")
-    print(f"wrote {Path(args.out) / 'scaling.json'}")
+    print(f"wrote {Path(args.out) / 'scaling.json'}, scaling.csv, {_bench_plot_name('scaling.png')}")
     return 0
 
 
@@ -495,7 +503,7 @@ def _bench_frame(args) -> int:
         peer_meshes=Path(args.peer_meshes),
         progress=show,
     )
-    print(f"wrote {Path(args.out) / 'frame.json'}, frame.csv")
+    print(f"wrote {Path(args.out) / 'frame.json'}, frame.csv, {_bench_plot_name('frame.png')}")
     return 0
 
 
@@ -527,7 +535,7 @@ def _bench_accuracy(args) -> int:
         out_dir=Path(args.out),
         progress=show,
     )
-    print(f"wrote {Path(args.out) / 'accuracy.json'}, accuracy.csv")
+    print(f"wrote {Path(args.out) / 'accuracy.json'}, accuracy.csv, {_bench_plot_name('accuracy.png')}")
     return 0
 
 
