@@ -1404,6 +1404,7 @@ def _whole(value) -> int:
 
 
 def _numbers(value) -> np.ndarray:
+    """Numbers, flat; text is not numbers (numpy would read "5" as 5)."""
     if isinstance(value, str):
         raise ValueError(value)
     return np.asarray(value, dtype=np.float64).reshape(-1)
@@ -1411,8 +1412,8 @@ def _numbers(value) -> np.ndarray:
 
 def _vector3(value) -> np.ndarray:
     """Three numbers, or one for all three axes."""
-    vector = np.asarray(value, dtype=np.float64)
-    if vector.shape not in ((), (3,)):
+    vector = _numbers(value)
+    if vector.size not in (1, 3):
         raise ValueError(value)
     return np.broadcast_to(vector, (3,)).copy()
 

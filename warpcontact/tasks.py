@@ -299,6 +299,15 @@ def _json_scalar(value):
     raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
+def _fingerprint_value(value):
+    """A fingerprint's JSON for what JSON does not take: numpy scalars as numbers (so that
+    np.int64(1) and 1 match), anything else as its text."""
+    try:
+        return _json_scalar(value)
+    except TypeError:
+        return str(value)
+
+
 # What every checkpoint's meta holds, and what a receding run's adds (``optimize``'s saver).
 _CHECKPOINT_KEYS = ("version", "fingerprint", "history", "seconds", "receding", "extra", "iteration", "values", "adam_t", "best_loss", "best_values", "loss", "trajectory")
 _RECEDING_CHECKPOINT_KEYS = ("frame", "plan", "executed")
@@ -844,7 +853,7 @@ class TaskProblem:
                     "bundle": dataclasses.asdict(self.bundle) if self.bundle else None,
                     "bodies": digest.hexdigest(),
                 },
-                default=lambda value: value.item() if isinstance(value, np.generic) else str(value),
+                default=_fingerprint_value,
             )
         )
 
