@@ -171,7 +171,9 @@ def traverse_round_kernel(visit_budget: int):
             d1 = node_radius[ni] + node_radius[nj]
             d2 = (wp.float64(1.0) + eps) * d1
             local = support > wp.float64(0.0)
-            far = dist >= d2
+            # d1 = 0 (two nodes collapsed to points) at dist 0 is a contact, which only a leaf
+            # solve reports: the centred term's direction is undefined there.
+            far = dist >= d2 and dist > d1
             if local:
                 far = dist - d1 >= support
             if far:

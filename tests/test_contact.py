@@ -5,6 +5,8 @@ import pytest
 import trimesh
 from helpers_rigid import fd_check, icosphere, box, identity_poses, quat
 
+import warp as wp
+
 import warpcontact as wc
 
 
@@ -350,8 +352,6 @@ def test_term_chunks_give_the_unchunked_results_bit_for_bit(mode):
     # On a CPU the body pairs are dealt out to chunks whose terms run on their own threads;
     # each record still receives its terms in list order, so nothing may change, not even
     # the last bit: potential, separations, advancement bounds and friction terms.
-    import warp as wp
-
     meshes, poses = _rack_meshes_and_poses(0.02)
     static = [False] * (len(meshes) - 1) + [True]
     friction = wp.array([0.4], dtype=wp.float64)
@@ -519,6 +519,14 @@ def test_bad_poses_raise_clear_errors():
     nearly = poses.copy()
     nearly[1, 6] = 1.0 + 5e-7  # within tolerance: normalised
     np.testing.assert_allclose(model.evaluate(nearly).value, model.evaluate(poses).value, rtol=1e-12)
+    # Beyond 1e150 m squared distances overflow: the far force read -0.0 from 1e155 m.
+    far = identity_poses([[0, 0, 0], [1e150, 0, 0]])
+    assert -model.evaluate(far).grad[1, 0] > 0.0
+    far[1, 0] = 1.1e150
+    with pytest.raises(ValueError, match=r"poses: 1.1e\+150 at index \(1, 0\) is beyond the \+-1e\+150 m"):
+        model.evaluate(far)
+    with pytest.raises(ValueError, match=r"mesh 'body1': vertices: 2e\+150"):
+        wc.ContactModel([icosphere(0), (np.array([[0, 0, 0], [2e150, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]))])
 
 
 def test_bad_model_input_raises_clear_errors():
@@ -537,8 +545,14 @@ def test_bad_model_input_raises_clear_errors():
     # Each of these was a TypeError, an unpacking error, or silently truncated.
     for options, match in (
         (dict(eps="a"), "eps: must be a positive finite number, got 'a'"),
-        (dict(max_leaf_iterations=None), "max_leaf_iterations: must be a whole number >= 1, got None"),
-        (dict(term_chunks=1.5), "term_chunks: must be a whole number >= 1, got 1.5"),
+        (dict(max_leaf_iterations=None), "max_leaf_iterations: must be a whole number from 1 to 2147483647, got None"),
+        # A cap past int32 wrapped around in the kernel: 2**31 failed every solve at 0 iterations.
+        (dict(max_leaf_iterations=2**31), "max_leaf_iterations: must be a whole number from 1 to 2147483647, got 2147483648"),
+        (dict(term_chunks=1.5), "term_chunks: must be a whole number from 1 to 2147483647, got 1.5"),
+        # Strings were read as truthy flags (both bodies static: no pair, no contact) and 0.3 as True.
+        (dict(static=["False", "True"]), "static: entry 0 is 'False'; expected True/False"),
+        (dict(static=[0.3, 0]), "static: entry 0 is 0.3"),
+        (dict(names=["ball", "ball"]), "names: 'ball' names more than one body"),
         (dict(exclude_pairs=[(0,)]), r"exclude_pairs: \(0,\) is not a pair of distinct body indices in \[0, 2\)"),
         (dict(exclude_pairs=[(0.7, 1.2)]), r"exclude_pairs: \(0.7, 1.2\) is not a pair"),
         (dict(exclude_pairs=(0, 1)), r"exclude_pairs: expected a sequence of \(a, b\) body index pairs, got \(0, 1\)"),
@@ -552,6 +566,68 @@ def test_bad_model_input_raises_clear_errors():
             model.advancement_limit(np.zeros((2, 6)), fraction=fraction)
     with pytest.raises(ValueError, match="r: expected real numbers"):
         wc.centered_potential([1 + 2j])
+
+
+def test_step_bounds_need_an_evaluation_and_keep_their_own_separations():
+    meshes = [icosphere(1), box((2.0, 2.0, 1.0))]
+    poses = identity_poses([[0, 0, 1.55], [0, 0, 0]])
+    step = np.zeros((2, 6))
+    step[0, 2] = -1.0
+    for mode in ("bsh", "sdrs", "brute"):
+        model = wc.ContactModel(meshes, mode=mode, static=[False, True])
+        # Before, bsh and sdrs raised AttributeError and brute bounded the step by zeroed planes (0.0).
+        for call in (lambda: model.advancement_limit(step), model.advancement_frame, lambda: model.friction_frame(0.1, wp.zeros(1, dtype=wp.float64), 1e-4)):
+            with pytest.raises(RuntimeError, match=r"last evaluate\(poses\), and the model holds none"):
+                call()
+        result = model.evaluate(poses)
+        alpha = model.advancement_limit(step)
+        assert 0.0 < alpha <= 0.5  # at most 0.9 of the 0.55 m gap
+        result.pair_separation[:] = 1e9  # a caller's edit once let the step through the box
+        assert model.advancement_limit(step) == alpha
+        model.term_lists(poses)  # lists without planes
+        with pytest.raises(RuntimeError, match="term_lists does not compute planes"):
+            model.advancement_limit(step)
+
+
+def test_friction_terms_check_their_poses():
+    model = wc.ContactModel([icosphere(1), box((2.0, 2.0, 1.0))], static=[False, True])
+    poses = identity_poses([[0, 0, 1.05], [0, 0, 0]])
+    model.evaluate(poses)
+    lagged = model.friction_frame(1.0, wp.array([0.5], dtype=wp.float64), 1e-4)
+    doubled = poses.copy()
+    doubled[0, 3:] *= 2.0  # the same rotation: its friction came out 588x larger
+    with pytest.raises(ValueError, match=r"body 0 \(body0\) has quaternion norm 2"):
+        model.friction_terms(lagged, poses=doubled)
+    with pytest.raises(ValueError, match="shape"):
+        model.friction_terms(lagged, poses=poses[:, :6])
+
+
+def test_bodies_collapsed_to_one_point_are_in_contact():
+    # A face repeating one vertex is a point; two at one place had a far term at distance 0
+    # (NaN gradient and Hessian, value inf with ok True and no contact named).
+    point = (np.array([[0.1, 0.2, 0.3]]), np.array([[0, 0, 0]]))
+    for mode in ("bsh", "brute"):
+        result = wc.ContactModel([point, point], mode=mode).evaluate(identity_poses([[0, 0, 0], [0, 0, 0]]))
+        assert not result.ok and result.contact_pairs == [("body0", "body1")]
+        assert np.isfinite(result.grad).all() and np.isfinite(result.hessian).all()
+    apart = wc.ContactModel([point, point]).evaluate(identity_poses([[0, 0, 0], [1.0, 0, 0]]))
+    assert apart.ok and apart.num_far == 1 and -apart.grad[1, 0] > 0.0
+
+
+def test_far_lists_grow_from_a_small_start():
+    # Far terms were reserved per body pair and triangle: 120 bodies of 1,280 triangles took
+    # 1.1 GB for 7,140 far terms. The lists now start small and grow to what a scene needs.
+    ball = icosphere(2)
+    model = wc.ContactModel([ball] * 12)
+    capacity = model._far.shape[0]
+    assert capacity == 8 * 320 + 16 * 66
+    assert model.evaluate(identity_poses([[10.0 * i, 0.0, 0.0] for i in range(12)])).num_far == 66
+    close = identity_poses([[1.02 * i, 0.0, 0.0] for i in range(12)])
+    grown = model.evaluate(close)  # outgrows the lists, which grow and the evaluation reruns
+    assert grown.num_far > capacity and model._far.shape[0] >= grown.num_far
+    again = model.evaluate(close)
+    assert again.value == grown.value
+    np.testing.assert_array_equal(again.hessian, grown.hessian)
 
 
 def test_pair_separation_is_a_lower_bound_on_surface_distance():

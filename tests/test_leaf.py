@@ -418,6 +418,14 @@ def test_bad_input_raises_clear_error(A, B, match):
 def test_bad_options_raise_clear_error():
     with pytest.raises(ValueError, match="max_iterations"):
         wc.triangle_pair_potential(np.zeros((1, 3, 3)), np.ones((1, 3, 3)), max_iterations=0)
+    # Caps past int32 wrapped around (2**31: every pair NOT_CONVERGED at 0 iterations); 2.5
+    # was truncated to 2 and True read as 1.
+    for cap in (2**31, 2.5, True):
+        with pytest.raises(ValueError, match=f"max_iterations: must be a whole number from 1 to 2147483647, got {cap!r}"):
+            wc.triangle_pair_potential(np.zeros((1, 3, 3)), np.ones((1, 3, 3)), max_iterations=cap)
+    # Coordinates whose squared distances overflow: the value was NaN at a scale of 1e155.
+    with pytest.raises(ValueError, match=r"B: -1e\+155 at index \(0, 2, 2\)"):
+        wc.triangle_pair_potential(np.ones((1, 3, 3)), np.array([[[0, 0, 0], [1, 0, 0], [0, 1, -1e155]]]))
     with pytest.raises(ValueError, match="device"):
         wc.triangle_pair_potential(np.zeros((1, 3, 3)), np.ones((1, 3, 3)), device="tpu:7")
 

@@ -2,11 +2,19 @@
 
 import numpy as np
 
-__all__ = ["MAX_BARRIER_SUPPORT", "as_float64_array", "check_barrier_support", "is_positive_finite", "is_real", "is_whole"]
+__all__ = ["MAX_BARRIER_SUPPORT", "MAX_COORDINATE", "MAX_COUNT", "as_float64_array", "check_barrier_support", "check_coordinates", "check_count", "is_positive_finite", "is_real", "is_whole"]
 
 # Largest barrier support (m) of the locally supported baselines: their barriers overflow
 # float64 far beyond it (IPC's from ~1e76 m, SDRS's from ~1e103 m: inf with no named error).
 MAX_BARRIER_SUPPORT = 1e6
+
+# Largest coordinate magnitude (m) of vertices and poses: the kernels square world-space
+# differences, which overflow float64 from ~1e154 m (the far field's force then read -0.0
+# and a leaf solve NaN).
+MAX_COORDINATE = 1e150
+
+# Largest count handed to a kernel's int32 argument (iteration caps and the like).
+MAX_COUNT = 2**31 - 1
 
 
 def is_real(value) -> bool:
@@ -29,6 +37,23 @@ def check_barrier_support(dhat, name: str = "dhat") -> None:
 def is_whole(value) -> bool:
     """A Python or numpy integer scalar, not a bool."""
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def check_count(value, name: str) -> None:
+    """ValueError naming ``name`` unless ``value`` is a whole number in [1, MAX_COUNT]."""
+    if not (is_whole(value) and 1 <= value <= MAX_COUNT):
+        raise ValueError(f"{name}: must be a whole number from 1 to {MAX_COUNT}, got {value!r}")
+
+
+def check_coordinates(arr: np.ndarray, name: str) -> None:
+    """ValueError naming ``name`` and the entry if any entry of ``arr`` exceeds MAX_COORDINATE in magnitude."""
+    big = np.abs(arr) > MAX_COORDINATE
+    if big.any():
+        first = np.argwhere(big)[0]
+        raise ValueError(
+            f"{name}: {arr[tuple(first)]:g} at index {tuple(int(i) for i in first)} is beyond the +-{MAX_COORDINATE:g} m "
+            "that float64 distances between such points can represent"
+        )
 
 
 def as_float64_array(value, name: str, *, trailing_shape: tuple[int, ...] = (), allow_empty: bool = True) -> np.ndarray:

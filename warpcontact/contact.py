@@ -31,7 +31,7 @@ from .kernels import reduction as reduction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels import traversal as traversal_kernels
 from ._runtime import HostReadback, LaunchCache, host_buffer, resolve_device, run_concurrently
-from ._validate import as_float64_array, check_barrier_support, is_positive_finite, is_real, is_whole
+from ._validate import as_float64_array, check_barrier_support, check_coordinates, check_count, is_positive_finite, is_real, is_whole
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus, float32_search
 from .rotation import rigid_step_travel
 from .sphere_tree import SphereTree, build_sphere_tree
@@ -70,7 +70,7 @@ class ContactEvaluation:
     """Scene contact potential at one configuration.
 
     Attributes:
-        value: total potential (dimensionless; scaled by the contact stiffness in the step);
+        value: total potential (1/m, as its leaf barriers 1/g; scaled by the contact stiffness in the step);
             +inf when any two bodies touch or intersect.
         grad: (nbodies, 6) dP/d(dp, dtheta) per body; zero rows for static bodies.
         hessian: (6 nbodies, 6 nbodies) second derivatives in the same coordinates;
@@ -101,6 +101,19 @@ class ContactEvaluation:
     def ok(self) -> bool:
         """True when the potential is finite and every leaf solve converged."""
         return not self.contact_pairs and not self.unsolved_pairs
+
+
+def _static_flags(static, num_bodies: int) -> np.ndarray:
+    """(num_bodies,) bool flags from ``static`` (None: all dynamic); entries must be bools or 0/1."""
+    if static is None:
+        return np.zeros(num_bodies, dtype=bool)
+    flags = np.asarray(static, dtype=object)
+    if flags.shape != (num_bodies,):
+        raise ValueError(f"static: expected {num_bodies} flags, got shape {flags.shape}")
+    for i, flag in enumerate(flags):
+        if not (isinstance(flag, (bool, np.bool_)) or (is_whole(flag) and flag in (0, 1))):
+            raise ValueError(f"static: entry {i} is {flag!r}; expected True/False (or 1/0)")
+    return flags.astype(bool)
 
 
 def _copy_evaluation(result: ContactEvaluation) -> ContactEvaluation:
@@ -269,8 +282,8 @@ class ContactModel:
             raise ValueError(f"eps: must be a positive finite number, got {eps!r}")
         check_barrier_support(dhat)
         for label, count in (("max_leaf_iterations", max_leaf_iterations), ("top_replicas", top_replicas), ("term_chunks", term_chunks)):
-            if (count is not None or label == "max_leaf_iterations") and not (is_whole(count) and count >= 1):
-                raise ValueError(f"{label}: must be a whole number >= 1, got {count!r}")
+            if count is not None or label == "max_leaf_iterations":
+                check_count(count, label)
         meshes = list(meshes)
         if len(meshes) < 1:
             raise ValueError("meshes: need at least one body")
@@ -278,9 +291,10 @@ class ContactModel:
         self.names = [f"body{i}" for i in range(num_bodies)] if names is None else [str(n) for n in names]
         if len(self.names) != num_bodies:
             raise ValueError(f"names: {len(self.names)} names for {num_bodies} bodies")
-        static_flags = np.zeros(num_bodies, dtype=bool) if static is None else np.asarray(static, dtype=bool)
-        if static_flags.shape != (num_bodies,):
-            raise ValueError(f"static: expected {num_bodies} flags, got shape {static_flags.shape}")
+        repeated = sorted({n for n in self.names if self.names.count(n) > 1})
+        if repeated:
+            raise ValueError(f"names: {repeated[0]!r} names more than one body; contact_pairs could not tell them apart")
+        static_flags = _static_flags(static, num_bodies)
 
         self.mode = mode
         self.centred_weight = centred_weight
@@ -361,7 +375,9 @@ class ContactModel:
             self._counters = wp.zeros(_ROUND_SLOT + max_depth + 1, dtype=wp.int32)
             self._seed_status = wp.zeros(len(self.body_pairs), dtype=wp.int32)
             self._seed_separation = wp.zeros(len(self.body_pairs), dtype=wp.float64)
-            self._pair_separation = np.zeros(len(self.body_pairs))  # host copy of _seed_separation, written by evaluate
+            # Host copy of _seed_separation, written by evaluate; None while the buffers hold no
+            # evaluation's planes (before the first, or after term_lists).
+            self._pair_separation: np.ndarray | None = None
             # (validated poses, result) of the last evaluate while the buffers still hold its
             # term lists, planes and transforms; None once anything else overwrote them.
             self._last_evaluation: tuple[np.ndarray, ContactEvaluation] | None = None
@@ -392,8 +408,11 @@ class ContactModel:
         if self.mode == "brute":
             self._set_brute_leaf_list()
         else:
+            # Starting sizes; an evaluation that needs more grows them (``_fill_lists``). Far
+            # terms are not reserved per body pair and triangle: 120 bodies of 1,280 triangles
+            # would take 1.1 GB for the 7,140 far terms they need apart.
             per_pair = 8 * max(t.num_triangles for t in trees)
-            self._reserve_lists(far=per_pair * max(1, len(self.body_pairs)), blend=per_pair, leaf=per_pair)
+            self._reserve_lists(far=per_pair + 16 * len(self.body_pairs), blend=per_pair, leaf=per_pair)
             self._reserve_tasks(3 * self._visit_budget * max(1, len(self.body_pairs)))
 
     def _set_brute_leaf_list(self):
@@ -480,8 +499,9 @@ class ContactModel:
 
     # --- evaluation -------------------------------------------------------------------------
 
-    def _validated_poses(self, poses) -> np.ndarray:
+    def _validated_poses(self, poses, *, normalize: bool = True) -> np.ndarray:
         poses = as_float64_array(poses, "poses", trailing_shape=(7,))
+        check_coordinates(poses, "poses")
         if poses.shape[0] != self.num_bodies:
             raise ValueError(f"poses: expected {self.num_bodies} rows (one per body), got {poses.shape[0]}")
         norms = np.linalg.norm(poses[:, 3:], axis=1)
@@ -492,6 +512,8 @@ class ContactModel:
                 f"poses: body {i} ({self.names[i]}) has quaternion norm {norms[i]:.9g}; "
                 f"expected unit norm within {QUATERNION_TOLERANCE} (layout px, py, pz, qx, qy, qz, qw)"
             )
+        if not normalize:
+            return poses
         poses = poses.copy()
         poses[:, 3:] /= norms[:, None]
         return poses
@@ -751,14 +773,22 @@ class ContactModel:
             contact_pairs=contact,
             unsolved_pairs=unsolved,
             mean_leaf_iterations=float(iterations.mean()) if num_leaf else 0.0,
-            pair_separation=self._pair_separation,
+            pair_separation=self._pair_separation.copy(),  # the model bounds steps with its own
         )
         self._last_evaluation = (poses, _copy_evaluation(result))
         return result
 
+    def _require_evaluation(self, what: str):
+        if self._pair_separation is None:
+            raise RuntimeError(
+                f"{what}: uses the term lists and separating planes of the last evaluate(poses), and the model holds none "
+                "(call evaluate at the configuration the step starts from; term_lists does not compute planes)"
+            )
+
     def advancement_frame(self) -> "AdvancementFrame":
         """A copy of the term lists and separating planes of the last ``evaluate``, so that
         steps from that configuration can still be bounded after later evaluations."""
+        self._require_evaluation("advancement_frame")
         num_far, _, num_leaf, _ = self._counts
         with wp.ScopedDevice(self.device):
             return AdvancementFrame(
@@ -787,11 +817,13 @@ class ContactModel:
             frame: bound from the configuration of an ``advancement_frame()`` instead.
         """
         step = as_float64_array(step, "step", trailing_shape=(6,))
+        check_coordinates(step, "step")
         if step.shape[0] != self.num_bodies:
             raise ValueError(f"step: expected {self.num_bodies} rows, got {step.shape[0]}")
         if not (is_real(fraction) and 0 < fraction < 1):
             raise ValueError(f"fraction: must be a number in (0, 1), got {fraction!r}")
         if frame is None:
+            self._require_evaluation("advancement_limit")
             num_far, _, num_leaf, _ = self._counts
             frame = AdvancementFrame(self._rotation, self._position, self._far, num_far, self._leaf, self._leaf_plane, num_leaf, self._seed_separation, self._pair_separation)
         if self._pairs_keep_clear(step, frame.pair_separation, fraction):
@@ -857,6 +889,7 @@ class ContactModel:
         """Lagged friction data at the last evaluated configuration (a step's q^t): per leaf
         pair, the normal force mu W |n| sum_A -b'(g_k) of this mode's leaf potential, its
         plane normal and the triangles' centroids (``kernels/friction.py``)."""
+        self._require_evaluation("friction_frame")
         with wp.ScopedDevice(self.device):
             frame = friction_kernels.FrictionFrame()
             frame.leaf_items = self.leaf_items()
@@ -894,7 +927,8 @@ class ContactModel:
             self._friction_records = (self._new_records(0), totals)
         at_poses = poses is not None
         if at_poses:
-            self._friction_pose_host.numpy()[:] = poses
+            # The solver's retracted poses as given, to the last bit (their norms are 1 within rounding).
+            self._friction_pose_host.numpy()[:] = self._validated_poses(poses, normalize=False)
         if self._friction_graphs[0] is not lagged.data:
             self._friction_graphs = (lagged.data, {})
         graphs = self._friction_graphs[1]
@@ -1009,8 +1043,10 @@ class ContactModel:
         return wp.clone(self._leaf[: self._counts[2]])
 
     def term_lists(self, poses) -> TermLists:
-        """The far / blend / leaf term lists at ``poses`` (for inspection and tests)."""
+        """The far / blend / leaf term lists at ``poses`` (for inspection and tests). They
+        replace the last evaluation's: call ``evaluate`` again before bounding a step."""
         self._last_evaluation = None
+        self._pair_separation = None
         self._set_poses(self._validated_poses(poses))
         self._fill_lists(reduce=False)
         num_far, num_blend, num_leaf, _ = self._counts

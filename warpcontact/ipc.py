@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 from .contact import ContactEvaluation, LaggedFriction, contact_body_pairs
 from .rotation import quat_from_rotation_vector, quat_to_matrix, skew
-from ._validate import as_float64_array, check_barrier_support
+from ._validate import as_float64_array, check_barrier_support, check_coordinates
 
 # A step's arc is checked in chord pieces whose bulge stays below this fraction of dhat.
 ARC_BULGE = 1e-3
@@ -120,6 +120,7 @@ class IpcContactModel:
         collision set is rebuilt at every call.
         """
         poses = as_float64_array(poses, "poses", trailing_shape=(7,))
+        check_coordinates(poses, "poses")
         if poses.shape[0] != self.num_bodies:
             raise ValueError(f"poses: expected {self.num_bodies} rows (one per body), got {poses.shape[0]}")
         poses = poses.copy()
@@ -179,6 +180,7 @@ class IpcContactModel:
         projection), for timing it side by side with other models; returns (value, number
         of active collisions)."""
         poses = as_float64_array(poses, "poses", trailing_shape=(7,)).copy()
+        check_coordinates(poses, "poses")
         poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
         value, _, _, collisions = self._vertex_terms(self._world_vertices(poses))
         return value, len(collisions)
@@ -260,6 +262,7 @@ class IpcContactModel:
         configuration or ``frame`` (ipctk CCD along chords of the bodies' arcs, times
         ``fraction`` when limiting)."""
         step = as_float64_array(step, "step", trailing_shape=(6,))
+        check_coordinates(step, "step")
         if step.shape[0] != self.num_bodies:
             raise ValueError(f"step: expected {self.num_bodies} rows, got {step.shape[0]}")
         world, positions = frame if frame is not None else (self._world, self._positions)

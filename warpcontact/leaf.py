@@ -8,7 +8,7 @@ import warp as wp
 from .kernels import blend as blend_kernels
 from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
-from ._validate import as_float64_array, check_barrier_support
+from ._validate import as_float64_array, check_barrier_support, check_coordinates, check_count
 
 __all__ = [
     "LEAF_PRECISIONS",
@@ -50,7 +50,7 @@ class TrianglePairPotential:
 
     Attributes:
         value: (N,) potential P; +inf where the triangles touch or intersect.
-        grad: (N, 2, 3, 3) dP/dx; [:, 0] for A's vertices, [:, 1] for B's (1/m).
+        grad: (N, 2, 3, 3) dP/dx; [:, 0] for A's vertices, [:, 1] for B's (1/m^2: P is 1/m).
         hessian: (N, 18, 18) d2P/dx2 in the order of ``grad.reshape(N, 18)``.
         plane: (N, 4) optimal plane (n, d) in world coordinates; |n| < 1, not normalised.
         ok: (N,) True where the solve converged to a finite value.
@@ -99,10 +99,11 @@ def triangle_pair_potential(
     """
     a = as_float64_array(A, "A", trailing_shape=(3, 3))
     b = as_float64_array(B, "B", trailing_shape=(3, 3))
+    check_coordinates(a, "A")
+    check_coordinates(b, "B")
     if a.shape[0] != b.shape[0]:
         raise ValueError(f"A and B: pair counts differ ({a.shape[0]} vs {b.shape[0]})")
-    if int(max_iterations) < 1:
-        raise ValueError(f"max_iterations: must be >= 1, got {max_iterations}")
+    check_count(max_iterations, "max_iterations")
     if dhat is not None:
         check_barrier_support(dhat)
     search32 = float32_search(precision, mode="bsh" if dhat is None else "sdrs")

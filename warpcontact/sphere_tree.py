@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._validate import check_coordinates
+
 __all__ = ["SphereTree", "build_sphere_tree", "validated_mesh"]
 
 
@@ -233,6 +235,7 @@ def validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
     if not finite_vertex.all():
         bad = int(np.flatnonzero(~finite_vertex)[0])
         raise ValueError(f"mesh {name!r}: vertex {bad} is not finite: {positions[bad].tolist()}")
+    check_coordinates(positions, f"mesh {name!r}: vertices")
 
     raw_faces = _real_array(faces, name, "faces")
     if raw_faces.ndim != 2 or raw_faces.shape[1] != 3:
