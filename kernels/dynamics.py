@@ -203,7 +203,10 @@ def body_energy_kernel(
     g_lin = m * inv_dt2 * dp - m * bodies.gravity
     h_lin = wp.vec3d(m * inv_dt2, m * inv_dt2, m * inv_dt2)
     for i in range(3):
-        e_p = p[i] - p_target[i]
+        # An axis without a gain ignores its target, which may then be anything (NaN too).
+        e_p = wp.float64(0.0)
+        if kp[i] != wp.float64(0.0):
+            e_p = p[i] - p_target[i]
         e_d = p[i] - p_now[i]
         energy += wp.float64(0.5) * (kp[i] * e_p * e_p + kd[i] * e_d * e_d / bodies.dt)
         g_lin[i] = g_lin[i] + kp[i] * e_p + kd[i] * e_d / bodies.dt
@@ -294,8 +297,10 @@ def body_adjoint_kernel(
     a_prev_r = -(wp.transpose(k) * w)
     # PD target and rotational damping: grad = -(k/2) axial(C R^T) with C = R* or R^t.
     half = wp.float64(0.5)
-    t_tgt = _twist_matrix(r_target * wp.transpose(r))
-    a_tgt_r = -(half * bodies.kp_angular[b]) * (wp.transpose(t_tgt) * lam_r)
+    a_tgt_r = wp.vec3d()
+    if bodies.kp_angular[b] != wp.float64(0.0):
+        t_tgt = _twist_matrix(r_target * wp.transpose(r))
+        a_tgt_r = -(half * bodies.kp_angular[b]) * (wp.transpose(t_tgt) * lam_r)
     t_now = _twist_matrix(r_now * wp.transpose(r))
     a_now_r += -(half * bodies.kd_angular[b] / bodies.dt) * (wp.transpose(t_now) * lam_r)
 
@@ -333,10 +338,12 @@ def pose_adjoint_to_rigid_kernel(
 
 @wp.func
 def _quat_adjoint(q: wp.quatd, a: wp.vec3d):
-    """Quaternion-component adjoint of a cotangent a of a left turn exp([theta]x) R(q), through
-    theta = 2 vec(dq q*) (norm changes give 0)."""
-    qc = wp.quat_inverse(wp.normalize(q))
+    """Quaternion-component adjoint of a cotangent a of a left turn exp([theta]x) R(q/|q|),
+    through theta = 2 vec(dq q*) / |q|^2 (norm changes give 0)."""
     out = wp.quatd(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    if a[0] == wp.float64(0.0) and a[1] == wp.float64(0.0) and a[2] == wp.float64(0.0):
+        return out  # also for a q the step ignores (a PD target without a rotational gain may be NaN)
+    qc = wp.quat_inverse(wp.normalize(q)) / wp.length(q)
     for j in range(4):
         e = wp.quatd(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
         e[j] = wp.float64(1.0)
@@ -353,7 +360,7 @@ def rigid_adjoint_to_pose_kernel(
     # Data out:
     pose_adjoint_out: wp.array(dtype=wp.transformd),
 ):
-    """Add a rigid cotangent to a pose adjoint, through theta = 2 vec(dq q*) (norm changes give 0)."""
+    """Add a rigid cotangent to a pose adjoint, through theta = 2 vec(dq q*) / |q|^2 (norm changes give 0)."""
     b = wp.tid()
     a = rigid_adjoint[b]
     out = pose_adjoint_out[b]

@@ -598,8 +598,7 @@ def test_bad_input_raises_before_writing_state():
     targets = control.body_target.numpy()
     targets[1, 2] = np.inf
     control.body_target.assign(targets)
-    with pytest.raises(ValueError, match=r"control.body_target: the target of body 'right' \(index 1\) is not finite"):
-        solver.step(s0, s1, control, 0.01)
+    solver.step(s0, model.state(), control, 0.01)  # no gains: the target is ignored (named with gains: below)
     control.body_target = wp.zeros(3, dtype=wp.transformd)
     with pytest.raises(ValueError, match="control.body_target: expected a wp.array of 2 wp.transformd"):
         solver.step(s0, s1, control, 0.01)
@@ -932,3 +931,155 @@ def test_builder_warns_about_bodies_the_barrier_would_hold_far_above_a_support()
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         weightless.finalize()
+
+
+
+@wp.kernel
+def weighted_pose_loss_kernel(q: wp.array(dtype=wp.transformd), weights: wp.array(dtype=wp.float64), loss: wp.array(dtype=wp.float64)):
+    b = wp.tid()
+    total = wp.float64(0.0)
+    for c in range(7):
+        total += weights[b * 7 + c] * q[b][c]
+    wp.atomic_add(loss, 0, total)
+
+
+def weighted_pose_rollout(model, linear, angular, *, steps, dt, control=None, tape=None):
+    """A fixed weighted sum of the final poses after ``steps`` steps of ``dt`` from velocities
+    (linear, angular) (nbodies, 3), recorded on ``tape`` when given."""
+    solver = wc.ImplicitSolver(model, tolerance=1e-13)
+    states = [model.state() for _ in range(steps + 1)]
+    vel = wp.array(linear, dtype=wp.vec3d, requires_grad=True)
+    ang = wp.array(angular, dtype=wp.vec3d, requires_grad=True)
+    weights = wp.array(np.random.default_rng(0).normal(size=7 * model.num_bodies), dtype=wp.float64)
+    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+
+    def forward():
+        wc.set_body_velocity(states[0], vel, ang, dt)
+        for t in range(steps):
+            solver.step(states[t], states[t + 1], control, dt)
+        wp.launch(weighted_pose_loss_kernel, dim=model.num_bodies, inputs=[states[-1].body_q, weights], outputs=[loss])
+
+    record(forward, tape)
+    if tape is not None:
+        tape.backward(loss)
+    return dict(loss=float(loss.numpy()[0]), vel=vel, ang=ang, states=states)
+
+
+def test_a_step_without_a_control_holds_pd_bodies_at_their_start_in_the_gradient():
+    # Without a control a PD body's target is the step's start pose; the backward dropped that
+    # dependence: d loss / d velocity came out with the wrong sign (-1.8e-3 against +1.7e-2).
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    b.add_box((0.3, 0.3, 0.3), mass=2.0, name="driven", pose=(0, 0, 1, 0, 0, 0, 1), kp_linear=200.0, kd_linear=5.0, kp_angular=30.0, kd_angular=1.0)
+    model = b.finalize()
+    linear, angular = np.array([[1.0, 0.5, 0.2]]), np.array([[1.0, -2.0, 0.5]])
+    out = weighted_pose_rollout(model, linear, angular, steps=6, dt=0.04, tape=wp.Tape())
+    e = np.array([[1.0, 0.0, 0.0]])
+    fd_linear = central(lambda h: weighted_pose_rollout(model, linear + h * e, angular, steps=6, dt=0.04)["loss"], 0.0, 1e-6)
+    fd_angular = central(lambda h: weighted_pose_rollout(model, linear, angular + h * e, steps=6, dt=0.04)["loss"], 0.0, 1e-6)
+    assert_close(out["vel"].grad.numpy()[0, 0], fd_linear, rtol=1e-6)
+    assert_close(out["ang"].grad.numpy()[0, 0], fd_angular, rtol=1e-5)
+
+
+def test_a_pd_target_quaternion_off_the_unit_sphere_gets_its_gradient():
+    # The step uses q / |q|; the adjoint left out the 1/|q| and a target of norm 2 got twice
+    # its gradient.
+    sim = Collision(steps=8)
+    v0 = np.array([2.0, 0.3, 0.1])
+    long = np.array([0.2, -0.4, 0.3, 1.9])
+    tape = wp.Tape()
+    out = sim.run(velocity=v0, mu=1e-3, target_quat=long, tape=tape)
+    tape.backward(out["loss"])
+    e = np.array([1.0, 0.0, 0.0, 0.0])
+    fd = central(lambda h: sim.run(velocity=v0, mu=1e-3, target_quat=long + h * e)["loss"].numpy()[0], 0.0, 1e-6)
+    assert_close(out["control"].body_target.grad.numpy()[2, 3], fd)
+
+
+def test_states_sharing_arrays_are_refused_and_alternating_states_work():
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.5, 0.5, 0.5), density=100.0)
+    model = b.finalize()
+    dt = 0.04
+    one = model.state()
+    wc.set_body_velocity(one, wp.array([[1.0, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(1, dtype=wp.vec3d), dt)
+    solver = wc.ImplicitSolver(model)
+    # A second State on the same arrays stopped the box dead; swapped arrays gave a zero gradient.
+    for shared, names in (
+        (wc.State(body_q=one.body_q, body_q_prev=one.body_q_prev), "state_out.body_q: shares memory with state_in.body_q;"),
+        (wc.State(body_q=one.body_q_prev, body_q_prev=one.body_q), "state_out.body_q: shares memory with state_in.body_q_prev;"),
+        (wc.State(body_q=model.state().body_q, body_q_prev=one.body_q), "state_out.body_q_prev: shares memory with state_in.body_q;"),
+    ):
+        before = one.body_q.numpy().copy()
+        with pytest.raises(ValueError, match=names):
+            solver.step(one, shared, None, dt)
+        np.testing.assert_array_equal(one.body_q.numpy(), before)
+    other = model.state()
+    for _ in range(2):  # two States taking turns as input and output
+        solver.step(one, other, None, dt)
+        solver.step(other, one, None, dt)
+    np.testing.assert_allclose(one.body_q.numpy()[0, 0], 4 * dt, rtol=1e-9)
+
+
+def test_set_body_velocity_refuses_half_a_turn_a_step():
+    # 100 rad/s at dt 0.04 s (4 rad a step) simulated as -57 rad/s.
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.5, 0.5, 0.5), density=100.0)
+    model = b.finalize()
+    state = model.state()
+    before = state.body_q_prev.numpy().copy()
+    with pytest.raises(ValueError, match=r"angular_velocity: body 0 turns 4 rad in one step of 0.04 s \(100 rad/s\).*reduce dt below 0.0314 s"):
+        wc.set_body_velocity(state, wp.zeros(1, dtype=wp.vec3d), wp.array([[0.0, 0.0, 100.0]], dtype=wp.vec3d), 0.04)
+    np.testing.assert_array_equal(state.body_q_prev.numpy(), before)
+    wc.set_body_velocity(state, wp.zeros(1, dtype=wp.vec3d), wp.array([[0.0, 0.0, 78.0]], dtype=wp.vec3d), 0.04)  # 3.12 rad
+    nxt = model.state()
+    wc.ImplicitSolver(model).step(state, nxt, None, 0.04)
+    turn = 2.0 * np.arctan2(nxt.body_q.numpy()[0, 5], nxt.body_q.numpy()[0, 6])
+    np.testing.assert_allclose(turn, 3.12, rtol=1e-6)
+
+
+def test_targets_of_axes_without_gains_are_ignored():
+    # Control says targets count for bodies with gains; a NaN target of an unactuated body
+    # made the objective NaN and the step was refused naming that body.
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    b.add_box((0.3, 0.3, 0.3), density=500.0, name="free_box", pose=(0, 0, 1, 0, 0, 0, 1))
+    b.add_box((0.3, 0.3, 0.3), density=500.0, name="driven", pose=(2, 0, 1, 0, 0, 0, 1), kp_linear=(100.0, 0.0, 100.0), kd_linear=10.0)
+    model = b.finalize()
+    reference = model.control()
+    control = model.control()
+    targets = control.body_target.numpy()
+    targets[0] = np.nan
+    targets[1, 1] = np.nan  # the driven box has no gain along y and no rotational gain
+    targets[1, 3:] = np.nan
+    control.body_target.assign(targets)
+    expected, _ = rollout(model, 3, 0.04, control=reference)
+    poses, _ = rollout(model, 3, 0.04, control=control)
+    np.testing.assert_allclose(poses, expected, rtol=0, atol=1e-14)
+    states = [model.state() for _ in range(2)]
+    tape = wp.Tape()
+    with tape:
+        wc.ImplicitSolver(model).step(states[0], states[1], control, 0.04)
+    tape.backward(grads={states[1].body_q: wp.array(np.ones((2, 7)), dtype=wp.transformd)})
+    gradient = control.body_target.grad.numpy()
+    assert np.isfinite(gradient).all() and not gradient[0].any() and gradient[1, 1] == 0.0 and not gradient[1, 3:].any()
+    assert gradient[1, 0] != 0.0
+    targets[1, 0] = np.nan  # an axis with a gain: refused by name
+    control.body_target.assign(targets)
+    with pytest.raises(ValueError, match="the target of body 'driven' \\(index 1\\) is not finite"):
+        wc.ImplicitSolver(model).step(model.state(), model.state(), control, 0.04)
+
+
+def test_the_backward_leaves_the_output_state_gradients_as_they_were():
+    # On a CPU the pass-through adjoint was a view of state_out.body_q_prev.grad, to which the
+    # static bodies' adjoints were then added.
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    b.add_body(grid_ground(), static=True, name="ground")
+    b.add_box((0.3, 0.3, 0.3), density=500.0, pose=(0, 0, 0.3, 0, 0, 0, 1))
+    model = b.finalize()
+    states = [model.state() for _ in range(2)]
+    tape = wp.Tape()
+    with tape:
+        wc.ImplicitSolver(model).step(states[0], states[1], None, 0.04)
+    seed_q = np.arange(14.0).reshape(2, 7)
+    seed_prev = -np.arange(14.0).reshape(2, 7) - 1.0
+    tape.backward(grads={states[1].body_q: wp.array(seed_q, dtype=wp.transformd), states[1].body_q_prev: wp.array(seed_prev, dtype=wp.transformd)})
+    np.testing.assert_array_equal(states[1].body_q_prev.grad.numpy(), seed_prev)
+    np.testing.assert_array_equal(states[0].body_q.grad.numpy()[0], seed_q[0] + seed_prev[0])  # the ground passes both through

@@ -517,7 +517,7 @@ class ArticulationModel:
             hess[np.ix_(dofs, dofs)] += 0.5 * (np.trace(m) * np.eye(3) - 0.5 * (m + m.T))
         return value, grad, hess
 
-    def ball_drive_adjoint(self, poses: np.ndarray, poses_start: np.ndarray, lam: np.ndarray, target: np.ndarray, dt: float):
+    def ball_drive_adjoint(self, poses: np.ndarray, poses_start: np.ndarray, lam: np.ndarray, target: np.ndarray, dt: float, *, target_is_start: bool = False):
         """lambda^T d(gradient of ``ball_drive_terms``)/d(inputs) at ``poses`` for a reduced
         adjoint ``lam`` (m,), with R^t taken from the step's start poses ``poses_start``.
 
@@ -526,6 +526,10 @@ class ArticulationModel:
         Turning a term's world frame P R_ref by exp([zeta]x) turns M by it and changes the
         gradient by -1/2 (tr(M) I - M) zeta. A start turn beta of the child turns P R^t =
         P P_t^T C_t by P P_t^T beta; the parent's turns it by the opposite.
+
+        ``target_is_start``: the targets are the start's relative rotations (a step without
+        ball targets holds each joint where it starts), so their cotangents are also turns of
+        the start poses: a left turn g of R^t is a turn P_t g of the child's start.
         """
         parent_start, child_start = self._ball_frames(poses_start)
         start = _relative_rotation(parent_start, child_start)
@@ -539,7 +543,7 @@ class ArticulationModel:
         start_adjoint = np.zeros((self.num_bodies, 6))
         for i, dofs in enumerate(self._ball_dofs):
             target_adjoint[i] = P[i].T @ turn_adjoint(spring[i], lam[dofs])
-            turn = P_start[i] @ P[i].T @ turn_adjoint(damper[i], lam[dofs])
+            turn = P_start[i] @ (P[i].T @ turn_adjoint(damper[i], lam[dofs]) + (target_adjoint[i] if target_is_start else 0.0))
             start_adjoint[self._ball_child[i], 3:] += turn
             if self._ball_parent[i] >= 0:
                 start_adjoint[self._ball_parent[i], 3:] -= turn

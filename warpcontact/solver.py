@@ -108,6 +108,28 @@ _DAMPING_LAST = 1e2
 _PASS_THROUGH_TRAVEL = 0.5
 
 
+def _check_no_shared_arrays(state_in: State, state_out: State) -> None:
+    """ValueError naming the arrays if a ``state_out`` array shares memory with a
+    ``state_in`` one: the step writes its output while its result and backward still read
+    the input (a State sharing another's arrays stopped a moving box dead, silently)."""
+    names = ("body_q", "body_q_prev", "joint_q", "joint_q_prev")
+
+    def extent(array):
+        return (array.ptr, array.ptr + array.capacity) if isinstance(array, wp.array) and array.ptr and array.capacity else None
+
+    for out_name in names:
+        out = extent(getattr(state_out, out_name, None))
+        if out is None:
+            continue
+        for in_name in names:
+            read = extent(getattr(state_in, in_name, None))
+            if read is not None and out[0] < read[1] and read[0] < out[1]:
+                raise ValueError(
+                    f"state_out.{out_name}: shares memory with state_in.{in_name}; a step writes state_out while it reads "
+                    "state_in, so give state_out arrays of its own (model.state()); two States may alternate as input and output"
+                )
+
+
 class SolverError(RuntimeError):
     """The implicit step did not converge; the message carries the diagnostics."""
 
@@ -604,8 +626,10 @@ class ImplicitSolver:
                 if not isinstance(poses, wp.array) or poses.shape != (model.num_bodies,) or poses.dtype != wp.transformd:
                     got = f"{poses.dtype.__name__} array of shape {poses.shape}" if isinstance(poses, wp.array) else type(poses).__name__
                     raise ValueError(f"{label}.{name}: expected a wp.array of {model.num_bodies} wp.transformd, one per body of this model (use model.state()), got {got}")
-        q_now = state_in.body_q.numpy()
-        q_prev = state_in.body_q_prev.numpy()
+        _check_no_shared_arrays(state_in, state_out)
+        # Copies: on a CPU .numpy() is a view of the state's memory.
+        q_now = state_in.body_q.numpy().copy()
+        q_prev = state_in.body_q_prev.numpy().copy()
         for label, arr in (("state_in.body_q", q_now), ("state_in.body_q_prev", q_prev)):
             if not np.isfinite(arr).all():
                 raise ValueError(f"{label}: contains non-finite values")
@@ -667,10 +691,14 @@ class ImplicitSolver:
                 # Read back only on failure: a non-finite PD target, or a zero rotation for a
                 # body with rotational PD stiffness, is the caller's error.
                 targets = control.body_target.numpy()
-                bad = np.flatnonzero(~np.isfinite(targets).all(axis=1) & self._dynamic)
+                # Only targets with gains count (an unactuated axis ignores its target).
+                kp_linear = model.body_kp_linear.numpy()
+                kp_angular = model.body_kp_angular.numpy()
+                used = np.concatenate([kp_linear != 0.0, np.repeat((kp_angular != 0.0)[:, None], 4, axis=1)], axis=1)
+                bad = np.flatnonzero((~np.isfinite(targets) & used).any(axis=1) & self._dynamic)
                 if bad.size:
                     raise ValueError(f"control.body_target: the target of body {self.model.body_names[bad[0]]!r} (index {bad[0]}) is not finite")
-                unrotated = np.flatnonzero((np.linalg.norm(targets[:, 3:], axis=1) == 0.0) & (self.model.body_kp_angular.numpy() != 0.0) & self._dynamic)
+                unrotated = np.flatnonzero((np.linalg.norm(targets[:, 3:], axis=1) == 0.0) & (kp_angular != 0.0) & self._dynamic)
                 if unrotated.size:
                     raise ValueError(f"control.body_target: the target of body {self.model.body_names[unrotated[0]]!r} (index {unrotated[0]}) has a zero rotation quaternion")
             # Joint coordinates outside their limits were refused with the state (_joint_arrays).
@@ -901,7 +929,11 @@ class ImplicitSolver:
         arrays += [array for _, array in _taped_control_arrays(control)]
         joints = art is not None and art.num_coordinates > 0
         balls = art is not None and art.has_ball_drives
-        ball_target_grad = balls and control is not None and control.ball_target is not None and control.ball_target.requires_grad
+        # Targets a step is not given hold the joints where the step starts (_joint_arrays,
+        # _ball_arrays): their adjoints belong to the start.
+        joint_target_is_start = control is None or control.joint_target is None
+        ball_target_is_start = control is None or control.ball_target is None
+        ball_target_grad = balls and not ball_target_is_start and control.ball_target.requires_grad
         if ball_target_grad:
             ball_target_arr = wp.array(step_in.ball_target, dtype=wp.quatd, device=dev)
         # step_in.joint_target may be a view of the control's memory (.numpy() on a CPU), and
@@ -945,8 +977,11 @@ class ImplicitSolver:
                     # At coefficient 0 the step has no friction: only its coefficient moves it.
                     _, adj_friction, _ = model.contact.friction_adjoint(step_in.friction_rate, q_next, q_now, lam_full.reshape(n, 6))
                     _accumulate(model.friction, adj_friction)
+                if control is None:
+                    # Without a control each body's PD target is its start pose q^t.
+                    adj_now.assign(adj_now.numpy() + adj_target.numpy())
                 if balls:
-                    target_adj, start_adj = art.ball_drive_adjoint(q_next, q_now, lam_reduced, step_in.ball_target, dt)
+                    target_adj, start_adj = art.ball_drive_adjoint(q_next, q_now, lam_reduced, step_in.ball_target, dt, target_is_start=ball_target_is_start)
                     adj_now.assign(adj_now.numpy() + start_adj)
                     if ball_target_grad:
                         wp.launch(dynamics_kernels.rotation_adjoint_to_quat_kernel, dim=art.num_ball_joints, inputs=[ball_target_arr, wp.array(target_adj, dtype=wp.vec3d)], outputs=[control.ball_target.grad])
@@ -957,7 +992,7 @@ class ImplicitSolver:
                 _accumulate(model.body_mass, adj_mass.numpy())
                 _accumulate(model.contact_stiffness, mu_adj)
                 # state_out.body_q_prev is a copy of state_in.body_q; static bodies stay put.
-                passthrough = state_out.body_q_prev.grad.numpy()
+                passthrough = state_out.body_q_prev.grad.numpy().copy()  # a view on a CPU: never the state's own
                 static_adj = out_adj.numpy()
                 passthrough[~dynamic] += static_adj[~dynamic]
                 state_in.body_q.grad.assign(state_in.body_q.grad.numpy() + passthrough)
@@ -966,6 +1001,8 @@ class ImplicitSolver:
                     # state_out.joint_q_prev is a copy of state_in.joint_q.
                     lam_coords = lam_reduced[art.coordinate_dof]
                     adj_coords = -art.kd / dt * lam_coords + state_out.joint_q_prev.grad.numpy()
+                    if joint_target_is_start:
+                        adj_coords -= art.kp * lam_coords
                     state_in.joint_q.grad.assign(state_in.joint_q.grad.numpy() + adj_coords)
                     if control is not None and control.joint_target is not None and control.joint_target.requires_grad:
                         control.joint_target.grad.assign(control.joint_target.grad.numpy() - art.kp * lam_coords)

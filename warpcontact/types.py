@@ -29,7 +29,10 @@ __all__ = ["Model", "State", "Control", "set_body_velocity"]
 @dataclass
 class State:
     """Body poses now and one step earlier, (nbodies,) ``wp.transformd`` each, and joint
-    coordinates now and one step earlier, (ncoordinates,) float64 each (rad or m)."""
+    coordinates now and one step earlier, (ncoordinates,) float64 each (rad or m).
+
+    The velocities are the two poses' difference over the time step, which the State does
+    not store: a step of another dt than the last scales them (``set_body_velocity``)."""
 
     body_q: wp.array
     body_q_prev: wp.array
@@ -139,6 +142,12 @@ class Model:
 def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity: wp.array, dt: float):
     """Set ``state.body_q_prev`` so that the state moves with the given velocities.
 
+    A State holds velocities only as its two poses one step apart, so they mean these
+    velocities for steps of ``dt`` alone: stepped with another dt they scale by dt / that dt
+    (1 m/s set for 0.04 s steps moves at 4 m/s in 0.01 s steps). To change dt mid-run, set
+    the velocities again for the new dt. Two poses tell turns apart only below half a turn a
+    step, so |angular velocity| * dt must stay below pi (ValueError naming the body).
+
     Args:
         linear_velocity: (nbodies,) vec3d centre-of-mass velocities (m/s).
         angular_velocity: (nbodies,) vec3d angular velocities about world axes (rad/s).
@@ -156,6 +165,17 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
             raise ValueError(f"{label}: expected a wp.array of {n} vec3d")
     if not is_positive_finite(dt):
         raise ValueError(f"dt: must be a positive finite number of seconds, got {dt!r}")
+    # A turn of pi or more a step reads back as a shorter one the other way: 100 rad/s at
+    # dt 0.04 s simulated as -57 rad/s.
+    with np.errstate(invalid="ignore", over="ignore"):
+        turn = np.linalg.norm(angular_velocity.numpy(), axis=1) * dt
+    fast = np.flatnonzero(turn >= np.pi)
+    if fast.size:
+        b = fast[0]
+        raise ValueError(
+            f"angular_velocity: body {b} turns {turn[b]:.4g} rad in one step of {dt:g} s ({turn[b] / dt:.4g} rad/s); a state's two "
+            f"poses can only represent turns below pi a step, so reduce dt below {np.pi / (turn[b] / dt):.3g} s"
+        )
     wp.launch(
         state_kernels.previous_pose_from_velocity_kernel,
         dim=n,
