@@ -670,9 +670,6 @@ def leaf_hessian_block(sol: LeafSolution, k: int, l: int):
     return block
 
 
-mat43d = wp.types.matrix(shape=(4, 3), dtype=wp.float64)
-
-
 @wp.func
 def leaf_plane_sensitivity(sol: LeafSolution, k: int):
     """d p* / d x_k (4x3) of the optimal local plane p* = (n, d): -L_pp^-1 B_k^T."""

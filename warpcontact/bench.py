@@ -190,11 +190,10 @@ def _identity_poses(positions) -> np.ndarray:
 
 def rack_positions(*, radius: float, gap: float) -> np.ndarray:
     """Centres of a 15-ball triangle rack (gap ``gap`` between neighbours) plus a cue ball, in the z = radius plane."""
+    from .scenes import rack_centres
+
     spacing = 2 * radius + gap
-    centres = []
-    for row in range(5):
-        for k in range(row + 1):
-            centres.append([row * spacing * np.sqrt(3) / 2, (k - row / 2) * spacing, radius])
+    centres = [[x, y, radius] for x, y in rack_centres(spacing)]
     centres.append([-6 * spacing, 0.0, radius])
     return np.array(centres)
 

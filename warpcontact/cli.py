@@ -649,7 +649,7 @@ def build_parser() -> argparse.ArgumentParser:
     compare.add_argument("--frictionless", action="store_true", help="set the scene's friction to 0 for every model")
     compare.set_defaults(func=_compare)
 
-    listing = sub.add_parser("list", help="list tasks and scenes")
+    listing = sub.add_parser("list", help="list tasks, scenes and contact models")
     listing.set_defaults(func=_list)
 
     simulate = sub.add_parser("simulate", help="simulate a USD scene and export its trajectory")

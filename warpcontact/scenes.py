@@ -34,7 +34,7 @@ from .hull import convex_hull
 from .io import BodySpec, JointSpec, Scene, SimulationSettings, TaskSpec, save_scene
 from .robots import AntSpec, ant_description
 
-__all__ = ["SCENE_NAMES", "BILLIARDS_SERIES", "BILLIARDS_FRICTION", "BILLIARDS_GOALS", "BILLIARDS_REFERENCE_STRIKE", "RACK_BENCHMARK_FRICTION", "build_scene", "billiards_scene", "benchmark_rack", "write_scenes", "shipped_scene", "fibonacci_ball", "rest_on_face", "decimate", "bunny_mesh"]
+__all__ = ["SCENE_NAMES", "BILLIARDS_SERIES", "BILLIARDS_FRICTION", "BILLIARDS_GOALS", "BILLIARDS_REFERENCE_STRIKE", "RACK_BENCHMARK_FRICTION", "build_scene", "billiards_scene", "benchmark_rack", "rack_centres", "write_scenes", "shipped_scene", "fibonacci_ball", "rest_on_face", "decimate", "bunny_mesh"]
 
 # Ball point counts for the scaling series: faces per ball = 2 N - 4.
 BILLIARDS_SERIES = {"billiards_512": 18, "billiards_1280": 42, "billiards_2560": 82, "billiards_6208": 196}
@@ -227,6 +227,12 @@ BILLIARDS_REFERENCE_STRIKE = (0.0, 0.05, 5.78, 0.02)
 BILLIARDS_GOALS = {"ball02": (5.421, 0.838), "ball05": (6.151, 1.343)}
 
 
+def rack_centres(spacing: float) -> list[tuple[float, float]]:
+    """(x, y) centres of a 15-ball triangle rack, ``spacing`` m between neighbours' centres,
+    its apex at the origin and its rows along +x."""
+    return [(row * spacing * np.sqrt(3) / 2, (k - row / 2) * spacing) for row in range(5) for k in range(row + 1)]
+
+
 def billiards_scene(vertices: np.ndarray, faces: np.ndarray, *, friction: float = BILLIARDS_FRICTION, table_cell: float | None = None) -> Scene:
     """The Billiards task with 16 copies of a given convex ball mesh.
 
@@ -246,7 +252,7 @@ def billiards_scene(vertices: np.ndarray, faces: np.ndarray, *, friction: float 
     ball = (vertices, faces)
     radius = np.linalg.norm(vertices, axis=1).max()
     spacing = 2 * radius + 0.05
-    centres = [(row * spacing * np.sqrt(3) / 2 + 4.0, (k - row / 2) * spacing) for row in range(5) for k in range(row + 1)]
+    centres = [(x + 4.0, y) for x, y in rack_centres(spacing)]
     z = height + _REST_GAP
     bodies = [ground_rectangle(16.0, 10.0, table_cell, centre=(3.0, 0.0))]
     cue = _body("cue", ball, (-2.0, 0.0, z), density=100.0, control_dofs=("x", "y", "vx", "vy"))
