@@ -19,6 +19,7 @@ Friction (``friction_frame``, ``friction_terms``, ``friction_adjoint``; the law 
 potential, so the modes differ only in the normal contact potential.
 """
 
+import collections
 import functools
 import os
 from dataclasses import dataclass, replace
@@ -291,7 +292,7 @@ class ContactModel:
         self.names = [f"body{i}" for i in range(num_bodies)] if names is None else [str(n) for n in names]
         if len(self.names) != num_bodies:
             raise ValueError(f"names: {len(self.names)} names for {num_bodies} bodies")
-        repeated = sorted({n for n in self.names if self.names.count(n) > 1})
+        repeated = sorted(n for n, count in collections.Counter(self.names).items() if count > 1)
         if repeated:
             raise ValueError(f"names: {repeated[0]!r} names more than one body; contact_pairs could not tell them apart")
         static_flags = _static_flags(static, num_bodies)

@@ -1004,7 +1004,7 @@ class ImplicitSolver:
                     if joint_target_is_start:
                         adj_coords -= art.kp * lam_coords
                     state_in.joint_q.grad.assign(state_in.joint_q.grad.numpy() + adj_coords)
-                    if control is not None and control.joint_target is not None and control.joint_target.requires_grad:
+                    if not joint_target_is_start and control.joint_target.requires_grad:
                         control.joint_target.grad.assign(control.joint_target.grad.numpy() - art.kp * lam_coords)
 
         return backward, arrays, control_values
