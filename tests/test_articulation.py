@@ -561,6 +561,72 @@ def test_ball_joint_swing_never_crosses_its_cone_limit():
     assert max(model.articulation.anchor_gaps(s.body_q.numpy()).max() for s in states) < 1e-12
 
 
+def test_a_rod_whirling_along_its_cone_rim_takes_ordinary_newton_steps():
+    # The step bound charged all of the child axis's motion |w x a_c| against the room to the
+    # limit, also motion along the rim that opens no swing: at 12 rad/s Newton stalled (no
+    # convergence after 500 iterations at step 5).
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    rod = b.add_box((0.03, 0.03, 1.0), mass=1.0, pose=(0, 0, -0.52, 0, 0, 0, 1), name="rod")
+    b.add_joint("ball", child=rod, anchor=(0, 0, -0.02), axis=(0, 0, -1), cone_limit=0.4, name="b")
+    model = b.finalize()
+    art = model.articulation
+    dt, spin = 0.01, 12.0
+    tilted = art.retract(model.initial_q, np.array([0.35, 0.0, 0.0]))
+    state = model.state(requires_grad=False)
+    state.body_q.assign(tilted)
+    state.body_q_prev.assign(art.retract(tilted, np.array([0.0, 0.0, -spin * dt])))
+    solver = wc.ImplicitSolver(model)
+    swings, iterations = [], []
+    for _ in range(30):
+        nxt = model.state(requires_grad=False)
+        solver.step(state, nxt, None, dt)
+        state = nxt
+        iterations.append(solver.last_step.iterations)
+        swings.append(art._cone_angle(art.cones[0], state.body_q.numpy())[0])
+    assert max(swings) < 0.4 and max(swings) > 0.399  # on the rim, never past it
+    assert max(iterations) <= 40
+
+
+def test_hinge_angles_start_on_the_turn_inside_their_limits():
+    # Poses give angles in (-pi, pi]: a hinge posed at 3.5 rad read as -2.78 and was refused
+    # by its own limits (3, 4).
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    turn = wc.rotation.quat_from_rotation_vector(np.array([0.0, 3.5, 0.0]))
+    centre = wc.rotation.quat_rotate(turn, np.array([0.0, 0.0, -0.5]))
+    rod = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(*centre, *turn), name="rod")
+    b.add_joint("revolute", child=rod, parent_frame=(0, 0, 0, 0, 0, 0, 1), child_frame=(0, 0, 0.5, 0, 0, 0, 1), axis=(0, 1, 0), limits=[(3.0, 4.0)], name="h")
+    model = b.finalize()
+    art = model.articulation
+    assert art.initial_coordinates[0] == pytest.approx(3.5) and art.default_targets[0] == pytest.approx(3.5)
+    states, _ = simulate(model, model.state(requires_grad=False), 40, 0.01)  # gravity swings it away from upright, into its stop at 4
+    angles = [s.joint_q.numpy()[0] for s in states]
+    assert min(angles) > 3.49 and 3.9 < max(angles) < 4.0
+
+
+def test_a_joint_s_tolerance_is_its_own_bodies_size():
+    # The anchor tolerance was 1e-6 of the scene's largest body: a 2 km ground let a hinge
+    # whose anchors stood 1 mm apart load.
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    b.add_body((np.array([[-1e3, -1e3, 0], [1e3, -1e3, 0], [0, 1e3, 0.0]]), np.array([[0, 1, 2]])), static=True, name="ground")
+    rod = b.add_box((0.05, 0.05, 1.0), mass=1.0, pose=(0, 0, 1.5, 0, 0, 0, 1), name="rod")
+    b.add_joint("revolute", child=rod, parent_frame=(0, 0, 2.001, 0, 0, 0, 1), child_frame=(0, 0, 0.5, 0, 0, 0, 1), axis=(0, 1, 0), name="h")
+    with pytest.raises(ValueError, match="joint 'h' \\(world -> rod\\): joint anchors are 0.001 m apart"):
+        b.finalize()
+
+
+def test_bad_joint_options_are_named():
+    b, a, c = two_boxes()
+    for options, match in (
+        (dict(kind="base", child=a, dofs=("ry",), anchor=(0, 0, 0)), "a base joint moves its body along world axes through its centre of mass; anchor do not apply"),
+        (dict(kind="revolute", child=a, parent=True, anchor=(0, 0, 1.2), axis=(0, 1, 0)), "parent must be a body index in \\[0, 2\\) or None, got True"),
+        (dict(kind="revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), kp="10"), "kp must be numbers, got '10'"),
+        (dict(kind="revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), name=5), "name must be a string, got 5"),
+        (dict(kind="ball", child=a, anchor=(0, 0, 1.2), cone_limit=np.array([0.5, 0.6])), "cone_limit must be in \\(0, pi\\) rad"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            b.add_joint(**options)
+
+
 def test_bad_cone_limits_are_refused():
     b, a, c = two_boxes()
     with pytest.raises(ValueError, match="cone_limit only applies to ball joints"):

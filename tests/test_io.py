@@ -1343,6 +1343,61 @@ def test_d6_values_that_were_ignored_are_refused(tmp_path):
         io.load_scene(path).build_model()
 
 
+def _slider_stage(path, *, limits=(0.5, 1.5), target=1.2):
+    """_hanging_box_stage's box (z = 1 m) on a D6 joint from the world whose frames sit at
+    the world's origin and the box's: transZ free (limits, drive target in its UsdPhysics
+    coordinate, the frames' offset: 1 m at the start), every other axis locked."""
+    stage = _hanging_box_stage(path)
+    stage.GetPrimAtPath("/World/physicsScene").CreateAttribute("physics:gravityMagnitude", Sdf.ValueTypeNames.Float).Set(0.0)
+    joint = UsdPhysics.Joint.Define(stage, "/World/slider")
+    joint.CreateBody1Rel().SetTargets(["/World/box"])
+    joint.CreateLocalPos0Attr(Gf.Vec3f(0.0, 0.0, 0.0))
+    joint.CreateLocalPos1Attr(Gf.Vec3f(0.0, 0.0, 0.0))
+    for axis in ("transX", "transY", "rotX", "rotY", "rotZ"):
+        locked = UsdPhysics.LimitAPI.Apply(joint.GetPrim(), axis)
+        locked.CreateLowAttr(1.0)
+        locked.CreateHighAttr(-1.0)
+    limit = UsdPhysics.LimitAPI.Apply(joint.GetPrim(), "transZ")
+    limit.CreateLowAttr(limits[0])
+    limit.CreateHighAttr(limits[1])
+    drive = UsdPhysics.DriveAPI.Apply(joint.GetPrim(), "transZ")
+    drive.CreateStiffnessAttr(100.0)
+    drive.CreateDampingAttr(20.0)
+    drive.CreateTargetPositionAttr(target)
+    stage.GetRootLayer().Save()
+    return stage
+
+
+@pytest.mark.filterwarnings("ignore:contact_stiffness .* holds these bodies")
+def test_a_d6_base_joint_reads_its_limits_and_targets_from_where_its_frames_start(tmp_path):
+    # UsdPhysics' transZ starts at the frames' 1 m offset, a base coordinate at 0: limits
+    # (0.5, 1.5) refused the stage, and with (-1, 2) the drive to 1.2 settled the box at 2.2.
+    path = tmp_path / "slider.usda"
+    stage = _slider_stage(path)
+    model = io.load_scene(path).build_model()
+    art = model.articulation
+    np.testing.assert_allclose([art.lower[0], art.upper[0], art.default_targets[0]], [-0.5, 0.5, 0.2], atol=1e-6)
+    solver = wc.ImplicitSolver(model)
+    state = model.state(requires_grad=False)
+    for _ in range(150):
+        nxt = model.state(requires_grad=False)
+        solver.step(state, nxt, model.control(requires_grad=False), 0.02)
+        state = nxt
+    assert state.body_q.numpy()[0, 2] == pytest.approx(1.2, abs=0.01)  # still ringing down (2.2 before)
+    # A locked axis the start violates held the body where it was, not where the joint puts it.
+    stage.GetPrimAtPath("/World/slider").GetAttribute("physics:localPos0").Set(Gf.Vec3f(0.0, 0.3, 0.0))
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/slider: its locked transY axis starts -0.3 m apart"):
+        io.load_scene(path).build_model()
+
+
+def test_a_cone_limited_in_one_direction_is_refused(tmp_path):
+    # UsdPhysics: a negative cone angle leaves that direction free; the parser reports no limit,
+    # and the other direction's 30 degrees were dropped.
+    with pytest.raises(ValueError, match=r"a cone limited in one direction only \(coneAngle0Limit -1, coneAngle1Limit 30 degrees\)"):
+        io.load_scene(write_hinged_box(tmp_path / "cone.usda", cone=-1.0, cone1=30.0))
+
+
 def test_a_joint_far_from_the_origin_loads_despite_float32_anchors(tmp_path):
     """localPos is float32: a consistent joint at x = 13.7 m was refused, its anchors 1.9e-7 m
     apart against a tolerance of 1e-6 of the 0.1 m box."""

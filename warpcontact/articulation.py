@@ -66,7 +66,7 @@ BASE_DOFS = ("x", "y", "z", "rx", "ry", "rz")
 # for a swing limit's axis, and no coordinates; a base joint has its listed dofs.
 JOINT_AXES = {"revolute": 1, "prismatic": 1, "universal": 2}
 
-_ANCHOR_TOLERANCE = 1e-6  # m, relative to the scene's largest body radius
+_ANCHOR_TOLERANCE = 1e-6  # m, relative to the larger radius of a joint's two bodies
 _ANGLE_TOLERANCE = 1e-6  # rad
 
 
@@ -181,7 +181,7 @@ class ArticulationModel:
         body_names: names of all bodies.
         body_static: (nbodies,) booleans.
         body_poses: (nbodies, 7) initial centre-of-mass poses; joints must hold in them.
-        length_scale: the largest body radius (m), for the anchor tolerance.
+        body_radius: (nbodies,) body radii (m); a joint's anchor tolerance is 1e-6 of its two bodies' larger one.
 
     Attributes:
         num_dofs: m, the number of reduced coordinates.
@@ -198,7 +198,7 @@ class ArticulationModel:
             when any ball gain is non-zero.
     """
 
-    def __init__(self, joints: list[Joint], *, body_names, body_static, body_poses, length_scale: float):
+    def __init__(self, joints: list[Joint], *, body_names, body_static, body_poses, body_radius):
         n = len(body_names)
         self.num_bodies = n
         self.body_names = list(body_names)
@@ -225,10 +225,15 @@ class ArticulationModel:
         kind, axis_body, axis_local, point_local, owner, group, coord = [], [], [], [], [], [], []
         names, q0, targets, kp, kd, lower, upper, margin, stiffness = [], [], [], [], [], [], [], [], []
         self.joint_dofs = []
-        tol = self._anchor_tolerance = _ANCHOR_TOLERANCE * max(length_scale, 1e-300)
-        for joint in self.joints:
+        # A joint is held to its own bodies' size: with the scene's largest (a 2 km ground) a
+        # hinge whose anchors stood 1 mm apart was accepted.
+        radius = np.asarray(body_radius, dtype=np.float64)
+        self._anchor_tolerance = [_ANCHOR_TOLERANCE * max(radius[joint.child], radius[joint.parent] if joint.parent >= 0 else 0.0, 1e-300) for joint in self.joints]
+        for j, joint in enumerate(self.joints):
             first = len(kind)
-            values = self._initial_coordinates(joint, poses, tol)
+            values = self._initial_coordinates(joint, poses, self._anchor_tolerance[j])
+            if joint.kind in ("revolute", "universal"):
+                values = _angles_within(values, joint.lower, joint.upper)
             dofs = self._joint_dofs(joint, poses)
             coordinate = 0
             for dof_kind, body, axis, point, group_id in dofs:
@@ -378,7 +383,7 @@ class ArticulationModel:
             if joint.kind in ("free", "base"):
                 continue
             try:
-                values = self._initial_coordinates(joint, poses, self._anchor_tolerance, "state_in.body_q")
+                values = self._initial_coordinates(joint, poses, self._anchor_tolerance[j], "state_in.body_q")
             except ValueError as exc:
                 return str(exc)
             if joint.kind == "ball":
@@ -386,7 +391,7 @@ class ArticulationModel:
             owned = self.dof_coordinate[self.joint_dofs[j]]
             given = coordinates[owned[owned >= 0]]
             if joint.kind == "prismatic":
-                agree = abs(float(given[0] - values[0])) <= self._anchor_tolerance
+                agree = abs(float(given[0] - values[0])) <= self._anchor_tolerance[j]
             else:
                 agree = _rotation_gap(_joint_rotation(joint, given), _joint_rotation(joint, values)) <= _ANGLE_TOLERANCE
             if not agree:
@@ -448,18 +453,35 @@ class ArticulationModel:
         return value, grad, hess
 
     def cone_step_limit(self, poses: np.ndarray, direction: np.ndarray, fraction: float) -> float:
-        """Largest step fraction whose rotation closes at most ``fraction`` of any swing's room
-        to its cone limit. Turning by w moves the child's axis a_c through at most |w x a_c|
-        (sin(phi/2) = sin(|w|/2) sin(angle(w, a_c))), so twist about a_c costs nothing."""
+        """Largest step fraction whose rotation opens no swing by more than ``fraction`` of its
+        room to its cone limit, anywhere along the turn.
+
+        Turning by alpha w carries the child's axis a_c round a circle about w, on which
+        a_p . a_c = A + B cos(theta) + C sin(theta), theta = alpha |w|; the bound is the first
+        theta at which that cosine falls to the allowed swing's (exact, so twist about a_c
+        and motion along the cone's rim cost nothing: bounding a_c's whole motion |w x a_c|
+        held a rod whirling on the rim to ~1e-3 of its Newton steps, and Newton stalled)."""
         alpha = 1.0
         for cone in self.cones:
-            swing, _, a_c = self._cone_angle(cone, poses)
+            swing, a_p, a_c = self._cone_angle(cone, poses)
             w = direction[cone["dofs"]]
-            turn = float(np.linalg.norm(np.cross(w, a_c)))
-            if turn > 0:
-                # the bound holds for rotations up to pi
-                alpha = min(alpha, np.pi / float(np.linalg.norm(w)))
-                alpha = min(alpha, fraction * (cone["limit"] - swing) / turn)
+            speed = float(np.linalg.norm(w))
+            if speed == 0.0:
+                continue
+            axis = w / speed
+            centre = (axis @ a_c) * axis
+            radial = a_c - centre
+            A, B, C = float(a_p @ centre), float(a_p @ radial), float(a_p @ np.cross(axis, a_c))
+            allowed = np.cos(swing + fraction * (cone["limit"] - swing))
+            amplitude = float(np.hypot(B, C))
+            if amplitude == 0.0 or allowed - A <= -amplitude:
+                continue  # the swing never reaches the allowed one on this circle
+            # A + amplitude cos(theta - phi) = allowed at theta = phi +- gamma (mod 2 pi); the
+            # first positive one (the start, theta = 0, lies inside the allowed arc).
+            phi = float(np.arctan2(C, B))
+            gamma = float(np.arccos(min(1.0, (allowed - A) / amplitude)))
+            theta = min((phi + sign * gamma) % (2.0 * np.pi) for sign in (1.0, -1.0))
+            alpha = min(alpha, theta / speed)
         return alpha
 
     # --- ball-joint drives ------------------------------------------------------------------
@@ -690,6 +712,27 @@ class ArticulationModel:
             coords = self.dof_coordinate[self.joint_dofs[j]]
             out[coords] = self._initial_coordinates(joint, poses, np.inf)
         return out
+
+
+def _angles_within(angles: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """``angles`` (in (-pi, pi], as poses give them) moved by whole turns strictly inside
+    (lower, upper) where a turn of them lies there: poses tell an angle only modulo 2 pi, and
+    a hinge posed at 3.5 rad within limits (3, 4) read as -2.78 was refused, and with limits
+    (-4, 4) it swung through its 4 rad stop."""
+    out = np.array(angles, dtype=np.float64)
+    turn = 2.0 * np.pi
+    for i, (angle, low, high) in enumerate(zip(out, lower, upper, strict=True)):
+        if low < angle < high:
+            continue
+        if np.isfinite(low):
+            candidate = angle + turn * np.ceil((low - angle) / turn)
+            candidate += turn if candidate <= low else 0.0
+        else:
+            candidate = angle - turn * np.ceil((angle - high) / turn)
+            candidate -= turn if candidate >= high else 0.0
+        if low < candidate < high:
+            out[i] = candidate
+    return out
 
 
 def frame_in_body(body_pose: np.ndarray, world_frame: np.ndarray) -> np.ndarray:

@@ -57,7 +57,10 @@ _IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 
 
 def _per_coordinate(value, count: int, label: str, where: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
+    raw = np.asarray(value)
+    if raw.dtype.kind not in "iuf":  # a text "10" converted silently
+        raise ValueError(f"{where}: {label} must be numbers, got {value!r}")
+    arr = raw.astype(np.float64)
     try:
         arr = np.broadcast_to(arr, (count,)).copy()
     except ValueError:
@@ -340,14 +343,16 @@ class ModelBuilder:
                 ``joint_target`` (a USD drive's targetPosition); default, or NaN for a
                 coordinate: the initial coordinates.
         """
+        if name is not None and not isinstance(name, str):
+            raise ValueError(f"joint {len(self._joints)}: name must be a string, got {name!r}")
         name = name or f"joint{len(self._joints)}"
         where = f"joint {name!r}"
         if kind not in JOINT_KINDS:
             raise ValueError(f"{where}: unknown joint type {kind!r}; supported: {JOINT_KINDS}")
         n = len(self._bodies)
-        if not isinstance(child, (int, np.integer)) or not 0 <= child < n:
+        if not is_whole(child) or not 0 <= child < n:
             raise ValueError(f"{where}: child must be a body index in [0, {n}), got {child!r}")
-        if parent is not None and (not isinstance(parent, (int, np.integer)) or not 0 <= parent < n):
+        if parent is not None and (not is_whole(parent) or not 0 <= parent < n):
             raise ValueError(f"{where}: parent must be a body index in [0, {n}) or None, got {parent!r}")
         if parent == child:
             raise ValueError(f"{where}: parent and child are the same body {self._bodies[child].name!r}")
@@ -356,7 +361,7 @@ class ModelBuilder:
             raise ValueError(f"{where}: child body {child_body.name!r} is static; a joint needs a dynamic child")
         if any(j.child == child for j in self._joints):
             other = next(j.name for j in self._joints if j.child == child)
-            raise ValueError(f"{where}: body {child_body.name!r} already has parent joint {other!r}; articulations must be trees (kinematic loops are not supported)")
+            raise ValueError(f"{where}: body {child_body.name!r} already has parent joint {other!r}; articulations must be trees, each body the child of one joint (kinematic loops are not supported; in USD a joint's body1 is its child)")
         parent_pose = _IDENTITY_POSE
         parent_index = -1
         if parent is not None:
@@ -367,6 +372,10 @@ class ModelBuilder:
         if kind == "base":
             if parent_index >= 0:
                 raise ValueError(f"{where}: a base joint connects a body to the world (parent None)")
+            given = [label for label, value in (("anchor", anchor), ("axis", axis), ("parent_frame", parent_frame), ("child_frame", child_frame)) if value is not None]
+            if given:
+                # They were ignored: a base with dofs ("ry",) and an anchor turned about its centre.
+                raise ValueError(f"{where}: a base joint moves its body along world axes through its centre of mass; {', '.join(given)} do not apply to it")
             dofs = tuple(dofs or ())
             unknown = [d for d in dofs if d not in BASE_DOFS]
             if unknown or len(set(dofs)) != len(dofs) or not dofs:
@@ -422,7 +431,7 @@ class ModelBuilder:
         if cone_limit is not None:
             if kind != "ball":
                 raise ValueError(f"{where}: cone_limit only applies to ball joints")
-            if not 0.0 < float(cone_limit) < np.pi:
+            if not (is_real(cone_limit) and 0.0 < cone_limit < np.pi):
                 raise ValueError(f"{where}: cone_limit must be in (0, pi) rad, got {cone_limit!r}")
             probe.cone_limit = float(cone_limit)
         if kind == "ball":
@@ -525,7 +534,7 @@ class ModelBuilder:
         initial_q = np.array([b.pose for b in bodies])
         body_radius = np.array([np.linalg.norm(b.vertices, axis=1).max() for b in bodies])
         self._warn_floating_bodies(body_radius)
-        articulation = ArticulationModel(self._joints, body_names=names, body_static=static, body_poses=initial_q, length_scale=float(body_radius.max()))
+        articulation = ArticulationModel(self._joints, body_names=names, body_static=static, body_poses=initial_q, body_radius=body_radius)
         exclude = self._excluded_pairs()
         if self.contact_mode == "ipc":
             from .ipc import IpcContactModel

@@ -91,7 +91,7 @@ from .builder import MODEL_CONTACT_MODES, ModelBuilder, contact_setting_problem
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
 from .leaf import LEAF_PRECISIONS
-from .rotation import pose_mul, quat_from_matrix, quat_rotate, quat_to_matrix
+from .rotation import pose_mul, quat_conjugate, quat_from_matrix, quat_mul, quat_rotate, quat_to_matrix, rotation_vector_from_quat
 
 __all__ = [
     "BodySpec",
@@ -270,10 +270,19 @@ class Scene:
                 options["cone_limit"] = j.cone_limit
             if len(j.kp):
                 options.update(kp=j.kp, kd=j.kd)
-            if j.targets is not None:
-                options["target"] = j.targets
+            limits, targets = j.limits, j.targets
+            if j.kind == "base":
+                try:
+                    start = _base_start_coordinates(j, self.bodies[index[j.child]].pose)
+                except ValueError as exc:
+                    raise ValueError(f"{self.source or '<scene>'}: prim {j.path}: {exc}") from None
+                # A base's coordinates start at 0; UsdPhysics' start where its frames put the body.
+                limits = None if limits is None else [(low - v, high - v) for (low, high), v in zip(limits, start, strict=True)]
+                targets = None if targets is None else targets - start
+            if targets is not None:
+                options["target"] = targets
             try:
-                builder.add_joint(j.kind, child=index[j.child], parent=index[j.parent] if j.parent is not None else None, limits=j.limits, name=j.name, **options)
+                builder.add_joint(j.kind, child=index[j.child], parent=index[j.parent] if j.parent is not None else None, limits=limits, name=j.name, **options)
             except ValueError as exc:
                 raise ValueError(f"{self.source or '<scene>'}: prim {j.path}: {exc}") from None
         try:
@@ -1016,6 +1025,10 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
                 if any(np.isnan(angles)) or (len(angles) == 2 and (np.isfinite(angles[0]) != np.isfinite(angles[1]))):
                     # The parser drops such a limit: it loaded as no limit at all.
                     raise ValueError(f"{where}: cone limits must be numbers, both finite for a cone or both infinite for none, got {angles}")
+                if len(angles) == 2 and sum(a < 0.0 for a in angles) == 1 and max(angles) < 180.0:
+                    # UsdPhysics: a negative angle leaves that direction free; the parser then
+                    # reports no limit, and the other direction's limit was dropped.
+                    raise ValueError(f"{where}: a cone limited in one direction only (coneAngle0Limit {angles[0]:g}, coneAngle1Limit {angles[1]:g} degrees) is not supported; give both cone angles the same value")
                 if desc.limit.enabled and min(abs(desc.limit.lower), abs(desc.limit.upper)) < 180.0:
                     # coneAngle0Limit / coneAngle1Limit: only a circular cone is modelled
                     if abs(desc.limit.lower - desc.limit.upper) > 1e-6:
@@ -1119,6 +1132,33 @@ def _drive_target(prim, token: str, drive, scale: float, where: str) -> float | 
     if not np.isfinite(drive.targetPosition):
         raise ValueError(f"{where}: drive:{token}:physics:targetPosition must be finite, got {drive.targetPosition}")
     return drive.targetPosition * scale
+
+
+def _base_start_coordinates(j: JointSpec, child_pose: np.ndarray) -> np.ndarray:
+    """A base joint's UsdPhysics D6 coordinates at the start (m, rad; one per coordinate):
+    its child frame's offset from its world-aligned parent frame along each free
+    translation, and its turn about a free rotation axis. Limits and drive targets are
+    authored in those coordinates, while a base's own start at 0. ValueError naming the axis
+    for a locked axis the start violates (the body would be held where it is, not where the
+    joint puts it), and for two free rotations that start turned (their angles would follow
+    UsdPhysics' decomposition, which a base does not)."""
+    child = pose_mul(child_pose, j.child_frame)
+    offset = child[:3] - j.parent_frame[:3]
+    turn = rotation_vector_from_quat(quat_mul(quat_conjugate(j.parent_frame[3:]), child[3:]))
+    length_tol = 1e-5 * max(1.0, float(np.linalg.norm(j.parent_frame[:3])))
+    rotations = [d for d in j.dofs if d.startswith("r")]
+    for k, axis in enumerate("xyz"):
+        if axis not in j.dofs and abs(offset[k]) > length_tol:
+            raise ValueError(
+                f"its locked trans{axis.upper()} axis starts {offset[k]:.6g} m apart (the frames of body0 and body1 disagree in the initial pose); "
+                "move the body to where the joint holds it, or free that axis"
+            )
+        if len(rotations) < 3 and f"r{axis}" not in rotations and abs(turn[k]) > 1e-5:
+            raise ValueError(f"its locked rot{axis.upper()} axis starts turned by {np.degrees(turn[k]):.6g} degrees; turn the body to where the joint holds it, or free that axis")
+    if len(rotations) == 2 and np.linalg.norm(turn) > 1e-5:
+        raise ValueError(f"its two free rotations start turned by {np.degrees(np.linalg.norm(turn)):.6g} degrees; author its frames so that they agree in the initial pose")
+    coordinates = [d for d in j.dofs if not (len(rotations) == 3 and d.startswith("r"))]
+    return np.array([offset["xyz".index(d)] if not d.startswith("r") else turn["xyz".index(d[1])] for d in coordinates])
 
 
 def _read_d6(desc, spec: JointSpec, where: str, units: _Units, prim):

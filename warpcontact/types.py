@@ -32,7 +32,9 @@ class State:
     coordinates now and one step earlier, (ncoordinates,) float64 each (rad or m).
 
     The velocities are the two poses' difference over the time step, which the State does
-    not store: a step of another dt than the last scales them (``set_body_velocity``)."""
+    not store: a step of another dt than the last scales them (``set_body_velocity``).
+    ``joint_q_prev`` is the step's record of the previous coordinates: written, not read
+    (joint velocities come from ``body_q_prev``)."""
 
     body_q: wp.array
     body_q_prev: wp.array
