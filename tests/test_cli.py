@@ -228,6 +228,14 @@ def test_simulate_reads_a_usdz_package(tmp_path):
     assert (tmp_path / "out" / "trajectory.usda").is_file()
 
 
+def test_scene_names_are_read_whatever_the_case_of_their_suffix(tmp_path):
+    # pxr opens "BALL.USDA"; the CLI refused it as "not a .usda file and not a shipped scene".
+    if not SCENES.is_dir():
+        pytest.skip("scenes/ not found next to tests/")
+    (tmp_path / "PUSH.USDA").write_text((SCENES / "push.usda").read_text())
+    assert main(["simulate", str(tmp_path / "PUSH.USDA"), "--frames", "1", "--out", str(tmp_path / "out")]) == 0
+
+
 def test_simulate_writes_the_frames_before_a_failed_step(tmp_path, capsys, monkeypatch):
     """A step that fails (here the third) ends the simulation with its earlier frames written
     and the failure named in summary.json and on stderr, exit status 1."""

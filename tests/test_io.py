@@ -156,6 +156,46 @@ def test_an_authored_centre_of_mass_and_inertia_count_with_a_mass_from_density(t
     np.testing.assert_allclose(io.model_to_scene_poses(scene, model, q)[0, 1], scene.body("box").pose, atol=1e-12)
 
 
+def test_trajectory_export_authors_its_first_frame_as_the_default_and_keeps_the_up_axis(tmp_path):
+    # Only time samples were written: read without a time, every moving body sat at the
+    # origin; and a Y-up scene's trajectory was labelled Z-up (lying on its side in usdview).
+    scene = io.load_scene(write_physics_scene(tmp_path / "a.usda"))
+    model, q = simulate(scene, 3)
+    poses = io.model_to_scene_poses(scene, model, q)
+    scene.up_axis = "Y"
+    io.export_trajectory(scene, poses, tmp_path / "traj.usda")
+    stage = Usd.Stage.Open(str(tmp_path / "traj.usda"))
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y
+    translate = UsdGeom.Xformable(stage.GetPrimAtPath("/World/box")).GetOrderedXformOps()[0]
+    np.testing.assert_allclose(translate.Get(Usd.TimeCode.Default()), poses[0, 1, :3])
+    np.testing.assert_allclose(translate.Get(3), poses[3, 1, :3])
+    io.save_scene(scene, tmp_path / "saved.usda")
+    assert io.load_scene(tmp_path / "saved.usda").up_axis == "Y"
+
+
+def test_concave_polygons_are_ear_clipped_and_self_intersecting_ones_refused(tmp_path):
+    # A fan over an L-shaped face covered its notch: a box over the notch came to rest on it.
+    stage = _hanging_box_stage(tmp_path / "l.usda")
+    ground = UsdGeom.Mesh.Define(stage, "/World/ground")
+    ground.CreatePointsAttr([(0, 0, 0), (2, 0, 0), (2, 1, 0), (1, 1, 0), (1, 2, 0), (0, 2, 0)])
+    ground.CreateFaceVertexCountsAttr([6])
+    ground.CreateFaceVertexIndicesAttr([0, 1, 2, 3, 4, 5])
+    UsdPhysics.CollisionAPI.Apply(ground.GetPrim())
+    stage.GetRootLayer().Save()
+    body = io.load_scene(tmp_path / "l.usda").body("ground")
+    tri = body.vertices[body.faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    assert (cross[:, 2] > 0).all()  # the face's winding kept
+    assert 0.5 * cross[:, 2].sum() == pytest.approx(3.0)  # the L's area, not the fan's 3.5
+    bow = [(0, 0, 0), (2, 0, 0), (2, 2, 0), (1, -1, 0), (0, 2, 0)]  # its edges cross
+    ground.GetPointsAttr().Set(bow)
+    ground.GetFaceVertexCountsAttr().Set([5])
+    ground.GetFaceVertexIndicesAttr().Set([0, 1, 2, 3, 4])
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match="prim /World/ground: face 0 \\(5 vertices\\) is a self-intersecting polygon"):
+        io.load_scene(tmp_path / "l.usda")
+
+
 def test_trajectory_export_opens_with_time_samples(tmp_path):
     scene = io.load_scene(write_physics_scene(tmp_path / "a.usda"))
     scene.body("box").target_position = np.array([1.0, 0.0, 0.25])
@@ -250,8 +290,26 @@ def test_non_finite_points_missing_files_and_empty_stages(tmp_path):
     stage = Usd.Stage.CreateNew(str(tmp_path / "empty.usda"))
     UsdGeom.Xform.Define(stage, "/World")
     stage.GetRootLayer().Save()
-    with pytest.raises(ValueError, match="no dynamic rigid bodies"):
+    with pytest.warns(UserWarning, match="metersPerUnit is not authored"), pytest.raises(ValueError, match="no dynamic rigid bodies"):
         io.load_scene(tmp_path / "empty.usda")
+
+
+def test_a_scene_without_metersperunit_is_warned_about_and_a_tolerance_without_a_target_refused(tmp_path):
+    # USD's fallback unit is the centimetre: a hand-written scene in metres that left it out
+    # became 100 times smaller, silently.
+    path = write_physics_scene(tmp_path / "a.usda")
+    stage = Usd.Stage.Open(str(path))
+    stage.ClearMetadata("metersPerUnit")
+    stage.GetRootLayer().Save()
+    with pytest.warns(UserWarning, match="a.usda: metersPerUnit is not authored, so USD's fallback of 0.01"):
+        io.load_scene(path)
+    # A tolerance without a position was ignored: the body was no target, with no message.
+    path = write_physics_scene(tmp_path / "b.usda")
+    stage = Usd.Stage.Open(str(path))
+    stage.GetPrimAtPath("/World/box").CreateAttribute("warpcontact:target:tolerance", Sdf.ValueTypeNames.Double).Set(0.1)
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match="prim /World/box: warpcontact:target:tolerance is authored without a warpcontact:target:position"):
+        io.load_scene(path)
 
 
 def _author(path, edit):

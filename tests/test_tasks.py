@@ -365,7 +365,7 @@ def test_cli_compare_writes_json_and_plot(tmp_path, capsys):
     assert main(["compare", str(scene_path), "--models", "ours,sdrs,gb", "--iters", "2", "--quick", "--seed", "3", "--out", str(out)]) == 0
     data = json.loads((out / "compare.json").read_text())
     assert list(data["models"]) == ["ours", "sdrs", "gb"]
-    assert data["task"] == "space_billiards" and data["seed"] == 3 and data["iterations"] == 2
+    assert data["task"] == "space_billiards" and data["seed"] == 3 and data["iterations_per_window"] == 2
     for result in data["models"].values():
         for key in ("loss_history", "initial_loss", "final_loss", "success", "seconds"):
             assert key in result
@@ -403,6 +403,37 @@ def test_cli_compare_runs_baselines_with_friction_and_reports_models_that_cannot
     assert "sdrs: skipped" in capsys.readouterr().err
     assert main(["compare", str(scene_path), "--models", "sdrs", "--iters", "1", "--out", str(tmp_path / "c2")]) == 1
     assert "no model could run" in capsys.readouterr().err
+
+
+def test_cli_compare_interrupted_keeps_and_plots_the_finished_models(tmp_path, capsys, monkeypatch):
+    # Ctrl-C during compare ended in a traceback with no plot and no message.
+    from warpcontact.tasks import TaskProblem
+
+    scene_path = tmp_path / "space.usda"
+    io.save_scene(space_billiards(), scene_path)
+    optimize = TaskProblem.optimize
+    calls = []
+
+    def interrupted_second(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return optimize(self, *args, **kwargs)
+
+    monkeypatch.setattr(TaskProblem, "optimize", interrupted_second)
+    out = tmp_path / "cmp"
+    assert main(["compare", str(scene_path), "--models", "ours,sdrs,gb", "--iters", "1", "--out", str(out)]) == 130
+    assert list(json.loads((out / "compare.json").read_text())["models"]) == ["ours"]
+    assert (out / "compare.png").is_file()
+    assert "interrupted during sdrs: the models before it are in" in capsys.readouterr().err
+
+
+def test_a_partial_quick_preset_says_what_a_preset_is(tmp_path):
+    # The error named quick:iterations, which the scene never authored.
+    scene = space_billiards()
+    scene.task.quick_horizon = 3
+    with pytest.raises(ValueError, match=r"warpcontact:task:quick:iterations must be .* \(a --quick preset is warpcontact:task:quick:horizon, recedingHorizon"):
+        TaskSettings.from_task(scene, quick=True)
 
 
 def test_cli_compare_skips_ipc_without_ipctk_and_keeps_the_other_models(tmp_path, capsys, monkeypatch):

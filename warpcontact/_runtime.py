@@ -168,9 +168,11 @@ def paused_tape():
 
     runtime = getattr(context, "runtime", None)
     tape = getattr(runtime, "tape", None)
-    if tape is not None:
-        runtime.tape = None
     try:
+        # Inside the try: a Ctrl-C right after it must still give the tape back (Warp then
+        # raised "ended tape capture, but tape not present" over the interrupt).
+        if tape is not None:
+            runtime.tape = None
         yield tape
     finally:
         if tape is not None:

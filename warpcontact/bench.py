@@ -453,7 +453,7 @@ def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path =
 
         with path.open("rb") as f:
             return pickle.load(f)
-    if path.suffix in io.USD_READ_SUFFIXES:
+    if path.suffix.lower() in io.USD_READ_SUFFIXES:
         return io.load_scene(path)
     if spec.startswith("peer_billiards_"):
         triangles = int(spec.rsplit("_", 1)[1])

@@ -134,7 +134,7 @@ def _resolve_scene_path(name: str) -> Path:
     from . import io
 
     path = Path(name)
-    if path.suffix in io.USD_READ_SUFFIXES:
+    if path.suffix.lower() in io.USD_READ_SUFFIXES:
         return path
     from .scenes import SCENE_NAMES, shipped_scene
 
@@ -229,6 +229,8 @@ def _settings_metrics(settings, args, models) -> dict:
         "receding_horizon": settings.receding_horizon,
         "receding_stride": settings.receding_stride,
         "learning_rate": settings.learning_rate,
+        # The Adam iterations asked for per window; "iterations" counts those run.
+        "iterations_per_window": settings.iterations,
         **({"ipc_stiffness": args.ipc_stiffness} if "ipc" in models else {}),
     }
 
@@ -317,10 +319,10 @@ def _compare(args) -> int:
         "quick": bool(args.quick),
         "init_samples": settings.initial_samples,
         "frictionless": bool(args.frictionless),
-        "iterations": settings.iterations,
         **_settings_metrics(settings, args, args.models),
         "models": results,
     }
+    interrupted = None
     for model in args.models:
         # A model that cannot run this scene (ipc off the CPU or without ipctk, a failed step
         # at the initial guess) is reported and the others still run.
@@ -328,6 +330,10 @@ def _compare(args) -> int:
             problem = _task_problem(scene, settings, model, args)
             payload["device"] = str(problem.model.device)
             result = problem.optimize(progress=_progress(f"{model:>5} "))
+        except KeyboardInterrupt:
+            # Stopped by hand: the finished models are still plotted and tabled.
+            interrupted = model
+            break
         except (ValueError, SolverError) as exc:
             print(f"\n{model}: skipped: {exc}", file=sys.stderr)
             results[model] = {"error": str(exc)}
@@ -346,6 +352,9 @@ def _compare(args) -> int:
             stopped = f"  stopped at frame {r['stopped']['frame']} (see compare.json)" if "stopped" in r else ""
             print(f"{model:>6} {r['initial_loss']:13.6g} {r['final_loss']:13.6g} {r['success']!s:>8} {r['seconds']:8.1f}{stopped}")
     print(f"wrote {out}/compare.json, {_plot_name('compare.png', plotted)}")
+    if interrupted is not None:
+        print(f"\ninterrupted during {interrupted}: the models before it are in {out}/compare.json", file=sys.stderr)
+        return 130
     if not ran:
         print("error: no model could run this scene", file=sys.stderr)
         return 1
@@ -379,12 +388,20 @@ def _plot_convergence(histories: dict, path: Path, *, title: str) -> bool:
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
     # Stalled baselines share one flat line; distinct dashes and markers keep each visible.
     styles = [("-", "o"), ("--", "s"), ("-.", "^"), (":", "x")]
+    longest = 0
     for index, (label, history) in enumerate(histories.items()):
         loss = np.asarray(history, dtype=np.float64)
+        longest = max(longest, len(loss))
         reached = bool(len(loss)) and loss.min() == 0.0
         dash, marker = styles[index % len(styles)]
         ax.plot(np.arange(1, len(loss) + 1), np.where(loss > 0, loss, np.nan), linestyle=dash, marker=marker, markersize=4, label=f"{label} (reached 0)" if reached else label)
-    ax.set_yscale("log")
+    if any((np.asarray(h, dtype=np.float64) > 0).any() for h in histories.values()):
+        ax.set_yscale("log")
+    else:
+        # Every loss 0 (the targets met from the start): an empty log axis told nothing.
+        ax.text(0.5, 0.5, "loss 0 at every iteration", transform=ax.transAxes, ha="center", va="center")
+    if longest:
+        ax.set_xlim(0.5, longest + 0.5)
     ax.set_xlabel("optimiser iteration")
     ax.set_ylabel("loss")
     ax.set_title(title)

@@ -26,7 +26,7 @@ warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``Body
             ``--init-samples`` draws initial-state controls from)
     on a rigid-body prim
         warpcontact:target:position (double3)     warpcontact:target:tolerance (double)
-            (stage units, like the prim's own transform)
+            (stage units, in the stage's world frame, whatever transforms the prim's parents carry)
         warpcontact:pd:kpLinear (double3)         warpcontact:pd:kdLinear (double3)
         warpcontact:pd:kpAngular (double)         warpcontact:pd:kdAngular (double)
         warpcontact:control:dofs (string[]: the optimised DOFs, each once: x y z rx ry rz
@@ -40,7 +40,7 @@ Primitive colliders are triangulated: Cube exactly (12 triangles), Sphere as an 
 with ``SPHERE_SUBDIVISIONS`` = 2 (320 triangles), Capsule and Cylinder with 32 segments; use
 Mesh prims to control resolution; Cone with 32 segments; Capsule_1 and Cylinder_1 (two end
 radii) as the hull of their end spheres or rings. A static Plane (infinite) becomes a square of
-``PLANE_SIZE_FACTOR`` times the other bodies' extent, centred under them. Polygons are fan-triangulated (exact for convex ones).
+``PLANE_SIZE_FACTOR`` times the other bodies' extent, centred under them. Polygons are fan-triangulated where convex and ear-clipped where not; self-intersecting ones are refused.
 Kinematic or disabled rigid bodies load as static bodies (an animated kinematic body is an
 error). Scales anywhere above a collider
 apply as USD composes them; a rigid body's frame is its prim's with the scale removed (the
@@ -213,6 +213,9 @@ class Scene:
     task: TaskSpec = field(default_factory=TaskSpec)
     source: str = ""
     joints: list = field(default_factory=list)
+    # The stage's up axis, "Z" or "Y": poses and gravity are in its frame, and the files this
+    # scene is saved or exported to say so (a Y-up scene's trajectory was labelled Z-up).
+    up_axis: str = "Z"
 
     def body(self, name: str) -> BodySpec:
         for b in self.bodies:
@@ -336,6 +339,68 @@ def _attr(prim, name, default=None):
     return default
 
 
+def _polygon_triangles(corners: np.ndarray) -> list | None:
+    """Triangles (index triples into ``corners``, (n, 3) points in order) covering a polygon:
+    a fan where the polygon is convex (the common case; exact there), else ear clipping in
+    its plane (a fan over an L-shaped face covered its notch with a floor); None for a
+    self-intersecting polygon."""
+    n = len(corners)
+    fan = [(0, k, k + 1) for k in range(1, n - 1)]
+    if n == 3:
+        return fan
+    # Newell's normal, and the polygon in two coordinates of its plane.
+    normal = np.sum(np.cross(corners, np.roll(corners, -1, axis=0)), axis=0)
+    if not np.linalg.norm(normal) > 0:
+        return fan  # degenerate (collinear): any split is as good
+    drop = int(np.argmax(np.abs(normal)))
+    # The other two axes in cyclic order keep the polygon counter-clockwise about +normal[drop].
+    flat = corners[:, [(drop + 1) % 3, (drop + 2) % 3]].copy()
+    if normal[drop] < 0:
+        flat[:, 1] *= -1.0
+    edges = np.roll(flat, -1, axis=0) - flat
+    turns = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+    scale = float(np.abs(turns).max())
+    if (turns >= -1e-12 * scale).all():
+        return fan
+
+    def cross(o, a, b):
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    # Ear clipping needs a simple polygon: no two edges that do not share a corner may meet.
+    for a in range(n):
+        for b in range(a + 2, n):
+            if (b + 1) % n == a:
+                continue
+            p, q, r, t = flat[a], flat[(a + 1) % n], flat[b], flat[(b + 1) % n]
+            d1, d2, d3, d4 = cross(p, q, r), cross(p, q, t), cross(r, t, p), cross(r, t, q)
+            if d1 == d2 == 0.0:  # collinear: they meet only where their extents overlap
+                axis = int(np.argmax(np.abs(q - p)))
+                if max(p[axis], q[axis]) >= min(r[axis], t[axis]) and max(r[axis], t[axis]) >= min(p[axis], q[axis]):
+                    return None
+            elif d1 * d2 <= 0.0 and d3 * d4 <= 0.0:
+                return None
+    remaining = list(range(n))
+    triangles = []
+    while len(remaining) > 3:
+        for k in range(len(remaining)):
+            i, j, m = remaining[k - 1], remaining[k], remaining[(k + 1) % len(remaining)]
+            if cross(flat[i], flat[j], flat[m]) <= 0.0:
+                continue  # a reflex (or straight) corner is no ear
+            inside = any(
+                cross(flat[i], flat[j], flat[r]) >= 0.0 and cross(flat[j], flat[m], flat[r]) >= 0.0 and cross(flat[m], flat[i], flat[r]) >= 0.0
+                for r in remaining
+                if r not in (i, j, m)
+            )
+            if not inside:
+                triangles.append((i, j, m))
+                remaining.pop(k)
+                break
+        else:
+            return None
+    triangles.append(tuple(remaining))
+    return triangles
+
+
 def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
     mesh = UsdGeom.Mesh(prim)
     points = np.asarray(mesh.GetPointsAttr().Get() or [], dtype=np.float64).reshape(-1, 3)
@@ -359,9 +424,10 @@ def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
         start += n
         if f in holes:
             continue
-        # Fan triangulation: exact for convex polygons, the common case for authored meshes.
-        for k in range(1, n - 1):
-            faces.append((poly[0], poly[k], poly[k + 1]))
+        corners = _polygon_triangles(points[poly])
+        if corners is None:
+            raise ValueError(f"{where}: face {f} ({n} vertices) is a self-intersecting polygon, which has no triangulation; split it into simple polygons")
+        faces.extend(tuple(poly[list(c)]) for c in corners)
     if not faces:
         raise ValueError(f"{where}: every face is a hole (holeIndices)")
     faces = np.asarray(faces, dtype=np.int64)
@@ -659,7 +725,10 @@ def load_scene(path) -> Scene:
         listed = "; ".join(str(error).strip() for error in composition_errors[:3])
         more = f" (and {len(composition_errors) - 3} more)" if len(composition_errors) > 3 else ""
         raise ValueError(f"{source}: the stage does not compose: {listed}{more}")
-    # Unauthored, USD's fallback applies: 0.01 (centimetres).
+    # Unauthored, USD's fallback applies: 0.01 (centimetres). A hand-written scene in metres
+    # that leaves it out becomes a scene 100 times smaller, silently but for this warning.
+    if not stage.HasAuthoredMetadata("metersPerUnit"):
+        warnings.warn(f"{source}: metersPerUnit is not authored, so USD's fallback of 0.01 (centimetres) applies; author metersPerUnit = 1 for a scene in metres", stacklevel=2)
     meters = float(UsdGeom.GetStageMetersPerUnit(stage))
     if not (np.isfinite(meters) and meters > 0):
         raise ValueError(f"{source}: metersPerUnit must be positive and finite, got {meters}")
@@ -848,7 +917,7 @@ def load_scene(path) -> Scene:
     _read_material_friction(collider_materials, scene_prim, settings, UsdPhysics, source)
     _warn_unmodelled(stage, collider_materials, UsdPhysics, source)
     joints = _read_joints(stage, descs, {**bodies, **static_bodies}, mirrored, units, source, UsdPhysics)
-    return Scene(bodies=all_bodies, gravity=gravity, settings=settings, task=task, source=source, joints=joints)
+    return Scene(bodies=all_bodies, gravity=gravity, settings=settings, task=task, source=source, joints=joints, up_axis="Y" if up == UsdGeom.Tokens.y else "Z")
 
 
 _AXES = {"X": np.array([1.0, 0.0, 0.0]), "Y": np.array([0.0, 1.0, 0.0]), "Z": np.array([0.0, 0.0, 1.0])}
@@ -1404,6 +1473,8 @@ def target_problem(body: BodySpec) -> str | None:
 
 def _read_warpcontact_body(prim, body: BodySpec, meters: float, source: str):
     target = _cast_attr(prim, "target:position", _numbers, source)
+    if target is None and _cast_attr(prim, "target:tolerance", float, source) is not None:
+        raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:target:tolerance is authored without a warpcontact:target:position, which makes a body a target")
     if target is not None:
         body.target_position = target * meters
         tolerance = _cast_attr(prim, "target:tolerance", float, source)
@@ -1557,9 +1628,9 @@ def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: s
 # --- export ---------------------------------------------------------------------------------
 
 
-def _new_stage(Usd, UsdGeom, path: Path):
+def _new_stage(Usd, UsdGeom, path: Path, up_axis: str):
     stage = Usd.Stage.CreateNew(str(path))
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up_axis == "Y" else UsdGeom.Tokens.z)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, "/World").GetPrim())
     return stage
@@ -1630,7 +1701,7 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
     _check_prim_names(scene.joints, "joint", reserved=(), Sdf=Sdf)
 
     def write(tmp: Path):
-        stage = _new_stage(Usd, UsdGeom, tmp)
+        stage = _new_stage(Usd, UsdGeom, tmp, scene.up_axis)
         physics = UsdPhysics.Scene.Define(stage, "/World/physicsScene")
         g = np.asarray(scene.gravity, dtype=np.float64)
         magnitude = float(np.linalg.norm(g))
@@ -1861,7 +1932,7 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
     fps = float(fps)
 
     def write(tmp: Path):
-        stage = _new_stage(Usd, UsdGeom, tmp)
+        stage = _new_stage(Usd, UsdGeom, tmp, scene.up_axis)
         stage.SetTimeCodesPerSecond(fps)
         stage.SetFramesPerSecond(fps)
         stage.SetStartTimeCode(0)
@@ -1869,9 +1940,9 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
         for i, b in enumerate(scene.bodies):
             xform = UsdGeom.Xform.Define(stage, f"/World/{b.name}")
             _author_mesh(stage, UsdGeom, Vt, Gf, f"/World/{b.name}/mesh", b.vertices, b.faces)
-            if b.static:
-                _set_pose_ops(xform, Gf, UsdGeom, poses[0, i])
-            else:
+            # The first frame is also the default, which readers without a time take.
+            _set_pose_ops(xform, Gf, UsdGeom, poses[0, i])
+            if not b.static:
                 for frame in range(len(poses)):
                     _set_pose_ops(xform, Gf, UsdGeom, poses[frame, i], time=frame)
             if b.target_position is not None:

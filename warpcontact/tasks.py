@@ -144,7 +144,14 @@ class TaskSettings:
             "iterations": iterations_name,
             "learning_rate": f"warpcontact:{prefix}learningRate",
         }
-        settings.check(lambda field: f"{source}: {names.get(field, field)}")
+        try:
+            settings.check(lambda field: f"{source}: {names.get(field, field)}")
+        except ValueError as exc:
+            if prefix != "task:quick:":
+                raise
+            # A preset with some attributes left out read them as 0, and the error named an
+            # attribute the scene never authored.
+            raise ValueError(f"{exc} (a --quick preset is warpcontact:task:quick:horizon, recedingHorizon, recedingStride, iterations and learningRate, authored together)") from None
         return settings
 
     def check(self, where=lambda field: f"settings.{field}") -> None:
