@@ -85,6 +85,31 @@ def test_each_model_runs_a_short_optimisation(model):
         assert result.extra["bundle"] == {"samples": 2, "initial_sigma": None, "final_sigma": None, "seed": 1}
 
 
+def test_the_sigma_schedule_spans_a_window_s_adam_updates(monkeypatch):
+    # N iterations make N - 1 updates; the schedule spanned N, so its last sigma (the
+    # learning rate) was bundled at the final iterate and never applied.
+    from warpcontact import tasks
+
+    used = []
+    real = tasks.bundled_gradient
+
+    def recording(rollout, *, sigmas, samples, rng):
+        estimate = real(rollout, sigmas=sigmas, samples=samples, rng=rng)
+
+        def call(values):
+            used.append(float(sigmas[min(estimate.calls, len(sigmas) - 1)]))
+            return estimate(values)
+
+        return call
+
+    monkeypatch.setattr(tasks, "bundled_gradient", recording)
+    scene = space_billiards()
+    scene.bodies[0].control_dofs = ("vx", "vy")
+    settings = TaskSettings(horizon=6, receding_horizon=0, iterations=3, learning_rate=0.3)
+    TaskProblem(scene, settings=settings, model="gb", bundle=BundleSettings(samples=2)).optimize()
+    np.testing.assert_allclose(used[:2], [3.0, 0.3])  # the two updates: 10 lr, then lr
+
+
 def test_gb_finds_descent_near_contact_where_sdrs_sees_nothing():
     """5 cm apart (beyond SDRS's 2 cm support) the SDRS gradient is zero; gradient bundles
     with sigma = 3 m/s sample shots that hit, and descend (measured: 4.04 -> 3.67 in 3 steps)."""

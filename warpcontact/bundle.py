@@ -12,7 +12,7 @@ the same Adam as the exact gradient (``tasks._descend``); only the gradient chan
 Choices (docs/architecture.md explains them):
 
 - N = 8 samples per iteration (``BundleSettings.samples``; ``--quick`` uses 4).
-- sigma_t decays geometrically over a window's iterations from 10 to 1 times the task's
+- sigma_t decays geometrically over a window's Adam updates from 10 to 1 times the task's
   learning rate (the distance ten Adam steps, then one, move a decision variable), in the
   decision variables' own units (m, m/s, rad). It restarts with every receding-horizon
   window.
@@ -53,7 +53,8 @@ class BundleSettings:
                 raise ValueError(f"{name}: must be a whole number >= {low}, got {value!r}")
 
     def sigmas(self, iterations: int, learning_rate: float) -> np.ndarray:
-        """(iterations,) geometric sigma schedule of one optimisation window."""
+        """(iterations,) geometric sigma schedule of one optimisation window's ``iterations``
+        Adam updates (at least one sigma)."""
         self.check()
         first = 10.0 * learning_rate if self.initial_sigma is None else self.initial_sigma
         last = learning_rate if self.final_sigma is None else self.final_sigma

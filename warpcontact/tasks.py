@@ -691,7 +691,9 @@ class TaskProblem:
 
         if self.bundle is None:
             return exact
-        sigmas = self.bundle.sigmas(self.settings.iterations, self.settings.learning_rate)
+        # N iterations make N - 1 Adam updates (the last iterate is only evaluated): the
+        # schedule spans the updates, so the final sigma drives the last one.
+        sigmas = self.bundle.sigmas(self.settings.iterations - 1, self.settings.learning_rate)
         return bundled_gradient(exact, sigmas=sigmas, samples=self.bundle.samples, rng=rng)
 
     def optimize(self, *, progress=None, checkpoint=None, resume: bool = False, keep_checkpoint: bool = False) -> TaskResult:
