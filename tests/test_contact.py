@@ -584,9 +584,38 @@ def test_step_bounds_need_an_evaluation_and_keep_their_own_separations():
         assert 0.0 < alpha <= 0.5  # at most 0.9 of the 0.55 m gap
         result.pair_separation[:] = 1e9  # a caller's edit once let the step through the box
         assert model.advancement_limit(step) == alpha
+        frame = model.advancement_frame()
+        frame.pair_separation[:] = 1e9  # nor an edit of a frame's
+        assert model.advancement_limit(step) == model.advancement_limit(step, frame=model.advancement_frame()) == alpha
         model.term_lists(poses)  # lists without planes
         with pytest.raises(RuntimeError, match="term_lists does not compute planes"):
             model.advancement_limit(step)
+        model.evaluate(poses)
+
+        def interrupted(**_):
+            raise KeyboardInterrupt
+
+        model._fill_lists = interrupted  # an evaluation that fails leaves no planes to bound by
+        with pytest.raises(KeyboardInterrupt):
+            model.evaluate(poses + np.array([0, 0, 0.01, 0, 0, 0, 0]))
+        with pytest.raises(RuntimeError, match="holds none"):
+            model.advancement_limit(step)
+    with pytest.raises(AttributeError):
+        model.eps = 2.0  # the settings are read-only: a graph and the recorded launches hold them
+
+
+def test_a_deep_walk_grows_its_task_lists_until_it_fits():
+    # Host-sized, an overflowing walk counts only up to the round whose task list overflowed:
+    # two fine spheres nearly touching, walked one node pair per visit, needed more than the
+    # fixed 8 attempts.
+    meshes = [icosphere(4), icosphere(4)]
+    poses = identity_poses([[0.0, 0.0, 0.0], [1.0005, 0.0, 0.0]])
+    reference = wc.ContactModel(meshes).evaluate(poses)
+    for sync_free in (False, True):
+        model = wc.ContactModel(meshes, sync_free=sync_free)
+        model._visit_budget = 1
+        result = model.evaluate(poses)
+        assert result.value == pytest.approx(reference.value, rel=1e-12) and result.num_leaf == reference.num_leaf
 
 
 def test_friction_terms_check_their_poses():

@@ -51,6 +51,10 @@ def test_recorded_launches_see_every_changed_argument():
     assert run(_subtract_kernel, other, 3.0, 3) == [31.0, 61.0, 91.0]
     other.assign(np.array([1.0, 1.0, 1.0]))  # an array's contents are read at launch
     assert run(_subtract_kernel, other, 3.0, 3) == [4.0, 4.0, 4.0]
+    # 0.0 == -0.0, but they differ: a change of a zero's sign was not packed again.
+    offset.value = -0.0
+    assert not np.signbit(run(_add_kernel, other, 0.0, 1)[0])  # 0 x 1 + -0 = +0
+    assert np.signbit(run(_add_kernel, other, -0.0, 1)[0])  # -0 x 1 + -0 = -0
 
 
 def test_concurrent_tasks_all_run_and_raise_the_first_error():

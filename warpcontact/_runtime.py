@@ -4,6 +4,7 @@ import concurrent.futures
 import contextlib
 import functools
 import logging
+import math
 import os
 
 import numpy as np
@@ -66,12 +67,12 @@ def run_concurrently(tasks, *, modules=(), device=None) -> None:
 
 def _repack(new, old) -> bool:
     """Whether a launch parameter must be packed again: arrays by identity (an array never
-    changes where it points), numbers by value, anything else (structs, whose fields may
-    have been reassigned) always."""
+    changes where it points), numbers by value and sign (0.0 == -0.0, but 1 / -0.0 is -inf),
+    anything else (structs, whose fields may have been reassigned) always."""
     if isinstance(new, wp.array):
         return new is not old
     if isinstance(new, (bool, int, float)):
-        return type(new) is not type(old) or new != old
+        return type(new) is not type(old) or new != old or math.copysign(1.0, new) != math.copysign(1.0, old)
     return True
 
 

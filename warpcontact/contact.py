@@ -297,13 +297,13 @@ class ContactModel:
             raise ValueError(f"names: {repeated[0]!r} names more than one body; contact_pairs could not tell them apart")
         static_flags = _static_flags(static, num_bodies)
 
-        self.mode = mode
-        self.centred_weight = centred_weight
-        self.eps = float(eps)
+        self._mode = mode
+        self._centred_weight = centred_weight
+        self._eps = float(eps)
         # The leaf kernels read dhat = 0 as the paper's barrier.
-        self.dhat = float(dhat) if mode == "sdrs" else 0.0
-        self.max_leaf_iterations = int(max_leaf_iterations)
-        self.leaf_precision = leaf_precision
+        self._dhat = float(dhat) if mode == "sdrs" else 0.0
+        self._max_leaf_iterations = int(max_leaf_iterations)
+        self._leaf_precision = leaf_precision
         self._float32_search = float32_search(leaf_precision, mode=mode)
         self.num_bodies = num_bodies
         self.static = static_flags
@@ -333,6 +333,38 @@ class ContactModel:
         self._top_entries_per_thread = reduction_kernels.RECORD_ENTRIES if self.device.is_cpu else 1
         self._upload_model(trees, triangles)
 
+    # The settings are read-only: a CUDA graph and the recorded launches hold them, and a
+    # changed eps gave the old potential back from evaluate(reuse=True).
+    @property
+    def mode(self) -> str:
+        """The contact model: "bsh", "brute" or "sdrs" (``CONTACT_MODES``)."""
+        return self._mode
+
+    @property
+    def centred_weight(self) -> str:
+        """The far terms' weights (``CENTRED_WEIGHTS``)."""
+        return self._centred_weight
+
+    @property
+    def eps(self) -> float:
+        """The blend margin: node pairs farther than (1 + eps) (R_I + R_J) are far terms."""
+        return self._eps
+
+    @property
+    def dhat(self) -> float:
+        """SDRS's barrier support (m); 0 for the paper's barrier."""
+        return self._dhat
+
+    @property
+    def max_leaf_iterations(self) -> int:
+        """Newton iteration cap of each leaf plane search."""
+        return self._max_leaf_iterations
+
+    @property
+    def leaf_precision(self) -> str:
+        """The leaf plane search's float type (``LEAF_PRECISIONS``)."""
+        return self._leaf_precision
+
     # --- set-up ---------------------------------------------------------------------------
 
     def _upload_model(self, trees, triangles):
@@ -351,7 +383,7 @@ class ContactModel:
             # may stick out of their parents', so the maximum over all nodes.
             self._body_reach_host = np.array([float((np.linalg.norm(t.centers, axis=1) + t.radii).max()) for t in trees])
             self._body_reach = wp.array(self._body_reach_host, dtype=wp.float64)
-            weights = [t.triangle_count if self.centred_weight == "pairs" else np.ones(t.num_nodes) for t in trees]
+            weights = [t.triangle_count if self._centred_weight == "pairs" else np.ones(t.num_nodes) for t in trees]
             self._node_weight = wp.array(np.concatenate(weights).astype(np.float64), dtype=wp.float64)
             self._node_left = wp.array(left, dtype=wp.int32)
             self._node_right = wp.array(right, dtype=wp.int32)
@@ -405,8 +437,8 @@ class ContactModel:
         self._seed_chunk_count = 1
         self._records = None
         self._friction_records = None  # (records, totals), allocated by the first friction_terms
-        self._friction_graphs = (None, {})  # (the lagged frame they belong to, {at_poses: graph})
-        if self.mode == "brute":
+        self._friction_graphs = (None, {})  # (the LaggedFriction they belong to, {at_poses: graph})
+        if self._mode == "brute":
             self._set_brute_leaf_list()
         else:
             # Starting sizes; an evaluation that needs more grows them (``_fill_lists``). Far
@@ -553,8 +585,8 @@ class ContactModel:
                     self._node_left,
                     self._node_right,
                     self._node_triangle,
-                    self.eps,
-                    2.0 * self.dhat,
+                    self._eps,
+                    2.0 * self._dhat,
                     self._rotation,
                     self._position,
                     self._seed_body_pair,
@@ -592,7 +624,7 @@ class ContactModel:
         """Uploads the staged poses, fills the term lists and, with ``reduce``, sums the
         potential; enqueues the counters (and the sums) for readback."""
         self._launch_transforms("transforms", self._pose_host, self._pose, self._rotation, self._position)
-        if self.mode != "brute" and len(self.body_pairs):
+        if self._mode != "brute" and len(self.body_pairs):
             self._launch_rounds()
         if reduce:
             if self.sync_free:
@@ -622,11 +654,20 @@ class ContactModel:
         Sync-free on a GPU, the launches of an evaluation that fitted its buffers are
         captured into a CUDA graph, which later evaluations replay while the buffers stay
         the same (any growth drops it): one graph launch instead of ~30 kernel launches."""
+        counters = None
         if reduce and self.sync_free and self._graph is not None:
             wp.capture_launch(self._graph)
-            if self._take_counts(self._read_counters()):
+            counters = self._read_counters()
+            if self._take_counts(counters):
                 return
-        for _ in range(_MAX_TRAVERSAL_ATTEMPTS):
+        # An overflowing walk counts only up to the first round whose task list overflowed
+        # (host-sized), or undercounts the rounds after it (sync-free): each attempt learns at
+        # least one more round, so the rounds bound the attempts (a fixed 8 refused a fine
+        # plate on a fine ground that needed more).
+        attempts = self._max_rounds + _MAX_TRAVERSAL_ATTEMPTS
+        for _ in range(attempts):
+            if counters is not None:
+                self._grow_lists(counters)
             self._launch_evaluation(reduce=reduce)
             counters = self._read_counters()
             if self._take_counts(counters):
@@ -635,11 +676,16 @@ class ContactModel:
                         self._launch_evaluation(reduce=True)
                     self._graph = capture.graph
                 return
-            far, blend, leaf = (int(c) for c in counters[:3])
-            tasks = int(counters[_ROUND_SLOT:].max(initial=0))
-            self._reserve_tasks(int(tasks * 1.25) + 16)
-            self._reserve_lists(far=int(far * 1.25) + 16, blend=int(blend * 1.25) + 16, leaf=int(leaf * 1.25) + 16)
-        raise RuntimeError(f"sphere-tree traversal did not fit its buffers after {_MAX_TRAVERSAL_ATTEMPTS} attempts")
+        raise RuntimeError(f"sphere-tree traversal did not fit its buffers after {attempts} attempts")
+
+    def _grow_lists(self, counters: np.ndarray):
+        """Room for 1.25x the counted terms, and for twice the task lists when a round's
+        tasks overflowed (the rounds after it were not counted, and they grow)."""
+        far, blend, leaf = (int(c) for c in counters[:3])
+        tasks = int(counters[_ROUND_SLOT:].max(initial=0))
+        capacity = self._tasks[0].shape[0] if self._tasks is not None else 0
+        self._reserve_tasks(max(int(tasks * 1.25) + 16, 2 * capacity if tasks > capacity else 0))
+        self._reserve_lists(far=int(far * 1.25) + 16, blend=int(blend * 1.25) + 16, leaf=int(leaf * 1.25) + 16)
 
     def _take_counts(self, counters: np.ndarray) -> bool:
         """Records the term counts and rounds of a traversal whose lists fit; False otherwise."""
@@ -707,7 +753,7 @@ class ContactModel:
                 ("weight", chunk),
                 reduction_kernels.blend_weight_kernel,
                 dim=num_blend,
-                inputs=[self._node_center, self._node_radius, self.eps, *common, self._blend, self._counters, *select],
+                inputs=[self._node_center, self._node_radius, self._eps, *common, self._blend, self._counters, *select],
                 outputs=[targets],
             )
         if num_far:
@@ -715,7 +761,7 @@ class ContactModel:
                 ("far", chunk),
                 reduction_kernels.far_term_kernel,
                 dim=num_far,
-                inputs=[self._node_center, self._node_radius, self._node_weight, self.mode != "sdrs", *common, self._far, self._counters, *select],
+                inputs=[self._node_center, self._node_radius, self._node_weight, self._mode != "sdrs", *common, self._far, self._counters, *select],
                 outputs=[targets, self._seed_separation],
             )
         if num_leaf:
@@ -723,7 +769,7 @@ class ContactModel:
                 ("leaf", chunk),
                 reduction_kernels.leaf_term_kernel,
                 dim=num_leaf,
-                inputs=[self._triangle_vertices, self.dhat, self.max_leaf_iterations, self._float32_search, *common, self._leaf, self._counters, *select],
+                inputs=[self._triangle_vertices, self._dhat, self._max_leaf_iterations, self._float32_search, *common, self._leaf, self._counters, *select],
                 outputs=[targets, self._seed_status, self._seed_separation, self._leaf_iterations, self._leaf_plane],
             )
         for level in range(max_level if num_blend else -1, -1, -1):
@@ -731,7 +777,7 @@ class ContactModel:
                 ("blend", chunk),
                 reduction_kernels.blend_level_kernel,
                 dim=num_blend,
-                inputs=[self._node_center, self._node_radius, self._node_weight, self.eps, level, *common, self._blend, self._blend_level, self._counters, *select],
+                inputs=[self._node_center, self._node_radius, self._node_weight, self._eps, level, *common, self._blend, self._blend_level, self._counters, *select],
                 outputs=[targets],
             )
 
@@ -751,7 +797,9 @@ class ContactModel:
         last = self._last_evaluation
         if reuse and last is not None and np.array_equal(poses, last[0]):
             return _copy_evaluation(last[1])
+        # Until this evaluation succeeds the buffers hold no evaluation's lists and planes.
         self._last_evaluation = None
+        self._pair_separation = None
         self._set_poses(poses)
         self._fill_lists(reduce=True)
         num_far, num_blend, num_leaf, _ = self._counts
@@ -801,7 +849,7 @@ class ContactModel:
                 leaf_plane=wp.clone(self._leaf_plane[: max(num_leaf, 1)]) if self._leaf_plane.shape[0] else wp.zeros(1, dtype=wp.vec4d),
                 num_leaf=num_leaf,
                 seed_separation=wp.clone(self._seed_separation),
-                pair_separation=self._pair_separation,
+                pair_separation=self._pair_separation.copy(),
             )
 
     def advancement_limit(self, step, *, fraction: float = 0.9, frame: "AdvancementFrame | None" = None) -> float:
@@ -905,7 +953,7 @@ class ContactModel:
                 wp.launch(
                     friction_kernels.friction_setup_kernel,
                     dim=count,
-                    inputs=[self._triangle_vertices, self.eps, self.dhat, float(mu), self._rotation, self._position, self._seed_body_pair],
+                    inputs=[self._triangle_vertices, self._eps, self._dhat, float(mu), self._rotation, self._position, self._seed_body_pair],
                     outputs=[frame],
                 )
         return LaggedFriction(pairs=count, mu=float(mu), friction=friction, slip_smoothing=float(slip_smoothing), data=frame)
@@ -930,8 +978,9 @@ class ContactModel:
         if at_poses:
             # The solver's retracted poses as given, to the last bit (their norms are 1 within rounding).
             self._friction_pose_host.numpy()[:] = self._validated_poses(poses, normalize=False)
-        if self._friction_graphs[0] is not lagged.data:
-            self._friction_graphs = (lagged.data, {})
+        # A graph holds the lagged frame's arrays and numbers: one set per LaggedFriction.
+        if self._friction_graphs[0] is not lagged:
+            self._friction_graphs = (lagged, {})
         graphs = self._friction_graphs[1]
         if at_poses in graphs:
             wp.capture_launch(graphs[at_poses])
@@ -999,12 +1048,12 @@ class ContactModel:
                     dim=lagged.pairs,
                     inputs=[
                         self._triangle_vertices,
-                        self.eps,
-                        self.dhat,
+                        self._eps,
+                        self._dhat,
                         lagged.mu,
                         lagged.friction,
                         lagged.slip_smoothing,
-                        self.max_leaf_iterations,
+                        self._max_leaf_iterations,
                         rot_next,
                         pos_next,
                         rot_now,
