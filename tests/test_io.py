@@ -196,6 +196,161 @@ def test_concave_polygons_are_ear_clipped_and_self_intersecting_ones_refused(tmp
         io.load_scene(tmp_path / "l.usda")
 
 
+_METRE_STAGE = """#usda 1.0
+(
+    metersPerUnit = 1
+    upAxis = "Z"
+)
+"""
+
+
+def test_checks_reach_inside_instances_and_spline_animation(tmp_path):
+    # Checks that walked stage.Traverse() skipped instance proxies: a warpcontact: typo inside
+    # an instanceable asset loaded (its gain 0); a spline-animated transform without a default
+    # loaded at the identity (USD has it at 90 degrees at time 0).
+    (tmp_path / "asset.usda").write_text(_METRE_STAGE + """
+def Xform "Asset"
+{
+    def Xform "a" (prepend apiSchemas = ["PhysicsRigidBodyAPI"])
+    {
+        double3 warpcontact:pd:kpLinaer = (1, 1, 1)
+        def Cube "geom" (prepend apiSchemas = ["PhysicsCollisionAPI"]) {
+            double size = 0.5
+        }
+    }
+}
+""")
+    (tmp_path / "scene.usda").write_text(_METRE_STAGE + """
+def Xform "World"
+{
+    def Xform "A" (instanceable = true
+        prepend references = @./asset.usda@</Asset>) {}
+}
+""")
+    with pytest.raises(ValueError, match=r"prim /World/A/a: unknown attribute warpcontact:pd:kpLinaer here"):
+        io.load_scene(tmp_path / "scene.usda")
+    (tmp_path / "spline.usda").write_text(_METRE_STAGE + """
+def Xform "World"
+{
+    def Xform "B" (prepend apiSchemas = ["PhysicsRigidBodyAPI"])
+    {
+        float xformOp:rotateZ.spline = {
+            0: 90; post held,
+            10: 180; post held,
+        }
+        uniform token[] xformOpOrder = ["xformOp:rotateZ"]
+        def Cube "g" (prepend apiSchemas = ["PhysicsCollisionAPI"]) {
+            double size = 1
+        }
+    }
+}
+""")
+    with pytest.raises(ValueError, match=r"prim /World/B: /World/B.xformOp:rotateZ is animated \(time samples or a spline\) but has no default"):
+        io.load_scene(tmp_path / "spline.usda")
+
+
+def test_physics_materials_inherited_or_per_face_and_refused_physics(tmp_path):
+    body = """
+    def Xform "B" (prepend apiSchemas = ["PhysicsRigidBodyAPI", "MaterialBindingAPI"])
+    {
+        rel material:binding:physics = </World/Rubber>
+        double3 xformOp:translate = (0, 0, 2)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+        def Cube "geom" (prepend apiSchemas = ["PhysicsCollisionAPI"]) {
+            double size = 1
+        }
+    }
+    def Material "Rubber" (prepend apiSchemas = ["PhysicsMaterialAPI"])
+    {
+        float physics:dynamicFriction = 0.8
+        float physics:density = 3000
+    }
+"""
+    # A binding on the body is its collider's (UsdShade's inheritance): it was ignored.
+    (tmp_path / "inherited.usda").write_text(_METRE_STAGE + 'def Xform "World"\n{' + body + "}\n")
+    scene = io.load_scene(tmp_path / "inherited.usda")
+    assert scene.settings.friction == pytest.approx(0.8) and scene.body("B").density == pytest.approx(3000.0)
+    # Per-face materials of one collider that disagree were read as the first one's.
+    (tmp_path / "faces.usda").write_text(_METRE_STAGE + """
+def Xform "World"
+{
+    def Xform "B" (prepend apiSchemas = ["PhysicsRigidBodyAPI"])
+    {
+        double3 xformOp:translate = (0, 0, 2)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+        def Mesh "m" (prepend apiSchemas = ["PhysicsCollisionAPI"])
+        {
+            point3f[] points = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1)]
+            int[] faceVertexCounts = [3, 3, 3, 3]
+            int[] faceVertexIndices = [0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3]
+            def GeomSubset "ice" (prepend apiSchemas = ["MaterialBindingAPI"])
+            {
+                uniform token elementType = "face"
+                uniform token familyName = "physics"
+                int[] indices = [0]
+                rel material:binding:physics = </World/Ice>
+            }
+            def GeomSubset "rest" (prepend apiSchemas = ["MaterialBindingAPI"])
+            {
+                uniform token elementType = "face"
+                uniform token familyName = "physics"
+                int[] indices = [1, 2, 3]
+                rel material:binding:physics = </World/Rubber>
+            }
+        }
+    }
+    def Material "Ice" (prepend apiSchemas = ["PhysicsMaterialAPI"]) {
+            float physics:density = 900
+        }
+    def Material "Rubber" (prepend apiSchemas = ["PhysicsMaterialAPI"]) {
+            float physics:density = 1200
+        }
+}
+""")
+    with pytest.raises(ValueError, match=r"prim /World/B/m: its physics materials author different density \(/World/Ice: 900, /World/Rubber: 1200\)"):
+        io.load_scene(tmp_path / "faces.usda")
+    # A sleeping body (it would hang until touched) and instanced bodies (dropped) are refused.
+    asleep = body.replace('rel material:binding:physics = </World/Rubber>', "bool physics:startsAsleep = true")
+    (tmp_path / "asleep.usda").write_text(_METRE_STAGE + 'def Xform "World"\n{' + asleep + "}\n")
+    with pytest.raises(ValueError, match="prim /World/B: physics:startsAsleep is not supported"):
+        io.load_scene(tmp_path / "asleep.usda")
+    (tmp_path / "instancer.usda").write_text(_METRE_STAGE + """
+def Xform "World"
+{
+    def PointInstancer "Boxes"
+    {
+        point3f[] positions = [(0, 0, 1), (2, 0, 1)]
+        int[] protoIndices = [0, 0]
+        rel prototypes = </World/Boxes/Protos/Box>
+        def Scope "Protos"
+        {
+            def Xform "Box" (prepend apiSchemas = ["PhysicsRigidBodyAPI"])
+            {
+                def Cube "g" (prepend apiSchemas = ["PhysicsCollisionAPI"]) {
+            double size = 0.5
+        }
+            }
+        }
+    }
+}
+""")
+    with pytest.raises(ValueError, match="prim /World/Boxes: a PointInstancer of rigid bodies or colliders"):
+        io.load_scene(tmp_path / "instancer.usda")
+
+
+def test_a_static_body_in_a_contact_group_keeps_it_through_save(tmp_path):
+    # A static body was saved as a bare collider, which dropped its warpcontact:group.
+    scene = io.load_scene(write_physics_scene(tmp_path / "a.usda"))
+    ground = next(b for b in scene.bodies if b.static)
+    ground.group = 3
+    io.save_scene(scene, tmp_path / "saved.usda")
+    again = io.load_scene(tmp_path / "saved.usda")
+    kept = next(b for b in again.bodies if b.name == ground.name)
+    assert kept.static and kept.group == 3
+    np.testing.assert_allclose(kept.vertices, ground.vertices, atol=1e-6)
+    np.testing.assert_allclose(kept.pose, ground.pose, atol=1e-12)
+
+
 def test_trajectory_export_opens_with_time_samples(tmp_path):
     scene = io.load_scene(write_physics_scene(tmp_path / "a.usda"))
     scene.body("box").target_position = np.array([1.0, 0.0, 0.25])
@@ -561,7 +716,7 @@ def test_a_transform_with_time_samples_only_is_refused_and_a_default_is_read(tmp
     translate.GetAttr().Clear()
     translate.Set(Gf.Vec3d(0.5, 0.0, 1.0), 1.0)
     translate.Set(Gf.Vec3d(0.9, 0.0, 1.0), 10.0)
-    _load_refused(stage, path, r"prim /World/box: /World/box.xformOp:translate has time samples but no default value")
+    _load_refused(stage, path, r"prim /World/box: /World/box.xformOp:translate is animated \(time samples or a spline\) but has no default value")
     translate.Set(Gf.Vec3d(0.2, 0.0, 0.8))
     stage.GetRootLayer().Save()
     np.testing.assert_allclose(io.load_scene(path).body("box").pose[:3], [0.2, 0.0, 0.8])
@@ -1271,7 +1426,7 @@ def test_a_value_authored_only_as_time_samples_is_refused(tmp_path, prim, attrib
     attr = stage.GetPrimAtPath(prim).GetAttribute(attribute) or stage.GetPrimAtPath(prim).CreateAttribute(attribute, kind)
     attr.Clear()
     attr.Set(value, 0.0)
-    _load_refused(stage, path, f"prim {prim}: {prim}.{attribute} has time samples but no default value")
+    _load_refused(stage, path, f"prim {prim}: {prim}.{attribute} is animated \\(time samples or a spline\\) but has no default value")
 
 
 def test_animated_attributes_a_load_does_not_read_are_left_alone(tmp_path):

@@ -54,7 +54,8 @@ outward-oriented for mass from density; a joint on a mirrored body is an error. 
 holeIndices are not collided. MeshCollisionAPI approximations that stand in for the exact
 triangles (convexDecomposition, meshSimplification, sdf) collide the triangles themselves;
 convexHull collides the hull of the mesh's points; boundingSphere and boundingCube are errors. The initial state is read at the default time
-code; a body or collider transform with time samples but no default value is an error.
+code; a body or collider transform animated (time samples or a spline) without a default value is an error,
+as are bodies or colliders under a PointInstancer and physics:startsAsleep.
 Bound physics materials give density (per body) and dynamicFriction (the scene's one
 coefficient, unless warpcontact:friction is authored); values that differ where one is
 needed are errors, as are per-collider MassAPI properties beyond a single collider's
@@ -577,11 +578,17 @@ def _require_default_values(prim, UsdGeom, Usd, source: str) -> None:
     size of 0.5 the fallback 2)."""
     read = [attr for attr in prim.GetAttributes() if attr.GetName().startswith(_READ_PREFIXES) or attr.GetName() in _READ_GEOMETRY]
     for attr in (*_transform_attributes(prim, UsdGeom), *read):
-        if attr.GetNumTimeSamples() and attr.GetResolveInfo(Usd.TimeCode.Default()).GetSource() != Usd.ResolveInfoSourceDefault:
+        if _varies(attr) and attr.GetResolveInfo(Usd.TimeCode.Default()).GetSource() != Usd.ResolveInfoSourceDefault:
             raise ValueError(
-                f"{source}: prim {prim.GetPath()}: {attr.GetPath()} has time samples but no default value; the initial "
+                f"{source}: prim {prim.GetPath()}: {attr.GetPath()} is animated (time samples or a spline) but has no default value; the initial "
                 "state is read at the default time (author the first frame's value as the default)"
             )
+
+
+def _varies(attr) -> bool:
+    """Whether an attribute is animated: by time samples or by a spline (USD 0.25+), which
+    has no time samples (a spline-turned body loaded at the identity)."""
+    return bool(attr.GetNumTimeSamples()) or attr.ValueMightBeTimeVarying()
 
 
 def _disabled_owner(prim, disabled: set, UsdPhysics) -> str:
@@ -600,8 +607,8 @@ def _disabled_owner(prim, disabled: set, UsdPhysics) -> str:
 
 
 def _animated(prim, UsdGeom) -> bool:
-    """Whether a prim's world transform has time samples (its own ops or an ancestor's)."""
-    return any(attr.GetNumTimeSamples() for attr in _transform_attributes(prim, UsdGeom))
+    """Whether a prim's world transform is animated (its own ops or an ancestor's)."""
+    return any(_varies(attr) for attr in _transform_attributes(prim, UsdGeom))
 
 
 def _polar_factor(linear: np.ndarray) -> np.ndarray:
@@ -739,7 +746,8 @@ def load_scene(path) -> Scene:
     up = UsdGeom.GetStageUpAxis(stage)
     parsed = _load_physics(stage, UsdPhysics)
     descs = {str(k): list(zip(v[0], v[1])) for k, v in parsed.items()}
-    _refuse_collision_filters(stage, UsdPhysics, source)
+    _refuse_collision_filters(stage, UsdPhysics, Usd, source)
+    _refuse_point_instanced_physics(stage, UsdGeom, UsdPhysics, Usd, source)
     for kind in ("DistanceJoint", "CustomJoint"):
         for prim_path, _ in descs.get(kind, []):
             raise ValueError(f"{source}: prim {prim_path}: {kind} is not supported (supported: revolute, prismatic, spherical and D6 joints, and fixed joints to the world)")
@@ -775,6 +783,11 @@ def load_scene(path) -> Scene:
     for prim_path, desc in descs.get("RigidBody", []):
         prim = stage.GetPrimAtPath(prim_path)
         _require_default_values(prim, UsdGeom, Usd, source)
+        if desc.startsAsleep and not desc.kinematicBody:
+            raise ValueError(
+                f"{source}: prim {prim_path}: physics:startsAsleep is not supported (a sleeping body would hang until touched; "
+                "every dynamic body here moves from the start); remove it, or make the body kinematic to hold it"
+            )
         if desc.kinematicBody and _animated(prim, UsdGeom):
             raise ValueError(
                 f"{source}: prim {prim_path}: a kinematic body moved by time-sampled transforms is not supported (it would be "
@@ -835,7 +848,7 @@ def load_scene(path) -> Scene:
             # same, placed by their world matrix, since their localPos is then the world's.
             adopted = "" if owner else _disabled_owner(prim, disabled, UsdPhysics)
             owner = owner or adopted
-            collider_materials[str(prim_path)] = [stage.GetPrimAtPath(m) for m in desc.materials]
+            collider_materials[str(prim_path)] = _bound_physics_materials(stage, prim, desc)
             if kind == "PlaneShape":
                 if owner:
                     raise ValueError(f"{source}: prim {prim_path}: a Plane collider is infinite; it cannot belong to rigid body {owner}")
@@ -900,7 +913,7 @@ def load_scene(path) -> Scene:
         _read_material_density(prims, collider_materials, bodies[owner], UsdPhysics, units, source)
 
     # Keep the stage's prim order, so bodies come back in the order they were authored.
-    order = {str(prim.GetPath()): i for i, prim in enumerate(stage.Traverse())}
+    order = {str(prim.GetPath()): i for i, prim in enumerate(_all_prims(stage, Usd))}
     all_bodies = sorted(list(bodies.values()) + list(static_bodies.values()), key=lambda b: order.get(b.path, len(order)))
     for b in all_bodies:
         if len(b.faces) == 0:
@@ -915,7 +928,7 @@ def load_scene(path) -> Scene:
     if scene_prim is not None:
         _read_settings(scene_prim, settings, task, source)
     _read_material_friction(collider_materials, scene_prim, settings, UsdPhysics, source)
-    _warn_unmodelled(stage, collider_materials, UsdPhysics, source)
+    _warn_unmodelled(stage, collider_materials, UsdPhysics, Usd, source)
     joints = _read_joints(stage, descs, {**bodies, **static_bodies}, mirrored, units, source, UsdPhysics)
     return Scene(bodies=all_bodies, gravity=gravity, settings=settings, task=task, source=source, joints=joints, up_axis="Y" if up == UsdGeom.Tokens.y else "Z")
 
@@ -1372,12 +1385,18 @@ def _read_collider_mass(body_prim, collider_prims, body: BodySpec, UsdPhysics, u
 _PHYSX_DAMPING = ("physxRigidBody:linearDamping", "physxRigidBody:angularDamping")
 
 
-def _warn_unmodelled(stage, collider_materials: dict, UsdPhysics, source: str) -> None:
+def _all_prims(stage, Usd):
+    """Every active, defined prim of the stage, those inside instances included (the UsdPhysics
+    parser reads bodies there, and a plain traversal skipped their filters, typos and damping)."""
+    return stage.Traverse(Usd.TraverseInstanceProxies())
+
+
+def _warn_unmodelled(stage, collider_materials: dict, UsdPhysics, Usd, source: str) -> None:
     """Warn, naming the prims, about authored physics this simulator does not model: non-zero
     PhysX body damping, and restitution of the colliders' physics materials (contacts here
     are inelastic: the implicit step dissipates the normal impact velocity)."""
     found = []
-    for prim in stage.Traverse():
+    for prim in _all_prims(stage, Usd):
         for name in _PHYSX_DAMPING:
             attr = prim.GetAttribute(name)
             if attr and attr.HasAuthoredValue() and attr.Get():
@@ -1391,11 +1410,11 @@ def _warn_unmodelled(stage, collider_materials: dict, UsdPhysics, source: str) -
         warnings.warn(f"{source}: not modelled, so ignored: {', '.join(found[:5])}{' ...' if len(found) > 5 else ''}", stacklevel=3)
 
 
-def _refuse_collision_filters(stage, UsdPhysics, source: str) -> None:
+def _refuse_collision_filters(stage, UsdPhysics, Usd, source: str) -> None:
     """Collision filters (FilteredPairsAPI, CollisionGroup filtering) are refused, naming the
     prim: every body pair interacts here, so ignoring a filter would add contact forces (and
     far-field ones) the scene's author switched off."""
-    for prim in stage.Traverse():
+    for prim in _all_prims(stage, Usd):
         if prim.HasAPI(UsdPhysics.FilteredPairsAPI) and UsdPhysics.FilteredPairsAPI(prim).GetFilteredPairsRel().GetTargets():
             raise ValueError(f"{source}: prim {prim.GetPath()}: physics:filteredPairs is not supported (every body pair interacts); remove the filter")
         if prim.IsA(UsdPhysics.CollisionGroup):
@@ -1405,23 +1424,58 @@ def _refuse_collision_filters(stage, UsdPhysics, source: str) -> None:
                 raise ValueError(f"{source}: prim {prim.GetPath()}: collision-group filtering is not supported (every body pair interacts); remove physics:filteredGroups")
 
 
-def _material_value(materials, name: str, UsdPhysics):
-    """The first of a collider's bound physics materials that authors ``density`` or
-    ``dynamicFriction`` (``name``): its value, else None."""
+def _bound_physics_materials(stage, prim, desc) -> list:
+    """A collider's physics materials: those the UsdPhysics parser lists (per GeomSubset too),
+    and the one UsdShade binds to it for the physics purpose, which it may inherit from an
+    ancestor (the parser lists a material only for prims with MaterialBindingAPI: a body's
+    binding was ignored by its colliders)."""
+    from pxr import UsdShade
+
+    materials = [stage.GetPrimAtPath(m) for m in desc.materials]
+    bound, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial("physics")
+    if bound and bound.GetPrim() not in materials:
+        materials.append(bound.GetPrim())
+    return materials
+
+
+def _refuse_point_instanced_physics(stage, UsdGeom, UsdPhysics, Usd, source: str) -> None:
+    """Bodies and colliders among a PointInstancer's prototypes are refused, naming the
+    instancer: the UsdPhysics parser does not expand instancers, and they were dropped
+    (a scene of instanced boxes loaded without them)."""
+    for prim in _all_prims(stage, Usd):
+        if not prim.IsA(UsdGeom.PointInstancer):
+            continue
+        for target in UsdGeom.PointInstancer(prim).GetPrototypesRel().GetTargets():
+            for proto in Usd.PrimRange(stage.GetPrimAtPath(target)):
+                if proto.HasAPI(UsdPhysics.RigidBodyAPI) or proto.HasAPI(UsdPhysics.CollisionAPI):
+                    raise ValueError(
+                        f"{source}: prim {prim.GetPath()}: a PointInstancer of rigid bodies or colliders ({proto.GetPath()}) is not "
+                        "supported (its instances would be dropped); author the bodies as prims, or as instanceable references"
+                    )
+
+
+def _material_value(materials, name: str, UsdPhysics, where: str):
+    """The ``density`` or ``dynamicFriction`` (``name``) that a collider's bound physics
+    materials author, else None; ValueError naming ``where`` when they author different
+    values (a collider with per-face materials took the first one's)."""
+    values = {}
     for material in materials:
         if not material or not material.HasAPI(UsdPhysics.MaterialAPI):
             continue
         attr = getattr(UsdPhysics.MaterialAPI(material), f"Get{name[0].upper()}{name[1:]}Attr")()
         if attr and attr.HasAuthoredValue():
-            return float(attr.Get())
-    return None
+            values[str(material.GetPath())] = float(attr.Get())
+    if len(set(values.values())) > 1:
+        listed = ", ".join(f"{path}: {value:.6g}" for path, value in values.items())
+        raise ValueError(f"{where}: its physics materials author different {name} ({listed}); one value holds for a whole collider here")
+    return next(iter(values.values()), None)
 
 
 def _read_material_density(collider_prims, collider_materials, body: BodySpec, UsdPhysics, units: _Units, source: str):
     """The density of the physics materials bound to a body's colliders (they were ignored:
     5,000 kg/m^3 gave the default 1,000), where the body has no mass or density of its own.
     Colliders of one body with different densities are refused: they are not combined."""
-    densities = {str(prim.GetPath()): _material_value(collider_materials[str(prim.GetPath())], "density", UsdPhysics) for prim in collider_prims}
+    densities = {str(prim.GetPath()): _material_value(collider_materials[str(prim.GetPath())], "density", UsdPhysics, f"{source}: prim {prim.GetPath()}") for prim in collider_prims}
     # A material density of 0 means "not specified" (UsdPhysics: "if non-zero").
     densities = {path: (None if d == 0.0 else d) for path, d in densities.items()}
     values = {d for d in densities.values() if d is not None}
@@ -1441,7 +1495,7 @@ def _read_material_friction(collider_materials, scene_prim, settings: Simulation
     coefficient, unless ``warpcontact:friction`` is authored (it was ignored: 0.9 on every
     collider simulated without friction). Different values are refused: one coefficient
     holds for all contacts."""
-    values = {path: _material_value(materials, "dynamicFriction", UsdPhysics) for path, materials in collider_materials.items()}
+    values = {path: _material_value(materials, "dynamicFriction", UsdPhysics, f"{source}: prim {path}") for path, materials in collider_materials.items()}
     values = {path: value for path, value in values.items() if value is not None}
     if not values:
         return
@@ -1580,8 +1634,10 @@ def _check_namespace(stage, scene_prim, body_paths, source: str):
     prim it is read from; a typo or a misplaced attribute would otherwise be ignored."""
     import difflib
 
+    from pxr import Usd
+
     scene_path = str(scene_prim.GetPath()) if scene_prim is not None else None
-    for prim in stage.Traverse():
+    for prim in _all_prims(stage, Usd):
         path = str(prim.GetPath())
         known = _SCENE_PRIM_NAMES if path == scene_path else _BODY_PRIM_NAMES if path in body_paths else ()
         for attr in prim.GetAuthoredAttributes():
@@ -1742,7 +1798,7 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
                     prim.CreateAttribute(_NS + name, Sdf.ValueTypeNames.DoubleArray).Set(Vt.DoubleArray([float(v) for v in bounds]))
         for b in scene.bodies:
             path_ = f"/World/{b.name}"
-            if b.static:
+            if b.static and b.group < 0:
                 # A static collider is one Mesh prim: the name and pose load back unchanged.
                 mesh = _author_mesh(stage, UsdGeom, Vt, Gf, path_, b.vertices, b.faces)
                 _set_pose_ops(mesh, Gf, UsdGeom, b.pose)
@@ -1754,6 +1810,12 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
             UsdPhysics.CollisionAPI.Apply(mesh.GetPrim())
             body_prim = xform.GetPrim()
             rb = UsdPhysics.RigidBodyAPI.Apply(body_prim)
+            if b.static:
+                # A static body in a contact group is a kinematic body, which carries its
+                # warpcontact: attributes (a bare collider dropped its group).
+                rb.CreateKinematicEnabledAttr(True)
+                _write_warpcontact_body(body_prim, b, Sdf, Vt)
+                continue
             rb.CreateVelocityAttr(Gf.Vec3f(*map(float, b.linear_velocity)))
             rb.CreateAngularVelocityAttr(Gf.Vec3f(*map(float, np.degrees(b.angular_velocity))))
             mass = UsdPhysics.MassAPI.Apply(body_prim)
