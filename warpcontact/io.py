@@ -922,7 +922,7 @@ def load_scene(path) -> Scene:
         raise ValueError(f"{source}: no dynamic rigid bodies (apply PhysicsRigidBodyAPI to at least one prim)")
     _make_names_unique(all_bodies, "body", source)
 
-    _check_namespace(stage, scene_prim, bodies, source)
+    _check_namespace(stage, scene_prim, bodies, Usd, source)
     settings = SimulationSettings()
     task = TaskSpec()
     if scene_prim is not None:
@@ -1629,12 +1629,10 @@ _SCENE_PRIM_NAMES = (*_SETTING_ATTRIBUTES, *_TASK_ATTRIBUTES, "task:sampleLow", 
 _BODY_PRIM_NAMES = (*_BODY_ATTRIBUTES, "target:position", "target:tolerance")
 
 
-def _check_namespace(stage, scene_prim, body_paths, source: str):
+def _check_namespace(stage, scene_prim, body_paths, Usd, source: str):
     """Every authored warpcontact: attribute must be one this module reads, on the kind of
     prim it is read from; a typo or a misplaced attribute would otherwise be ignored."""
     import difflib
-
-    from pxr import Usd
 
     scene_path = str(scene_prim.GetPath()) if scene_prim is not None else None
     for prim in _all_prims(stage, Usd):
