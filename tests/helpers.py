@@ -1,4 +1,4 @@
-"""Shared test utilities: finite differences and triangle configurations."""
+"""Shared test utilities: finite differences, triangle configurations and interruptions."""
 
 import numpy as np
 
@@ -56,3 +56,16 @@ def edge_edge(gap, size=1.0):
     A = np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.3, 1.0]]) * size + np.array([0.0, 0.0, gap])
     B = np.array([[0.0, -1.0, 0.0], [0.0, 1.0, 0.0], [0.2, 0.0, -1.0]]) * size
     return A, B
+
+
+def interrupt_call(monkeypatch, owner, name: str, n: int):
+    """Make the ``n``-th call of method ``owner.name`` raise KeyboardInterrupt, as Ctrl-C there would."""
+    real, calls = getattr(owner, name), []
+
+    def interrupting(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == n:
+            raise KeyboardInterrupt
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(owner, name, interrupting)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import interrupt_call
 from pxr import Usd
 
 from warpcontact import io
@@ -266,15 +267,7 @@ def test_simulate_interrupted_by_hand_writes_the_frames_it_simulated(tmp_path, c
     """Ctrl-C used to end `simulate` with a traceback and nothing written."""
     from warpcontact.solver import ImplicitSolver
 
-    step, calls = ImplicitSolver.step, []
-
-    def interrupted_fourth(self, *args, **kwargs):
-        calls.append(1)
-        if len(calls) == 4:
-            raise KeyboardInterrupt
-        return step(self, *args, **kwargs)
-
-    monkeypatch.setattr(ImplicitSolver, "step", interrupted_fourth)
+    interrupt_call(monkeypatch, ImplicitSolver, "step", 4)
     assert main(["simulate", "push", "--frames", "6", "--out", str(tmp_path)]) == 130
     assert "error: frame 3: interrupted; the outputs hold the 3 frames before it" in capsys.readouterr().err
     assert json.loads((tmp_path / "summary.json").read_text())["stopped"] == {"frame": 3, "error": "interrupted"}

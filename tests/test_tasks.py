@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import interrupt_call
 import trimesh
 import warp as wp
 from pxr import Usd
@@ -411,16 +412,7 @@ def test_cli_compare_interrupted_keeps_and_plots_the_finished_models(tmp_path, c
 
     scene_path = tmp_path / "space.usda"
     io.save_scene(space_billiards(), scene_path)
-    optimize = TaskProblem.optimize
-    calls = []
-
-    def interrupted_second(self, *args, **kwargs):
-        calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return optimize(self, *args, **kwargs)
-
-    monkeypatch.setattr(TaskProblem, "optimize", interrupted_second)
+    interrupt_call(monkeypatch, TaskProblem, "optimize", 2)
     out = tmp_path / "cmp"
     assert main(["compare", str(scene_path), "--models", "ours,sdrs,gb", "--iters", "1", "--out", str(out)]) == 130
     assert list(json.loads((out / "compare.json").read_text())["models"]) == ["ours"]
@@ -775,15 +767,7 @@ def test_cli_run_keeps_its_progress_when_interrupted_and_resumes_it(tmp_path, ca
     assert main([*argv, "--out", str(tmp_path / "full")]) == 0
     full = json.loads((tmp_path / "full" / "metrics.json").read_text())
     out = tmp_path / "out"
-    rollout, count = tasks.TaskProblem.rollout, [0]
-
-    def interrupting(self, *args, **kwargs):
-        count[0] += 1
-        if count[0] == 3:
-            raise KeyboardInterrupt
-        return rollout(self, *args, **kwargs)
-
-    monkeypatch.setattr(tasks.TaskProblem, "rollout", interrupting)
+    interrupt_call(monkeypatch, tasks.TaskProblem, "rollout", 3)
     capsys.readouterr()
     assert main([*argv, "--out", str(out)]) == 130
     assert "interrupted: progress kept in" in capsys.readouterr().err and (out / cli.CHECKPOINT_NAME).exists()
