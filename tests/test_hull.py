@@ -58,3 +58,27 @@ def test_points_inside_are_left_out_or_refused_in_convex_position():
 def test_degenerate_points_are_refused(points, match):
     with pytest.raises(ValueError, match=match):
         convex_hull(points)
+
+
+@pytest.mark.parametrize("distance", [1e-11, 1e-9, 1e-8, 1e-6])
+def test_nearly_coinciding_points_give_the_hull_of_the_others(distance):
+    # A copy of each point this close (an exporter's seam noise) left the hull open with up
+    # to 200 times its volume, and points outside it, with no error.
+    rng = np.random.default_rng(7)
+    sphere = rng.standard_normal((150, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    points = np.vstack([sphere, sphere + distance * rng.standard_normal(sphere.shape)])[rng.permutation(300)]
+    faces = convex_hull(points)
+    mesh = trimesh.Trimesh(points, faces, process=False)
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    assert mesh.volume == pytest.approx(trimesh.Trimesh(sphere, convex_hull(sphere), process=False).volume, rel=1e-5)
+
+
+@pytest.mark.parametrize("scale", [1e-120, 1e-9, 1e80, 1e120, 1e200])
+def test_a_cube_at_any_scale(scale):
+    # Squared lengths overflowed or underflowed: a cube of 1e120 m came out a tetrahedron,
+    # one of 1e-120 m and one of 1e80 m "all in one plane".
+    cube = np.asarray(trimesh.creation.box(extents=(1.0, 1.0, 1.0)).vertices) * scale
+    faces = convex_hull(cube)
+    assert len(faces) == 12
+    _check_hull(cube / scale, faces)

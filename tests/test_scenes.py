@@ -189,6 +189,23 @@ def test_resting_needs_a_closed_outward_convex_mesh():
         scenes.rest_on_face(dented, f)
 
 
+def test_a_zero_area_face_is_never_the_one_a_ball_rests_on():
+    # A valid convex mesh with a zero-area face (a vertex inserted on an edge, and the
+    # triangle that closes it) rested on that face's NaN margin: every vertex came back NaN.
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    vertices = np.asarray(box.vertices, dtype=np.float64)
+    faces = [list(f) for f in box.faces]
+    a, b, c = faces[0]
+    m = len(vertices)
+    vertices = np.vstack([vertices, 0.5 * (vertices[a] + vertices[b])])
+    faces[0] = [a, m, c]
+    faces += [[m, b, c], [a, b, m]]  # [a, b, m] has zero area
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    assert mesh.is_watertight and mesh.volume == pytest.approx(1.0)
+    rested, height = scenes.rest_on_face(vertices, np.array(faces))
+    assert np.isfinite(rested).all() and height == pytest.approx(0.5)
+
+
 def test_unknown_scene_is_a_clear_error():
     with pytest.raises(ValueError, match="not one of"):
         scenes.build_scene("ant_walk")

@@ -235,11 +235,22 @@ def test_out_of_range_task_settings_are_clear_errors(tmp_path, field, value, mes
         TaskSettings.from_task(io.load_scene(path), quick=field.startswith("quick"))
 
 
+def test_a_rollout_from_a_non_finite_start_names_it():
+    # It was blamed on zero velocities: "velocities give a non-finite previous pose".
+    problem = TaskProblem(space_billiards(), settings=TaskSettings(horizon=2, receding_horizon=0, iterations=1, learning_rate=0.1))
+    q, q_prev = (np.array(a) for a in problem.start)
+    q[0, 0] = np.nan
+    with pytest.raises(ValueError, match="start q: contains non-finite values"):
+        problem.rollout(problem.initial_values(1), (q, q_prev), 2)
+
+
 @pytest.mark.parametrize(
     ("field", "value", "message"),
     [
-        ("target_position", np.array([np.nan, 0.0, 0.0]), r"prim /World/target: warpcontact:target:position must be finite \(3 numbers\), got \[nan, 0.0, 0.0\]"),
-        ("target_position", np.array([1.0, 0.0]), r"warpcontact:target:position must be finite \(3 numbers\), got \[1.0, 0.0\]"),
+        ("target_position", np.array([np.nan, 0.0, 0.0]), r"prim /World/target: warpcontact:target:position must be 3 finite numbers of at most 1e\+150 m in magnitude, got \[nan, 0.0, 0.0\]"),
+        ("target_position", np.array([1.0, 0.0]), r"warpcontact:target:position must be 3 finite numbers .*, got \[1.0, 0.0\]"),
+        # Beyond 1e150 m the loss's squared distance overflowed to inf.
+        ("target_position", np.array([1e160, 0.0, 0.0]), r"warpcontact:target:position must be 3 finite numbers of at most 1e\+150 m in magnitude, got \[1e\+160, 0.0, 0.0\]"),
         ("target_tolerance", -1.0, "prim /World/target: warpcontact:target:tolerance must be >= 0 and finite, got -1.0"),
         ("target_tolerance", float("inf"), "warpcontact:target:tolerance must be >= 0 and finite, got inf"),
     ],

@@ -87,7 +87,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ._validate import is_positive_finite, is_real
+from ._validate import MAX_COORDINATE, is_positive_finite, is_real
 from .builder import MODEL_CONTACT_MODES, ModelBuilder, contact_setting_problem
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
@@ -1517,8 +1517,9 @@ def target_problem(body: BodySpec) -> str | None:
     ``target_tolerance``: finite and >= 0), or None: one rule for scenes read from USD and
     scenes built in Python (``tasks.validate_task``)."""
     position = np.asarray(body.target_position, dtype=np.float64)
-    if position.shape != (3,) or not np.isfinite(position).all():
-        return f"warpcontact:target:position must be finite (3 numbers), got {position.tolist()}"
+    if position.shape != (3,) or not np.isfinite(position).all() or np.abs(position).max() > MAX_COORDINATE:
+        # Beyond MAX_COORDINATE the squared distance of the loss overflowed to inf.
+        return f"warpcontact:target:position must be 3 finite numbers of at most {MAX_COORDINATE:g} m in magnitude, got {position.tolist()}"
     tolerance = body.target_tolerance
     if not is_real(tolerance) or not np.isfinite(tolerance) or tolerance < 0:
         return f"warpcontact:target:tolerance must be >= 0 and finite, got {tolerance}"

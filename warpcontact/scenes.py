@@ -87,15 +87,20 @@ def rest_on_face(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, f
         raise ValueError("not convex: a pair of adjacent faces folds inward")
     tri = vertices[faces]
     normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    area2 = np.linalg.norm(normals, axis=1, keepdims=True)
+    # A zero-area face has no normal and cannot be stood on (its NaN margin won argmax).
+    flat = area2[:, 0] > 1e-12 * float(area2.max())
+    normals = np.divide(normals, area2, out=np.zeros_like(normals), where=area2 > 0)
     com = mesh.center_mass
     foot = com - np.einsum("fi,fi->f", com - tri[:, 0], normals)[:, None] * normals
     margin = np.full(len(faces), np.inf)
     for k in range(3):
         edge = tri[:, (k + 1) % 3] - tri[:, k]
         inward = np.cross(normals, edge)
-        inward /= np.linalg.norm(inward, axis=1, keepdims=True)
+        length = np.linalg.norm(inward, axis=1, keepdims=True)
+        inward = np.divide(inward, length, out=np.zeros_like(inward), where=length > 0)
         margin = np.minimum(margin, np.einsum("fi,fi->f", foot - tri[:, k], inward))
+    margin[~flat] = -np.inf
     n = normals[int(np.argmax(margin))]
     down = np.array([0.0, 0.0, -1.0])
     axis = np.cross(n, down)
