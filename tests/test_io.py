@@ -187,6 +187,12 @@ def test_concave_polygons_are_ear_clipped_and_self_intersecting_ones_refused(tmp
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     assert (cross[:, 2] > 0).all()  # the face's winding kept
     assert 0.5 * cross[:, 2].sum() == pytest.approx(3.0)  # the L's area, not the fan's 3.5
+    ground.GetFaceVertexCountsAttr().Set([7])
+    ground.GetFaceVertexIndicesAttr().Set([0, 1, 2, 3, 3, 4, 5])  # a corner listed twice: still simple
+    stage.GetRootLayer().Save()
+    body = io.load_scene(tmp_path / "l.usda").body("ground")
+    tri = body.vertices[body.faces]
+    assert 0.5 * np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])[:, 2].sum() == pytest.approx(3.0)
     bow = [(0, 0, 0), (2, 0, 0), (2, 2, 0), (1, -1, 0), (0, 2, 0)]  # its edges cross
     ground.GetPointsAttr().Set(bow)
     ground.GetFaceVertexCountsAttr().Set([5])
@@ -378,6 +384,8 @@ def test_trajectory_export_opens_with_time_samples(tmp_path):
         io.export_trajectory(scene, poses, tmp_path / "missing" / "x.usda")
     with pytest.raises(ValueError, match="poses"):
         io.export_trajectory(scene, poses[..., :6], tmp_path / "y.usda")
+    with pytest.raises(ValueError, match="with at least one frame"):  # an IndexError before
+        io.export_trajectory(scene, poses[:0], tmp_path / "z.usda")
     # Each of these used to write a file USD viewers cannot use, or fail inside pxr.
     unrotated = poses.copy()
     unrotated[3, 1, 3:] = 0.0

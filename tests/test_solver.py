@@ -1007,6 +1007,7 @@ def test_states_sharing_arrays_are_refused_and_alternating_states_work():
         (wc.State(body_q=one.body_q, body_q_prev=one.body_q_prev), "state_out.body_q: shares memory with state_in.body_q;"),
         (wc.State(body_q=one.body_q_prev, body_q_prev=one.body_q), "state_out.body_q: shares memory with state_in.body_q_prev;"),
         (wc.State(body_q=model.state().body_q, body_q_prev=one.body_q), "state_out.body_q_prev: shares memory with state_in.body_q;"),
+        (wc.State(body_q=(same := model.state().body_q), body_q_prev=same), "state_out.body_q: shares memory with state_out.body_q_prev;"),
     ):
         before = one.body_q.numpy().copy()
         with pytest.raises(ValueError, match=names):

@@ -716,9 +716,10 @@ class ArticulationModel:
 
 def _angles_within(angles: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     """``angles`` (in (-pi, pi], as poses give them) moved by whole turns strictly inside
-    (lower, upper) where a turn of them lies there: poses tell an angle only modulo 2 pi, and
-    a hinge posed at 3.5 rad within limits (3, 4) read as -2.78 was refused, and with limits
-    (-4, 4) it swung through its 4 rad stop."""
+    (lower, upper) where a turn of them lies there (the first above the lower limit, or with
+    none the first below the upper): poses tell an angle only modulo 2 pi, and a hinge posed
+    at 3.5 rad within limits (3, 4) read as -2.78 was refused. An angle already inside is
+    kept, so limits wider than a turn keep the (-pi, pi] reading."""
     out = np.array(angles, dtype=np.float64)
     turn = 2.0 * np.pi
     for i, (angle, low, high) in enumerate(zip(out, lower, upper, strict=True)):

@@ -39,7 +39,7 @@ __all__ = ["BundleSettings", "bundled_gradient"]
 @dataclass
 class BundleSettings:
     """Gradient-bundle settings. Sigmas are in the decision variables' units; None scales
-    them with the learning rate (10x at the first iteration, 1x at the last)."""
+    them with the learning rate (10x at a window's first Adam update, 1x at its last)."""
 
     samples: int = 8
     initial_sigma: float | None = None

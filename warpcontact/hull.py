@@ -11,14 +11,11 @@ import numpy as np
 __all__ = ["convex_hull", "convex_hull_mesh"]
 
 # A point closer than this fraction of the points' extent to a face's plane, on its outer
-# side, counts as on the hull already (not in convex position). At 1e-12 a point 1e-11 from
-# a hull vertex (an exporter's seam) saw faces by rounding noise, and the hull came out open
-# with the wrong volume; the plane tests' rounding is ~1e-15 of the extent.
-_PLANE_TOLERANCE = 1e-9
-# Points closer than this fraction of the extent to an earlier point are left out with it:
-# a face through two points d apart has a normal good to ~1e-16 / d, and planes of such
-# slivers misjudged points by more than the tolerance (points 1e-8 apart broke the hull).
-_MERGE_DISTANCE = 1e-6
+# side, counts as on the hull already (not in convex position).
+_PLANE_TOLERANCE = 1e-12
+# The returned hull may miss a point by this fraction of the extent (rounding of the plane
+# tests of sliver faces); a larger miss, or a hull that is not closed, is refused.
+_CHECK_TOLERANCE = 1e-9
 
 
 def convex_hull(points, *, all_on_hull: bool = False) -> np.ndarray:
@@ -26,8 +23,7 @@ def convex_hull(points, *, all_on_hull: bool = False) -> np.ndarray:
 
     Incremental: from a tetrahedron (the first four points where they span one), each point
     in turn replaces the faces it sees with a fan from their horizon. Points inside the hull
-    or on it (within 1e-9 of the points' extent), and points within 1e-6 of it of an earlier
-    point, are left out, or with ``all_on_hull``
+    or on it (within 1e-12 of the points' extent) are left out, or with ``all_on_hull``
     (points meant to be in convex position) are an error. Each point is tested against every
     face, so the cost grows as points x hull faces (this 2-core CPU: 0.07 s for 642 points
     all on the hull, 0.5 s for 2,562, 6 s for 10,242; a 3,000-point cloud in a box, 0.1 s).
@@ -35,52 +31,22 @@ def convex_hull(points, *, all_on_hull: bool = False) -> np.ndarray:
     Args:
         points: (N, 3) coordinates, N >= 4, finite.
 
-    The points are centred and scaled to unit extent first, so that no product overflows or
-    underflows at any scale (a cube of 1e120 m came out a tetrahedron, one of 1e-120 m "in one
-    plane"). The result is checked: closed, every edge used once each way, every point inside.
+    The result is checked: closed (every edge used once each way) and no point outside it by
+    more than 1e-9 of the extent. Points that nearly coincide (a copy of each point 1e-11
+    away, an exporter's seam) can make the plane tests' rounding decide visibility, and such a
+    hull came back open, with up to 200 times the volume and points outside it; it is refused
+    now, as is a set so large or small that its squared lengths overflow or underflow (a cube
+    of 1e120 m came back a tetrahedron).
 
     Raises ValueError for fewer than 4 points, non-finite points, points that span no volume
-    (collinear or coplanar, within 1e-9 of their extent), or a hull that fails its check.
+    (collinear or coplanar), or a hull that fails its check.
     """
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4:
         raise ValueError(f"points: expected (N, 3) with N >= 4, got shape {points.shape}")
     if not np.isfinite(points).all():
         raise ValueError("points: not all finite")
-    low, high = points.min(axis=0), points.max(axis=0)
-    extent = float((high - low).max())
-    if extent == 0.0:
-        raise ValueError("points: they span no volume (all at one point)")
-    points = (points - 0.5 * (low + high)) / extent
-    kept = _first_of_near_duplicates(points, _MERGE_DISTANCE)
-    if all_on_hull and not kept.all():
-        raise ValueError(f"point {int(np.flatnonzero(~kept)[0])} is not in convex position (it nearly coincides with an earlier one)")
-    index = np.flatnonzero(kept)
-    faces = _incremental_hull(points[index], _PLANE_TOLERANCE, all_on_hull)
-    _check_hull(points[index], faces, _PLANE_TOLERANCE)  # the merged points lie within 1e-6 of it
-    return index[faces]
-
-
-def _first_of_near_duplicates(points: np.ndarray, distance: float) -> np.ndarray:
-    """(N,) True for each point farther than ``distance`` from every earlier point: a sweep
-    along the axis of widest spread, comparing each point with those following it within
-    ``distance`` along that axis."""
-    axis = int(np.argmax(np.ptp(points, axis=0)))
-    order = np.argsort(points[:, axis], kind="stable")
-    ordered = points[order]
-    kept = np.ones(len(points), dtype=bool)
-    for step in range(1, len(points)):
-        near = ordered[step:, axis] - ordered[:-step, axis] < distance
-        if not near.any():
-            break
-        close = near & (np.linalg.norm(ordered[step:] - ordered[:-step], axis=1) < distance)
-        first, second = order[:-step][close], order[step:][close]
-        kept[np.maximum(first, second)] = False  # the later of the two in the input's order
-    return kept
-
-
-def _incremental_hull(points: np.ndarray, tolerance: float, all_on_hull: bool) -> np.ndarray:
-    """``convex_hull``'s faces of ``points`` scaled to unit extent."""
+    tolerance = _PLANE_TOLERANCE * max(float(np.ptp(points, axis=0).max()), np.finfo(np.float64).tiny)
     seed = _seed_tetrahedron(points, tolerance)
     centre = points[list(seed)].mean(axis=0)
     a, b, c, d = seed
@@ -106,25 +72,33 @@ def _incremental_hull(points: np.ndarray, tolerance: float, all_on_hull: bool) -
         faces = np.concatenate([faces[~visible], horizon])
         corner = np.concatenate([corner[~visible], new_corner])
         scaled = np.concatenate([scaled[~visible], new_scaled])
+    _check_hull(points, faces)
     return faces
 
 
-def _check_hull(points: np.ndarray, faces: np.ndarray, tolerance: float) -> None:
+def _check_hull(points: np.ndarray, faces: np.ndarray) -> None:
     """ValueError unless ``faces`` close up with every edge used once in each direction and
-    every point lies inside every face's plane (within 10 ``tolerance``)."""
+    no point lies outside a face's plane by more than _CHECK_TOLERANCE of the extent (tested
+    on the points centred and scaled to unit extent)."""
     edges = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
     directed = {tuple(e) for e in edges.tolist()}
     closed = len(directed) == len(edges) and all((v, u) in directed for u, v in directed)
-    outside = -np.inf
+    outside = np.inf
     if closed:
-        corner, scaled = _face_planes(points, faces, tolerance)
-        offset = np.einsum("fi,fi->f", corner, scaled)
-        for start in range(0, len(points), 256):  # points x faces in slices of bounded memory
-            outside = max(outside, float((points[start : start + 256] @ scaled.T - offset).max()))
-    if not closed or outside > 10.0:
+        low, high = points.min(axis=0), points.max(axis=0)
+        unit = (points - 0.5 * (low + high)) / float((high - low).max())
+        corner = unit[faces[:, 0]]
+        normal = np.cross(unit[faces[:, 1]] - corner, unit[faces[:, 2]] - corner)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        offset = np.einsum("fi,fi->f", corner, normal)
+        outside = -np.inf
+        for start in range(0, len(unit), 256):  # points x faces in slices of bounded memory
+            outside = max(outside, float(np.nan_to_num(unit[start : start + 256] @ normal.T - offset, nan=np.inf).max()))
+    if not outside <= _CHECK_TOLERANCE:
         raise ValueError(
-            "points: their convex hull could not be built reliably (near-degenerate points: a sliver of a set, or "
-            "points that nearly coincide); merge points closer than about 1e-9 of the set's extent"
+            "points: their convex hull could not be built reliably (points that nearly coincide, or a set too large or "
+            "small for float64 products); merge points that nearly coincide, or rescale them"
         )
 
 

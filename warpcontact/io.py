@@ -349,6 +349,12 @@ def _polygon_triangles(corners: np.ndarray) -> list | None:
     fan = [(0, k, k + 1) for k in range(1, n - 1)]
     if n == 3:
         return fan
+    # A corner listed twice in a row (common in exported meshes) is one corner: its zero-length
+    # edge read as a crossing and refused a simple concave face.
+    distinct = np.flatnonzero(np.any(corners != np.roll(corners, -1, axis=0), axis=1))
+    if 3 <= len(distinct) < n:
+        inner = _polygon_triangles(corners[distinct])
+        return None if inner is None else [tuple(int(distinct[k]) for k in t) for t in inner]
     # Newell's normal, and the polygon in two coordinates of its plane.
     normal = np.sum(np.cross(corners, np.roll(corners, -1, axis=0)), axis=0)
     if not np.linalg.norm(normal) > 0:
@@ -783,7 +789,7 @@ def load_scene(path) -> Scene:
     for prim_path, desc in descs.get("RigidBody", []):
         prim = stage.GetPrimAtPath(prim_path)
         _require_default_values(prim, UsdGeom, Usd, source)
-        if desc.startsAsleep and not desc.kinematicBody:
+        if desc.startsAsleep and desc.rigidBodyEnabled and not desc.kinematicBody and str(prim_path) not in welds:
             raise ValueError(
                 f"{source}: prim {prim_path}: physics:startsAsleep is not supported (a sleeping body would hang until touched; "
                 "every dynamic body here moves from the start); remove it, or make the body kinematic to hold it"
@@ -1980,8 +1986,8 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
     Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
     _check_prim_names(scene.bodies, "body", reserved=("targets",), Sdf=Sdf)
     poses = np.asarray(poses, dtype=np.float64)
-    if poses.ndim != 3 or poses.shape[1:] != (len(scene.bodies), 7) or not np.isfinite(poses).all():
-        raise ValueError(f"poses: expected finite (frames, {len(scene.bodies)}, 7), got {poses.shape}")
+    if poses.ndim != 3 or poses.shape[1:] != (len(scene.bodies), 7) or len(poses) == 0 or not np.isfinite(poses).all():
+        raise ValueError(f"poses: expected finite (frames, {len(scene.bodies)}, 7) with at least one frame, got {poses.shape}")
     unrotated = np.argwhere(np.linalg.norm(poses[..., 3:], axis=-1) == 0.0)
     if unrotated.size:
         frame, body = unrotated[0]

@@ -117,15 +117,19 @@ def _check_no_shared_arrays(state_in: State, state_out: State) -> None:
     def extent(array):
         return (array.ptr, array.ptr + array.capacity) if isinstance(array, wp.array) and array.ptr and array.capacity else None
 
-    for out_name in names:
+    for i, out_name in enumerate(names):
         out = extent(getattr(state_out, out_name, None))
         if out is None:
             continue
-        for in_name in names:
-            read = extent(getattr(state_in, in_name, None))
+        # Against every input array, and against the output's other arrays (one array as
+        # both body_q and body_q_prev held the box where it was).
+        others = [("state_in", name) for name in names] + [("state_out", name) for name in names[i + 1 :]]
+        for label, name in others:
+            state = state_in if label == "state_in" else state_out
+            read = extent(getattr(state, name, None))
             if read is not None and out[0] < read[1] and read[0] < out[1]:
                 raise ValueError(
-                    f"state_out.{out_name}: shares memory with state_in.{in_name}; a step writes state_out while it reads "
+                    f"state_out.{out_name}: shares memory with {label}.{name}; a step writes state_out while it reads "
                     "state_in, so give state_out arrays of its own (model.state()); two States may alternate as input and output"
                 )
 

@@ -171,7 +171,8 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
     # dt 0.04 s simulated as -57 rad/s.
     with np.errstate(invalid="ignore", over="ignore"):
         turn = np.linalg.norm(angular_velocity.numpy(), axis=1) * dt
-    fast = np.flatnonzero(turn >= np.pi)
+    # A non-finite velocity is named below, once the previous pose it gives is read back.
+    fast = np.flatnonzero(np.isfinite(turn) & (turn >= np.pi))
     if fast.size:
         b = fast[0]
         raise ValueError(
