@@ -108,6 +108,13 @@ _DAMPING_LAST = 1e2
 _PASS_THROUGH_TRAVEL = 0.5
 
 
+def _check_pose_array(poses, count: int, label: str, expected: str) -> None:
+    """ValueError naming ``label`` unless ``poses`` is a wp.array of ``count`` wp.transformd."""
+    if not isinstance(poses, wp.array) or poses.shape != (count,) or poses.dtype != wp.transformd:
+        got = f"{poses.dtype.__name__} array of shape {poses.shape}" if isinstance(poses, wp.array) else type(poses).__name__
+        raise ValueError(f"{label}: expected a wp.array of {count} wp.transformd, {expected}, got {got}")
+
+
 def _check_no_shared_arrays(state_in: State, state_out: State) -> None:
     """ValueError naming the arrays if a ``state_out`` array shares memory with a
     ``state_in`` one: the step writes its output while its result and backward still read
@@ -626,10 +633,7 @@ class ImplicitSolver:
             raise ValueError("state_out: must be a different State from state_in (one buffer per time step)")
         for label, state in (("state_in", state_in), ("state_out", state_out)):
             for name in ("body_q", "body_q_prev"):
-                poses = getattr(state, name, None)
-                if not isinstance(poses, wp.array) or poses.shape != (model.num_bodies,) or poses.dtype != wp.transformd:
-                    got = f"{poses.dtype.__name__} array of shape {poses.shape}" if isinstance(poses, wp.array) else type(poses).__name__
-                    raise ValueError(f"{label}.{name}: expected a wp.array of {model.num_bodies} wp.transformd, one per body of this model (use model.state()), got {got}")
+                _check_pose_array(getattr(state, name, None), model.num_bodies, f"{label}.{name}", "one per body of this model (use model.state())")
         _check_no_shared_arrays(state_in, state_out)
         # Copies: on a CPU .numpy() is a view of the state's memory.
         q_now = state_in.body_q.numpy().copy()
@@ -641,10 +645,7 @@ class ImplicitSolver:
             if unrotated.size:
                 raise ValueError(f"{label}: body {model.body_names[unrotated[0]]!r} (index {unrotated[0]}) has a zero rotation quaternion")
         if control is not None:
-            targets = control.body_target
-            if not isinstance(targets, wp.array) or targets.shape != (len(q_now),) or targets.dtype != wp.transformd:
-                got = f"{targets.dtype.__name__} array of shape {targets.shape}" if isinstance(targets, wp.array) else type(targets).__name__
-                raise ValueError(f"control.body_target: expected a wp.array of {len(q_now)} wp.transformd, one per body (use model.control()), got {got}")
+            _check_pose_array(control.body_target, len(q_now), "control.body_target", "one per body (use model.control())")
         q = _normalized(q_now)
         coords_now, joint_target = self._joint_arrays(state_in, state_out, control, q)
         ball_target, ball_start = self._ball_arrays(control, q_now)
@@ -981,9 +982,6 @@ class ImplicitSolver:
                     # At coefficient 0 the step has no friction: only its coefficient moves it.
                     _, adj_friction, _ = model.contact.friction_adjoint(step_in.friction_rate, q_next, q_now, lam_full.reshape(n, 6))
                     _accumulate(model.friction, adj_friction)
-                if control is None:
-                    # Without a control each body's PD target is its start pose q^t.
-                    adj_now.assign(adj_now.numpy() + adj_target.numpy())
                 if balls:
                     target_adj, start_adj = art.ball_drive_adjoint(q_next, q_now, lam_reduced, step_in.ball_target, dt, target_is_start=ball_target_is_start)
                     adj_now.assign(adj_now.numpy() + start_adj)
@@ -991,8 +989,11 @@ class ImplicitSolver:
                         wp.launch(dynamics_kernels.rotation_adjoint_to_quat_kernel, dim=art.num_ball_joints, inputs=[ball_target_arr, wp.array(target_adj, dtype=wp.vec3d)], outputs=[control.ball_target.grad])
                 wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[q_now_arr, adj_now], outputs=[state_in.body_q.grad])
                 wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[q_prev_arr, adj_prev], outputs=[state_in.body_q_prev.grad])
-                if control is not None and control.body_target.requires_grad:
-                    wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[target_arr, adj_target], outputs=[control.body_target.grad])
+                # Without a control each body's PD target is its start pose q^t (target_arr is a
+                # copy of state_in.body_q), so the target's adjoint is the start's.
+                target_grad = state_in.body_q.grad if control is None else control.body_target.grad if control.body_target.requires_grad else None
+                if target_grad is not None:
+                    wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[target_arr, adj_target], outputs=[target_grad])
                 _accumulate(model.body_mass, adj_mass.numpy())
                 _accumulate(model.contact_stiffness, mu_adj)
                 # state_out.body_q_prev is a copy of state_in.body_q; static bodies stay put.
