@@ -104,6 +104,11 @@ class ContactEvaluation:
         return not self.contact_pairs and not self.unsolved_pairs
 
 
+def _read_only(attribute: str, doc: str) -> property:
+    """A read-only property returning ``attribute``."""
+    return property(lambda self: getattr(self, attribute), doc=doc)
+
+
 def _static_flags(static, num_bodies: int) -> np.ndarray:
     """(num_bodies,) bool flags from ``static`` (None: all dynamic); entries must be bools or 0/1."""
     if static is None:
@@ -335,35 +340,12 @@ class ContactModel:
 
     # The settings are read-only: a CUDA graph and the recorded launches hold them, and a
     # changed eps gave the old potential back from evaluate(reuse=True).
-    @property
-    def mode(self) -> str:
-        """The contact model: "bsh", "brute" or "sdrs" (``CONTACT_MODES``)."""
-        return self._mode
-
-    @property
-    def centred_weight(self) -> str:
-        """The far terms' weights (``CENTRED_WEIGHTS``)."""
-        return self._centred_weight
-
-    @property
-    def eps(self) -> float:
-        """The blend margin: node pairs farther than (1 + eps) (R_I + R_J) are far terms."""
-        return self._eps
-
-    @property
-    def dhat(self) -> float:
-        """SDRS's barrier support (m); 0 for the paper's barrier."""
-        return self._dhat
-
-    @property
-    def max_leaf_iterations(self) -> int:
-        """Newton iteration cap of each leaf plane search."""
-        return self._max_leaf_iterations
-
-    @property
-    def leaf_precision(self) -> str:
-        """The leaf plane search's float type (``LEAF_PRECISIONS``)."""
-        return self._leaf_precision
+    mode = _read_only("_mode", 'The contact model: "bsh", "brute" or "sdrs" (``CONTACT_MODES``).')
+    centred_weight = _read_only("_centred_weight", "The far terms' weights (``CENTRED_WEIGHTS``).")
+    eps = _read_only("_eps", "The blend margin: node pairs farther than (1 + eps) (R_I + R_J) are far terms.")
+    dhat = _read_only("_dhat", "SDRS's barrier support (m); 0 for the paper's barrier.")
+    max_leaf_iterations = _read_only("_max_leaf_iterations", "Newton iteration cap of each leaf plane search.")
+    leaf_precision = _read_only("_leaf_precision", "The leaf plane search's float type (``LEAF_PRECISIONS``).")
 
     # --- set-up ---------------------------------------------------------------------------
 
