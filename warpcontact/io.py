@@ -1534,11 +1534,11 @@ def target_problem(body: BodySpec) -> str | None:
 
 def _read_warpcontact_body(prim, body: BodySpec, meters: float, source: str):
     target = _cast_attr(prim, "target:position", _numbers, source)
-    if target is None and _cast_attr(prim, "target:tolerance", float, source) is not None:
+    tolerance = _cast_attr(prim, "target:tolerance", float, source)
+    if target is None and tolerance is not None:
         raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:target:tolerance is authored without a warpcontact:target:position, which makes a body a target")
     if target is not None:
         body.target_position = target * meters
-        tolerance = _cast_attr(prim, "target:tolerance", float, source)
         body.target_tolerance = (0.0 if tolerance is None else tolerance) * meters
         problem = target_problem(body)
         if problem:
