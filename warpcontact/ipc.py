@@ -34,7 +34,7 @@ import numpy as np
 from dataclasses import dataclass
 
 from .contact import ContactEvaluation, LaggedFriction, contact_body_pairs
-from .rotation import quat_from_rotation_vector, quat_to_matrix, skew
+from .rotation import normalized_poses, quat_from_rotation_vector, quat_to_matrix, skew
 from ._validate import as_float64_array, check_barrier_support, check_coordinates
 
 # A step's arc is checked in chord pieces whose bulge stays below this fraction of dhat.
@@ -113,18 +113,21 @@ class IpcContactModel:
         R = quat_to_matrix(poses[:, 3:])
         return np.einsum("vij,vj->vi", R[self._body_of], self._local) + poses[self._body_of, :3]
 
+    def _validated_poses(self, poses) -> np.ndarray:
+        """(nbodies, 7) float64 poses with unit quaternions, or ValueError naming the problem."""
+        poses = as_float64_array(poses, "poses", trailing_shape=(7,))
+        check_coordinates(poses, "poses")
+        if poses.shape[0] != self.num_bodies:
+            raise ValueError(f"poses: expected {self.num_bodies} rows (one per body), got {poses.shape[0]}")
+        return normalized_poses(poses)
+
     def evaluate(self, poses, *, reuse: bool = False) -> ContactEvaluation:
         """Barrier value, (nbodies, 6) gradient and Hessian in rigid coordinates (dp, dtheta).
 
         ``reuse`` is accepted for ``ContactModel``'s signature and ignored: ipctk's
         collision set is rebuilt at every call.
         """
-        poses = as_float64_array(poses, "poses", trailing_shape=(7,))
-        check_coordinates(poses, "poses")
-        if poses.shape[0] != self.num_bodies:
-            raise ValueError(f"poses: expected {self.num_bodies} rows (one per body), got {poses.shape[0]}")
-        poses = poses.copy()
-        poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
+        poses = self._validated_poses(poses)
         ipctk = self._ipctk
         V = self._world_vertices(poses)
         self._world, self._positions = V, poses[:, :3].copy()
@@ -179,10 +182,7 @@ class IpcContactModel:
         gradient and Hessian in vertex coordinates, no intersection check or rigid
         projection), for timing it side by side with other models; returns (value, number
         of active collisions)."""
-        poses = as_float64_array(poses, "poses", trailing_shape=(7,)).copy()
-        check_coordinates(poses, "poses")
-        poses[:, 3:] /= np.linalg.norm(poses[:, 3:], axis=1, keepdims=True)
-        value, _, _, collisions = self._vertex_terms(self._world_vertices(poses))
+        value, _, _, collisions = self._vertex_terms(self._world_vertices(self._validated_poses(poses)))
         return value, len(collisions)
 
     def _pair_intersects(self, V, a, b) -> bool:

@@ -19,6 +19,7 @@ __all__ = [
     "axial",
     "pose_mul",
     "pose_inverse",
+    "normalized_poses",
     "rigid_step_between",
     "rigid_step_travel",
 ]
@@ -125,6 +126,13 @@ def pose_mul(a, b) -> np.ndarray:
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     return np.concatenate([a[..., :3] + quat_rotate(a[..., 3:], b[..., :3]), quat_mul(a[..., 3:], b[..., 3:])], axis=-1)
+
+
+def normalized_poses(poses) -> np.ndarray:
+    """A copy of (n, 7) poses (p, q) with unit quaternions."""
+    out = np.array(poses, dtype=np.float64)
+    out[:, 3:] /= np.linalg.norm(out[:, 3:], axis=1, keepdims=True)
+    return out
 
 
 def pose_inverse(a) -> np.ndarray:

@@ -36,7 +36,7 @@ from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
 from .articulation import joint_limit_energy
 from .contact import UNSOLVED_HINT, LaggedFriction
-from .rotation import quat_from_matrix, quat_from_rotation_vector, quat_mul, rigid_step_between, rigid_step_travel
+from .rotation import normalized_poses, quat_from_matrix, quat_from_rotation_vector, quat_mul, rigid_step_between, rigid_step_travel
 from .types import Control, Model, State
 
 __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
@@ -59,13 +59,6 @@ def _taped_step_arrays(tape: wp.Tape) -> dict:
         launches, noted = tape.launches, {}
         tape.__dict__[_TAPED_STEP_ARRAYS] = (launches, noted)
     return noted
-
-
-def _normalized(poses: np.ndarray) -> np.ndarray:
-    """A copy of (n, 7) poses with unit quaternions."""
-    out = poses.copy()
-    out[:, 3:] /= np.linalg.norm(out[:, 3:], axis=1, keepdims=True)
-    return out
 
 
 def _accumulate(array: wp.array, adjoint) -> None:
@@ -646,7 +639,7 @@ class ImplicitSolver:
                 raise ValueError(f"{label}: body {model.body_names[unrotated[0]]!r} (index {unrotated[0]}) has a zero rotation quaternion")
         if control is not None:
             _check_pose_array(control.body_target, len(q_now), "control.body_target", "one per body (use model.control())")
-        q = _normalized(q_now)
+        q = normalized_poses(q_now)
         coords_now, joint_target = self._joint_arrays(state_in, state_out, control, q)
         ball_target, ball_start = self._ball_arrays(control, q_now)
         mu = float(model.contact_stiffness.numpy()[0])
@@ -795,7 +788,7 @@ class ImplicitSolver:
         if len(coords):
             state_out.joint_q.assign(coords)
             state_out.joint_q_prev.assign(coords_now)
-            self._last_written = (_normalized(q), coords.copy())
+            self._last_written = (normalized_poses(q), coords.copy())
         friction = step_in.friction
         self.last_step = StepInfo(
             iterations,
