@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import re
 import os
 from pathlib import Path
 
@@ -720,8 +721,8 @@ def _interrupt(problem, calls, checkpoint):
         problem.optimize(checkpoint=checkpoint)
 
 
-# Rollouts before the interruption: mid-window and at window starts (a receding run's first
-# rollout is the trivial plan's, for its initial loss); gb rolls out 3 times an iteration
+# Rollouts before the interruption: mid-window and at window starts (a receding run's
+# trivial-plan rollout, for its initial loss, comes after the windows); gb rolls out 3 times an iteration
 # (the loss, then 2 samples), and its first checkpoint follows its first 3.
 @pytest.mark.parametrize(("run", "calls"), [("receding", 3), ("receding", 6), ("receding", 10), ("bundles", 4), ("bundles", 8), ("bundles", 12)])
 def test_an_interrupted_optimisation_resumes_bit_for_bit(tmp_path, run, calls):
@@ -749,7 +750,7 @@ def test_a_checkpoint_is_never_overwritten_or_resumed_into_another_problem(tmp_p
     make_scene, settings, model = _CHECKPOINTED_RUNS["receding"]
     checkpoint = tmp_path / "checkpoint.npz"
     interrupted = TaskProblem(make_scene(), settings=settings)
-    _interrupt(interrupted, 5, checkpoint)
+    _interrupt(interrupted, 4, checkpoint)
     saved = checkpoint.read_bytes()
     with pytest.raises(ValueError, match=r"checkpoint.npz: holds an unfinished run \(task space_billiards, model ours, frame 0 of 5, 2 Adam iterations"):
         TaskProblem(make_scene(), settings=settings).optimize(checkpoint=checkpoint)
@@ -848,10 +849,67 @@ def test_a_receding_run_that_cannot_go_on_keeps_the_frames_it_executed(tmp_path)
     np.testing.assert_array_equal(stopped.trajectory, full.trajectory[:3])
     assert stopped.loss_history == full.loss_history[: len(stopped.loss_history)] and len(stopped.loss_history) == 2 * settings.iterations
     assert stopped.final_loss == problem._loss_at(full.trajectory[2]) and not stopped.success and not checkpoint.exists()
+    # The initial loss is the trivial plan's at the same frame (it was the horizon's, frame 5).
+    q0 = problem.model.initial_q
+    assert stopped.initial_loss == problem.rollout(np.zeros((2, 2)), (q0, q0), 2, gradient=False)[0] != full.initial_loss
     first = TaskProblem(make_scene(), settings=settings)
     _failing_from_window(first, 1)
     with pytest.raises(SolverError, match="no convergence"):
         first.optimize()
+
+
+def _trivial_plan_failing(problem, frames):
+    """Make ``problem``'s rollouts of the trivial (all-zero) plan over ``frames`` frames fail."""
+    from warpcontact.solver import SolverError
+
+    rollout = problem.rollout
+
+    def failing(values, start, count, **kwargs):
+        if count == frames and not np.any(values):
+            raise SolverError("bodies 'bullet' and 'wall' pass through each other")
+        return rollout(values, start, count, **kwargs)
+
+    problem.rollout = failing
+
+
+def test_a_stopped_run_keeps_its_frames_when_the_trivial_plan_fails_later():
+    """The trivial plan's rollout over the whole horizon (for the initial loss) ran before any
+    window: a failure past the frame where the windows stop ended the run with nothing kept.
+    Where the trivial plan cannot reach the final loss's frame, the initial loss is None and
+    the result says why."""
+    make_scene, settings, _ = _CHECKPOINTED_RUNS["receding"]
+    problem = TaskProblem(make_scene(), settings=settings)
+    _failing_from_window(problem, 3)
+    _trivial_plan_failing(problem, settings.horizon)
+    stopped = problem.optimize()
+    assert stopped.extra["stopped"]["frame"] == 2 and len(stopped.trajectory) == 3 and stopped.initial_loss is not None
+    finished = TaskProblem(make_scene(), settings=settings)
+    _trivial_plan_failing(finished, settings.horizon)
+    result = finished.optimize()
+    assert result.initial_loss is None and len(result.trajectory) == settings.horizon + 1
+    assert result.extra["initial_loss_error"] == "the trivial plan cannot be simulated to frame 5: bodies 'bullet' and 'wall' pass through each other"
+
+
+def test_cli_reports_an_initial_loss_the_trivial_plan_cannot_reach(tmp_path, capsys, monkeypatch):
+    from warpcontact import tasks
+
+    scene = _pd_space_billiards()
+    scene.task.horizon, scene.task.receding_horizon, scene.task.receding_stride = 4, 2, 2
+    scene_path = tmp_path / "receding.usda"
+    io.save_scene(scene, scene_path)
+    init = tasks.TaskProblem.__init__
+
+    def failing_trivial(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        _trivial_plan_failing(self, 4)
+
+    monkeypatch.setattr(tasks.TaskProblem, "__init__", failing_trivial)
+    assert main(["run", str(scene_path), "--iters", "2", "--out", str(tmp_path / "out")]) == 0
+    assert "loss n/a -> " in capsys.readouterr().out
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["initial_loss"] is None and metrics["initial_loss_error"].startswith("the trivial plan cannot be simulated to frame 4")
+    assert main(["compare", str(scene_path), "--models", "ours", "--iters", "2", "--out", str(tmp_path / "compare")]) == 0
+    assert re.search(r"\n\s*ours\s+n/a\s", capsys.readouterr().out)
 
 
 def test_cli_run_writes_what_a_stopped_receding_run_executed(tmp_path, capsys, monkeypatch):
@@ -933,6 +991,7 @@ def _rewritten(path, **changes):
         ("single array", r"not a readable checkpoint \(a single array, not an .npz archive\)"),
         ("meta a list", r"not a readable checkpoint \(its meta is not a JSON object\)"),
         ("meta without a fingerprint", r"not a complete checkpoint \(missing fingerprint\)"),
+        ("encryption flag", r"not a readable checkpoint \(strong encryption"),
         ("values reshaped", r"checkpoint array 'values' has shape \(7, 5\), expected \(2, 2\) for this problem"),
     ],
 )
@@ -947,6 +1006,11 @@ def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path, damage, messa
         checkpoint.write_bytes(checkpoint.read_bytes()[:500])
     elif damage == "empty":
         checkpoint.write_bytes(b"")
+    elif damage == "encryption flag":
+        # One flipped bit: the first central-directory entry's "strong encryption" flag.
+        data = bytearray(checkpoint.read_bytes())
+        data[data.find(b"PK\x01\x02") + 8] |= 0x40
+        checkpoint.write_bytes(bytes(data))
     elif damage == "single array":
         with open(checkpoint, "wb") as f:
             np.save(f, np.zeros(3))
@@ -965,6 +1029,19 @@ def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path, damage, messa
     if damage != "values reshaped":  # a readable, complete file is described before it is resumed
         with pytest.raises(ValueError, match=f"checkpoint.npz: {message}"):
             TaskProblem(make_scene(), settings=settings).optimize(checkpoint=checkpoint)
+
+
+def test_a_checkpoint_of_another_sampling_box_is_refused(tmp_path):
+    """The box initial samples are drawn from is part of the problem: a resume under another
+    box carried the old box's draws into it."""
+    settings = TaskSettings(horizon=15, receding_horizon=0, iterations=3, learning_rate=0.3, initial_samples=3, sample_seed=1)
+    checkpoint = tmp_path / "checkpoint.npz"
+    _interrupt(TaskProblem(sampled_space_billiards(), settings=settings), 5, checkpoint)
+    other = sampled_space_billiards()
+    other.task.sample_high = (0.3, 0.6, 1.0, 0.5)
+    with pytest.raises(ValueError, match=r"checkpoint of another problem \(sample_box: .*8\.0.* saved, .*1\.0.* now"):
+        TaskProblem(other, settings=settings).optimize(checkpoint=checkpoint, resume=True)
+    assert TaskProblem(sampled_space_billiards(), settings=settings).optimize(checkpoint=checkpoint, resume=True).loss_history
 
 
 def test_numpy_integer_settings_checkpoint_and_resume_as_python_integers(tmp_path):
@@ -1025,6 +1102,17 @@ def test_generic_quick_caps_keep_the_stride_inside_the_window():
     scene.task.horizon, scene.task.receding_horizon, scene.task.receding_stride = 40, 20, 10
     capped = TaskSettings.from_task(scene, quick=True)
     assert (capped.horizon, capped.window, capped.receding_stride) == (24, 8, 8)
+
+
+@pytest.mark.parametrize(("make_scene", "horizon", "window"), [(space_billiards, 15, 20), (_pd_space_billiards, 30, 40)])
+def test_generic_quick_caps_keep_a_one_window_task_one_window(make_scene, horizon, window):
+    """A window authored longer than the horizon is one window; the caps made it a receding
+    window of 8 frames (refused for an initial-state task, silently receding for PD targets)."""
+    scene = make_scene()
+    scene.task.horizon, scene.task.receding_horizon = horizon, window
+    capped = TaskSettings.from_task(scene, quick=True)
+    assert capped.window == capped.horizon == min(horizon, 24)
+    TaskProblem(scene, settings=capped)
 
 
 @pytest.mark.parametrize(

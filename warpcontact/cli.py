@@ -210,6 +210,11 @@ def _progress(label: str):
     return progress
 
 
+def _loss_text(loss) -> str:
+    """A loss for messages; None is an initial loss the trivial plan could not reach."""
+    return "n/a" if loss is None else f"{loss:.6g}"
+
+
 def _result_metrics(result) -> dict:
     return {
         "loss_history": result.loss_history,
@@ -293,7 +298,7 @@ def _run(args) -> int:
         print(f"error: writing the results failed ({exc}); the run is kept in {checkpoint.path}: write them with the same command and --resume", file=sys.stderr)
         return 1
     checkpoint.remove()
-    print(f"loss {result.initial_loss:.6g} -> {result.final_loss:.6g}, success {result.success}, {result.seconds:.1f} s; wrote {out}/metrics.json, trajectory.usda, {_plot_name('convergence.png', plotted)}")
+    print(f"loss {_loss_text(result.initial_loss)} -> {result.final_loss:.6g}, success {result.success}, {result.seconds:.1f} s; wrote {out}/metrics.json, trajectory.usda, {_plot_name('convergence.png', plotted)}")
     stopped = result.extra.get("stopped")
     if stopped:
         print(f"error: the run stopped at frame {stopped['frame']} of {settings.horizon}: the simulation failed: {stopped['error']}; its outputs hold the frames executed before it", file=sys.stderr)
@@ -350,7 +355,7 @@ def _compare(args) -> int:
             print(f"{model:>6} {'skipped (see compare.json)':>44}")
         else:
             stopped = f"  stopped at frame {r['stopped']['frame']} (see compare.json)" if "stopped" in r else ""
-            print(f"{model:>6} {r['initial_loss']:13.6g} {r['final_loss']:13.6g} {r['success']!s:>8} {r['seconds']:8.1f}{stopped}")
+            print(f"{model:>6} {_loss_text(r['initial_loss']):>13} {r['final_loss']:13.6g} {r['success']!s:>8} {r['seconds']:8.1f}{stopped}")
     print(f"wrote {out}/compare.json, {_plot_name('compare.png', plotted)}")
     if interrupted is not None:
         print(f"\ninterrupted during {interrupted}: the models before it are in {out}/compare.json", file=sys.stderr)
