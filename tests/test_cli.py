@@ -2,6 +2,7 @@
 
 import csv
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -135,6 +136,81 @@ def test_bench_frame_times_brute_contact_only_above_the_cap(tmp_path):
     assert main(args) == 0
     brute = json.loads((tmp_path / "frame.json").read_text())["rows"][1]
     assert brute["model"] == "brute" and brute["frames"] == 0 and brute["forward_seconds"] is None and brute["forward_seconds_mean"] is None and brute["frame_seconds_mean"] is None and brute["contact_seconds"] > 0
+
+
+def test_bench_frame_rows_do_not_depend_on_the_order_of_models(tmp_path, capsys):
+    """Brute force above the cap is timed at bsh's frames: listed before bsh its row was
+    dropped without a word; with nothing to time at, it is a row saying why, and a run
+    without a drawable row leaves no plot (an earlier run's stayed beside the new results)."""
+    scene = str(_tiny_billiards(tmp_path))
+    args = ["bench", "frame", "--scenes", scene, "--frames", "1", "--warmup", "0", "--brute-max-triangles", "0", "--out", str(tmp_path)]
+    assert main([*args, "--models", "brute", "bsh"]) == 0
+    rows = json.loads((tmp_path / "frame.json").read_text())["rows"]
+    assert [r["model"] for r in rows] == ["bsh", "brute"] and rows[1]["contact_seconds"] > 0
+    assert (tmp_path / "frame.png").is_file()
+    capsys.readouterr()
+    assert main([*args, "--models", "brute", "--overwrite"]) == 0
+    (row,) = json.loads((tmp_path / "frame.json").read_text())["rows"]
+    assert row["error"] == "skipped: 24 dynamic triangles above --brute-max-triangles 0, and no bsh frames to evaluate at (bsh not in --models, or its frames failed)"
+    assert not (tmp_path / "frame.png").exists()
+    out = capsys.readouterr().out
+    assert "skipped: 24 dynamic triangles" in out and "not frame.png (no rows to plot)" in out
+
+
+def test_bench_frame_reads_every_scene_before_timing_any(tmp_path, capsys):
+    args = ["bench", "frame", "--scenes", str(_tiny_billiards(tmp_path)), "peer_billiards_512", "--peer-meshes", str(tmp_path / "none"), "--models", "bsh", "--frames", "1", "--out", str(tmp_path / "b")]
+    assert main(args) == 2
+    assert "error: peer_billiards_512: " in capsys.readouterr().err
+    assert not (tmp_path / "b" / "frame.json").exists()  # the first scene was not run
+
+
+def test_interrupted_benches_keep_their_finished_rows(tmp_path, capsys, monkeypatch):
+    """contact, scaling and leaf wrote their results only at the end: Ctrl-C lost every row,
+    with a traceback."""
+    from warpcontact import bench
+
+    median = bench._median_seconds
+    calls = [0]
+
+    def interrupted_second(fn, repeats):
+        calls[0] += 1
+        if calls[0] == 2:
+            raise KeyboardInterrupt
+        return median(fn, repeats)
+
+    monkeypatch.setattr(bench, "_median_seconds", interrupted_second)
+    assert main(["bench", "scaling", "--points", "8", "12", "--repeats", "1", "--out", str(tmp_path)]) == 130
+    assert f"interrupted; the rows finished before it are in {tmp_path}" in capsys.readouterr().err
+    (row,) = json.loads((tmp_path / "scaling.json").read_text())["rows"]
+    assert row["mode"] == "bsh" and row["triangles"] == 16 * 12 and _csv_rows(tmp_path / "scaling.csv") == 1
+    calls[0] = 0
+    args = ["bench", "contact", "--eps", "0.5", "--gaps", "0.1", "--subdivisions", "0", "--repeats", "1", "--ipc-dhat", "0", "--out", str(tmp_path)]
+    assert main(args) == 130
+    assert [r["mode"] for r in json.loads((tmp_path / "contact.json").read_text())["rows"]] == ["brute"]
+
+
+def test_bench_accuracy_errors_are_named_and_failed_rows_shown(tmp_path, capsys, monkeypatch):
+    from warpcontact import bench
+    from warpcontact.solver import SolverError
+
+    base = ["bench", "accuracy", "--points", "8", "--frames", "1", "--eps", "0.5", "--tolerances", "1e-6", "--precisions", "float64", "--out", str(tmp_path)]
+    assert main([*base, "--balls", "16"]) == 2
+    assert "error: balls: the rack has 15 balls besides the cue, got 16" in capsys.readouterr().err
+    run = bench._accuracy_run
+
+    def failing(scene, controls, *, tolerance, **kwargs):
+        if tolerance in (1e-12, 1e-6):  # the reference and the tolerance sweep's row
+            raise SolverError("implicit step: no convergence after 500 Newton iterations")
+        return run(scene, controls, tolerance=tolerance, **kwargs)
+
+    monkeypatch.setattr(bench, "_accuracy_run", failing)
+    assert main([*base, "--balls", "1"]) == 2
+    assert "error: the reference run (brute force, --reference-tolerance 1e-12) failed: implicit step: no convergence" in capsys.readouterr().err
+    assert main([*base, "--balls", "1", "--reference-tolerance", "1e-11", "--overwrite"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"tolerance\s+bsh\s+0.5\s+1e-06 .* implicit step: no convergence", out)
+    rows = json.loads((tmp_path / "accuracy.json").read_text())["rows"]
+    assert [r["sweep"] for r in rows] == ["reference", "eps", "eps", "tolerance", "precision"] and rows[3]["error"]
 
 
 def test_bench_accuracy_writes_results_and_plot(tmp_path):

@@ -1,5 +1,6 @@
 """Benchmarks that write their results to files (never timed tests)."""
 
+import copy
 import csv
 import json
 import platform
@@ -78,6 +79,19 @@ def _write_results(out_dir: Path, name: str, device, repeats: int, fields: dict)
     return payload
 
 
+def _save_results(out_dir: Path, name: str, device, repeats: int, fields: dict, plot=None) -> dict:
+    """``_write_results``, then out_dir/NAME.png drawn by ``plot(rows, path)``. The benches
+    save after every row, so an interrupted run keeps the rows it finished; a plot that cannot
+    be drawn (no rows yet, no matplotlib) removes an earlier run's, which a rerun with
+    --overwrite used to leave beside the new results."""
+    payload = _write_results(out_dir, name, device, repeats, fields)
+    if plot is not None:
+        path = out_dir / f"{name}.png"
+        if not (fields["rows"] and plot(fields["rows"], path)):
+            path.unlink(missing_ok=True)
+    return payload
+
+
 def _json_default(value):
     if isinstance(value, np.generic):
         return value.item()
@@ -143,6 +157,7 @@ def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, s
         wp.load_module(leaf_kernels, device=dev)
         compile_seconds = time.perf_counter() - compile_start
         rows, reference = [], None
+        header = {"num_pairs": num_pairs, "module_load_seconds": compile_seconds, "reference_precision": precisions[0]}
         for precision, search32 in zip(precisions, flags):
             launch(search32, True)  # warm-up, excluded
             value_only = _median_seconds(lambda: launch(search32, False), repeats)
@@ -171,7 +186,8 @@ def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, s
                     row[f"{name}_error_median"] = median
                     row[f"{name}_error_max"] = worst
             rows.append(row)
-    return _write_results(out_dir, "leaf", dev, repeats, {"num_pairs": num_pairs, "module_load_seconds": compile_seconds, "reference_precision": precisions[0], "rows": rows})
+            _save_results(out_dir, "leaf", dev, repeats, {**header, "rows": rows})
+    return _save_results(out_dir, "leaf", dev, repeats, {**header, "rows": rows})
 
 
 def _icosphere(subdivisions: int, radius: float):
@@ -258,9 +274,14 @@ def run_contact_benchmark(
     """
     dev = resolve_device(device)
     rows = []
+
+    def save():
+        _save_results(out_dir, "contact", dev, repeats, {"rows": rows}, _plot_contact_benchmark)
+
     for scene in contact_benchmark_scenes(subdivisions=subdivisions, gaps=gaps):
         if ipc_dhat is not None and dev.is_cpu:
             rows.append(_ipc_contact_row(scene, ipc_dhat, repeats))
+            save()
         reference = None
         for mode, eps, weight in [("brute", None, None)] + [("bsh", e, w) for w in centred_weights for e in eps_values]:
             model = ContactModel(scene["meshes"], mode=mode, eps=eps or 1.0, centred_weight=weight or "paper", device=dev)
@@ -285,8 +306,7 @@ def run_contact_benchmark(
                     **_force_errors(result.grad, reference.grad, radius),
                 }
             )
-    _write_results(out_dir, "contact", dev, repeats, {"rows": rows})
-    _plot_contact_benchmark(rows, out_dir / "contact.png")
+            save()
     return rows
 
 
@@ -320,13 +340,15 @@ def _ipc_contact_row(scene: dict, dhat: float, repeats: int) -> dict:
 
 def _plot_contact_benchmark(rows: list[dict], path: Path) -> bool:
     plt = optional_pyplot()
-    if plt is None:
+    if plt is None or not any(r["mode"] == "bsh" for r in rows):
         return False
     scenes = sorted({r["scene"] for r in rows})
     fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.5), squeeze=False)
     for ax, scene in zip(axes[0], scenes):
         for gap in sorted({r["gap"] for r in rows}):
-            brute = next(r for r in rows if r["scene"] == scene and r["gap"] == gap and r["mode"] == "brute")
+            brute = next((r for r in rows if r["scene"] == scene and r["gap"] == gap and r["mode"] == "brute"), None)
+            if brute is None:  # a run cut short before this gap's reference
+                continue
             for weight in sorted({r["centred_weight"] for r in rows if r["mode"] == "bsh"}):
                 sel = [r for r in rows if r["scene"] == scene and r["gap"] == gap and r["mode"] == "bsh" and r["centred_weight"] == weight]
                 errors = [max(r["force_error_max"], 1e-16) for r in sel]
@@ -338,7 +360,8 @@ def _plot_contact_benchmark(rows: list[dict], path: Path) -> bool:
         ax.set_ylabel("max per-body force error / max brute force")
         ax.set_title(f"{scene}: eps sweep (labels)")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8)
+        if ax.get_legend_handles_labels()[0]:  # a run saved before this scene's bsh rows
+            ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -377,8 +400,7 @@ def run_scaling_benchmark(*, points_per_ball, eps: float, brute_max_triangles: i
                     "num_leaf": result.num_leaf,
                 }
             )
-    _write_results(out_dir, "scaling", dev, repeats, {"rows": rows})
-    _plot_scaling(rows, out_dir / "scaling.png")
+            _save_results(out_dir, "scaling", dev, repeats, {"rows": rows}, _plot_scaling)
     return rows
 
 
@@ -656,10 +678,23 @@ def _contact_only_row(model, poses: list, *, mode: str, dev) -> dict:
         times.append(seconds)
         leaves.append(result.num_leaf)
     return {
-        "model": mode,
+        **_empty_frame_row(mode),
         "eps": None if mode == "brute" else contact.eps,
         "leaf_precision": contact.leaf_precision,
         "friction": float(model.friction.numpy()[0]),
+        "contact_seconds": float(np.median(times)),
+        "leaf_terms": float(np.median(leaves)),
+        "error": "contact evaluation only (frames above --brute-max-triangles)",
+    }
+
+
+def _empty_frame_row(mode: str) -> dict:
+    """A frame row's fields with nothing timed."""
+    return {
+        "model": mode,
+        "eps": None,
+        "leaf_precision": None,
+        "friction": None,
         "frames": 0,
         "first_frame_seconds": None,
         "forward_seconds": None,
@@ -668,12 +703,12 @@ def _contact_only_row(model, poses: list, *, mode: str, dev) -> dict:
         "newton_iterations": None,
         "newton_iterations_per_frame": [],
         "forward_seconds_per_iteration": None,
-        "contact_seconds": float(np.median(times)),
-        "leaf_terms": float(np.median(leaves)),
+        "contact_seconds": None,
+        "leaf_terms": None,
         "backward_seconds": None,
         "frame_seconds": None,
         "frame_seconds_mean": None,
-        "error": "contact evaluation only (frames above --brute-max-triangles)",
+        "error": None,
     }
 
 
@@ -729,13 +764,18 @@ def run_frame_benchmark(
     }
 
     def save():
-        _write_results(out_dir, "frame", dev, frames, {**header, "rows": rows})
-        _plot_frame_benchmark(rows, out_dir / "frame.png")
+        _save_results(out_dir, "frame", dev, frames, {**header, "rows": rows}, _plot_frame_benchmark)
 
+    # Every scene is read before any is timed: a bad name or a missing peer-mesh folder used
+    # to end the default run after hours of the scenes before it.
+    built = {spec: frame_scene(spec, scene_dir=scene_dir, peer_meshes=peer_meshes) for spec in dict.fromkeys(scenes)}
+    # bsh first: brute force above --brute-max-triangles is timed at bsh's solved poses (listed
+    # after it, brute's rows were dropped without a word).
+    models = sorted(dict.fromkeys(models), key=lambda mode: mode != "bsh")
     for spec in scenes:
         solved = None  # (bsh Model, its solved poses) for contact-only rows
         for mode in models:
-            scene = frame_scene(spec, scene_dir=scene_dir, peer_meshes=peer_meshes)
+            scene = copy.deepcopy(built[spec])  # each model sets its own contact settings
             setup = strike_setup(scene, gap=gap, speed=speed)
             dynamic, total = _scene_triangles(scene)
             base = {
@@ -751,8 +791,10 @@ def run_frame_benchmark(
                 continue
             if mode == "brute" and dynamic > brute_max_triangles:
                 if dynamic > brute_eval_max_triangles or solved is None:
-                    continue
-                row = _contact_only_row(solved[0], solved[1], mode="brute", dev=dev)
+                    why = f"above --brute-eval-max-triangles {brute_eval_max_triangles}" if dynamic > brute_eval_max_triangles else "no bsh frames to evaluate at (bsh not in --models, or its frames failed)"
+                    row = {**_empty_frame_row(mode), "error": f"skipped: {dynamic} dynamic triangles above --brute-max-triangles {brute_max_triangles}, and {why}"}
+                else:
+                    row = _contact_only_row(solved[0], solved[1], mode="brute", dev=dev)
             else:
                 precision = "float64" if mode == "ipc" else leaf_precision
                 row, poses, model = _simulate_frames(
@@ -771,11 +813,11 @@ def run_frame_benchmark(
 
 def _plot_frame_benchmark(rows: list[dict], path: Path) -> bool:
     plt = optional_pyplot()
-    if plt is None or not rows:
+    if plt is None or all(r["contact_seconds"] is None for r in rows):
         return False
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     for mode, marker in (("bsh", "o"), ("brute", "s"), ("ipc", "^")):
-        sel = sorted((r for r in rows if r["model"] == mode), key=lambda r: r["triangles"])
+        sel = sorted((r for r in rows if r["model"] == mode and r["contact_seconds"] is not None), key=lambda r: r["triangles"])
         framed = [r for r in sel if r["forward_seconds"] is not None]
         if framed:
             line = axes[0].loglog([r["triangles"] for r in framed], [r["forward_seconds"] for r in framed], marker, label=f"{mode} forward")[0]
@@ -808,8 +850,11 @@ def accuracy_scene(*, balls: int = 3, points_per_ball: int = 18, gap: float = 0.
     the apex ball moving into it at ``speed`` m/s (``strike_setup``). Each struck ball's goal is 1 m
     beyond it (alternately 0.5 m left and right) with zero tolerance, so the task loss has a
     gradient. Returns (scene, the cue's initial-state controls (x, y, vx, vy))."""
-    from .scenes import benchmark_rack, fibonacci_ball, ground_rectangle
+    from .scenes import RACK_BALLS, benchmark_rack, fibonacci_ball, ground_rectangle
 
+    if not 1 <= balls <= RACK_BALLS:
+        # More were cut to the rack's 15 while the results reported the number asked for.
+        raise ValueError(f"balls: the rack has {RACK_BALLS} balls besides the cue, got {balls}")
     scene = benchmark_rack(*fibonacci_ball(points_per_ball))
     keep = {"ground", "cue", *(f"ball{i:02d}" for i in range(balls))}
     scene.bodies = [b for b in scene.bodies if b.name in keep]
@@ -890,6 +935,7 @@ def run_accuracy_benchmark(
     from .solver import SolverError
 
     dev = resolve_device(device)
+    accuracy_scene(balls=balls, points_per_ball=points_per_ball, gap=gap, speed=speed)  # its errors before any work
     module_seconds = _load_kernel_modules(dev)  # so the first configuration's times exclude compilation
     for precision in precisions:
         float32_search(precision)
@@ -901,15 +947,22 @@ def run_accuracy_benchmark(
     rows: list[dict] = []
     reference = None
     header = {"module_load_seconds": module_seconds, "frames": frames, "balls": balls, "points_per_ball": points_per_ball, "reference": f"brute force, tolerance {reference_tolerance:g}"}
+
+    def finish(row):
+        rows.append(row)
+        if progress:
+            progress(row)
+        _save_results(out_dir, "accuracy", dev, 1, {**header, "rows": rows}, _plot_accuracy)
+
     for sweep, mode, e, tol, precision in configs:
         scene, controls = accuracy_scene(balls=balls, points_per_ball=points_per_ball, gap=gap, speed=speed)
         row = {"sweep": sweep, "model": mode, "eps": e if mode == "bsh" else None, "tolerance": tol, "leaf_precision": precision, "triangles": _scene_triangles(scene)[0], "frames": frames}
         try:
             loss, grad, trajectory, forward, iterations, backward, problem = _accuracy_run(scene, controls, mode=mode, eps=e, tolerance=tol, frames=frames, dev=dev, leaf_precision=precision)
         except SolverError as exc:
-            rows.append({**row, "error": str(exc)})
             if reference is None:
-                raise
+                raise ValueError(f"the reference run (brute force, --reference-tolerance {reference_tolerance:g}) failed: {exc}") from None
+            finish({**row, "error": str(exc)})  # failed rows were left out of the table
             continue
         if reference is None:
             ref_grads = [problem.model.contact.evaluate(q).grad for q in trajectory]
@@ -921,7 +974,7 @@ def run_accuracy_benchmark(
         radius = problem.model.body_radius
         errors = [_force_errors(problem.model.contact.evaluate(q).grad, g, radius) for q, g in zip(reference["trajectory"], reference["contact_grads"])]
         g_ref = reference["grad"]
-        rows.append({
+        finish({
             **row,
             "forward_seconds": float(np.median(forward)),
             "newton_iterations": float(np.mean(iterations)),
@@ -938,11 +991,6 @@ def run_accuracy_benchmark(
             "gradient_relative_error": float(np.linalg.norm(grad - g_ref) / np.linalg.norm(g_ref)) if np.linalg.norm(g_ref) > 0 else None,
             "error": None,
         })
-        if progress:
-            progress(rows[-1])
-        _write_results(out_dir, "accuracy", dev, 1, {**header, "rows": rows})
-    _write_results(out_dir, "accuracy", dev, 1, {**header, "rows": rows})
-    _plot_accuracy(rows, out_dir / "accuracy.png")
     return rows
 
 

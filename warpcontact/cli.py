@@ -366,12 +366,14 @@ def _compare(args) -> int:
     return 0
 
 
-def _bench_plot_name(name: str) -> str:
-    """A bench plot's name in its "wrote ..." line: the benches plot whenever matplotlib is
-    installed (their lines used to leave the plot out)."""
+def _bench_plot_name(args, name: str) -> str:
+    """A bench plot's name in its "wrote ..." line, or why there is none: a bench removes an
+    earlier run's plot that it cannot replace, so the file is there only when drawn."""
     from .bench import optional_pyplot
 
-    return _plot_name(name, optional_pyplot() is not None)
+    if (Path(args.out) / name).is_file() or optional_pyplot() is None:
+        return _plot_name(name, (Path(args.out) / name).is_file())
+    return f"not {name} (no rows to plot)"
 
 
 def _plot_name(name: str, plotted: bool) -> str:
@@ -439,7 +441,7 @@ def _bench_leaf(args) -> int:
 
     result = run_leaf_benchmark(num_pairs=args.pairs, repeats=args.repeats, device=args.device, out_dir=Path(args.out), precisions=args.precisions)
     print(json.dumps(result, indent=2))
-    print(f"wrote {Path(args.out) / 'leaf.json'}")
+    print(f"wrote {Path(args.out) / 'leaf.json'}, leaf.csv")
     return 0
 
 
@@ -463,7 +465,7 @@ def _bench_contact(args) -> int:
             f"{r['scene']:>15} {r['gap']:8.0e} {r['mode']:>6} {r['centred_weight'] or '-':>6} {eps:>6} {r['median_seconds']:9.4f} {_fmt(r['value_ratio'], '11.4f')} {r['num_far']:7d} {r['num_blend']:7d} "
             f"{r['num_leaf']:7d} {_fmt(r['force_error_median'], '10.2e')} {_fmt(r['force_error_max'], '10.2e')} {_fmt(r['force_cosine_min'], '10.6f')} {_fmt(r['torque_error_max'], '10.2e')}"
         )
-    print(f"wrote {Path(args.out) / 'contact.json'}, contact.csv, {_bench_plot_name('contact.png')} (ipc rows: median_seconds is ipctk's collision build + barrier value/gradient/Hessian)")
+    print(f"wrote {Path(args.out) / 'contact.json'}, contact.csv, {_bench_plot_name(args, 'contact.png')} (ipc rows: median_seconds is ipctk's collision build + barrier value/gradient/Hessian)")
     return 0
 
 
@@ -481,7 +483,7 @@ def _bench_scaling(args) -> int:
     print(f"{'triangles':>9} {'mode':>6} {'seconds':>9} {'us/triangle':>11} {'far':>7} {'blend':>7} {'leaf':>8}")
     for r in rows:
         print(f"{r['triangles']:9d} {r['mode']:>6} {r['median_seconds']:9.4f} {1e6 * r['seconds_per_triangle']:11.2f} {r['num_far']:7d} {r['num_blend']:7d} {r['num_leaf']:8d}")
-    print(f"wrote {Path(args.out) / 'scaling.json'}, scaling.csv, {_bench_plot_name('scaling.png')}")
+    print(f"wrote {Path(args.out) / 'scaling.json'}, scaling.csv, {_bench_plot_name(args, 'scaling.png')}")
     return 0
 
 
@@ -525,7 +527,7 @@ def _bench_frame(args) -> int:
         peer_meshes=Path(args.peer_meshes),
         progress=show,
     )
-    print(f"wrote {Path(args.out) / 'frame.json'}, frame.csv, {_bench_plot_name('frame.png')}")
+    print(f"wrote {Path(args.out) / 'frame.json'}, frame.csv, {_bench_plot_name(args, 'frame.png')}")
     return 0
 
 
@@ -557,7 +559,7 @@ def _bench_accuracy(args) -> int:
         out_dir=Path(args.out),
         progress=show,
     )
-    print(f"wrote {Path(args.out) / 'accuracy.json'}, accuracy.csv, {_bench_plot_name('accuracy.png')}")
+    print(f"wrote {Path(args.out) / 'accuracy.json'}, accuracy.csv, {_bench_plot_name(args, 'accuracy.png')}")
     return 0
 
 
@@ -689,7 +691,7 @@ def build_parser() -> argparse.ArgumentParser:
     leaf.add_argument("--precisions", nargs="+", choices=LEAF_PRECISIONS, default=list(LEAF_PRECISIONS), help="plane search precisions; rows after the first give errors against it")
     leaf.add_argument("--device", default="cpu")
     _writes(leaf, "outputs/bench", "leaf.json", "leaf.csv")
-    leaf.set_defaults(func=_bench_leaf)
+    leaf.set_defaults(func=_bench_leaf, saves_rows=True)
     contact = bench_sub.add_parser("contact", help="BSH speed vs force error against brute force (eps sweep)")
     contact.add_argument("--eps", type=_positive_float, nargs="+", default=[0.01, 0.1, 0.5, 1.0, 2.0, 10.0])
     contact.add_argument("--gaps", type=_positive_float, nargs="+", default=[1e-3, 1e-2, 1e-1])
@@ -699,7 +701,7 @@ def build_parser() -> argparse.ArgumentParser:
     contact.add_argument("--centred-weights", nargs="+", choices=CENTRED_WEIGHTS, default=["paper"], help="centred-term weights of the bsh rows (docs/architecture.md, 'Centred weights')")
     contact.add_argument("--device", default="cpu")
     _writes(contact, "outputs/bench", "contact.json", "contact.csv", "contact.png")
-    contact.set_defaults(func=_bench_contact)
+    contact.set_defaults(func=_bench_contact, saves_rows=True)
     scaling = bench_sub.add_parser("scaling", help="contact cost against triangle count (16-ball rack)")
     scaling.add_argument("--points", type=_positive_int, nargs="+", default=[18, 42, 82, 196], help="points per ball (2N-4 faces)")
     scaling.add_argument("--eps", type=_positive_float, default=0.5)
@@ -707,7 +709,7 @@ def build_parser() -> argparse.ArgumentParser:
     scaling.add_argument("--repeats", type=_positive_int, default=3)
     scaling.add_argument("--device", default="cpu")
     _writes(scaling, "outputs/bench", "scaling.json", "scaling.csv", "scaling.png")
-    scaling.set_defaults(func=_bench_scaling)
+    scaling.set_defaults(func=_bench_scaling, saves_rows=True)
     frame = bench_sub.add_parser("frame", help="per-frame forward, contact, Newton iterations and backward on task scenes")
     frame.add_argument(
         "--scenes",
@@ -729,7 +731,7 @@ def build_parser() -> argparse.ArgumentParser:
     frame.add_argument("--peer-meshes", default="../shared/peer-meshes", help="folder of the paper code base's meshes (18.obj ... 196.obj)")
     frame.add_argument("--device", default="cpu")
     _writes(frame, "outputs/bench", "frame.json", "frame.csv", "frame.png")
-    frame.set_defaults(func=_bench_frame)
+    frame.set_defaults(func=_bench_frame, saves_rows=True)
     accuracy = bench_sub.add_parser("accuracy", help="time against error (eps, solver tolerance) on a small billiards case")
     accuracy.add_argument("--eps", type=_positive_float, nargs="+", default=[0.25, 0.5, 1.0, 2.0, 4.0])
     accuracy.add_argument("--tolerances", type=_positive_float, nargs="+", default=[1e-4, 1e-6, 1e-8], help="Newton tolerances swept at --tolerance-eps")
@@ -743,7 +745,7 @@ def build_parser() -> argparse.ArgumentParser:
     accuracy.add_argument("--speed", type=_positive_float, default=1.0)
     accuracy.add_argument("--device", default="cpu")
     _writes(accuracy, "outputs/bench", "accuracy.json", "accuracy.csv", "accuracy.png")
-    accuracy.set_defaults(func=_bench_accuracy)
+    accuracy.set_defaults(func=_bench_accuracy, saves_rows=True)
     return parser
 
 
@@ -758,6 +760,11 @@ def main(argv=None) -> int:
             if not getattr(args, "resume", False):
                 _refuse_earlier_results(out, args.outputs, args.overwrite)
         return args.func(args)
+    except KeyboardInterrupt:
+        # run, compare and simulate keep their own partial results; the benches save a row at a time.
+        kept = f"; the rows finished before it are in {args.out}" if getattr(args, "saves_rows", False) else ""
+        print(f"\ninterrupted{kept}", file=sys.stderr)
+        return 130
     except FileExistsError as exc:
         print(f"error: {exc} (use --overwrite)", file=sys.stderr)
         return 2

@@ -232,10 +232,14 @@ BILLIARDS_REFERENCE_STRIKE = (0.0, 0.05, 5.78, 0.02)
 BILLIARDS_GOALS = {"ball02": (5.421, 0.838), "ball05": (6.151, 1.343)}
 
 
+RACK_ROWS = 5
+RACK_BALLS = RACK_ROWS * (RACK_ROWS + 1) // 2
+
+
 def rack_centres(spacing: float) -> list[tuple[float, float]]:
-    """(x, y) centres of a 15-ball triangle rack, ``spacing`` m between neighbours' centres,
-    its apex at the origin and its rows along +x."""
-    return [(row * spacing * np.sqrt(3) / 2, (k - row / 2) * spacing) for row in range(5) for k in range(row + 1)]
+    """(x, y) centres of a RACK_BALLS-ball triangle rack, ``spacing`` m between neighbours'
+    centres, its apex at the origin and its rows along +x."""
+    return [(row * spacing * np.sqrt(3) / 2, (k - row / 2) * spacing) for row in range(RACK_ROWS) for k in range(row + 1)]
 
 
 def billiards_scene(vertices: np.ndarray, faces: np.ndarray, *, friction: float = BILLIARDS_FRICTION, table_cell: float | None = None) -> Scene:
