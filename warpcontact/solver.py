@@ -99,6 +99,13 @@ _DAMPING_LAST = 1e2
 # body's radius in one step cannot pass through each other within it; the pass-through check
 # (``ImplicitSolver._pass_through``) skips it, so resting and pushing contact cost nothing.
 _PASS_THROUGH_TRAVEL = 0.5
+# The check follows suspect pairs along the straight motion by conservative advancement; a
+# pair whose separation there falls below this fraction of its separations at both ends is
+# taken to meet (advancement approaches a contact geometrically, never reaching it).
+_PASS_THROUGH_DIP = 1e-3
+# Contact evaluations the advancement may take before the check falls back to the pair's
+# point of closest approach alone.
+_PASS_THROUGH_MAX_EVALUATIONS = 48
 
 
 def _check_pose_array(poses, count: int, label: str, expected: str) -> None:
@@ -780,7 +787,7 @@ class ImplicitSolver:
             raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt))
 
         q[~dynamic] = q_now[~dynamic]
-        passed = self._pass_through(q_start, q, dt)
+        passed = self._pass_through(q_start, q, dt, contact.pair_separation)
         if passed is not None:
             raise SolverError(passed)
         state_out.body_q.assign(q)
@@ -829,9 +836,9 @@ class ImplicitSolver:
             return trial, t_value, t_grad, t_hess, t_contact, None
         return q, value, grad, hess, contact, q_lists
 
-    def _pass_through(self, q_from: np.ndarray, q_to: np.ndarray, dt: float) -> str | None:
+    def _pass_through(self, q_from: np.ndarray, q_to: np.ndarray, dt: float, separation_to: np.ndarray) -> str | None:
         """Why the step from ``q_from`` to its solution ``q_to`` moved one body through
-        another, or None.
+        another, or None (``separation_to``: the body pairs' separations at ``q_to``).
 
         Every Newton iterate is intersection-free and so is the path through them, but with a
         step too large for the bodies' speed that path can lead around a body: a cube at 30
@@ -840,11 +847,18 @@ class ImplicitSolver:
         never moved (docs/architecture.md, "Pass-through"). The frames, and any playback
         interpolating them, then show one body passing through the other. A body pair is
         suspect when its centres close in by at least ``_PASS_THROUGH_TRAVEL`` of the smaller
-        body's radius and come closest strictly inside the step, within the two bodies'
-        radii; the step is refused when the contact model finds the pair intersecting at
-        that point of the straight motion from ``q_from`` to ``q_to``.
+        body's radius and their bounding spheres meet somewhere along the step. The bodies
+        of suspect pairs are then moved along their straight motion from ``q_from`` to
+        ``q_to`` by conservative advancement (the contact model's own bound, as in a Newton
+        step; the other bodies stay put). The step is refused when a suspect pair is found
+        intersecting, or when its separation falls below ``_PASS_THROUGH_DIP`` of its
+        separations at both ends of the step (advancement closing in on a contact, which
+        it approaches geometrically without reaching). After
+        ``_PASS_THROUGH_MAX_EVALUATIONS`` evaluations the pairs are tested at their centres'
+        closest approach only.
         """
-        pairs = self.model.contact.body_pairs
+        contact_model = self.model.contact
+        pairs = contact_model.body_pairs
         if not len(pairs):
             return None
         a, b = pairs[:, 0], pairs[:, 1]
@@ -853,24 +867,46 @@ class ImplicitSolver:
         length2 = np.einsum("ij,ij->i", closing, closing)
         radius = self.model.body_radius
         moving = length2 > (_PASS_THROUGH_TRAVEL * np.minimum(radius[a], radius[b])) ** 2
-        fraction = -np.einsum("ij,ij->i", start, closing) / np.where(moving, length2, 1.0)
+        fraction = np.clip(-np.einsum("ij,ij->i", start, closing) / np.where(moving, length2, 1.0), 0.0, 1.0)
         closest = np.linalg.norm(start + fraction[:, None] * closing, axis=1)
-        suspect = np.flatnonzero(moving & (fraction > 0.0) & (fraction < 1.0) & (closest < radius[a] + radius[b]))
+        suspect = np.flatnonzero(moving & (closest < radius[a] + radius[b]))
         if not suspect.size:
             return None
         names = self.model.body_names
-        step = rigid_step_between(q_from, q_to)
-        for s in np.unique(np.round(fraction[suspect], 3)):
-            hits = self.model.contact.evaluate(retract(q_from, s * step)).contact_pairs
-            for i in suspect:
+        step = np.zeros((len(q_from), 6))
+        involved = np.union1d(a[suspect], b[suspect])
+        step[involved] = rigid_step_between(q_from[involved], q_to[involved])
+        floor = _PASS_THROUGH_DIP * separation_to[suspect]
+
+        def meeting(poses, where: float, *, dip: bool) -> str | None:
+            evaluation = contact_model.evaluate(poses)
+            hits = set(evaluation.contact_pairs)
+            for k, i in enumerate(suspect):
                 pair = (names[a[i]], names[b[i]])
-                if pair in hits:
-                    speed = np.sqrt(length2[i]) / dt
+                if pair in hits or (dip and evaluation.pair_separation[i] <= floor[k]):
+                    travel = np.sqrt(length2[i])
                     return (
                         f"bodies {pair[0]!r} and {pair[1]!r} pass through each other: moving straight to this step's solution, they "
-                        f"intersect at {s:.0%} of it (relative speed {speed:.3g} m/s, {np.sqrt(length2[i]):.3g} m in dt={dt} s, "
+                        f"intersect at {where:.0%} of it (relative speed {travel / dt:.3g} m/s, {travel:.3g} m in dt={dt} s, "
                         f"radii {radius[a[i]]:.3g} and {radius[b[i]]:.3g} m); the time step is too large for this impact, reduce dt"
                     )
+            return None
+
+        floor = np.minimum(floor, _PASS_THROUGH_DIP * contact_model.evaluate(q_from).pair_separation[suspect])
+        s = 0.0
+        for _ in range(_PASS_THROUGH_MAX_EVALUATIONS):
+            poses = retract(q_from, s * step)
+            why = meeting(poses, s, dip=True)
+            if why is not None:
+                return why
+            alpha = contact_model.advancement_limit((1.0 - s) * step)
+            if alpha >= 1.0:
+                return None
+            s += (1.0 - s) * alpha
+        for i in suspect:
+            why = meeting(retract(q_from, fraction[i] * step), fraction[i], dip=False)
+            if why is not None:
+                return why
         return None
 
     def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray, q_start: np.ndarray, dt: float) -> str:
