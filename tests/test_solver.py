@@ -78,6 +78,22 @@ def test_free_tumbling_body_conserves_angular_momentum():
     assert np.linalg.norm(omega(149) - omega(0)) > 0.1 * np.linalg.norm(omega(0))
 
 
+@pytest.mark.parametrize(("size", "position"), [(0.01, (0.0, 0.0, 5e4)), (0.01, (1e5, -1e5, 5e4)), (1.0, (0.0, 0.0, 1e7))])
+def test_free_flight_far_from_the_origin_converges(size, position):
+    """Newton steps cannot resolve positions below their coordinates' rounding: a lone 1 cm
+    box 50 km up took steps of 0.2 ulp against a tolerance of 6e-13 m and failed after 500
+    iterations, saying to reduce dt (which did not help)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-15)
+    b.add_box((size, 0.7 * size, 0.4 * size), density=1000.0, name="cube", pose=(*position, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    first = model.state(requires_grad=False)
+    wc.set_body_velocity(first, wp.array([[0.3, -0.2, 0.7]], dtype=wp.vec3d), wp.array([[0.5, 0.1, -0.3]], dtype=wp.vec3d), 0.04)
+    q, solver = rollout(model, 10, 0.04, first=first)
+    steps = np.arange(1, 11)
+    np.testing.assert_allclose(q[1:, 0, 2], position[2] + 0.7 * 0.04 * steps - 9.81 * 0.04**2 * steps * (steps + 1) / 2, rtol=0, atol=1e-9 * max(abs(position[2]), 1.0))
+    assert solver.last_step.iterations <= 3
+
+
 def test_far_apart_bodies_conserve_linear_momentum_and_attract_no_pull():
     b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e-2)
     b.add_sphere(0.5, subdivisions=1, density=100.0, pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
