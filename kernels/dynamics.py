@@ -46,6 +46,7 @@ PREDICT_FAILED = wp.constant(1)
 
 _LGVI_MAX_ITERATIONS = wp.constant(50)
 _LGVI_TOL = wp.constant(wp.float64(1.0e-15))
+_LGVI_MAX_BACKTRACKS = wp.constant(30)
 
 
 @wp.func
@@ -143,10 +144,20 @@ def predict_kernel(
         fs = f * s
         residual = target - axial(fs)
         a = _twist_matrix(fs) * f
-        if wp.length(residual) <= _LGVI_TOL * scale:
+        norm = wp.length(residual)
+        if norm <= _LGVI_TOL * scale:
             converged = True
             break
-        f = f * exp_so3(wp.inverse(a) * residual)
+        # Full Newton steps cycled for turns of 1.5-2 rad a step (a thin plate spun about a
+        # diagonal): steps are halved until the residual falls.
+        xi = wp.inverse(a) * residual
+        trial = f * exp_so3(xi)
+        for _bt in range(_LGVI_MAX_BACKTRACKS):
+            if wp.length(target - axial(trial * s)) < norm:
+                break
+            xi = wp.float64(0.5) * xi
+            trial = f * exp_so3(xi)
+        f = trial
     if not converged or wp.abs(wp.determinant(a)) <= wp.float64(1.0e-12) * scale * scale * scale:
         status_out[b] = PREDICT_FAILED
     r_hat = r_t * f

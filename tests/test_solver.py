@@ -94,6 +94,29 @@ def test_free_flight_far_from_the_origin_converges(size, position):
     assert solver.last_step.iterations <= 3
 
 
+@pytest.mark.parametrize("axis", [(1.0, 1.0, 1.0), (0.3, -0.8, 0.5), (-0.6, 0.2, 0.77)])
+def test_a_plate_spinning_one_and_a_half_radians_a_step_is_predicted(axis):
+    """Full Newton steps on the Lie-group prediction cycled at 1.5 rad a step (a SolverError:
+    "rotation per step too large"); the prediction conserves angular momentum."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.01, 0.5, 1.0), density=1000.0, name="plate")
+    model = b.finalize()
+    dt = 0.04
+    omega = 1.5 / dt * np.asarray(axis) / np.linalg.norm(axis)
+    first = model.state(requires_grad=False)
+    wc.set_body_velocity(first, wp.zeros(1, dtype=wp.vec3d), wp.array([omega], dtype=wp.vec3d), dt)
+    q, _ = rollout(model, 12, dt, first=first)
+    second_moment = model.body_unit_second_moment.numpy()[0]
+
+    def momentum(t):  # the discrete angular momentum the Lie-group step conserves
+        rotation = quat_matrix(q[t, 0, 3:])
+        m = (rotation.T @ quat_matrix(q[t + 1, 0, 3:])) @ second_moment
+        return rotation @ np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
+
+    for t in range(1, 12):
+        np.testing.assert_allclose(momentum(t), momentum(0), rtol=1e-9, atol=1e-12)
+
+
 def test_far_apart_bodies_conserve_linear_momentum_and_attract_no_pull():
     b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e-2)
     b.add_sphere(0.5, subdivisions=1, density=100.0, pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
