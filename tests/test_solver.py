@@ -1006,6 +1006,25 @@ def test_builder_warns_about_bodies_the_barrier_would_hold_far_above_a_support()
         weightless.finalize()
 
 
+def test_builder_warns_about_bodies_the_barrier_would_press_too_close_to_a_support():
+    """A 1 m, 1,000 kg cube dropped onto the ground at mu 1e-12 (resting gap ~1e-7 m, 1.2e-7 of
+    its radius) stalled Newton at the impact ("no convergence after 500 iterations") with no
+    word on mu; at mu 1e-11 (3.7e-7 of its radius) it lands, without a warning."""
+    import warnings
+
+    def cube_on_ground(mu):
+        b = wc.ModelBuilder(contact_stiffness=mu)
+        b.add_box((10.0, 10.0, 0.5), static=True, name="ground", pose=(0.0, 0.0, -0.25, 0.0, 0.0, 0.0, 1.0))
+        b.add_box((1.0, 1.0, 1.0), density=1000.0, name="cube", pose=(0.0, 0.0, 0.55, 0.0, 0.0, 0.0, 1.0))
+        return b
+
+    with pytest.warns(UserWarning, match=r"contact_stiffness 1e-12 lets these bodies rest closer than 2e-07 of their radius .* 'cube' \(mass 1e\+03 kg, radius 0.866 m: ~1e-07 m\); choose mu for the heaviest"):
+        cube_on_ground(1e-12).finalize()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cube_on_ground(1e-11).finalize()
+
+
 
 @wp.kernel
 def weighted_pose_loss_kernel(q: wp.array(dtype=wp.transformd), weights: wp.array(dtype=wp.float64), loss: wp.array(dtype=wp.float64)):

@@ -142,6 +142,10 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
     return body_mass, com, second_moment
 
 
+# Resting gaps below this fraction of a body's radius make its impacts too stiff for Newton.
+_PRESSED_GAP = 2e-7
+
+
 class ModelBuilder:
     """Collects bodies, then ``finalize()`` builds a ``Model``.
 
@@ -504,20 +508,28 @@ class ModelBuilder:
         weight = float(np.linalg.norm(self.gravity))
         if weight == 0.0 or self.contact_mode not in ("bsh", "brute"):
             return
-        floating = []
+        floating, pressed = [], []
         for body, radius in zip(self._bodies, body_radius):
             if body.static:
                 continue
             gap = float(np.sqrt(100.0 * self.contact_stiffness / (body.mass * weight)))
+            described = f"{body.name!r} (mass {body.mass:.3g} kg, radius {radius:.3g} m: ~{gap:.2g} m)"
             if gap > 0.1 * radius:
-                floating.append(f"{body.name!r} (mass {body.mass:.3g} kg, radius {radius:.3g} m: ~{gap:.2g} m)")
-        if floating:
-            warnings.warn(
-                f"contact_stiffness {self.contact_stiffness:g} holds these bodies above a support by more than a tenth of their "
-                f"radius (resting gap ~sqrt(100 mu / (m g))): {', '.join(floating[:5])}{' ...' if len(floating) > 5 else ''}; "
-                "choose mu for the lightest resting body (the gap scales as sqrt(mu))",
-                stacklevel=3,
-            )
+                floating.append(described)
+            elif gap < _PRESSED_GAP * radius:
+                pressed.append(described)
+        for bodies, what, advice in (
+            (floating, "holds these bodies above a support by more than a tenth of their radius", "choose mu for the lightest resting body"),
+            # A 1 m, 1,000 kg cube dropped at mu 1e-12 (gap 1.5e-7 of its size) stalled Newton
+            # at its impact with "no convergence"; at 1e-11 it lands.
+            (pressed, f"lets these bodies rest closer than {_PRESSED_GAP:g} of their radius to a support, where Newton may not converge at impacts", "choose mu for the heaviest resting body"),
+        ):
+            if bodies:
+                warnings.warn(
+                    f"contact_stiffness {self.contact_stiffness:g} {what} (resting gap ~sqrt(100 mu / (m g))): "
+                    f"{', '.join(bodies[:5])}{' ...' if len(bodies) > 5 else ''}; {advice} (the gap scales as sqrt(mu))",
+                    stacklevel=3,
+                )
 
     def finalize(self, *, device="cpu") -> Model:
         if not self._bodies:
