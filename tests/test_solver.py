@@ -269,6 +269,46 @@ def test_a_box_that_tunnels_past_a_large_plate_is_refused():
         wc.ImplicitSolver(model).step(first, model.state(requires_grad=False), None, 0.04)
 
 
+def test_a_body_set_exactly_on_a_support_is_refused_naming_both():
+    """z = half height + the plate's top leaves ~1e-17 m: the box took one Newton iteration a
+    step and hardly moved (0.04 m instead of 0.2 m in five steps, turning a fifth as far)."""
+
+    def box_on_plate(z):
+        b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-8)
+        b.add_box((40.0, 40.0, 0.1), static=True, name="plate", pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+        b.add_box((0.3, 0.3, 0.3), density=500.0, name="box", pose=(-10.0, 0.0, z, 0.0, 0.0, 0.0, 1.0))
+        model = b.finalize()
+        first = model.state(requires_grad=False)
+        wc.set_body_velocity(first, wp.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=wp.vec3d), wp.array([[0.0, 0.0, 0.0], [0.0, 0.0, 3.0]], dtype=wp.vec3d), 0.04)
+        return model, first
+
+    model, first = box_on_plate(0.2)
+    with pytest.raises(ValueError, match=r"state_in: bodies 'plate' and 'box' start \S+ m apart, within the rounding of their coordinates"):
+        wc.ImplicitSolver(model).step(first, model.state(requires_grad=False), None, 0.04)
+    model, first = box_on_plate(0.2 + 1e-12)
+    q, _ = rollout(model, 5, 0.04, first=first)
+    assert q[-1, 1, 0] == pytest.approx(-9.8, abs=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda m: m.body_mass.assign(np.array([m.body_mass.numpy()[0], 0.0])), r"model.body_mass: body 'box' has mass 0.0; a dynamic body's mass must be positive and finite"),
+        (lambda m: m.body_mass.assign(np.array([m.body_mass.numpy()[0], np.nan])), r"model.body_mass: body 'box' has mass nan"),
+        (lambda m: m.friction.assign(np.array([-0.5])), r"model.friction: must be >= 0 and finite, got -0.5"),
+        (lambda m: m.contact_stiffness.assign(np.array([0.0])), r"model.contact_stiffness: must be positive and finite, got 0.0"),
+        (lambda m: setattr(m, "friction_smoothing", 0.0), r"model.friction_smoothing: must be positive and finite, got 0.0"),
+    ],
+)
+def test_model_parameters_changed_after_finalize_are_checked_by_the_step(change, message):
+    """Gradient steps on model parameters can leave their range: a zero mass sent a resting
+    box metres up and a negative friction spun it, silently; others blamed dt or convergence."""
+    model, first = _box_thrown_at_a_plate((0.0, 0.0, 0.0), start=(0.0, 0.0, 0.2 + 1e-4))
+    change(model)
+    with pytest.raises(ValueError, match=message):
+        wc.ImplicitSolver(model).step(first, model.state(requires_grad=False), None, 0.04)
+
+
 def test_a_fast_box_sliding_on_a_plate_is_not_refused():
     """Fast motion along a surface the body rests on is suspect (1.1 m a step), and its
     straight path keeps the resting gap: the advancement along the plate's normal clears it."""

@@ -297,6 +297,25 @@ class ImplicitSolver:
         bodies.dt = float(dt)
         return bodies
 
+    def _checked_model_parameters(self) -> float:
+        """The contact stiffness mu, after checking the model parameters a user may change (or
+        a gradient step may push) after ``finalize``: a zero mass sent a resting puck 16 m up
+        and a negative friction spun it, silently; the others failed as "no convergence" or
+        blamed dt. ValueError naming the parameter (and body)."""
+        from .builder import contact_setting_problem
+
+        model = self.model
+        mu = float(model.contact_stiffness.numpy()[0])
+        for name, value in (("contact_stiffness", mu), ("friction", float(model.friction.numpy()[0])), ("friction_smoothing", model.friction_smoothing)):
+            problem = contact_setting_problem(name, value)
+            if problem is not None:
+                raise ValueError(f"model.{name}: {problem}, got {value!r}")
+        mass = model.body_mass.numpy()
+        bad = np.flatnonzero(self._dynamic & ~(np.isfinite(mass) & (mass > 0.0)))
+        if bad.size:
+            raise ValueError(f"model.body_mass: body {model.body_names[bad[0]]!r} has mass {float(mass[bad[0]])!r}; a dynamic body's mass must be positive and finite")
+        return mu
+
     def _friction_frame(self, mu: float, dt: float) -> "LaggedFriction | None":
         """Lagged friction data at the configuration the contact model evaluated last (q^t);
         None when friction is off, so that no friction work is done."""
@@ -654,7 +673,7 @@ class ImplicitSolver:
         q = normalized_poses(q_now)
         coords_now, joint_target = self._joint_arrays(state_in, state_out, control, q)
         ball_target, ball_start = self._ball_arrays(control, q_now)
-        mu = float(model.contact_stiffness.numpy()[0])
+        mu = self._checked_model_parameters()
         dynamic = self._dynamic
         art = self._articulation
 
@@ -663,6 +682,15 @@ class ImplicitSolver:
         if start.contact_pairs:
             names = ", ".join(f"{a} and {b}" for a, b in start.contact_pairs)
             raise ValueError(f"state_in: bodies intersect or touch at the start of the step: {names}")
+        # Gaps of a few units of roundoff: a box set exactly on a plate (z = half height + top,
+        # 1.7e-17 m apart) took one Newton iteration a step and hardly moved, silently.
+        touching = np.flatnonzero(start.pair_separation <= _ROUNDING_ULPS * np.finfo(np.float64).eps * self._length_scale)
+        if touching.size and not start.unsolved_pairs:  # unsolved pairs have their own error, below
+            a, b = model.contact.body_pairs[touching[0]]
+            raise ValueError(
+                f"state_in: bodies {model.body_names[a]!r} and {model.body_names[b]!r} start {start.pair_separation[touching[0]]:.3g} m apart, "
+                "within the rounding of their coordinates (they touch to float64): start them farther apart (a resting gap is ~sqrt(100 mu / (m g)))"
+            )
         friction = self._friction_frame(mu, dt)
         step_in = _StepInputs(
             dt=float(dt),
