@@ -83,7 +83,7 @@ def test_free_flight_far_from_the_origin_converges(size, position):
     """Newton steps cannot resolve positions below their coordinates' rounding: a lone 1 cm
     box 50 km up took steps of 0.2 ulp against a tolerance of 6e-13 m and failed after 500
     iterations, saying to reduce dt (which did not help)."""
-    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-15)
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-9 * size**5)  # a resting gap ~1e-5 of its size
     b.add_box((size, 0.7 * size, 0.4 * size), density=1000.0, name="cube", pose=(*position, 0.0, 0.0, 0.0, 1.0))
     model = b.finalize()
     first = model.state(requires_grad=False)
