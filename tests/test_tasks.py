@@ -2,8 +2,8 @@
 
 import dataclasses
 import json
-import re
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -890,20 +890,27 @@ def test_a_stopped_run_keeps_its_frames_when_the_trivial_plan_fails_later():
     assert result.extra["initial_loss_error"] == "the trivial plan cannot be simulated to frame 5: bodies 'bullet' and 'wall' pass through each other"
 
 
-def test_cli_reports_an_initial_loss_the_trivial_plan_cannot_reach(tmp_path, capsys, monkeypatch):
+def _receding_scene_file(tmp_path, monkeypatch, windows: tuple, patch) -> Path:
+    """A receding space-billiards scene (horizon, window, stride = ``windows``) saved for the
+    CLI, every TaskProblem of which ``patch(problem)`` alters once built."""
     from warpcontact import tasks
 
     scene = _pd_space_billiards()
-    scene.task.horizon, scene.task.receding_horizon, scene.task.receding_stride = 4, 2, 2
+    scene.task.horizon, scene.task.receding_horizon, scene.task.receding_stride = windows
     scene_path = tmp_path / "receding.usda"
     io.save_scene(scene, scene_path)
     init = tasks.TaskProblem.__init__
 
-    def failing_trivial(self, *args, **kwargs):
+    def patched(self, *args, **kwargs):
         init(self, *args, **kwargs)
-        _trivial_plan_failing(self, 4)
+        patch(self)
 
-    monkeypatch.setattr(tasks.TaskProblem, "__init__", failing_trivial)
+    monkeypatch.setattr(tasks.TaskProblem, "__init__", patched)
+    return scene_path
+
+
+def test_cli_reports_an_initial_loss_the_trivial_plan_cannot_reach(tmp_path, capsys, monkeypatch):
+    scene_path = _receding_scene_file(tmp_path, monkeypatch, (4, 2, 2), lambda problem: _trivial_plan_failing(problem, 4))
     assert main(["run", str(scene_path), "--iters", "2", "--out", str(tmp_path / "out")]) == 0
     assert "loss n/a -> " in capsys.readouterr().out
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
@@ -913,19 +920,7 @@ def test_cli_reports_an_initial_loss_the_trivial_plan_cannot_reach(tmp_path, cap
 
 
 def test_cli_run_writes_what_a_stopped_receding_run_executed(tmp_path, capsys, monkeypatch):
-    from warpcontact import tasks
-
-    scene = _pd_space_billiards()
-    scene.task.horizon, scene.task.receding_horizon, scene.task.receding_stride = 5, 2, 1
-    scene_path = tmp_path / "receding.usda"
-    io.save_scene(scene, scene_path)
-    init = tasks.TaskProblem.__init__
-
-    def failing_later(self, *args, **kwargs):
-        init(self, *args, **kwargs)
-        _failing_from_window(self, 3)
-
-    monkeypatch.setattr(tasks.TaskProblem, "__init__", failing_later)
+    scene_path = _receding_scene_file(tmp_path, monkeypatch, (5, 2, 1), lambda problem: _failing_from_window(problem, 3))
     out = tmp_path / "out"
     assert main(["run", str(scene_path), "--iters", "2", "--out", str(out)]) == 1
     err = capsys.readouterr().err
