@@ -489,10 +489,19 @@ def test_joint_arrays_of_the_wrong_kind_and_overflowing_targets_get_named_errors
     solver = wc.ImplicitSolver(model)
     control = model.control(requires_grad=False)
     # A numpy array used to raise AttributeError: 'numpy.ndarray' object has no attribute 'numpy'.
-    with pytest.raises(ValueError, match="control.joint_target: expected a wp.array of 1 joint targets .* got ndarray"):
+    with pytest.raises(ValueError, match="control.joint_target: expected a float64 wp.array of 1 joint targets .* got ndarray"):
         solver.step(state, model.state(), wc.Control(control.body_target, joint_target=np.array([0.3])), 0.01)
-    with pytest.raises(ValueError, match="state_in.joint_q: expected a wp.array"):
+    with pytest.raises(ValueError, match="control.joint_target: expected a float64 wp.array of 1 joint targets .* got dtype int32"):
+        solver.step(state, model.state(), wc.Control(control.body_target, joint_target=wp.array([0], dtype=wp.int32)), 0.01)
+    with pytest.raises(ValueError, match="state_in.joint_q: expected a float64 wp.array"):
         solver.step(wc.State(state.body_q, state.body_q_prev, np.array([0.05]), state.joint_q_prev), model.state(), None, 0.01)
+    # An int32 output stored the coordinate truncated to 0, silently; nothing is written now.
+    out = model.state()
+    out.joint_q = wp.zeros(1, dtype=wp.int32)
+    before = out.body_q.numpy().copy()
+    with pytest.raises(ValueError, match="state_out.joint_q: expected a float64 wp.array of the model's 1 joint coordinates"):
+        solver.step(state, out, None, 0.01)
+    np.testing.assert_array_equal(out.body_q.numpy(), before)
     # A finite target whose PD energy overflows was blamed on leaf plane searches of no pair.
     control.joint_target.assign(np.array([1e160]))
     with pytest.raises(ValueError, match=r"control.joint_target: the PD energy of coordinate 'hinge0:0' overflows float64 \(target 1e\+160"):

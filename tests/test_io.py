@@ -154,6 +154,8 @@ def test_an_authored_centre_of_mass_and_inertia_count_with_a_mass_from_density(t
     np.testing.assert_allclose(model.body_center_of_mass[1], [0.2, 0.0, 0.0], atol=1e-7)
     np.testing.assert_allclose(np.diag(model.body_unit_second_moment.numpy()[1]), 2.5 / 125.0, rtol=1e-6)  # S = tr(J)/2 - J
     np.testing.assert_allclose(io.model_to_scene_poses(scene, model, q)[0, 1], scene.body("box").pose, atol=1e-12)
+    with pytest.raises(ValueError, match=r"body_q: expected \(\.\.\., 2, 7\) poses of a model of the scene's 2 bodies, got shape \(1, 3, 7\)"):
+        io.model_to_scene_poses(scene, model, np.zeros((1, 3, 7)))  # an IndexError before
 
 
 def test_trajectory_export_authors_its_first_frame_as_the_default_and_keeps_the_up_axis(tmp_path):
@@ -1628,3 +1630,25 @@ def test_a_joint_far_from_the_origin_loads_despite_float32_anchors(tmp_path):
     stage.GetPrimAtPath("/World/hinge").GetAttribute("physics:localPos0").Set(Gf.Vec3f(13.7, 0.0, 1.5))
     stage.GetRootLayer().Save()
     assert io.load_scene(path).build_model().articulation.coordinate_names == ["hinge:0"]
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda s: setattr(s.settings, "time_step", -1.0), r"scene settings: warpcontact:timeStep must be positive, got -1.0"),
+        (lambda s: setattr(s.settings, "contact_mode", "xyz"), r"scene settings: warpcontact:contactMode must be one of"),
+        (lambda s: setattr(s.settings, "friction", float("nan")), r"scene settings: warpcontact:friction must be >= 0 and finite, got nan"),
+        (lambda s: s.bodies[1].vertices.__setitem__((0, 0), np.nan), r"body 'cue': its mesh vertices are not all finite"),
+    ],
+)
+def test_save_scene_refuses_what_load_scene_would(tmp_path, change, message):
+    """Such scenes were written without a word, and loading them failed later."""
+    from warpcontact.scenes import build_scene
+
+    scene = build_scene("billiards_512")
+    scene.bodies[1].vertices = np.array(scene.bodies[1].vertices, dtype=np.float64)
+    change(scene)
+    path = tmp_path / "bad.usda"
+    with pytest.raises(ValueError, match=message):
+        io.save_scene(scene, path)
+    assert not path.exists()

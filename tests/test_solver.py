@@ -855,6 +855,28 @@ def test_wrong_dtypes_velocities_and_overflowing_terms_get_named_errors():
             wc.ImplicitSolver(model, **options)
     with pytest.raises(ValueError, match="contact_stiffness: must be positive and finite, got 1e-6"):
         wc.ModelBuilder(contact_stiffness="1e-6")
+    # These were accepted until finalize, the supports named "dhat".
+    for options, match in (
+        (dict(eps="0.5"), "eps: must be positive and finite, got 0.5"),
+        (dict(centred_weight="pair"), r"centred_weight: 'pair' is not one of"),
+        (dict(sdrs_dhat=-1.0), "sdrs_dhat: must be a positive finite distance"),
+        (dict(contact_mode="ipc", ipc_dhat=0.0), "ipc_dhat: must be a positive finite distance"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            wc.ModelBuilder(**options)
+
+
+def test_builder_and_contact_model_name_what_users_pass_wrongly():
+    """A triangle soup (each face its own three vertices, as many exporters write) is closed
+    once merged: the refusal says so. A body named 5 was kept as an int, and names="ab" was
+    read as two bodies' names."""
+    soup = trimesh.Trimesh(_BOX.vertices[_BOX.faces.reshape(-1)], np.arange(3 * len(_BOX.faces)).reshape(-1, 3), process=False)
+    with pytest.raises(ValueError, match=r"'crate': mass from density needs a closed, consistently outward-oriented mesh \(its 36 vertices merge into 8 of a closed mesh: merge coincident vertices first"):
+        wc.ModelBuilder().add_body(soup, density=1.0, name="crate")
+    with pytest.raises(ValueError, match="body 0: name must be a string, got 5"):
+        wc.ModelBuilder().add_body(_BOX, density=1.0, name=5)
+    with pytest.raises(ValueError, match="names: expected one name per body, got the string 'ab'"):
+        wc.ContactModel([(_BOX.vertices, _BOX.faces)] * 2, names="ab")
 
 
 def test_builder_rejects_a_flat_closed_mesh_with_density_quietly():

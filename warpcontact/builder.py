@@ -9,9 +9,9 @@ import trimesh
 import warp as wp
 
 from ._runtime import resolve_device
-from ._validate import is_positive_finite, is_real, is_whole
+from ._validate import check_barrier_support, is_positive_finite, is_real, is_whole
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, frame_in_body
-from .contact import CONTACT_MODES, ContactModel
+from .contact import CENTRED_WEIGHTS, CONTACT_MODES, ContactModel
 from .leaf import float32_search
 from .rotation import pose_mul, quat_rotate
 from .sphere_tree import validated_mesh
@@ -94,6 +94,16 @@ def _encloses_volume(mesh: trimesh.Trimesh) -> bool:
         return bool(mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0)
 
 
+def _soup_hint(mesh: trimesh.Trimesh) -> str:
+    """Why an open mesh may be closed after all: faces that share no vertices (a triangle
+    soup, as many exporters write) close once coincident vertices are merged."""
+    merged = mesh.copy()
+    merged.merge_vertices()
+    if len(merged.vertices) < len(mesh.vertices) and _encloses_volume(merged):
+        return f" (its {len(mesh.vertices)} vertices merge into {len(merged.vertices)} of a closed mesh: merge coincident vertices first, e.g. trimesh's merge_vertices())"
+    return ""
+
+
 def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia, center_of_mass) -> tuple[float, np.ndarray, np.ndarray]:
     """(mass, centre of mass in the mesh frame, second moment about it) of a dynamic body
     from ``add_body``'s arguments, each checked and named."""
@@ -107,7 +117,7 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
     if not is_positive_finite(value):
         raise ValueError(f"{where}: {label} must be positive and finite, got {value!r}")
     if density is not None and not closed:
-        raise ValueError(f"{where}: mass from density needs a closed, consistently outward-oriented mesh; give mass and inertia instead")
+        raise ValueError(f"{where}: mass from density needs a closed, consistently outward-oriented mesh{_soup_hint(mesh)}; give mass and inertia instead")
     if inertia is None and not closed:
         raise ValueError(f"{where}: inertia is needed for a mesh that is not closed and consistently outward-oriented (no volume to take it from)")
     props = mesh.mass_properties if closed else None
@@ -183,10 +193,15 @@ class ModelBuilder:
         gravity = np.asarray(gravity, dtype=np.float64)
         if gravity.shape != (3,) or not np.isfinite(gravity).all():
             raise ValueError(f"gravity: expected 3 finite numbers, got {gravity}")
-        for name, value in (("contact_stiffness", contact_stiffness), ("friction", friction), ("friction_smoothing", friction_smoothing)):
+        for name, value in (("contact_stiffness", contact_stiffness), ("friction", friction), ("friction_smoothing", friction_smoothing), ("eps", eps)):
             problem = contact_setting_problem(name, value)
             if problem:
                 raise ValueError(f"{name}: {problem}, got {value}")
+        # These were checked only by finalize, the supports under the name "dhat".
+        if centred_weight not in CENTRED_WEIGHTS:
+            raise ValueError(f"centred_weight: {centred_weight!r} is not one of {CENTRED_WEIGHTS}")
+        for name, value in (("ipc_dhat", ipc_dhat), ("sdrs_dhat", sdrs_dhat)):
+            check_barrier_support(value, name)
         self.gravity = gravity
         self.contact_stiffness = float(contact_stiffness)
         self.friction = float(friction)
@@ -478,6 +493,8 @@ class ModelBuilder:
 
     def _body_name(self, name: str | None) -> str:
         """The name a body being added gets: the given one, or body<index>."""
+        if name is not None and not isinstance(name, str):
+            raise ValueError(f"body {len(self._bodies)}: name must be a string, got {name!r}")
         return name or f"body{len(self._bodies)}"
 
     def add_box(self, extents, **kwargs) -> int:

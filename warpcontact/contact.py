@@ -294,6 +294,8 @@ class ContactModel:
         if len(meshes) < 1:
             raise ValueError("meshes: need at least one body")
         num_bodies = len(meshes)
+        if isinstance(names, str):  # it was read as one name per character
+            raise ValueError(f"names: expected one name per body, got the string {names!r}")
         self.names = [f"body{i}" for i in range(num_bodies)] if names is None else [str(n) for n in names]
         if len(self.names) != num_bodies:
             raise ValueError(f"names: {len(self.names)} names for {num_bodies} bodies")

@@ -1662,7 +1662,18 @@ def _check_namespace(stage, scene_prim, body_paths, Usd, source: str):
 
 def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: str):
     _read_casts(prim, settings, _SETTING_ATTRIBUTES, source)
-    where = f"{source}: prim {prim.GetPath()}"
+    _check_settings(settings, f"{source}: prim {prim.GetPath()}")
+    _read_casts(prim, task, _TASK_ATTRIBUTES, source)
+    for attr_name, field_name in (("task:sampleLow", "sample_low"), ("task:sampleHigh", "sample_high")):
+        value = _cast_attr(prim, attr_name, _numbers, source)
+        if value is not None:
+            setattr(task, field_name, tuple(float(v) for v in value))
+
+
+def _check_settings(settings: SimulationSettings, where: str):
+    """ValueError naming the warpcontact: attribute of the first setting a scene file may not
+    hold: the one rule for loading and for saving (``save_scene`` wrote files that
+    ``load_scene`` then refused)."""
     if settings.time_step <= 0 or not np.isfinite(settings.time_step):
         raise ValueError(f"{where}: warpcontact:timeStep must be positive, got {settings.time_step}")
     for attr_name in ("contactStiffness", "eps", "friction", "frictionSmoothing"):
@@ -1679,11 +1690,6 @@ def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: s
         raise ValueError(f"{where}: warpcontact:centredWeight must be one of {CENTRED_WEIGHTS}, got {settings.centred_weight!r}")
     if settings.leaf_precision not in LEAF_PRECISIONS:
         raise ValueError(f"{where}: warpcontact:leafPrecision must be one of {LEAF_PRECISIONS}, got {settings.leaf_precision!r}")
-    _read_casts(prim, task, _TASK_ATTRIBUTES, source)
-    for attr_name, field_name in (("task:sampleLow", "sample_low"), ("task:sampleHigh", "sample_high")):
-        value = _cast_attr(prim, attr_name, _numbers, source)
-        if value is not None:
-            setattr(task, field_name, tuple(float(v) for v in value))
 
 
 # --- export ---------------------------------------------------------------------------------
@@ -1760,6 +1766,12 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
     Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
     _check_prim_names(scene.bodies, "body", reserved=("physicsScene", "joints"), Sdf=Sdf)
     _check_prim_names(scene.joints, "joint", reserved=(), Sdf=Sdf)
+    # What load_scene would refuse is refused here, before a file is written.
+    _check_settings(scene.settings, f"{path}: scene settings")
+    for body in scene.bodies:
+        for label, values in (("mesh vertices", body.vertices), ("pose", body.pose)):
+            if not np.all(np.isfinite(np.asarray(values, dtype=np.float64))):
+                raise ValueError(f"{path}: body {body.name!r}: its {label} are not all finite")
 
     def write(tmp: Path):
         stage = _new_stage(Usd, UsdGeom, tmp, scene.up_axis)
@@ -2028,6 +2040,8 @@ def model_to_scene_poses(scene: Scene, model, body_q) -> np.ndarray:
     prim-frame poses: the prim frame sits at -R c from the body frame (c: the model's
     ``body_center_of_mass``, in the prim frame)."""
     body_q = np.asarray(body_q, dtype=np.float64)
+    if body_q.ndim < 2 or body_q.shape[-2:] != (len(scene.bodies), 7) or model.num_bodies != len(scene.bodies):
+        raise ValueError(f"body_q: expected (..., {len(scene.bodies)}, 7) poses of a model of the scene's {len(scene.bodies)} bodies, got shape {body_q.shape} for a model of {model.num_bodies}")
     out = body_q.copy()
     for i in range(len(scene.bodies)):
         out[..., i, :3] = body_q[..., i, :3] - quat_rotate(body_q[..., i, 3:], model.body_center_of_mass[i])

@@ -604,8 +604,10 @@ class ImplicitSolver:
         if count == 0:
             return np.zeros(0), np.zeros(0)
         for label, arr in (("state_in.joint_q", state_in.joint_q), ("state_out.joint_q", state_out.joint_q), ("state_out.joint_q_prev", state_out.joint_q_prev)):
-            if not isinstance(arr, wp.array) or arr.shape != (count,):
-                raise ValueError(f"{label}: expected a wp.array of the model's {count} joint coordinates (float64; use model.state())")
+            # An int32 output stored the coordinates truncated, silently, and the next step
+            # blamed the state's consistency.
+            if not isinstance(arr, wp.array) or arr.shape != (count,) or arr.dtype != wp.float64:
+                raise ValueError(f"{label}: expected a float64 wp.array of the model's {count} joint coordinates (use model.state())")
         coords = state_in.joint_q.numpy()
         if not np.isfinite(coords).all():
             raise ValueError("state_in.joint_q: contains non-finite values")
@@ -622,8 +624,9 @@ class ImplicitSolver:
             i = outside[0]
             raise ValueError(f"state_in.joint_q: coordinate {art.coordinate_names[i]!r} = {coords[i]:.6g} is not strictly inside its limits ({art.lower[i]:.6g}, {art.upper[i]:.6g})")
         supplied = None if control is None else control.joint_target
-        if supplied is not None and not isinstance(supplied, wp.array):
-            raise ValueError(f"control.joint_target: expected a wp.array of {count} joint targets (float64; use model.control()), got {type(supplied).__name__}")
+        if supplied is not None and not (isinstance(supplied, wp.array) and supplied.dtype == wp.float64):
+            got = f"dtype {supplied.dtype.__name__}" if isinstance(supplied, wp.array) else type(supplied).__name__
+            raise ValueError(f"control.joint_target: expected a float64 wp.array of {count} joint targets (use model.control()), got {got}")
         target = coords if supplied is None else supplied.numpy()
         if target.shape != (count,) or not np.isfinite(target).all():
             raise ValueError(f"control.joint_target: expected {count} finite joint targets")
