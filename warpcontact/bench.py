@@ -788,8 +788,8 @@ def run_frame_benchmark(
                 "setup": f"{setup['striker']} {gap:g} m from {setup['struck']} at {speed:g} m/s",
             }
             if mode == "ipc" and not dev.is_cpu:
-                continue
-            if mode == "brute" and dynamic > brute_max_triangles:
+                row = {**_empty_frame_row(mode), "error": f"skipped: ipc (ipctk) runs on the CPU only, not on {dev}"}
+            elif mode == "brute" and dynamic > brute_max_triangles:
                 if dynamic > brute_eval_max_triangles or solved is None:
                     why = f"above --brute-eval-max-triangles {brute_eval_max_triangles}" if dynamic > brute_eval_max_triangles else "no bsh frames to evaluate at (bsh not in --models, or its frames failed)"
                     row = {**_empty_frame_row(mode), "error": f"skipped: {dynamic} dynamic triangles above --brute-max-triangles {brute_max_triangles}, and {why}"}
