@@ -896,3 +896,18 @@ def test_bad_ball_drives_are_refused():
     control.ball_target = wp.array(np.array([[0.0, np.nan, 0.0, 1.0]]), dtype=wp.quatd)
     with pytest.raises(ValueError, match="control.ball_target: contains non-finite values"):
         solver.step(state, model.state(), control, 0.01)
+
+
+def test_base_joint_settings_follow_the_dofs_as_given():
+    """Coordinates run x, y, z, rx, ry, rz whatever order dofs lists them in; the limits, gains
+    and targets stayed in the given order: dofs ("rz", "x") put rz's 0.1 rad limit, gain and
+    target on x."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    slider = b.add_box((0.2, 0.2, 0.2), density=500.0, name="slider", pose=(0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
+    b.add_joint("base", child=slider, dofs=("rz", "x"), limits=[(-0.1, 0.1), (-5.0, 5.0)], kp=[1.0, 50.0], kd=[0.1, 5.0], target=[0.05, 2.0], name="b")
+    art = b.finalize().articulation
+    assert art.coordinate_names == ["b:x", "b:rz"]
+    np.testing.assert_array_equal(art.lower, [-5.0, -0.1])
+    np.testing.assert_array_equal(art.kp, [50.0, 1.0])
+    np.testing.assert_array_equal(art.kd, [5.0, 0.1])
+    np.testing.assert_array_equal(art.default_targets, [2.0, 0.05])

@@ -1652,3 +1652,27 @@ def test_save_scene_refuses_what_load_scene_would(tmp_path, change, message):
     with pytest.raises(ValueError, match=message):
         io.save_scene(scene, path)
     assert not path.exists()
+
+
+def test_saving_keeps_joint_frames_whose_axis_is_x(tmp_path):
+    """A single axis along X was turned -90 degrees about X at every save, so a file never
+    settled and a ball joint's rotations (its targets' frame) changed: a child frame turned
+    30 degrees about z read (0, 0.259, 0, 0.966) after one save, (0, 0, -0.259, 0.966) after
+    two."""
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    vertices, faces = np.asarray(box.vertices, dtype=np.float64), np.asarray(box.faces, dtype=np.int64)
+    a = io.BodySpec("a", "/World/a", vertices, faces, np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]), density=500.0)
+    b = io.BodySpec("b", "/World/b", vertices, faces, np.array([0.0, 0.0, 1.5, 0.0, 0.0, 0.0, 1.0]), density=500.0)
+    turned = np.array([0.0, 0.0, np.sin(np.pi / 12), np.cos(np.pi / 12)])
+    joint = io.JointSpec(
+        "ball", "/World/joints/ball", "ball", "a", "b", np.array([0.0, 0.0, 0.25, 0.0, 0.0, 0.0, 1.0]), np.array([0.0, 0.0, -0.25, *turned]),
+        axes=np.array([[1.0, 0.0, 0.0]]), cone_limit=1.0, kp=np.array([5.0]), kd=np.array([0.5]),
+    )
+    scene = io.Scene(bodies=[a, b], joints=[joint])
+    first, second, third = tmp_path / "first.usda", tmp_path / "second.usda", tmp_path / "third.usda"
+    io.save_scene(scene, first)
+    io.save_scene(io.load_scene(first), second)
+    io.save_scene(io.load_scene(second), third)
+    assert second.read_text() == third.read_text()  # the first save rounds to float32 once
+    for loaded in (io.load_scene(first), io.load_scene(second), io.load_scene(third)):
+        np.testing.assert_allclose(loaded.build_model().articulation.initial_ball_rotations, [turned], atol=1e-7)

@@ -399,13 +399,18 @@ class ModelBuilder:
             unknown = [d for d in dofs if d not in BASE_DOFS]
             if unknown or len(set(dofs)) != len(dofs) or not dofs:
                 raise ValueError(f"{where}: dofs must be a non-empty subset of {BASE_DOFS}, got {dofs!r}")
-            dofs = tuple(d for d in BASE_DOFS if d in dofs)
+            # Coordinates run in BASE_DOFS order; the per-coordinate arguments follow ``dofs``
+            # as given (they stayed in that order: dofs ("rz", "x") put rz's limits on x).
+            canonical = tuple(d for d in BASE_DOFS if d in dofs)
+            order = [dofs.index(d) for d in canonical]
+            dofs = canonical
             axes = np.zeros((0, 3))
             frames = (_IDENTITY_POSE.copy(), _IDENTITY_POSE.copy())
         else:
             if dofs is not None:
                 raise ValueError(f"{where}: dofs only applies to base joints")
             dofs = ()
+            order = None
             axes = _unit_axes(axis, JOINT_AXES.get(kind, 0 if axis is None else 1), where)
             if anchor is not None:
                 if parent_frame is not None or child_frame is not None:
@@ -473,15 +478,20 @@ class ModelBuilder:
             if not np.isfinite(arr).all() or (arr < 0).any() or (label.startswith("limit") and (arr <= 0).any()):
                 raise ValueError(f"{where}: {label} must be finite and {'positive' if label.startswith('limit') else '>= 0'}, got {value!r}")
             gains[label] = arr
-        probe.lower, probe.upper = lower, upper
-        probe.limit_margin, probe.limit_stiffness = gains["limit_margin"], gains["limit_stiffness"]
-        probe.kp, probe.kd = gains["kp"], gains["kd"]
         if target is not None:
             if kind == "ball":
                 raise ValueError(f"{where}: ball joints have no coordinates to target (their targets are Control.ball_target rotations)")
-            probe.target = _per_coordinate(target, count, "target", where)
-            if np.isinf(probe.target).any():
+            gains["target"] = _per_coordinate(target, count, "target", where)
+            if np.isinf(gains["target"]).any():
                 raise ValueError(f"{where}: target must be finite (NaN: that coordinate's initial value), got {target!r}")
+        if order is not None:
+            lower, upper = lower[order], upper[order]
+            gains = {label: arr[order] for label, arr in gains.items()}
+        probe.lower, probe.upper = lower, upper
+        probe.limit_margin, probe.limit_stiffness = gains["limit_margin"], gains["limit_stiffness"]
+        probe.kp, probe.kd = gains["kp"], gains["kd"]
+        if "target" in gains:
+            probe.target = gains["target"]
         self._joints.append(probe)
         self._joint_parents.append(-1 if parent is None else int(parent))
         return len(self._joints) - 1

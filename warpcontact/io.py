@@ -1880,10 +1880,21 @@ def _frames_along_x(j: JointSpec):
     if len(axes) == 0:
         return j.parent_frame, j.child_frame
     first = axes[0]
-    second = axes[1] if len(axes) > 1 else np.cross(first, [1.0, 0.0, 0.0] if abs(first[0]) < 0.9 else [0.0, 1.0, 0.0])
-    second = second - (second @ first) * first
-    second /= np.linalg.norm(second)
-    align = quat_from_matrix(np.column_stack([first, second, np.cross(first, second)]))
+    if len(axes) > 1:
+        second = axes[1] - (axes[1] @ first) * first
+        second /= np.linalg.norm(second)
+        align = quat_from_matrix(np.column_stack([first, second, np.cross(first, second)]))
+    else:
+        # The smallest turn taking X to the axis: none for an axis along X. Any other turn
+        # changed the frames at every save (an axis along X turned -90 degrees about X), and
+        # with them what a ball joint's target rotations mean.
+        turn = np.cross([1.0, 0.0, 0.0], first)
+        sine, cosine = np.linalg.norm(turn), first[0]
+        if sine < 1e-12:
+            align = np.array([0.0, 0.0, 0.0, 1.0]) if cosine > 0 else np.array([0.0, 0.0, 1.0, 0.0])
+        else:
+            half = 0.5 * np.arctan2(sine, cosine)
+            align = np.array([*(np.sin(half) * turn / sine), np.cos(half)])
     turn = np.array([0.0, 0.0, 0.0, *align])
     return pose_mul(j.parent_frame, turn), pose_mul(j.child_frame, turn)
 
