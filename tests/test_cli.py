@@ -350,6 +350,29 @@ def test_simulate_interrupted_by_hand_writes_the_frames_it_simulated(tmp_path, c
     assert Usd.Stage.Open(str(tmp_path / "trajectory.usda")).GetEndTimeCode() == 3
 
 
+def test_simulate_interrupted_outside_the_step_keeps_its_frames(tmp_path, capsys, monkeypatch):
+    """Only the step was guarded: Ctrl-C while the next state was allocated lost every frame."""
+    from warpcontact.types import Model
+
+    interrupt_call(monkeypatch, Model, "state", 5)  # the start state, then frames 0-2's
+    assert main(["simulate", "push", "--frames", "6", "--out", str(tmp_path)]) == 130
+    assert json.loads((tmp_path / "summary.json").read_text())["stopped"] == {"frame": 3, "error": "interrupted"}
+    assert Usd.Stage.Open(str(tmp_path / "trajectory.usda")).GetEndTimeCode() == 3
+
+
+def test_a_write_refused_by_the_system_is_an_error_line(tmp_path, capsys, monkeypatch):
+    """A folder that passes the writability check can still refuse the write (sysfs as root,
+    a full disk): the run ended in a traceback."""
+    from warpcontact import io as wc_io
+
+    def refused(*args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(tmp_path / "trajectory.usda"))
+
+    monkeypatch.setattr(wc_io, "export_trajectory", refused)
+    assert main(["simulate", "push", "--frames", "1", "--out", str(tmp_path)]) == 1
+    assert "error: [Errno 13] Permission denied" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     "argv",
     [["demo", "--gaps", "0.1"], ["simulate", "push", "--frames", "1"], ["bench", "leaf", "--pairs", "2"], ["bench", "scaling", "--points", "18"], ["run", "push", "--quick", "--iters", "1"], ["compare", "push", "--quick", "--iters", "1", "--models", "sdrs"]],

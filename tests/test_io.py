@@ -1639,6 +1639,8 @@ def test_a_joint_far_from_the_origin_loads_despite_float32_anchors(tmp_path):
         (lambda s: setattr(s.settings, "contact_mode", "xyz"), r"scene settings: warpcontact:contactMode must be one of"),
         (lambda s: setattr(s.settings, "friction", float("nan")), r"scene settings: warpcontact:friction must be >= 0 and finite, got nan"),
         (lambda s: s.bodies[1].vertices.__setitem__((0, 0), np.nan), r"body 'cue': its mesh vertices are not all finite"),
+        (lambda s: setattr(s, "bodies", [b for b in s.bodies if b.static]), r"the scene has no dynamic bodies, which load_scene requires"),
+        (lambda s: setattr(s.bodies[0], "target_position", np.zeros(3)), r"static body 'ground' has a target, which only a dynamic body takes"),
     ],
 )
 def test_save_scene_refuses_what_load_scene_would(tmp_path, change, message):
@@ -1676,3 +1678,57 @@ def test_saving_keeps_joint_frames_whose_axis_is_x(tmp_path):
     assert second.read_text() == third.read_text()  # the first save rounds to float32 once
     for loaded in (io.load_scene(first), io.load_scene(second), io.load_scene(third)):
         np.testing.assert_allclose(loaded.build_model().articulation.initial_ball_rotations, [turned], atol=1e-7)
+
+
+def test_joints_load_in_the_order_they_were_authored(tmp_path):
+    """Joints were read grouped by type: a prismatic joint authored before a revolute one came
+    back after it, permuting the joint coordinates (and anything indexed by them)."""
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    vertices, faces = np.asarray(box.vertices, dtype=np.float64), np.asarray(box.faces, dtype=np.int64)
+    slider = io.BodySpec("slider", "/World/slider", vertices, faces, np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]), density=500.0)
+    hinge = io.BodySpec("hinge", "/World/hinge", vertices, faces, np.array([2.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]), density=500.0)
+    world = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+    joints = [
+        io.JointSpec("slide", "/World/joints/slide", "prismatic", None, "slider", world + [0, 0, 1.0, 0, 0, 0, 0], world, axes=np.array([[0.0, 0.0, 1.0]])),
+        io.JointSpec("swing", "/World/joints/swing", "revolute", None, "hinge", world + [2.0, 0, 1.5, 0, 0, 0, 0], world + [0, 0, 0.5, 0, 0, 0, 0], axes=np.array([[0.0, 1.0, 0.0]])),
+    ]
+    path = tmp_path / "order.usda"
+    io.save_scene(io.Scene(bodies=[slider, hinge], joints=joints), path)
+    loaded = io.load_scene(path)
+    assert [j.name for j in loaded.joints] == ["slide", "swing"]
+    assert loaded.build_model().articulation.coordinate_names == ["slide:0", "swing:0"]
+
+
+def test_a_static_collider_keeps_its_double_precision_pose(tmp_path):
+    """A collider without a rigid body took its pose from UsdPhysics' float32 localPos /
+    localRot: a ground at x = 1000.123456789 came back 1.7e-5 m off (a dynamic body, 6e-17)."""
+    box = trimesh.creation.box(extents=(4.0, 4.0, 0.1))
+    vertices, faces = np.asarray(box.vertices, dtype=np.float64), np.asarray(box.faces, dtype=np.int64)
+    turn = np.array([0.1, 0.2, 0.3, 0.9]) / np.linalg.norm([0.1, 0.2, 0.3, 0.9])
+    ground = io.BodySpec("ground", "/World/ground", vertices, faces, np.array([1000.123456789, -0.05, 0.1, *turn]), static=True)
+    crate = io.BodySpec("crate", "/World/crate", vertices * 0.05, faces, np.array([1000.123456789, 0.05, 3.1, *turn]), density=500.0)
+    path = tmp_path / "far.usda"
+    io.save_scene(io.Scene(bodies=[ground, crate]), path)
+    for saved, loaded in zip((ground, crate), io.load_scene(path).bodies):
+        np.testing.assert_allclose(loaded.pose, saved.pose, rtol=0, atol=1e-12)
+
+
+def test_save_scene_takes_numpy_settings_and_broadcast_joint_values(tmp_path):
+    """np.float32 / np.int64 settings raised a raw pxr type-mismatch error, and a universal
+    joint's single limit pair or gain (which the builder broadcasts) an IndexError."""
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    vertices, faces = np.asarray(box.vertices, dtype=np.float64), np.asarray(box.faces, dtype=np.int64)
+    arm = io.BodySpec("arm", "/World/arm", vertices, faces, np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]), density=500.0)
+    world = np.array([0.0, 0.0, 1.2, 0.0, 0.0, 0.0, 1.0])
+    joint = io.JointSpec(
+        "cardan", "/World/joints/cardan", "universal", None, "arm", world, np.array([0.0, 0.0, 0.2, 0.0, 0.0, 0.0, 1.0]),
+        axes=np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), limits=[(-0.3, 0.3)], kp=np.array([2.0]), kd=np.array([0.1]),
+    )
+    scene = io.Scene(bodies=[arm], joints=[joint], settings=io.SimulationSettings(time_step=np.float32(0.04), frames=np.int64(50)))
+    path = tmp_path / "numpy.usda"
+    io.save_scene(scene, path)
+    loaded = io.load_scene(path)
+    assert loaded.settings.frames == 50 and loaded.settings.time_step == pytest.approx(0.04, rel=1e-7)
+    art = loaded.build_model().articulation
+    np.testing.assert_allclose(art.lower, [-0.3, -0.3], rtol=1e-6)
+    np.testing.assert_allclose(art.kp, [2.0, 2.0], rtol=1e-6)

@@ -86,19 +86,20 @@ def _simulate(args) -> int:
     start = time.perf_counter()
     print(f"{scene_path}: {model.num_bodies} bodies, {frames} frames of {dt} s on {model.device}")
     for frame in range(frames):
-        nxt = model.state(requires_grad=False)
         try:
+            nxt = model.state(requires_grad=False)
             info = solver.step(states[-1], nxt, control, dt)
+            states.append(nxt)
+            iterations.append(info.iterations)
         except SolverError as exc:
             # The frames before it are written: they are what one looks at to see why.
             stopped = {"frame": frame, "error": str(exc)}
             break
         except KeyboardInterrupt:
-            # A long run stopped by hand keeps what it simulated.
-            stopped = {"frame": frame, "error": "interrupted"}
+            # A long run stopped by hand keeps what it simulated, wherever in the frame the
+            # interruption came (outside the step it lost every frame).
+            stopped = {"frame": len(states) - 1, "error": "interrupted"}
             break
-        states.append(nxt)
-        iterations.append(info.iterations)
         if (frame + 1) % max(1, frames // 10) == 0 or frame + 1 == frames:
             print(f"  frame {frame + 1:4d}/{frames}  Newton iterations {info.iterations:3d}  min separation {info.min_separation:.2e} m")
     seconds = time.perf_counter() - start
@@ -768,6 +769,11 @@ def main(argv=None) -> int:
     except FileExistsError as exc:
         print(f"error: {exc} (use --overwrite)", file=sys.stderr)
         return 2
+    except OSError as exc:
+        # A folder that passed the writability check can still refuse the write (sysfs, a
+        # full disk, a read-only mount): a traceback before.
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

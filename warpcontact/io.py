@@ -81,7 +81,7 @@ import os
 import tempfile
 import warnings
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -886,7 +886,9 @@ def load_scene(path) -> Scene:
                 # localPos / localRot place the collider in its rigid body's frame, or in the
                 # world for a collider without a rigid body (a static body of its own). Scale is
                 # already in the shape's dimensions (meshScale, radius, halfExtents).
-                local_pose = np.array([*desc.localPos, *_quat_xyzw(desc.localRot)], dtype=np.float64)
+                # A collider of its own takes its frame from the world matrix, in double:
+                # localPos / localRot are float32 (a ground at x = 1000.123456789 moved 1.7e-5 m).
+                local_pose = _frame(matrix) if not owner else np.array([*desc.localPos, *_quat_xyzw(desc.localRot)], dtype=np.float64)
                 local_pose[3:] /= np.linalg.norm(local_pose[3:])
                 local_pose[:3] *= meters
                 vertices = vertices * meters
@@ -936,6 +938,9 @@ def load_scene(path) -> Scene:
     _read_material_friction(collider_materials, scene_prim, settings, UsdPhysics, source)
     _warn_unmodelled(stage, collider_materials, UsdPhysics, Usd, source)
     joints = _read_joints(stage, descs, {**bodies, **static_bodies}, mirrored, units, source, UsdPhysics)
+    # In the stage's order too: grouped by joint type, a prismatic joint authored before a
+    # revolute one came back after it, permuting the joint coordinates (and their targets).
+    joints.sort(key=lambda joint: order.get(joint.path, len(order)))
     return Scene(bodies=all_bodies, gravity=gravity, settings=settings, task=task, source=source, joints=joints, up_axis="Y" if up == UsdGeom.Tokens.y else "Z")
 
 
@@ -1758,6 +1763,16 @@ def _atomic_save(stage_writer, path, overwrite: bool):
             os.unlink(tmp)
 
 
+def _usd_scalar(value, kind, Sdf):
+    """``value`` as the Python type USD's ``kind`` takes: numpy scalars (np.float32 time steps,
+    np.int64 horizons) raised a raw pxr type-mismatch error."""
+    if kind == Sdf.ValueTypeNames.Double:
+        return float(value)
+    if kind == Sdf.ValueTypeNames.Int:
+        return int(value)
+    return str(value)
+
+
 def save_scene(scene: Scene, path, *, overwrite: bool = False):
     """Write a scene as a .usda with UsdPhysics schemas and warpcontact attributes (round-trippable).
 
@@ -1766,12 +1781,27 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
     Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
     _check_prim_names(scene.bodies, "body", reserved=("physicsScene", "joints"), Sdf=Sdf)
     _check_prim_names(scene.joints, "joint", reserved=(), Sdf=Sdf)
-    # What load_scene would refuse is refused here, before a file is written.
+    # What load_scene would refuse, or what the file cannot hold, is refused here, before a
+    # file is written (such scenes were written, and failed at load or lost data silently).
     _check_settings(scene.settings, f"{path}: scene settings")
+    if not any(not body.static for body in scene.bodies):
+        raise ValueError(f"{path}: the scene has no dynamic bodies, which load_scene requires")
     for body in scene.bodies:
         for label, values in (("mesh vertices", body.vertices), ("pose", body.pose)):
             if not np.all(np.isfinite(np.asarray(values, dtype=np.float64))):
                 raise ValueError(f"{path}: body {body.name!r}: its {label} are not all finite")
+        if body.static:
+            dynamic_only = [
+                label
+                for label, present in (
+                    ("a target", body.target_position is not None),
+                    ("PD gains", bool(np.any(body.kp_linear) or np.any(body.kd_linear) or body.kp_angular or body.kd_angular)),
+                    ("control dofs", bool(body.control_dofs)),
+                )
+                if present
+            ]
+            if dynamic_only:
+                raise ValueError(f"{path}: static body {body.name!r} has {', '.join(dynamic_only)}, which only a dynamic body takes (a static collider's file holds none of them)")
 
     def write(tmp: Path):
         stage = _new_stage(Usd, UsdGeom, tmp, scene.up_axis)
@@ -1793,7 +1823,7 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
             ("frictionSmoothing", s.friction_smoothing, Sdf.ValueTypeNames.Double),
             ("contactMode", s.contact_mode, Sdf.ValueTypeNames.Token),
         ):
-            prim.CreateAttribute(_NS + name, kind).Set(value)
+            prim.CreateAttribute(_NS + name, kind).Set(_usd_scalar(value, kind, Sdf))
         if t.name:
             for name, value, kind in (
                 ("task:name", t.name, Sdf.ValueTypeNames.String),
@@ -1809,7 +1839,7 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
                 ("task:quick:iterations", t.quick_iterations, Sdf.ValueTypeNames.Int),
                 ("task:quick:recedingStride", t.quick_receding_stride, Sdf.ValueTypeNames.Int),
             ):
-                prim.CreateAttribute(_NS + name, kind).Set(value)
+                prim.CreateAttribute(_NS + name, kind).Set(_usd_scalar(value, kind, Sdf))
             for name, bounds in (("task:sampleLow", t.sample_low), ("task:sampleHigh", t.sample_high)):
                 if bounds:
                     prim.CreateAttribute(_NS + name, Sdf.ValueTypeNames.DoubleArray).Set(Vt.DoubleArray([float(v) for v in bounds]))
@@ -1942,6 +1972,8 @@ def _author_joint(stage, j: JointSpec, Gf, UsdPhysics):
         axis_of = {dof: axis for axis, dof in _D6_AXIS_DOF.items()}
         free = [axis_of[d] for d in j.dofs]
     coordinates = _coordinate_axes(free)
+    # One value for every coordinate, as the builder broadcasts it (an IndexError here).
+    j = _broadcast_to_coordinates(j, len(coordinates))
     for axis in _D6_AXIS_DOF:
         token = _api_token(axis)
         if axis not in free:
@@ -1959,6 +1991,15 @@ def _author_joint(stage, j: JointSpec, Gf, UsdPhysics):
             limit.CreateHighAttr(float(j.limits[c][1] / scale))
         if len(j.kp) and (j.kp[c] or j.kd[c]):
             _author_drive(prim, token, j.kp[c] * scale, j.kd[c] * scale, UsdPhysics, _target(j, c, scale))
+
+
+def _broadcast_to_coordinates(j: JointSpec, count: int) -> JointSpec:
+    """``j`` with a single limit pair, gain or target repeated for its ``count`` coordinates."""
+
+    def spread(values):
+        return values if values is None or len(values) != 1 or count == 1 else [values[0]] * count if isinstance(values, list) else np.repeat(values, count)
+
+    return replace(j, limits=spread(j.limits), kp=spread(np.asarray(j.kp)), kd=spread(np.asarray(j.kd)), targets=spread(j.targets))
 
 
 def _target(j: JointSpec, coordinate: int, scale: float) -> float | None:
