@@ -1641,6 +1641,7 @@ def test_a_joint_far_from_the_origin_loads_despite_float32_anchors(tmp_path):
         (lambda s: s.bodies[1].vertices.__setitem__((0, 0), np.nan), r"body 'cue': its mesh vertices are not all finite"),
         (lambda s: setattr(s, "bodies", [b for b in s.bodies if b.static]), r"the scene has no dynamic bodies, which load_scene requires"),
         (lambda s: setattr(s.bodies[0], "target_position", np.zeros(3)), r"static body 'ground' has a target, which only a dynamic body takes"),
+        (lambda s: setattr(s.settings, "frames", True), r"warpcontact:frames: expected a number, got True"),
     ],
 )
 def test_save_scene_refuses_what_load_scene_would(tmp_path, change, message):

@@ -1763,9 +1763,12 @@ def _atomic_save(stage_writer, path, overwrite: bool):
             os.unlink(tmp)
 
 
-def _usd_scalar(value, kind, Sdf):
+def _usd_scalar(value, kind, Sdf, name: str):
     """``value`` as the Python type USD's ``kind`` takes: numpy scalars (np.float32 time steps,
-    np.int64 horizons) raised a raw pxr type-mismatch error."""
+    np.int64 horizons) raised a raw pxr type-mismatch error. A bool is refused where a
+    number belongs (True was written as 1, a horizon load_scene then accepted)."""
+    if isinstance(value, (bool, np.bool_)) and kind != Sdf.ValueTypeNames.Bool:
+        raise ValueError(f"warpcontact:{name}: expected a number, got {value!r}")
     if kind == Sdf.ValueTypeNames.Double:
         return float(value)
     if kind == Sdf.ValueTypeNames.Int:
@@ -1823,7 +1826,7 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
             ("frictionSmoothing", s.friction_smoothing, Sdf.ValueTypeNames.Double),
             ("contactMode", s.contact_mode, Sdf.ValueTypeNames.Token),
         ):
-            prim.CreateAttribute(_NS + name, kind).Set(_usd_scalar(value, kind, Sdf))
+            prim.CreateAttribute(_NS + name, kind).Set(_usd_scalar(value, kind, Sdf, name))
         if t.name:
             for name, value, kind in (
                 ("task:name", t.name, Sdf.ValueTypeNames.String),
@@ -1839,7 +1842,7 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
                 ("task:quick:iterations", t.quick_iterations, Sdf.ValueTypeNames.Int),
                 ("task:quick:recedingStride", t.quick_receding_stride, Sdf.ValueTypeNames.Int),
             ):
-                prim.CreateAttribute(_NS + name, kind).Set(_usd_scalar(value, kind, Sdf))
+                prim.CreateAttribute(_NS + name, kind).Set(_usd_scalar(value, kind, Sdf, name))
             for name, bounds in (("task:sampleLow", t.sample_low), ("task:sampleHigh", t.sample_high)):
                 if bounds:
                     prim.CreateAttribute(_NS + name, Sdf.ValueTypeNames.DoubleArray).Set(Vt.DoubleArray([float(v) for v in bounds]))
