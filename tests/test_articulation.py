@@ -911,3 +911,32 @@ def test_base_joint_settings_follow_the_dofs_as_given():
     np.testing.assert_array_equal(art.kp, [50.0, 1.0])
     np.testing.assert_array_equal(art.kd, [5.0, 0.1])
     np.testing.assert_array_equal(art.default_targets, [2.0, 0.05])
+    # Three free rotations own no coordinates: the values are the translations', as listed
+    # (the reordering raised an IndexError for every base with three rotations).
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    free = b.add_box((0.2, 0.2, 0.2), density=500.0, name="free", pose=(0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
+    b.add_joint("base", child=free, dofs=("rz", "z", "ry", "x", "rx", "y"), limits=[(-3.0, 3.0), (-1.0, 1.0), (-2.0, 2.0)], name="f")
+    art = b.finalize().articulation
+    assert art.coordinate_names == ["f:x", "f:y", "f:z"]
+    np.testing.assert_array_equal(art.lower, [-1.0, -2.0, -3.0])
+
+
+def test_links_of_one_chain_folding_fast_are_not_refused_as_passing_through():
+    """Links move along joint arcs: a 3-link chain (articulation_contact="all") driven to fold
+    was refused at dt 0.02 ("'l1' and 'l2' pass through each other") though its joint path
+    is contact-free; only the straight (position, rotation) path cuts them."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), articulation_contact="all")
+    length = 0.3
+    link = b.add_box((length, 0.05, 0.05), density=500.0, name="l0", pose=(0.01 + length / 2, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
+    b.add_joint("revolute", child=link, anchor=(0.0, 0.0, 1.0), axis=(0.0, 0.0, 1.0), kp=1e3, kd=10.0, name="j0")
+    for i in (1, 2):
+        x0 = i * (length + 0.02)
+        child = b.add_box((length, 0.05, 0.05), density=500.0, name=f"l{i}", pose=(x0 + 0.01 + length / 2, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
+        b.add_joint("revolute", child=child, parent=link, anchor=(x0, 0.0, 1.0), axis=(0.0, 0.0, 1.0), kp=50.0, kd=1.0, limits=[(-3.0, 3.0)], name=f"j{i}")
+        link = child
+    model = b.finalize()
+    control = model.control()
+    control.joint_target.assign(np.array([0.0, 2.9, 2.9]))
+    out = model.state()
+    wc.ImplicitSolver(model).step(model.state(), out, control, 0.02)
+    assert model.contact.evaluate(out.body_q.numpy()).ok and out.joint_q.numpy()[2] > 0.1

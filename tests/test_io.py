@@ -1642,6 +1642,7 @@ def test_a_joint_far_from_the_origin_loads_despite_float32_anchors(tmp_path):
         (lambda s: setattr(s, "bodies", [b for b in s.bodies if b.static]), r"the scene has no dynamic bodies, which load_scene requires"),
         (lambda s: setattr(s.bodies[0], "target_position", np.zeros(3)), r"static body 'ground' has a target, which only a dynamic body takes"),
         (lambda s: setattr(s.settings, "frames", True), r"warpcontact:frames: expected a number, got True"),
+        (lambda s: setattr(s.settings, "frames", 2.5), r"warpcontact:frames: expected a whole number, got 2.5"),
     ],
 )
 def test_save_scene_refuses_what_load_scene_would(tmp_path, change, message):
@@ -1723,8 +1724,8 @@ def test_save_scene_takes_numpy_settings_and_broadcast_joint_values(tmp_path):
     world = np.array([0.0, 0.0, 1.2, 0.0, 0.0, 0.0, 1.0])
     joint = io.JointSpec(
         "cardan", "/World/joints/cardan", "universal", None, "arm", world, np.array([0.0, 0.0, 0.2, 0.0, 0.0, 0.0, 1.0]),
-        axes=np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), limits=[(-0.3, 0.3)], kp=np.array([2.0]), kd=np.array([0.1]),
-    )
+        axes=np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), limits=(-0.3, 0.3), kp=np.array([2.0]), kd=np.array([0.1]),
+    )  # a flat limit pair, as the builder also takes it
     scene = io.Scene(bodies=[arm], joints=[joint], settings=io.SimulationSettings(time_step=np.float32(0.04), frames=np.int64(50)))
     path = tmp_path / "numpy.usda"
     io.save_scene(scene, path)

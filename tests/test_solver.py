@@ -1091,6 +1091,12 @@ def test_builder_warns_about_bodies_the_barrier_would_hold_far_above_a_support()
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         weightless.finalize()
+    # Nothing static to rest on: no support, no warning (a lone die warned before).
+    alone = wc.ModelBuilder(contact_stiffness=1e-6)
+    alone.add_box((0.01, 0.01, 0.01), density=500.0, name="die")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        alone.finalize()
 
 
 def test_builder_warns_about_bodies_the_barrier_would_press_too_close_to_a_support():

@@ -79,17 +79,13 @@ def _write_results(out_dir: Path, name: str, device, repeats: int, fields: dict)
     return payload
 
 
-def _save_results(out_dir: Path, name: str, device, repeats: int, fields: dict, plot=None) -> dict:
-    """``_write_results``, then out_dir/NAME.png drawn by ``plot(rows, path)``. The benches
-    save after every row, so an interrupted run keeps the rows it finished; a plot that cannot
-    be drawn (no rows yet, no matplotlib) removes an earlier run's, which a rerun with
-    --overwrite used to leave beside the new results."""
-    payload = _write_results(out_dir, name, device, repeats, fields)
-    if plot is not None:
-        path = out_dir / f"{name}.png"
-        if not (fields["rows"] and plot(fields["rows"], path)):
-            path.unlink(missing_ok=True)
-    return payload
+def _plot_at_end(path: Path, plot, rows: list[dict]) -> None:
+    """Draw a bench's plot once its rows are final, also when the run is interrupted (the
+    JSON and CSV are rewritten after every row, so an interrupted run keeps its rows). A plot
+    that cannot be drawn (no drawable rows, no matplotlib) removes an earlier run's, which a
+    rerun with --overwrite used to leave beside the new results."""
+    if not (rows and plot(rows, path)):
+        path.unlink(missing_ok=True)
 
 
 def _json_default(value):
@@ -186,8 +182,8 @@ def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, s
                     row[f"{name}_error_median"] = median
                     row[f"{name}_error_max"] = worst
             rows.append(row)
-            _save_results(out_dir, "leaf", dev, repeats, {**header, "rows": rows})
-    return _save_results(out_dir, "leaf", dev, repeats, {**header, "rows": rows})
+            _write_results(out_dir, "leaf", dev, repeats, {**header, "rows": rows})
+    return _write_results(out_dir, "leaf", dev, repeats, {**header, "rows": rows})
 
 
 def _icosphere(subdivisions: int, radius: float):
@@ -276,37 +272,40 @@ def run_contact_benchmark(
     rows = []
 
     def save():
-        _save_results(out_dir, "contact", dev, repeats, {"rows": rows}, _plot_contact_benchmark)
+        _write_results(out_dir, "contact", dev, repeats, {"rows": rows})
 
-    for scene in contact_benchmark_scenes(subdivisions=subdivisions, gaps=gaps):
-        if ipc_dhat is not None and dev.is_cpu:
-            rows.append(_ipc_contact_row(scene, ipc_dhat, repeats))
-            save()
-        reference = None
-        for mode, eps, weight in [("brute", None, None)] + [("bsh", e, w) for w in centred_weights for e in eps_values]:
-            model = ContactModel(scene["meshes"], mode=mode, eps=eps or 1.0, centred_weight=weight or "paper", device=dev)
-            result = model.evaluate(scene["poses"])  # warm-up: compile and size buffers
-            seconds = _median_seconds(lambda: model.evaluate(scene["poses"]), repeats)
-            if reference is None:
-                reference = result
-            radius = np.array([np.linalg.norm(v, axis=1).max() for v, _ in scene["meshes"]])
-            rows.append(
-                {
-                    "scene": scene["scene"],
-                    "gap": scene["gap"],
-                    "triangles": int(sum(len(f) for _, f in scene["meshes"])),
-                    "mode": mode,
-                    "eps": eps,
-                    "centred_weight": weight,
-                    "median_seconds": seconds,
-                    "value_ratio": result.value / reference.value,
-                    "num_far": result.num_far,
-                    "num_blend": result.num_blend,
-                    "num_leaf": result.num_leaf,
-                    **_force_errors(result.grad, reference.grad, radius),
-                }
-            )
-            save()
+    try:
+        for scene in contact_benchmark_scenes(subdivisions=subdivisions, gaps=gaps):
+            if ipc_dhat is not None and dev.is_cpu:
+                rows.append(_ipc_contact_row(scene, ipc_dhat, repeats))
+                save()
+            reference = None
+            for mode, eps, weight in [("brute", None, None)] + [("bsh", e, w) for w in centred_weights for e in eps_values]:
+                model = ContactModel(scene["meshes"], mode=mode, eps=eps or 1.0, centred_weight=weight or "paper", device=dev)
+                result = model.evaluate(scene["poses"])  # warm-up: compile and size buffers
+                seconds = _median_seconds(lambda: model.evaluate(scene["poses"]), repeats)
+                if reference is None:
+                    reference = result
+                radius = np.array([np.linalg.norm(v, axis=1).max() for v, _ in scene["meshes"]])
+                rows.append(
+                    {
+                        "scene": scene["scene"],
+                        "gap": scene["gap"],
+                        "triangles": int(sum(len(f) for _, f in scene["meshes"])),
+                        "mode": mode,
+                        "eps": eps,
+                        "centred_weight": weight,
+                        "median_seconds": seconds,
+                        "value_ratio": result.value / reference.value,
+                        "num_far": result.num_far,
+                        "num_blend": result.num_blend,
+                        "num_leaf": result.num_leaf,
+                        **_force_errors(result.grad, reference.grad, radius),
+                    }
+                )
+                save()
+    finally:
+        _plot_at_end(out_dir / "contact.png", _plot_contact_benchmark, rows)
     return rows
 
 
@@ -378,29 +377,32 @@ def run_scaling_benchmark(*, points_per_ball, eps: float, brute_max_triangles: i
 
     dev = resolve_device(device)
     rows = []
-    for n in points_per_ball:
-        ball = fibonacci_ball(n)
-        poses = _identity_poses(rack_positions(radius=0.5, gap=0.05))
-        triangles = 16 * len(ball[1])
-        for mode in ("bsh", "brute"):
-            if mode == "brute" and triangles > brute_max_triangles:
-                continue
-            model = ContactModel([ball] * 16, mode=mode, eps=eps, device=dev)
-            result = model.evaluate(poses)
-            seconds = _median_seconds(lambda: model.evaluate(poses), repeats)
-            rows.append(
-                {
-                    "triangles": triangles,
-                    "mode": mode,
-                    "eps": eps if mode == "bsh" else None,  # brute force has no blend margin
-                    "median_seconds": seconds,
-                    "seconds_per_triangle": seconds / triangles,
-                    "num_far": result.num_far,
-                    "num_blend": result.num_blend,
-                    "num_leaf": result.num_leaf,
-                }
-            )
-            _save_results(out_dir, "scaling", dev, repeats, {"rows": rows}, _plot_scaling)
+    try:
+        for n in points_per_ball:
+            ball = fibonacci_ball(n)
+            poses = _identity_poses(rack_positions(radius=0.5, gap=0.05))
+            triangles = 16 * len(ball[1])
+            for mode in ("bsh", "brute"):
+                if mode == "brute" and triangles > brute_max_triangles:
+                    continue
+                model = ContactModel([ball] * 16, mode=mode, eps=eps, device=dev)
+                result = model.evaluate(poses)
+                seconds = _median_seconds(lambda: model.evaluate(poses), repeats)
+                rows.append(
+                    {
+                        "triangles": triangles,
+                        "mode": mode,
+                        "eps": eps if mode == "bsh" else None,  # brute force has no blend margin
+                        "median_seconds": seconds,
+                        "seconds_per_triangle": seconds / triangles,
+                        "num_far": result.num_far,
+                        "num_blend": result.num_blend,
+                        "num_leaf": result.num_leaf,
+                    }
+                )
+                _write_results(out_dir, "scaling", dev, repeats, {"rows": rows})
+    finally:
+        _plot_at_end(out_dir / "scaling.png", _plot_scaling, rows)
     return rows
 
 
@@ -764,7 +766,7 @@ def run_frame_benchmark(
     }
 
     def save():
-        _save_results(out_dir, "frame", dev, frames, {**header, "rows": rows}, _plot_frame_benchmark)
+        _write_results(out_dir, "frame", dev, frames, {**header, "rows": rows})
 
     # Every scene is read before any is timed: a bad name or a missing peer-mesh folder used
     # to end the default run after hours of the scenes before it.
@@ -772,40 +774,43 @@ def run_frame_benchmark(
     # bsh first: brute force above --brute-max-triangles is timed at bsh's solved poses (listed
     # after it, brute's rows were dropped without a word).
     models = sorted(dict.fromkeys(models), key=lambda mode: mode != "bsh")
-    for spec in scenes:
-        solved = None  # (bsh Model, its solved poses) for contact-only rows
-        for mode in models:
-            scene = copy.deepcopy(built[spec])  # each model sets its own contact settings
-            setup = strike_setup(scene, gap=gap, speed=speed)
-            dynamic, total = _scene_triangles(scene)
-            base = {
-                "scene": Path(spec).stem if spec.endswith((".pkl", ".usda")) else spec,
-                "triangles": dynamic,
-                "all_triangles": total,
-                "bodies": len(scene.bodies),
-                "time_step": scene.settings.time_step,
-                "contact_stiffness": scene.settings.contact_stiffness,
-                "setup": f"{setup['striker']} {gap:g} m from {setup['struck']} at {speed:g} m/s",
-            }
-            if mode == "ipc" and not dev.is_cpu:
-                row = {**_empty_frame_row(mode), "error": f"skipped: ipc (ipctk) runs on the CPU only, not on {dev}"}
-            elif mode == "brute" and dynamic > brute_max_triangles:
-                if dynamic > brute_eval_max_triangles or solved is None:
-                    why = f"above --brute-eval-max-triangles {brute_eval_max_triangles}" if dynamic > brute_eval_max_triangles else "no bsh frames to evaluate at (bsh not in --models, or its frames failed)"
-                    row = {**_empty_frame_row(mode), "error": f"skipped: {dynamic} dynamic triangles above --brute-max-triangles {brute_max_triangles}, and {why}"}
+    try:
+        for spec in scenes:
+            solved = None  # (bsh Model, its solved poses) for contact-only rows
+            for mode in models:
+                scene = copy.deepcopy(built[spec])  # each model sets its own contact settings
+                setup = strike_setup(scene, gap=gap, speed=speed)
+                dynamic, total = _scene_triangles(scene)
+                base = {
+                    "scene": Path(spec).stem if spec.endswith((".pkl", ".usda")) else spec,
+                    "triangles": dynamic,
+                    "all_triangles": total,
+                    "bodies": len(scene.bodies),
+                    "time_step": scene.settings.time_step,
+                    "contact_stiffness": scene.settings.contact_stiffness,
+                    "setup": f"{setup['striker']} {gap:g} m from {setup['struck']} at {speed:g} m/s",
+                }
+                if mode == "ipc" and not dev.is_cpu:
+                    row = {**_empty_frame_row(mode), "error": f"skipped: ipc (ipctk) runs on the CPU only, not on {dev}"}
+                elif mode == "brute" and dynamic > brute_max_triangles:
+                    if dynamic > brute_eval_max_triangles or solved is None:
+                        why = f"above --brute-eval-max-triangles {brute_eval_max_triangles}" if dynamic > brute_eval_max_triangles else "no bsh frames to evaluate at (bsh not in --models, or its frames failed)"
+                        row = {**_empty_frame_row(mode), "error": f"skipped: {dynamic} dynamic triangles above --brute-max-triangles {brute_max_triangles}, and {why}"}
+                    else:
+                        row = _contact_only_row(solved[0], solved[1], mode="brute", dev=dev)
                 else:
-                    row = _contact_only_row(solved[0], solved[1], mode="brute", dev=dev)
-            else:
-                precision = "float64" if mode == "ipc" else leaf_precision
-                row, poses, model = _simulate_frames(
-                    scene, setup, mode=mode, frames=frames, warmup=warmup, dev=dev, eps=eps if mode == "bsh" else None, ipc_stiffness=ipc_stiffness, leaf_precision=precision
-                )
-                if mode == "bsh" and poses:
-                    solved = (model, poses)
-            rows.append({**base, **row})
-            if progress:
-                progress(rows[-1])
-            save()
+                    precision = "float64" if mode == "ipc" else leaf_precision
+                    row, poses, model = _simulate_frames(
+                        scene, setup, mode=mode, frames=frames, warmup=warmup, dev=dev, eps=eps if mode == "bsh" else None, ipc_stiffness=ipc_stiffness, leaf_precision=precision
+                    )
+                    if mode == "bsh" and poses:
+                        solved = (model, poses)
+                rows.append({**base, **row})
+                if progress:
+                    progress(rows[-1])
+                save()
+    finally:
+        _plot_at_end(out_dir / "frame.png", _plot_frame_benchmark, rows)
     if not rows:
         save()
     return rows
@@ -952,45 +957,48 @@ def run_accuracy_benchmark(
         rows.append(row)
         if progress:
             progress(row)
-        _save_results(out_dir, "accuracy", dev, 1, {**header, "rows": rows}, _plot_accuracy)
+        _write_results(out_dir, "accuracy", dev, 1, {**header, "rows": rows})
 
-    for sweep, mode, e, tol, precision in configs:
-        scene, controls = accuracy_scene(balls=balls, points_per_ball=points_per_ball, gap=gap, speed=speed)
-        row = {"sweep": sweep, "model": mode, "eps": e if mode == "bsh" else None, "tolerance": tol, "leaf_precision": precision, "triangles": _scene_triangles(scene)[0], "frames": frames}
-        try:
-            loss, grad, trajectory, forward, iterations, backward, problem = _accuracy_run(scene, controls, mode=mode, eps=e, tolerance=tol, frames=frames, dev=dev, leaf_precision=precision)
-        except SolverError as exc:
+    try:
+        for sweep, mode, e, tol, precision in configs:
+            scene, controls = accuracy_scene(balls=balls, points_per_ball=points_per_ball, gap=gap, speed=speed)
+            row = {"sweep": sweep, "model": mode, "eps": e if mode == "bsh" else None, "tolerance": tol, "leaf_precision": precision, "triangles": _scene_triangles(scene)[0], "frames": frames}
+            try:
+                loss, grad, trajectory, forward, iterations, backward, problem = _accuracy_run(scene, controls, mode=mode, eps=e, tolerance=tol, frames=frames, dev=dev, leaf_precision=precision)
+            except SolverError as exc:
+                if reference is None:
+                    raise ValueError(f"the reference run (brute force, --reference-tolerance {reference_tolerance:g}) failed: {exc}") from None
+                finish({**row, "error": str(exc)})  # failed rows were left out of the table
+                continue
             if reference is None:
-                raise ValueError(f"the reference run (brute force, --reference-tolerance {reference_tolerance:g}) failed: {exc}") from None
-            finish({**row, "error": str(exc)})  # failed rows were left out of the table
-            continue
-        if reference is None:
-            ref_grads = [problem.model.contact.evaluate(q).grad for q in trajectory]
-            reference = {"grad": grad, "trajectory": trajectory, "contact_grads": ref_grads}
-        com = trajectory[:, :, :3]
-        ref_com = reference["trajectory"][:, :, :3]
-        deviation = np.linalg.norm(com - ref_com, axis=2)
-        motion = np.linalg.norm(ref_com - ref_com[0], axis=2).max()
-        radius = problem.model.body_radius
-        errors = [_force_errors(problem.model.contact.evaluate(q).grad, g, radius) for q, g in zip(reference["trajectory"], reference["contact_grads"])]
-        g_ref = reference["grad"]
-        finish({
-            **row,
-            "forward_seconds": float(np.median(forward)),
-            "newton_iterations": float(np.mean(iterations)),
-            "backward_seconds": backward / frames,
-            "loss": loss,
-            "trajectory_deviation_max": float(deviation.max()),
-            "trajectory_deviation_final": float(deviation[-1].max()),
-            "trajectory_deviation_relative": float(deviation.max() / motion) if motion > 0 else None,
-            "force_error_max": max(x["force_error_max"] for x in errors),
-            "force_cosine_min": min(x["force_cosine_min"] for x in errors),
-            "torque_error_max": max(x["torque_error_max"] for x in errors),
-            "gradient": grad.tolist(),
-            "gradient_cosine": float(grad @ g_ref / (np.linalg.norm(grad) * np.linalg.norm(g_ref))) if np.linalg.norm(grad) * np.linalg.norm(g_ref) > 0 else None,
-            "gradient_relative_error": float(np.linalg.norm(grad - g_ref) / np.linalg.norm(g_ref)) if np.linalg.norm(g_ref) > 0 else None,
-            "error": None,
-        })
+                ref_grads = [problem.model.contact.evaluate(q).grad for q in trajectory]
+                reference = {"grad": grad, "trajectory": trajectory, "contact_grads": ref_grads}
+            com = trajectory[:, :, :3]
+            ref_com = reference["trajectory"][:, :, :3]
+            deviation = np.linalg.norm(com - ref_com, axis=2)
+            motion = np.linalg.norm(ref_com - ref_com[0], axis=2).max()
+            radius = problem.model.body_radius
+            errors = [_force_errors(problem.model.contact.evaluate(q).grad, g, radius) for q, g in zip(reference["trajectory"], reference["contact_grads"])]
+            g_ref = reference["grad"]
+            finish({
+                **row,
+                "forward_seconds": float(np.median(forward)),
+                "newton_iterations": float(np.mean(iterations)),
+                "backward_seconds": backward / frames,
+                "loss": loss,
+                "trajectory_deviation_max": float(deviation.max()),
+                "trajectory_deviation_final": float(deviation[-1].max()),
+                "trajectory_deviation_relative": float(deviation.max() / motion) if motion > 0 else None,
+                "force_error_max": max(x["force_error_max"] for x in errors),
+                "force_cosine_min": min(x["force_cosine_min"] for x in errors),
+                "torque_error_max": max(x["torque_error_max"] for x in errors),
+                "gradient": grad.tolist(),
+                "gradient_cosine": float(grad @ g_ref / (np.linalg.norm(grad) * np.linalg.norm(g_ref))) if np.linalg.norm(grad) * np.linalg.norm(g_ref) > 0 else None,
+                "gradient_relative_error": float(np.linalg.norm(grad - g_ref) / np.linalg.norm(g_ref)) if np.linalg.norm(g_ref) > 0 else None,
+                "error": None,
+            })
+    finally:
+        _plot_at_end(out_dir / "accuracy.png", _plot_accuracy, rows)
     return rows
 
 

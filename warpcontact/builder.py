@@ -119,7 +119,7 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
     if density is not None and not closed:
         raise ValueError(f"{where}: mass from density needs a closed, consistently outward-oriented mesh{_soup_hint(mesh)}; give mass and inertia instead")
     if inertia is None and not closed:
-        raise ValueError(f"{where}: inertia is needed for a mesh that is not closed and consistently outward-oriented (no volume to take it from)")
+        raise ValueError(f"{where}: inertia is needed for a mesh that is not closed and consistently outward-oriented (no volume to take it from){_soup_hint(mesh)}")
     props = mesh.mass_properties if closed else None
     body_mass = float(props["volume"]) * float(density) if density is not None else float(mass)
     if center_of_mass is not None:
@@ -401,8 +401,11 @@ class ModelBuilder:
                 raise ValueError(f"{where}: dofs must be a non-empty subset of {BASE_DOFS}, got {dofs!r}")
             # Coordinates run in BASE_DOFS order; the per-coordinate arguments follow ``dofs``
             # as given (they stayed in that order: dofs ("rz", "x") put rz's limits on x).
+            # Three free rotations are one rotation vector without coordinates (num_coordinates).
             canonical = tuple(d for d in BASE_DOFS if d in dofs)
-            order = [dofs.index(d) for d in canonical]
+            rotations = sum(d not in ("x", "y", "z") for d in dofs)
+            owning = [d for d in dofs if d in ("x", "y", "z") or rotations < 3]
+            order = [owning.index(d) for d in canonical if d in owning]
             dofs = canonical
             axes = np.zeros((0, 3))
             frames = (_IDENTITY_POSE.copy(), _IDENTITY_POSE.copy())
@@ -533,7 +536,8 @@ class ModelBuilder:
         ``contact_stiffness``): a mu chosen for heavier bodies makes light ones float or be
         thrown up, which no error reports."""
         weight = float(np.linalg.norm(self.gravity))
-        if weight == 0.0 or self.contact_mode not in ("bsh", "brute"):
+        # Without a static body there is no support to rest on (a lone body, a hanging chain).
+        if weight == 0.0 or self.contact_mode not in ("bsh", "brute") or not any(body.static for body in self._bodies):
             return
         floating, pressed = [], []
         for body, radius in zip(self._bodies, body_radius):

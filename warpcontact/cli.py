@@ -91,6 +91,8 @@ def _simulate(args) -> int:
             info = solver.step(states[-1], nxt, control, dt)
             states.append(nxt)
             iterations.append(info.iterations)
+            if (frame + 1) % max(1, frames // 10) == 0 or frame + 1 == frames:
+                print(f"  frame {frame + 1:4d}/{frames}  Newton iterations {info.iterations:3d}  min separation {info.min_separation:.2e} m")
         except SolverError as exc:
             # The frames before it are written: they are what one looks at to see why.
             stopped = {"frame": frame, "error": str(exc)}
@@ -100,8 +102,6 @@ def _simulate(args) -> int:
             # interruption came (outside the step it lost every frame).
             stopped = {"frame": len(states) - 1, "error": "interrupted"}
             break
-        if (frame + 1) % max(1, frames // 10) == 0 or frame + 1 == frames:
-            print(f"  frame {frame + 1:4d}/{frames}  Newton iterations {info.iterations:3d}  min separation {info.min_separation:.2e} m")
     seconds = time.perf_counter() - start
     q = np.array([s.body_q.numpy() for s in states])
     io.export_trajectory(scene, io.model_to_scene_poses(scene, model, q), trajectory, overwrite=args.overwrite)

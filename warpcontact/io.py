@@ -1772,6 +1772,8 @@ def _usd_scalar(value, kind, Sdf, name: str):
     if kind == Sdf.ValueTypeNames.Double:
         return float(value)
     if kind == Sdf.ValueTypeNames.Int:
+        if not float(value).is_integer():  # int() truncated 2.5 frames to 2
+            raise ValueError(f"warpcontact:{name}: expected a whole number, got {value!r}")
         return int(value)
     return str(value)
 
@@ -2000,9 +2002,11 @@ def _broadcast_to_coordinates(j: JointSpec, count: int) -> JointSpec:
     """``j`` with a single limit pair, gain or target repeated for its ``count`` coordinates."""
 
     def spread(values):
-        return values if values is None or len(values) != 1 or count == 1 else [values[0]] * count if isinstance(values, list) else np.repeat(values, count)
+        return values if values is None or len(values) != 1 or count == 1 else np.repeat(values, count, axis=0)
 
-    return replace(j, limits=spread(j.limits), kp=spread(np.asarray(j.kp)), kd=spread(np.asarray(j.kd)), targets=spread(j.targets))
+    # Limits as the builder reads them: (lower, upper) pairs, a flat pair included.
+    limits = None if j.limits is None else np.asarray(j.limits, dtype=np.float64).reshape(-1, 2)
+    return replace(j, limits=spread(limits), kp=spread(np.asarray(j.kp)), kd=spread(np.asarray(j.kd)), targets=spread(j.targets))
 
 
 def _target(j: JointSpec, coordinate: int, scale: float) -> float | None:
