@@ -189,6 +189,30 @@ def test_interrupted_benches_keep_their_finished_rows(tmp_path, capsys, monkeypa
     assert [r["mode"] for r in json.loads((tmp_path / "contact.json").read_text())["rows"]] == ["brute"]
 
 
+def test_a_failing_plot_does_not_hide_an_interruption(tmp_path, capsys, monkeypatch):
+    """The plot is drawn in a finally: an error there (a zero gradient's missing cosine) replaced
+    Ctrl-C with a traceback."""
+    from warpcontact import bench
+
+    def broken(rows, path):
+        raise TypeError("unsupported operand type(s) for -: 'float' and 'NoneType'")
+
+    median, calls = bench._median_seconds, [0]
+
+    def interrupted_second(fn, repeats):
+        calls[0] += 1
+        if calls[0] == 2:
+            raise KeyboardInterrupt
+        return median(fn, repeats)
+
+    monkeypatch.setattr(bench, "_plot_scaling", broken)
+    monkeypatch.setattr(bench, "_median_seconds", interrupted_second)
+    with pytest.warns(UserWarning, match="scaling.png not drawn: TypeError"):
+        assert main(["bench", "scaling", "--points", "8", "12", "--repeats", "1", "--out", str(tmp_path)]) == 130
+    assert "interrupted; the rows finished before it are in" in capsys.readouterr().err
+    assert not (tmp_path / "scaling.png").exists()
+
+
 def test_bench_accuracy_errors_are_named_and_failed_rows_shown(tmp_path, capsys, monkeypatch):
     from warpcontact import bench
     from warpcontact.solver import SolverError

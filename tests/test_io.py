@@ -1734,3 +1734,7 @@ def test_save_scene_takes_numpy_settings_and_broadcast_joint_values(tmp_path):
     art = loaded.build_model().articulation
     np.testing.assert_allclose(art.lower, [-0.3, -0.3], rtol=1e-6)
     np.testing.assert_allclose(art.kp, [2.0, 2.0], rtol=1e-6)
+    # A revolute joint's flat limit pair too (a TypeError).
+    hinge = io.JointSpec("hinge", "/World/joints/hinge", "revolute", None, "arm", world, np.array([0.0, 0.0, 0.2, 0.0, 0.0, 0.0, 1.0]), axes=np.array([[1.0, 0.0, 0.0]]), limits=(-0.3, 0.3))
+    io.save_scene(io.Scene(bodies=[arm], joints=[hinge]), tmp_path / "hinge.usda")
+    np.testing.assert_allclose(io.load_scene(tmp_path / "hinge.usda").build_model().articulation.lower, [-0.3], rtol=1e-6)

@@ -334,6 +334,28 @@ def test_fast_motion_whose_straight_path_dips_facets_is_not_refused(case):
     assert q[-1, 1, 0] > q[0, 1, 0] + 0.5
 
 
+@pytest.mark.parametrize("shape", ["triangle soup", "two overlapping boxes"])
+def test_bodies_of_unusual_meshes_tunnelling_past_a_plate_are_refused(shape):
+    """The centre test needs the body's centre inside its own mesh: an unmerged triangle
+    soup (given mass and inertia) and a watertight cross of two boxes (winding 2 at its
+    centre) were taken as open, and tunnelled below the plate, accepted."""
+    box = trimesh.creation.box(extents=(0.3, 0.3, 0.3))
+    if shape == "triangle soup":
+        mesh = trimesh.Trimesh(box.vertices[box.faces.reshape(-1)], np.arange(3 * len(box.faces)).reshape(-1, 3), process=False)
+        body = dict(mass=13.5, inertia=np.eye(3) * 13.5 * 0.3**2 / 6)
+    else:
+        mesh = trimesh.util.concatenate([trimesh.creation.box(extents=(0.3, 0.1, 0.3)), trimesh.creation.box(extents=(0.1, 0.3, 0.3))])
+        body = dict(density=500.0)
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-8, friction=0.3)
+    b.add_box((2.0, 2.0, 0.1), static=True, name="plate", pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    b.add_body(mesh, name="box", pose=(0.0, 0.0, 0.6, 0.0, 0.0, 0.0, 1.0), **body)
+    model = b.finalize()
+    first = model.state(requires_grad=False)
+    wc.set_body_velocity(first, wp.array([[0.0, 0.0, 0.0], [28.0, 0.0, -21.0]], dtype=wp.vec3d), wp.zeros(2, dtype=wp.vec3d), 0.04)
+    with pytest.raises(wc.SolverError, match=r"'box''s centre of mass crosses 'plate''s surface"):
+        wc.ImplicitSolver(model).step(first, model.state(requires_grad=False), None, 0.04)
+
+
 def test_a_fast_box_sliding_on_a_plate_is_not_refused():
     """Fast motion along a surface the body rests on is suspect (1.1 m a step); its centre
     never crosses the plate."""
@@ -1097,6 +1119,13 @@ def test_builder_warns_about_bodies_the_barrier_would_hold_far_above_a_support()
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         alone.finalize()
+    # A table held by a joint to the world is a support.
+    rail = wc.ModelBuilder(contact_stiffness=1e-6)
+    table = rail.add_box((4.0, 4.0, 0.2), density=500.0, name="table", pose=(0.0, 0.0, -0.1, 0.0, 0.0, 0.0, 1.0))
+    rail.add_joint("prismatic", child=table, anchor=(0.0, 0.0, -0.1), axis=(1.0, 0.0, 0.0))
+    rail.add_box((0.01, 0.01, 0.01), density=500.0, name="die", pose=(1.0, 0.0, 0.006, 0.0, 0.0, 0.0, 1.0))
+    with pytest.warns(UserWarning, match=r"holds these bodies .* 'die'"):
+        rail.finalize()
 
 
 def test_builder_warns_about_bodies_the_barrier_would_press_too_close_to_a_support():

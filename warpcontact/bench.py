@@ -5,6 +5,7 @@ import csv
 import json
 import platform
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -84,7 +85,12 @@ def _plot_at_end(path: Path, plot, rows: list[dict]) -> None:
     JSON and CSV are rewritten after every row, so an interrupted run keeps its rows). A plot
     that cannot be drawn (no drawable rows, no matplotlib) removes an earlier run's, which a
     rerun with --overwrite used to leave beside the new results."""
-    if not (rows and plot(rows, path)):
+    try:
+        drawn = bool(rows) and plot(rows, path)
+    except Exception as exc:  # noqa: BLE001 - in a finally: it must not replace the run's own exception (Ctrl-C)
+        warnings.warn(f"{path.name} not drawn: {type(exc).__name__}: {exc}", stacklevel=2)
+        drawn = False
+    if not drawn:
         path.unlink(missing_ok=True)
 
 
@@ -734,7 +740,8 @@ def run_frame_benchmark(
     progress=None,
 ) -> list[dict]:
     """Per-frame cost of whole implicit steps with contact; writes frame.json, frame.csv and,
-    with matplotlib, frame.png (rewritten after every row, so a run cut short keeps its rows).
+    with matplotlib, frame.png (the JSON and CSV rewritten after every row, so a run cut short
+    keeps its rows; the plot drawn at the end).
 
     For each scene (see ``frame_scene``) the striker is set up by ``strike_setup`` (cue
     ``gap`` m in front of the rack's apex ball at ``speed`` m/s; the rod into the nearest
@@ -1002,6 +1009,15 @@ def run_accuracy_benchmark(
     return rows
 
 
+def _accuracy_plot_value(row: dict, key: str) -> float:
+    """A row's error on a log axis: 1 - cosine for the gradient, floored at 1e-16; a missing
+    value (a zero gradient has no cosine) at the floor."""
+    value = row[key]
+    if value is not None and key == "gradient_cosine":
+        value = 1.0 - value
+    return max(value if value is not None else 1e-16, 1e-16)
+
+
 def _plot_accuracy(rows: list[dict], path: Path) -> bool:
     plt = optional_pyplot()
     ok = [r for r in rows if r.get("error") is None and r["sweep"] != "reference"]
@@ -1018,8 +1034,7 @@ def _plot_accuracy(rows: list[dict], path: Path) -> bool:
             sel = [r for r in ok if r["sweep"] == sweep and r["model"] == "bsh"]
             if not sel:
                 continue
-            values = [(1.0 - r[key]) if key == "gradient_cosine" else r[key] for r in sel]
-            values = [max(v if v is not None else 1e-16, 1e-16) for v in values]
+            values = [_accuracy_plot_value(r, key) for r in sel]
             times = [r["forward_seconds"] for r in sel]
             ax.loglog(times, values, style, label=f"bsh, {sweep} sweep")
             for r, t, v in zip(sel, times, values):
@@ -1027,8 +1042,7 @@ def _plot_accuracy(rows: list[dict], path: Path) -> bool:
                 ax.annotate(note, (t, v), fontsize=7)
         for r in ok:
             if r["model"] == "brute":
-                v = (1.0 - r[key]) if key == "gradient_cosine" else r[key]
-                ax.loglog([r["forward_seconds"]], [max(v if v is not None else 1e-16, 1e-16)], "k*", ms=9, label="brute force")
+                ax.loglog([r["forward_seconds"]], [_accuracy_plot_value(r, key)], "k*", ms=9, label="brute force")
         ax.set_xlabel("forward seconds per frame")
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)

@@ -536,8 +536,10 @@ class ModelBuilder:
         ``contact_stiffness``): a mu chosen for heavier bodies makes light ones float or be
         thrown up, which no error reports."""
         weight = float(np.linalg.norm(self.gravity))
-        # Without a static body there is no support to rest on (a lone body, a hanging chain).
-        if weight == 0.0 or self.contact_mode not in ("bsh", "brute") or not any(body.static for body in self._bodies):
+        # Without a support there is nothing to rest on (a lone body, a hanging chain): a
+        # support is a static body or a body jointed to the world (a table on a rail).
+        supported = any(body.static for body in self._bodies) or any(joint.parent < 0 for joint in self._joints)
+        if weight == 0.0 or self.contact_mode not in ("bsh", "brute") or not supported:
             return
         floating, pressed = [], []
         for body, radius in zip(self._bodies, body_radius):

@@ -1959,6 +1959,7 @@ def _author_joint(stage, j: JointSpec, Gf, UsdPhysics):
         pos_attr(Gf.Vec3f(*map(float, frame[:3])))
         rot_attr(Gf.Quatf(float(frame[6]), Gf.Vec3f(*map(float, frame[3:6]))))
     if j.kind in ("revolute", "prismatic"):
+        j = _broadcast_to_coordinates(j, 1)  # a flat limit pair, as the builder takes it
         scale = _DEGREE if j.kind == "revolute" else 1.0
         if j.limits is not None and np.isfinite(j.limits[0]).any():
             joint.CreateLowerLimitAttr(float(j.limits[0][0] / scale))

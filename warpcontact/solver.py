@@ -25,6 +25,7 @@ recorded step refuses a model array that asks for a gradient it does not compute
 second moments), which would otherwise stay zero.
 """
 
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -110,22 +111,23 @@ _PASS_THROUGH_CHORDS = 16
 
 
 def _contains_origin(vertices: np.ndarray, faces: np.ndarray) -> bool:
-    """Whether a mesh's frame origin (a body's centre of mass) lies inside it: the mesh is
-    closed (every directed edge has its reverse in another face) and its winding number, the
-    triangles' solid angles over 4 pi, is 1 (0 outside). An open mesh has no inside: a tray
-    without a lid winds 5/6 about its centre, which lies in the air above its floor."""
-    faces = np.asarray(faces)
+    """Whether a mesh's frame origin (a body's centre of mass) lies inside it: with coincident
+    vertices merged, the mesh is closed (every edge is used as often in each direction) and
+    its winding number, the triangles' solid angles over 4 pi, is a non-zero integer (2 inside
+    two overlapping boxes). An open mesh has no inside: a tray without a lid winds 5/6 about
+    its centre, which lies in the air above its floor."""
+    points, index = np.unique(np.asarray(vertices, dtype=np.float64), axis=0, return_inverse=True)
+    faces = index.reshape(-1)[np.asarray(faces)]
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    directed = {tuple(e) for e in edges.tolist()}
-    if len(directed) != len(edges) or any((b, a) not in directed for a, b in directed):
+    if Counter(map(tuple, edges.tolist())) != Counter(map(tuple, edges[:, ::-1].tolist())):
         return False
-    tri = np.asarray(vertices, dtype=np.float64)[faces]
+    tri = points[faces]
     x, y, z = tri[:, 0], tri[:, 1], tri[:, 2]
     lx, ly, lz = (np.linalg.norm(v, axis=1) for v in (x, y, z))
     numerator = np.einsum("ij,ij->i", x, np.cross(y, z))
     denominator = lx * ly * lz + np.einsum("ij,ij->i", x, y) * lz + np.einsum("ij,ij->i", y, z) * lx + np.einsum("ij,ij->i", z, x) * ly
     winding = np.sum(2.0 * np.arctan2(numerator, denominator)) / (4.0 * np.pi)
-    return bool(abs(abs(winding) - 1.0) < 1e-3)
+    return bool(round(winding) != 0 and abs(winding - round(winding)) < 1e-3)
 
 
 def _segments_cross_triangles(start: np.ndarray, end: np.ndarray, triangles: np.ndarray) -> tuple[int, float] | None:

@@ -875,7 +875,8 @@ class TaskProblem:
                     "settings": dataclasses.asdict(self.settings),
                     "simulation": dataclasses.asdict(scene.settings),
                     "bundle": dataclasses.asdict(self.bundle) if self.bundle else None,
-                    # Only where the run samples: checkpoints of runs that do not keep resuming.
+                    # Only where the run samples, so that checkpoints written without the key
+                    # (runs that do not sample) still resume.
                     **({"sample_box": [b.tolist() for b in self._sample_box]} if self.settings.initial_samples else {}),
                     "bodies": digest.hexdigest(),
                 },
