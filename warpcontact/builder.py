@@ -186,7 +186,10 @@ class ModelBuilder:
             triangles interact below 2 sdrs_dhat.
         articulation_contact: contact between bodies of one articulation: ``"nonadjacent"``
             (default: all pairs except a joint's parent and child), ``"all"`` or ``"none"``;
-            a static parent counts as a link of its joints.
+            a static parent counts as a link of its joints. Links of one articulation keep
+            each other's contact forces, but the solver's pass-through check does not follow
+            them (they move on joint arcs, not the straight motion it tests), so a step that
+            swings one link through another within one step is not refused.
     """
 
     def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, friction_smoothing: float = 1e-4, eps: float = 0.5, centred_weight: str = "paper", contact_mode: str = "bsh", leaf_precision: str = "float64", ipc_dhat: float = 1e-2, sdrs_dhat: float = 1e-2, articulation_contact: str = "nonadjacent"):
