@@ -164,13 +164,12 @@ def test_bench_frame_reads_every_scene_before_timing_any(tmp_path, capsys):
     assert not (tmp_path / "b" / "frame.json").exists()  # the first scene was not run
 
 
-def test_interrupted_benches_keep_their_finished_rows(tmp_path, capsys, monkeypatch):
-    """contact, scaling and leaf wrote their results only at the end: Ctrl-C lost every row,
-    with a traceback."""
+def _interrupt_second_timing(monkeypatch):
+    """Make the benches' second timed measurement raise KeyboardInterrupt, as Ctrl-C there
+    would; returns a function that starts the count again."""
     from warpcontact import bench
 
-    median = bench._median_seconds
-    calls = [0]
+    median, calls = bench._median_seconds, [0]
 
     def interrupted_second(fn, repeats):
         calls[0] += 1
@@ -179,11 +178,18 @@ def test_interrupted_benches_keep_their_finished_rows(tmp_path, capsys, monkeypa
         return median(fn, repeats)
 
     monkeypatch.setattr(bench, "_median_seconds", interrupted_second)
+    return lambda: calls.__setitem__(0, 0)
+
+
+def test_interrupted_benches_keep_their_finished_rows(tmp_path, capsys, monkeypatch):
+    """contact, scaling and leaf wrote their results only at the end: Ctrl-C lost every row,
+    with a traceback."""
+    restart = _interrupt_second_timing(monkeypatch)
     assert main(["bench", "scaling", "--points", "8", "12", "--repeats", "1", "--out", str(tmp_path)]) == 130
     assert f"interrupted; the rows finished before it are in {tmp_path}" in capsys.readouterr().err
     (row,) = json.loads((tmp_path / "scaling.json").read_text())["rows"]
     assert row["mode"] == "bsh" and row["triangles"] == 16 * 12 and _csv_rows(tmp_path / "scaling.csv") == 1
-    calls[0] = 0
+    restart()
     args = ["bench", "contact", "--eps", "0.5", "--gaps", "0.1", "--subdivisions", "0", "--repeats", "1", "--ipc-dhat", "0", "--out", str(tmp_path)]
     assert main(args) == 130
     assert [r["mode"] for r in json.loads((tmp_path / "contact.json").read_text())["rows"]] == ["brute"]
@@ -197,16 +203,8 @@ def test_a_failing_plot_does_not_hide_an_interruption(tmp_path, capsys, monkeypa
     def broken(rows, path):
         raise TypeError("unsupported operand type(s) for -: 'float' and 'NoneType'")
 
-    median, calls = bench._median_seconds, [0]
-
-    def interrupted_second(fn, repeats):
-        calls[0] += 1
-        if calls[0] == 2:
-            raise KeyboardInterrupt
-        return median(fn, repeats)
-
     monkeypatch.setattr(bench, "_plot_scaling", broken)
-    monkeypatch.setattr(bench, "_median_seconds", interrupted_second)
+    _interrupt_second_timing(monkeypatch)
     with pytest.warns(UserWarning, match="scaling.png not drawn: TypeError"):
         assert main(["bench", "scaling", "--points", "8", "12", "--repeats", "1", "--out", str(tmp_path)]) == 130
     assert "interrupted; the rows finished before it are in" in capsys.readouterr().err
