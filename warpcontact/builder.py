@@ -556,7 +556,7 @@ class ModelBuilder:
                 pressed.append(described)
         for bodies, what, advice in (
             (floating, "holds these bodies above a support by more than a tenth of their radius", "choose mu for the lightest resting body"),
-            # A 1 m, 1,000 kg cube dropped at mu 1e-12 (gap 1.5e-7 of its size) stalled Newton
+            # A 1 m, 1,000 kg cube dropped at mu 1e-12 (gap ~1e-7 m, 1.2e-7 of its radius) stalled Newton
             # at its impact with "no convergence"; at 1e-11 it lands.
             (pressed, f"lets these bodies rest closer than {_PRESSED_GAP:g} of their radius to a support, where Newton may not converge at impacts", "choose mu for the heaviest resting body"),
         ):
