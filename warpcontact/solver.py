@@ -25,7 +25,6 @@ recorded step refuses a model array that asks for a gradient it does not compute
 second moments), which would otherwise stay zero.
 """
 
-from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -118,8 +117,11 @@ def _contains_origin(vertices: np.ndarray, faces: np.ndarray) -> bool:
     its centre, which lies in the air above its floor."""
     points, index = np.unique(np.asarray(vertices, dtype=np.float64), axis=0, return_inverse=True)
     faces = index.reshape(-1)[np.asarray(faces)]
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    if Counter(map(tuple, edges.tolist())) != Counter(map(tuple, edges[:, ::-1].tolist())):
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
+    # Each directed edge as one integer key, compared as sorted multisets (vectorised: a
+    # Counter of tuples took 1 s for an 81,920-face ball at every solver's construction).
+    count = len(points)
+    if not np.array_equal(np.sort(edges[:, 0] * count + edges[:, 1]), np.sort(edges[:, 1] * count + edges[:, 0])):
         return False
     tri = points[faces]
     x, y, z = tri[:, 0], tri[:, 1], tri[:, 2]
