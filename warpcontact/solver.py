@@ -35,6 +35,7 @@ from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
 from .articulation import joint_limit_energy
+from .builder import contact_setting_problem
 from .contact import UNSOLVED_HINT, ContactModel, LaggedFriction
 from .rotation import normalized_poses, quat_from_matrix, quat_from_rotation_vector, quat_mul, quat_to_matrix, rigid_step_between, rigid_step_travel
 from .types import Control, Model, State
@@ -99,11 +100,11 @@ _DAMPING_LAST = 1e2
 # body's radius in one step cannot pass through each other within it; the pass-through check
 # (``ImplicitSolver._pass_through``) skips it, so resting and pushing contact cost nothing.
 _PASS_THROUGH_TRAVEL = 0.5
-# A Newton step cannot resolve a position more finely than its coordinates' rounding: steps
-# below this many units of float64 roundoff of the largest dynamic coordinate count as
-# converged (a lone 1 cm box 50 km up took Newton steps of 0.2 ulp against a tolerance of
+# 16 units of float64 roundoff, relative. A Newton step cannot resolve a position more finely
+# than its coordinates' rounding: steps below this times the largest dynamic coordinate count
+# as converged (a lone 1 cm box 50 km up took Newton steps of 0.2 ulp against a tolerance of
 # 6e-13 m and failed after 500 iterations).
-_ROUNDING_ULPS = 16.0
+_ROUNDING = 16.0 * np.finfo(np.float64).eps
 # Chords per step of a body centre's straight-motion path relative to another body, tested
 # for crossing that body's surface (``ImplicitSolver._centre_crossing``).
 _PASS_THROUGH_CHORDS = 16
@@ -358,8 +359,6 @@ class ImplicitSolver:
         a gradient step may push) after ``finalize``: a zero mass sent a resting puck 16 m up
         and a negative friction spun it, silently; the others failed as "no convergence" or
         blamed dt. ValueError naming the parameter (and body)."""
-        from .builder import contact_setting_problem
-
         model = self.model
         mu = float(model.contact_stiffness.numpy()[0])
         friction = float(model.friction.numpy()[0])
@@ -744,7 +743,7 @@ class ImplicitSolver:
             raise ValueError(f"state_in: bodies intersect or touch at the start of the step: {names}")
         # Gaps of a few units of roundoff: a box set exactly on a plate (z = half height + top,
         # 1.7e-17 m apart) took one Newton iteration a step and hardly moved, silently.
-        touching = np.flatnonzero(start.pair_separation <= _ROUNDING_ULPS * np.finfo(np.float64).eps * self._length_scale)
+        touching = np.flatnonzero(start.pair_separation <= _ROUNDING * self._length_scale)
         # Unsolved pairs have their own error, below; ipc's separation is one global distance
         # for every pair (it named the first pair, not the touching one) and its barrier
         # refuses a zero distance itself.
@@ -836,7 +835,7 @@ class ImplicitSolver:
                 direction = self._friction_exact_direction(q, grad, hess, direction, friction)
                 full, travel = self._step_travel(direction)
                 step_length = float(travel.max())
-            if step_length <= max(tol, _ROUNDING_ULPS * np.finfo(np.float64).eps * float(np.abs(q[dynamic, :3]).max(initial=0.0))):
+            if step_length <= max(tol, _ROUNDING * float(np.abs(q[dynamic, :3]).max(initial=0.0))):
                 converged = True
                 break
             decrement = -float(grad @ direction)
