@@ -69,6 +69,23 @@ def _per_coordinate(value, count: int, label: str, where: str) -> np.ndarray:
     return arr
 
 
+def coordinate_limits(limits, count: int, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) of ``count`` joint coordinates from ``add_joint``'s ``limits``: None (no
+    limits), one (lower, upper) pair for every coordinate, or one pair per coordinate (flat
+    or nested). ValueError naming ``where`` otherwise."""
+    if limits is None:
+        return np.full(count, -np.inf), np.full(count, np.inf)
+    pairs = np.asarray(limits, dtype=np.float64)
+    if pairs.size % 2:
+        raise ValueError(f"{where}: limits must be {count} (lower, upper) pairs with lower < upper, got {limits!r}")
+    pairs = pairs.reshape(-1, 2)
+    if pairs.shape[0] == 1 and count > 1:
+        pairs = np.repeat(pairs, count, axis=0)
+    if pairs.shape[0] != count or np.isnan(pairs).any() or (pairs[:, 0] >= pairs[:, 1]).any():
+        raise ValueError(f"{where}: limits must be {count} (lower, upper) pairs with lower < upper, got {limits!r}")
+    return pairs[:, 0].copy(), pairs[:, 1].copy()
+
+
 def _unit_axes(axis, count: int, where: str) -> np.ndarray:
     axes = np.asarray(axis, dtype=np.float64) if axis is not None else np.zeros((0, 3))
     if axes.size % 3:
@@ -446,18 +463,7 @@ class ModelBuilder:
         count = probe.num_coordinates()
         if kind == "ball" and limits is not None:
             raise ValueError(f"{where}: ball joints have no coordinates, so no coordinate limits (a swing limit is cone_limit)")
-        lower = np.full(count, -np.inf)
-        upper = np.full(count, np.inf)
-        if limits is not None:
-            pairs = np.asarray(limits, dtype=np.float64)
-            if pairs.size % 2:
-                raise ValueError(f"{where}: limits must be {count} (lower, upper) pairs with lower < upper, got {limits!r}")
-            pairs = pairs.reshape(-1, 2)
-            if pairs.shape[0] == 1 and count > 1:
-                pairs = np.repeat(pairs, count, axis=0)
-            if pairs.shape[0] != count or np.isnan(pairs).any() or (pairs[:, 0] >= pairs[:, 1]).any():
-                raise ValueError(f"{where}: limits must be {count} (lower, upper) pairs with lower < upper, got {limits!r}")
-            lower, upper = pairs[:, 0].copy(), pairs[:, 1].copy()
+        lower, upper = coordinate_limits(limits, count, where)
         if cone_limit is not None:
             if kind != "ball":
                 raise ValueError(f"{where}: cone_limit only applies to ball joints")

@@ -88,7 +88,7 @@ import numpy as np
 import trimesh
 
 from ._validate import MAX_COORDINATE, is_positive_finite, is_real
-from .builder import MODEL_CONTACT_MODES, ModelBuilder, contact_setting_problem
+from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact_setting_problem, coordinate_limits
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
 from .leaf import LEAF_PRECISIONS
@@ -2000,14 +2000,15 @@ def _author_joint(stage, j: JointSpec, Gf, UsdPhysics):
 
 
 def _broadcast_to_coordinates(j: JointSpec, count: int) -> JointSpec:
-    """``j`` with a single limit pair, gain or target repeated for its ``count`` coordinates."""
-
-    def spread(values):
-        return values if values is None or len(values) != 1 or count == 1 else np.repeat(values, count, axis=0)
-
-    # Limits as the builder reads them: (lower, upper) pairs, a flat pair included.
-    limits = None if j.limits is None else np.asarray(j.limits, dtype=np.float64).reshape(-1, 2)
-    return replace(j, limits=spread(limits), kp=spread(np.asarray(j.kp)), kd=spread(np.asarray(j.kd)), targets=spread(j.targets))
+    """``j`` with its limits, gains and targets one per coordinate, by the builder's own rules
+    (``coordinate_limits``, ``_per_coordinate``): a single pair or value serves every
+    coordinate, and a flat pair is a pair."""
+    where = f"joint {j.name!r}"
+    limits = None if j.limits is None else np.column_stack(coordinate_limits(j.limits, count, where))
+    targets = None if j.targets is None else _per_coordinate(j.targets, count, "targets", where)
+    # No gains given (empty) are zero gains, as the builder's default.
+    kp, kd = (_per_coordinate(gain if np.size(gain) else 0.0, count, label, where) for gain, label in ((j.kp, "kp"), (j.kd, "kd")))
+    return replace(j, limits=limits, kp=kp, kd=kd, targets=targets)
 
 
 def _target(j: JointSpec, coordinate: int, scale: float) -> float | None:
