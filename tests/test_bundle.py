@@ -69,6 +69,33 @@ def test_an_infeasible_iterate_takes_no_place_in_the_sigma_schedule():
     np.testing.assert_allclose(grad, np.mean(2.0 * sigmas[1] * rng.standard_normal((2, 1, 1)), axis=0))
 
 
+def test_a_loss_only_call_draws_no_bundle():
+    estimate = bundled_gradient(quadratic, sigmas=np.array([0.5, 0.25]), samples=4, rng=np.random.default_rng(7))
+    state = estimate.__dict__.copy()
+    assert estimate(np.array([[1.0, -2.0]]), gradient=False) == (5.0, None, "trajectory")
+    assert estimate.calls == 0 and estimate.__dict__ == state
+    reference = bundled_gradient(quadratic, sigmas=np.array([0.5, 0.25]), samples=4, rng=np.random.default_rng(7))
+    np.testing.assert_array_equal(estimate(np.array([[1.0, -2.0]]))[1], reference(np.array([[1.0, -2.0]]))[1])
+
+
+def test_gb_draws_no_bundle_at_a_window_s_last_iterate(monkeypatch):
+    """3 iterations, 2 samples: 3 rollouts at the iterates and 2 x 2 samples for the two
+    updates (the last iterate's bundle, drawn and dropped, made it 9)."""
+    scene = space_billiards()
+    scene.bodies[0].control_dofs = ("vx", "vy")
+    settings = TaskSettings(horizon=6, receding_horizon=0, iterations=3, learning_rate=0.3)
+    problem = TaskProblem(scene, settings=settings, model="gb", bundle=BundleSettings(samples=2))
+    rollout, asked = problem.rollout, []
+
+    def counting(*args, gradient=True, **kwargs):
+        asked.append(gradient)
+        return rollout(*args, gradient=gradient, **kwargs)
+
+    monkeypatch.setattr(problem, "rollout", counting)
+    assert len(problem.optimize().loss_history) == 3
+    assert asked == [False, True, True, False, True, True, False]
+
+
 @pytest.mark.parametrize("model", MODELS)
 def test_each_model_runs_a_short_optimisation(model):
     scene = space_billiards()
@@ -96,9 +123,10 @@ def test_the_sigma_schedule_spans_a_window_s_adam_updates(monkeypatch):
     def recording(rollout, *, sigmas, samples, rng):
         estimate = real(rollout, sigmas=sigmas, samples=samples, rng=rng)
 
-        def call(values):
-            used.append(float(sigmas[min(estimate.calls, len(sigmas) - 1)]))
-            return estimate(values)
+        def call(values, gradient=True):
+            if gradient:
+                used.append(float(sigmas[min(estimate.calls, len(sigmas) - 1)]))
+            return estimate(values, gradient=gradient)
 
         return call
 
@@ -107,7 +135,7 @@ def test_the_sigma_schedule_spans_a_window_s_adam_updates(monkeypatch):
     scene.bodies[0].control_dofs = ("vx", "vy")
     settings = TaskSettings(horizon=6, receding_horizon=0, iterations=3, learning_rate=0.3)
     TaskProblem(scene, settings=settings, model="gb", bundle=BundleSettings(samples=2)).optimize()
-    np.testing.assert_allclose(used[:2], [3.0, 0.3])  # the two updates: 10 lr, then lr
+    np.testing.assert_allclose(used, [3.0, 0.3])  # the two updates: 10 lr, then lr
 
 
 def test_gb_finds_descent_near_contact_where_sdrs_sees_nothing():

@@ -149,7 +149,7 @@ def test_infeasible_updates_are_halved_back_without_slowing_later_steps():
     def wall_problem(turn):
         feasible = []
 
-        def rollout(values):
+        def rollout(values, gradient=True):
             x = float(values[0, 0])
             if x > 3.0:
                 raise ValueError("state_in: bodies intersect at the start")
@@ -175,6 +175,30 @@ def test_infeasible_updates_are_halved_back_without_slowing_later_steps():
     assert len(history) == len(feasible) < 40 and max(feasible) > 3.0 - 1e-5  # stopped at the wall
     with pytest.raises(ValueError, match="intersect"):
         _descend(rollout, np.full((1, 1), 4.0), settings, [])
+
+
+def test_the_descent_asks_for_no_gradient_at_its_last_iterate():
+    """The last iterate is only evaluated: its gradient (a backward pass; for gb a whole
+    bundle of rollouts) was computed and dropped. Halved-back updates ask as the iterate
+    they replace would."""
+    from warpcontact.tasks import TaskSettings, _descend
+
+    asked = []
+
+    def rollout(values, gradient=True):
+        asked.append(gradient)
+        x = float(values[0, 0])
+        if x > 1.2:
+            raise ValueError("state_in: bodies intersect at the start")
+        return (x - 5.0) ** 2, np.array([[2.0 * (x - 5.0)]]) if gradient else None, None
+
+    history = []
+    _descend(rollout, np.zeros((1, 1)), TaskSettings(horizon=1, receding_horizon=0, iterations=4, learning_rate=0.5), history)
+    assert len(history) == 4
+    assert asked == [True, True, True, False, False, False]  # the last update is halved back twice
+    asked.clear()
+    _descend(rollout, np.zeros((1, 1)), TaskSettings(horizon=1, receding_horizon=0, iterations=1, learning_rate=0.5), [])
+    assert asked == [False]
 
 
 def test_task_problem_rejects_scenes_without_task_metadata():
@@ -723,8 +747,10 @@ def _interrupt(problem, calls, checkpoint):
 
 # Rollouts before the interruption: mid-window and at window starts (a receding run's
 # trivial-plan rollout, for its initial loss, comes after the windows); gb rolls out 3 times an iteration
-# (the loss, then 2 samples), and its first checkpoint follows its first 3.
-@pytest.mark.parametrize(("run", "calls"), [("receding", 3), ("receding", 6), ("receding", 10), ("bundles", 4), ("bundles", 8), ("bundles", 12)])
+# (the loss, then 2 samples) but once at the last, which is only evaluated, and its first
+# checkpoint follows its first 3. The receding run's 4th and 10th calls resume from a
+# window's last iterate, whose checkpoint holds no gradient.
+@pytest.mark.parametrize(("run", "calls"), [("receding", 3), ("receding", 4), ("receding", 6), ("receding", 10), ("bundles", 4), ("bundles", 8), ("bundles", 10)])
 def test_an_interrupted_optimisation_resumes_bit_for_bit(tmp_path, run, calls):
     from warpcontact.bundle import BundleSettings
 

@@ -65,16 +65,20 @@ class BundleSettings:
 
 def bundled_gradient(rollout, *, sigmas: np.ndarray, samples: int, rng: np.random.Generator):
     """Wrap ``rollout(values, gradient=True) -> (loss, grad, trajectory)`` so that its k-th
-    feasible call (one per Adam iteration) returns the bundled gradient with sigma =
-    sigmas[k] (the last sigma once the schedule is used up), and the loss and trajectory at
-    ``values`` itself. A call whose rollout at ``values`` fails (an update the descent then
+    feasible call asking for a gradient (one per Adam update) returns the bundled gradient
+    with sigma = sigmas[k] (the last sigma once the schedule is used up), and the loss and
+    trajectory at ``values`` itself. A call with ``gradient=False`` (the descent's last
+    iterate, which is only evaluated) runs the one rollout at ``values``, draws nothing and
+    returns no gradient. A call whose rollout at ``values`` fails (an update the descent then
     halves back) takes no place in the schedule: it used to, so each one skipped a sigma. The
-    count of feasible calls so far is the attribute ``calls`` (a checkpoint saves and
+    count of bundles drawn so far is the attribute ``calls`` (a checkpoint saves and
     restores it)."""
 
-    def estimate(values):
+    def estimate(values, gradient=True):
         sigma = float(sigmas[min(estimate.calls, len(sigmas) - 1)])
         loss, _, trajectory = rollout(values, gradient=False)
+        if not gradient:
+            return loss, None, trajectory
         estimate.calls += 1
         total = np.zeros_like(values, dtype=np.float64)
         feasible = 0

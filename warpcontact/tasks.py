@@ -227,7 +227,9 @@ def adam(betas, learning_rate):
 
 def _descend(rollout, values, settings, history, progress=None, total=None, first=None, resume=None, save=None):
     """Adam iterations on ``values`` (in place); returns (best loss, best values, its trajectory).
-    ``first``: ``rollout(values)``'s result when the caller already has it. ``save(state)``,
+    ``rollout(values, gradient=...)`` returns (loss, gradient, trajectory); it is asked for no
+    gradient (None) at the last iteration, which is only evaluated. ``first``:
+    ``rollout(values)``'s result when the caller already has it. ``save(state)``,
     if given, receives the descent's state (``_descent_state``) before every iteration;
     ``resume``: such a state to continue from instead of starting at ``values``.
 
@@ -239,17 +241,24 @@ def _descend(rollout, values, settings, history, progress=None, total=None, firs
     momentum alone, could only move the solution off it.
     """
     step = adam(settings.betas, settings.learning_rate)
+
+    def stepped_from(iteration: int) -> bool:
+        # The last iterate is only evaluated: its gradient (a backward pass, or gb's whole
+        # bundle of rollouts) would never be used.
+        return iteration + 1 < settings.iterations
+
     if resume is None:
         start = 0
         best = (np.inf, values.copy(), None)
-        result = first or rollout(values)  # the start must be feasible: its errors propagate
+        # The start must be feasible: its errors propagate.
+        result = first or rollout(values, gradient=stepped_from(0))
     else:
         start = resume["iteration"]
         values[:] = resume["values"]
         if resume["adam_t"]:
             step.state.update(m=resume["adam_m"], v=resume["adam_v"], t=resume["adam_t"])
         best = (resume["best_loss"], resume["best_values"], resume["best_trajectory"] if resume["best_trajectory"].size else None)
-        result = (resume["loss"], resume["gradient"], resume["trajectory"])
+        result = (resume["loss"], resume["gradient"] if resume["gradient"].size else None, resume["trajectory"])
     for it in range(start, settings.iterations):
         if save is not None:
             save(_descent_state(it, values, step.state, best, result))
@@ -266,7 +275,7 @@ def _descend(rollout, values, settings, history, progress=None, total=None, firs
         move = values - feasible
         for _ in range(FEASIBLE_HALVINGS):
             try:
-                result = rollout(values)
+                result = rollout(values, gradient=stepped_from(it + 1))
                 break
             except (ValueError, SolverError):
                 move *= 0.5
@@ -291,7 +300,7 @@ def _descent_state(iteration, values, adam_state, best, result) -> dict:
         "best_values": best[1].copy(),
         "best_trajectory": none if best[2] is None else best[2],
         "loss": float(loss),
-        "gradient": gradient,
+        "gradient": none if gradient is None else gradient,
         "trajectory": trajectory,
     }
 
