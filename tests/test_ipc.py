@@ -83,3 +83,19 @@ def test_the_ccd_bound_follows_a_turning_body_s_arc():
     turned = poses.copy()
     turned[0, 3:] = quat([0.0, 0.0, 1.0], alpha * turn)
     assert np.isfinite(model.evaluate(turned).value)
+
+
+def test_poses_are_checked_by_the_contact_model_s_rules():
+    """The IPC model normalised any quaternion: a zero one gave value 0 with a NaN gradient,
+    and one of norm 2 was taken as a rotation. It now refuses both as ContactModel does."""
+    model = IpcContactModel([icosphere(0), icosphere(0)], dhat=0.1, names=["ball", "crate"])
+    poses = identity_poses([[0, 0, 0], [1.05, 0, 0]])
+    assert np.isfinite(model.evaluate(poses).grad).all()
+    for quaternion, norm in (([0, 0, 0, 0], "0"), ([0, 0, 0, 2], "2")):
+        bad = poses.copy()
+        bad[1, 3:] = quaternion
+        for call in (model.evaluate, model.vertex_terms):
+            with pytest.raises(ValueError, match=rf"body 1 \(crate\) has quaternion norm {norm};"):
+                call(bad)
+    with pytest.raises(ValueError, match="expected 2 rows"):
+        model.evaluate(poses[:1])

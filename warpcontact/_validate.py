@@ -2,7 +2,20 @@
 
 import numpy as np
 
-__all__ = ["MAX_BARRIER_SUPPORT", "MAX_COORDINATE", "MAX_COUNT", "as_float64_array", "check_barrier_support", "check_coordinates", "check_count", "is_positive_finite", "is_real", "is_whole"]
+__all__ = [
+    "MAX_BARRIER_SUPPORT",
+    "MAX_COORDINATE",
+    "MAX_COUNT",
+    "QUATERNION_TOLERANCE",
+    "as_float64_array",
+    "check_barrier_support",
+    "check_coordinates",
+    "check_count",
+    "is_positive_finite",
+    "is_real",
+    "is_whole",
+    "validated_poses",
+]
 
 # Largest barrier support (m) of the locally supported baselines: their barriers overflow
 # float64 far beyond it (IPC's from ~1e76 m, SDRS's from ~1e103 m: inf with no named error).
@@ -12,6 +25,10 @@ MAX_BARRIER_SUPPORT = 1e6
 # differences, which overflow float64 from ~1e154 m (the far field's force then read -0.0
 # and a leaf solve NaN).
 MAX_COORDINATE = 1e150
+
+# Largest deviation from unit norm of a quaternion given as a rotation (poses, frames,
+# targets); within it the quaternion is normalised, beyond it refused.
+QUATERNION_TOLERANCE = 1e-6
 
 # Largest count handed to a kernel's int32 argument (iteration caps and the like).
 MAX_COUNT = 2**31 - 1
@@ -78,3 +95,26 @@ def as_float64_array(value, name: str, *, trailing_shape: tuple[int, ...] = (), 
         first = np.argwhere(bad)[0]
         raise ValueError(f"{name}: non-finite value {arr[tuple(first)]} at index {tuple(int(i) for i in first)}")
     return arr
+
+
+def validated_poses(poses, names, *, normalize: bool = True) -> np.ndarray:
+    """(len(names), 7) float64 poses (px, py, pz, qx, qy, qz, qw) with quaternions within
+    QUATERNION_TOLERANCE of unit norm, normalised unless ``normalize`` is False; ValueError
+    naming the argument, or the body by index and name, otherwise."""
+    poses = as_float64_array(poses, "poses", trailing_shape=(7,))
+    check_coordinates(poses, "poses")
+    if poses.shape[0] != len(names):
+        raise ValueError(f"poses: expected {len(names)} rows (one per body), got {poses.shape[0]}")
+    norms = np.linalg.norm(poses[:, 3:], axis=1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > QUATERNION_TOLERANCE)
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(
+            f"poses: body {i} ({names[i]}) has quaternion norm {norms[i]:.9g}; "
+            f"expected unit norm within {QUATERNION_TOLERANCE} (layout px, py, pz, qx, qy, qz, qw)"
+        )
+    if not normalize:
+        return poses
+    poses = poses.copy()
+    poses[:, 3:] /= norms[:, None]
+    return poses

@@ -9,7 +9,7 @@ import trimesh
 import warp as wp
 
 from ._runtime import resolve_device
-from ._validate import check_barrier_support, is_positive_finite, is_real, is_whole
+from ._validate import QUATERNION_TOLERANCE, check_barrier_support, is_positive_finite, is_real, is_whole
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, frame_in_body
 from .contact import CENTRED_WEIGHTS, CONTACT_MODES, ContactModel
 from .leaf import float32_search
@@ -296,7 +296,7 @@ class ModelBuilder:
         if pose.shape != (7,) or not np.isfinite(pose).all():
             raise ValueError(f"body {name!r}: pose must be 7 finite numbers (px, py, pz, qx, qy, qz, qw), got {pose}")
         qnorm = np.linalg.norm(pose[3:])
-        if abs(qnorm - 1.0) > 1e-6:
+        if abs(qnorm - 1.0) > QUATERNION_TOLERANCE:
             raise ValueError(f"body {name!r}: pose quaternion has norm {qnorm:.9g}, expected 1")
         pose[3:] /= qnorm
 
@@ -447,7 +447,7 @@ class ModelBuilder:
                 frames = []
                 for label, frame, body in (("parent_frame", parent_frame, self._bodies[parent] if parent is not None else None), ("child_frame", child_frame, child_body)):
                     frame = np.asarray(frame, dtype=np.float64)
-                    if frame.shape != (7,) or not np.isfinite(frame).all() or abs(np.linalg.norm(frame[3:]) - 1.0) > 1e-6:
+                    if frame.shape != (7,) or not np.isfinite(frame).all() or abs(np.linalg.norm(frame[3:]) - 1.0) > QUATERNION_TOLERANCE:
                         raise ValueError(f"{where}: {label} must be 7 finite numbers (p, unit quaternion), got {frame!r}")
                     frame = frame.copy()
                     frame[3:] /= np.linalg.norm(frame[3:])

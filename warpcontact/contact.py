@@ -32,7 +32,7 @@ from .kernels import reduction as reduction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels import traversal as traversal_kernels
 from ._runtime import HostReadback, LaunchCache, host_buffer, resolve_device, run_concurrently
-from ._validate import as_float64_array, check_barrier_support, check_coordinates, check_count, is_positive_finite, is_real, is_whole
+from ._validate import QUATERNION_TOLERANCE, as_float64_array, check_barrier_support, check_coordinates, check_count, is_positive_finite, is_real, is_whole, validated_poses
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus, float32_search
 from .rotation import rigid_step_travel
 from .sphere_tree import SphereTree, build_sphere_tree
@@ -51,10 +51,6 @@ UNSOLVED_HINT = (
     "their triangles' size (a gap below about 1e-8 of it); start them farther apart. Bodies far below a micrometre "
     "meet this at any gap (the search is sized for 1e-6 m and up; docs/architecture.md, 'Its length scale')"
 )
-
-# Quaternions within this distance of unit norm are normalised; others are rejected as
-# almost certainly not rotations (e.g. an unnormalised optimiser step or a wrong layout).
-QUATERNION_TOLERANCE = 1e-6
 
 _MAX_TRAVERSAL_ATTEMPTS = 8
 # Evaluations with fewer leaf terms than this per chunk are not split (``term_chunks``).
@@ -517,23 +513,7 @@ class ContactModel:
     # --- evaluation -------------------------------------------------------------------------
 
     def _validated_poses(self, poses, *, normalize: bool = True) -> np.ndarray:
-        poses = as_float64_array(poses, "poses", trailing_shape=(7,))
-        check_coordinates(poses, "poses")
-        if poses.shape[0] != self.num_bodies:
-            raise ValueError(f"poses: expected {self.num_bodies} rows (one per body), got {poses.shape[0]}")
-        norms = np.linalg.norm(poses[:, 3:], axis=1)
-        bad = np.flatnonzero(np.abs(norms - 1.0) > QUATERNION_TOLERANCE)
-        if bad.size:
-            i = int(bad[0])
-            raise ValueError(
-                f"poses: body {i} ({self.names[i]}) has quaternion norm {norms[i]:.9g}; "
-                f"expected unit norm within {QUATERNION_TOLERANCE} (layout px, py, pz, qx, qy, qz, qw)"
-            )
-        if not normalize:
-            return poses
-        poses = poses.copy()
-        poses[:, 3:] /= norms[:, None]
-        return poses
+        return validated_poses(poses, self.names, normalize=normalize)
 
     def _set_poses(self, poses: np.ndarray):
         """Stages ``poses`` for the next ``_launch_evaluation`` (which uploads them)."""
@@ -1060,16 +1040,6 @@ class ContactModel:
     def body_position(self) -> wp.array:
         """(nbodies,) vec3d positions of the last evaluated poses (device array, do not modify)."""
         return self._position
-
-    @property
-    def seed_body_pair(self) -> wp.array:
-        """(npairs,) vec2i body pairs on the device, indexed by the last column of term lists."""
-        return self._seed_body_pair
-
-    @property
-    def triangle_vertices(self) -> wp.array:
-        """(ntriangles,) mat33d triangle vertices in their body frames (device array)."""
-        return self._triangle_vertices
 
     def leaf_items(self) -> wp.array:
         """A device copy of the leaf term list of the last evaluation, (L,) vec4i rows

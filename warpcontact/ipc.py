@@ -34,8 +34,8 @@ import numpy as np
 from dataclasses import dataclass
 
 from .contact import ContactEvaluation, LaggedFriction, contact_body_pairs
-from .rotation import normalized_poses, quat_from_rotation_vector, quat_to_matrix, skew
-from ._validate import as_float64_array, check_barrier_support, check_coordinates
+from .rotation import quat_from_rotation_vector, quat_to_matrix, skew
+from ._validate import as_float64_array, check_barrier_support, check_coordinates, validated_poses
 
 # A step's arc is checked in chord pieces whose bulge stays below this fraction of dhat.
 ARC_BULGE = 1e-3
@@ -114,12 +114,10 @@ class IpcContactModel:
         return np.einsum("vij,vj->vi", R[self._body_of], self._local) + poses[self._body_of, :3]
 
     def _validated_poses(self, poses) -> np.ndarray:
-        """(nbodies, 7) float64 poses with unit quaternions, or ValueError naming the problem."""
-        poses = as_float64_array(poses, "poses", trailing_shape=(7,))
-        check_coordinates(poses, "poses")
-        if poses.shape[0] != self.num_bodies:
-            raise ValueError(f"poses: expected {self.num_bodies} rows (one per body), got {poses.shape[0]}")
-        return normalized_poses(poses)
+        """(nbodies, 7) float64 poses with unit quaternions, or ValueError naming the problem
+        (the rules of ``ContactModel``: a quaternion off unit norm by more than
+        QUATERNION_TOLERANCE is refused; a zero one gave a NaN gradient with value 0)."""
+        return validated_poses(poses, self.names)
 
     def evaluate(self, poses, *, reuse: bool = False) -> ContactEvaluation:
         """Barrier value, (nbodies, 6) gradient and Hessian in rigid coordinates (dp, dtheta).

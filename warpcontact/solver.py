@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ._validate import is_positive_finite, is_real, is_whole
+from ._validate import QUATERNION_TOLERANCE, is_positive_finite, is_real, is_whole
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
@@ -703,7 +703,7 @@ class ImplicitSolver:
         if not np.isfinite(target).all():
             raise ValueError("control.ball_target: contains non-finite values")
         norms = np.linalg.norm(target, axis=1)
-        bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-6)
+        bad = np.flatnonzero(np.abs(norms - 1.0) > QUATERNION_TOLERANCE)
         if bad.size:
             raise ValueError(f"control.ball_target: the target of ball joint {art.ball_joint_names[bad[0]]!r} has norm {norms[bad[0]]:.9g}; expected a unit quaternion")
         return target / norms[:, None], start
