@@ -219,7 +219,6 @@ class ArticulationModel:
         self.body_joint = np.full(n, -1, dtype=np.int64)
         for j, joint in enumerate(self.joints):
             self.body_joint[joint.child] = j
-        self.body_parent = np.array([self.joints[self.body_joint[b]].parent if self.body_joint[b] >= 0 else -1 for b in range(n)])
         self.identity = all(joint.kind == "free" for joint in self.joints)
 
         kind, axis_body, axis_local, point_local, owner, group, coord = [], [], [], [], [], [], []

@@ -205,15 +205,14 @@ _ROD_CLEARANCE = 0.03
 
 def _rod(position, dofs, kp=400.0, kd=60.0):
     """The pusher: a 0.1 x 0.1 x 0.6 m PD-actuated rod hovering _ROD_CLEARANCE above the ground."""
-    kp_lin = np.array([kp if axis in dofs else 0.0 for axis in "xyz"])
-    # Non-optimised axes are held at their initial values by the same PD controller.
-    kp_lin = np.where(kp_lin == 0, kp, kp_lin)
     return _body(
         "rod",
         _box_mesh((0.1, 0.1, 0.6)),
         position,
         density=500.0,
-        kp_linear=kp_lin,
+        # Every axis, not only the optimised ``dofs``: the others are held at their initial
+        # values by the same PD controller.
+        kp_linear=np.full(3, kp),
         kd_linear=np.full(3, kd),
         kp_angular=kp,
         kd_angular=kd,
