@@ -21,6 +21,20 @@ D is C-infinity in q (a smoothed Coulomb law: the friction force lambda N u / sq
 saturates at lambda N once slip speeds exceed v_eps). N and n^ depend on q^t; the adjoint
 kernel differentiates them exactly through the leaf plane's sensitivity dp*/dx.
 
+The adjoint contracts a pair's force with ell, the relative displacement of the two
+triangles' points under the step's adjoint multiplier (rigid coordinates of both bodies). With w = x_a - x_b -
+(c_A^t - c_B^t), u = T w, root = sqrt(|u|^2 + e^2), s = u / root and F2 = (I - s s^T) / root
+(the derivative of s in u), the contraction C = ell . dD/dx_a = lambda N (ell . s) varies as
+
+    dC = lambda [ (ell.s) dN + N ell . F2 (T dw + dT w) ],   dT w = -dn^ (n^.w) - n^ (dn^.w)
+
+and since F2 and T commute (s is tangent) and n^ . dn^ = 0, with m = F2 T ell:
+
+    dC = lambda [ (ell.s) dN - N ((ell.n^) s + (n^.w) m) . dn^ + N m . dw ]
+
+dN and dn^ go on through the plane's sensitivity dp*/dx (``leaf_plane_sensitivity``), dw
+through the rigid motion of the two points.
+
 No leaf pair is solved twice for its plane: the setup reads N and n^ off the optimal planes
 that the contact evaluation at q^t left (``leaf_term_kernel``), and keeps them; the adjoint
 needs the full solution (L_pp^-1) and re-solves from the kept plane, where Newton stops
@@ -240,7 +254,7 @@ def friction_adjoint_kernel(
         ell -= wp.vec3d(lb[0], lb[1], lb[2]) + wp.cross(wp.vec3d(lb[3], lb[4], lb[5]), rb)
     root = wp.sqrt(wp.dot(u, u) + smoothing * smoothing)
     s = u / root
-    # C = ell . dD/dx_a = lambda N ell.s; its differential (derivation in the module docstring):
+    # C = ell . dD/dx_a = lambda N ell.s; its differential (derived in the module docstring):
     # dC = lambda [ (ell.s) dN - N ((ell.n^) s + (n^.w) m) . dn^ + N m . dw ],  m = F2 T ell.
     contraction = lam_f * big_n * wp.dot(ell, s)
     wp.atomic_add(adj_friction_out, 0, contraction / lam_f)

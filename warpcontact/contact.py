@@ -11,8 +11,9 @@ exact gradient and Hessian in rigid-body coordinates, in one of these modes:
   (``kernels/leaf.py``), summed over the triangle pairs the traversal finds within 2 dhat
   (sphere-tree broad phase, no far or blend terms); exactly zero beyond.
 
-Each mode is a pair-list builder feeding the same term kernels, so further contact models
-(baselines) slot in as further builders and term kernels.
+Each mode is a pair-list builder feeding the same term kernels. The IPC baseline is not a
+mode: ``IpcContactModel`` (``ipc.py``) evaluates through ipctk on the host, with the same
+interface.
 
 Friction (``friction_frame``, ``friction_terms``, ``friction_adjoint``; the law is in
 ``kernels/friction.py``) takes its lagged normal forces and normals from each mode's own leaf

@@ -8,6 +8,7 @@ paper's form on d would give 5.9e-5). Its support is local: beyond
 the paper), and it is only once differentiable where the closest features switch.
 
 ``IpcContactModel`` has the interface the solver uses (``evaluate``, ``advancement_limit``,
+``advancement_frame``, ``friction_frame``, ``friction_terms``, ``friction_adjoint``,
 ``body_pairs``, names and static flags), so ``ModelBuilder(contact_mode="ipc")`` swaps it in
 for the separating-plane model. Choices: one collision mesh of all bodies, with a native
 vertex-patch filter so a body's own triangles never pair; line-search steps bounded by
