@@ -11,6 +11,7 @@ __all__ = [
     "check_barrier_support",
     "check_coordinates",
     "check_count",
+    "check_time_step",
     "is_positive_finite",
     "is_real",
     "is_whole",
@@ -42,6 +43,12 @@ def is_real(value) -> bool:
 def is_positive_finite(value) -> bool:
     """A real scalar (``is_real``) that is finite and > 0."""
     return is_real(value) and bool(np.isfinite(value)) and value > 0
+
+
+def check_time_step(dt) -> None:
+    """ValueError naming dt unless it is a positive finite number of seconds."""
+    if not is_positive_finite(dt):
+        raise ValueError(f"dt: must be a positive finite number of seconds, got {dt!r}")
 
 
 def check_barrier_support(dhat, name: str = "dhat") -> None:

@@ -12,6 +12,7 @@ import numpy as np
 import warp as wp
 
 from .contact import ContactModel
+from .hull import convex_hull_mesh
 from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
 from .leaf import DEFAULT_MAX_ITERATIONS, LEAF_PRECISIONS, float32_search
@@ -459,11 +460,10 @@ def _peer_ball(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
     mesh = trimesh.load(path, process=False, force="mesh")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    vertices = vertices - vertices.mean(axis=0)
-    hull = trimesh.convex.convex_hull(vertices)
-    if len(hull.faces) != len(mesh.faces):
-        raise ValueError(f"{path}: not a ball in convex position ({len(mesh.faces)} faces, hull {len(hull.faces)})")
-    return np.asarray(hull.vertices, dtype=np.float64), np.asarray(hull.faces, dtype=np.int64)
+    hull_vertices, hull_faces = convex_hull_mesh(vertices - vertices.mean(axis=0))
+    if len(hull_faces) != len(mesh.faces):
+        raise ValueError(f"{path}: not a ball in convex position ({len(mesh.faces)} faces, hull {len(hull_faces)})")
+    return hull_vertices, hull_faces.astype(np.int64)
 
 
 def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path = Path("../shared/peer-meshes")):

@@ -38,10 +38,10 @@ def float32_search(precision: str, *, mode: str = "bsh") -> bool:
 class LeafStatus:
     """Per-pair status codes of the leaf solve (``TrianglePairPotential.status``)."""
 
-    OK = 0
-    CONTACT = 1  # touching or intersecting: value = +inf, zero derivatives
-    NOT_CONVERGED = 2  # Newton hit the iteration cap or the line search stalled
-    NONFINITE = 3  # non-finite coordinates (the host API rejects these before launch)
+    OK = int(leaf_kernels.LEAF_OK)
+    CONTACT = int(leaf_kernels.LEAF_CONTACT)  # touching or intersecting: value = +inf, zero derivatives
+    NOT_CONVERGED = int(leaf_kernels.LEAF_NOT_CONVERGED)  # Newton hit the iteration cap or the line search stalled
+    NONFINITE = int(leaf_kernels.LEAF_NONFINITE)  # non-finite coordinates (the host API rejects these before launch)
 
 
 @dataclass(frozen=True)

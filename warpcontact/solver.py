@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ._validate import QUATERNION_TOLERANCE, is_positive_finite, is_real, is_whole
+from ._validate import QUATERNION_TOLERANCE, check_time_step, is_real, is_whole
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
@@ -709,8 +709,7 @@ class ImplicitSolver:
         return target / norms[:, None], start
 
     def _solve(self, state_in: State, state_out: State, control: Control | None, dt: float, *, taped: bool = False):
-        if not is_positive_finite(dt):
-            raise ValueError(f"dt: must be a positive finite number of seconds, got {dt!r}")
+        check_time_step(dt)
         model = self.model
         if state_out is state_in:
             raise ValueError("state_out: must be a different State from state_in (one buffer per time step)")

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from ._validate import is_positive_finite
+from ._validate import check_time_step
 from .articulation import ArticulationModel
 from .contact import ContactModel
 from .kernels import state as state_kernels
@@ -165,8 +165,7 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
     for label, arr in (("linear_velocity", linear_velocity), ("angular_velocity", angular_velocity)):
         if not isinstance(arr, wp.array) or arr.shape != (n,) or arr.dtype != wp.vec3d:
             raise ValueError(f"{label}: expected a wp.array of {n} vec3d")
-    if not is_positive_finite(dt):
-        raise ValueError(f"dt: must be a positive finite number of seconds, got {dt!r}")
+    check_time_step(dt)
     # A turn of pi or more a step reads back as a shorter one the other way: 100 rad/s at
     # dt 0.04 s simulated as -57 rad/s.
     with np.errstate(invalid="ignore", over="ignore"):
