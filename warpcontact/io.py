@@ -62,7 +62,8 @@ needed are errors, as are per-collider MassAPI properties beyond a single collid
 mass or density; mass properties authored at UsdPhysics' "not specified" values (a mass,
 density or inertia of 0, a centre of mass of -inf) are read as not specified. Collision filters (FilteredPairsAPI, CollisionGroup filtering) are errors.
 PhysX schema attributes are not read; non-zero PhysX body damping and material restitution
-(contacts are inelastic) are named in a warning.
+(not a parameter here: the implicit step's damping sets how much bodies bounce) are named in a
+warning.
 A stage that does not compose (a missing reference, payload or sublayer, which USD only
 warns about) is an error listing what is missing. Stage metersPerUnit is applied to lengths
 (unauthored, USD's fallback of 0.01 applies: centimetres; zero, negative or NaN is an
@@ -1404,8 +1405,9 @@ def _all_prims(stage, Usd):
 
 def _warn_unmodelled(stage, collider_materials: dict, UsdPhysics, Usd, source: str) -> None:
     """Warn, naming the prims, about authored physics this simulator does not model: non-zero
-    PhysX body damping, and restitution of the colliders' physics materials (contacts here
-    are inelastic: the implicit step dissipates the normal impact velocity)."""
+    PhysX body damping, and restitution of the colliders' physics materials (not a parameter
+    here: the implicit step dissipates part of the normal impact velocity, more at larger
+    time steps; docs/architecture.md, "Impacts bounce a little")."""
     found = []
     for prim in _all_prims(stage, Usd):
         for name in _PHYSX_DAMPING:

@@ -220,7 +220,7 @@ def _rod(position, dofs, kp=400.0, kd=60.0):
     )
 
 
-# Billiards' table friction (faceted balls cannot roll, so sliding stands in for rolling),
+# Billiards' table friction (low: at finite mu the friction law also resists rolling),
 # the scaling series' friction (every Performance figure was measured with it), and the
 # reference strike (cue offsets x, y in m, velocity vx, vy in m/s) whose rest
 # positions of two balls are the goals, so the task has a solution (docs/architecture.md,
