@@ -4,8 +4,8 @@ Every term of a body pair (a, b) is differentiated with respect to the 12 coordi
 (dp_a, dtheta_a, dp_b, dtheta_b). Its value and gradient are added to its record
 (``Targets``): the accumulator of its enclosing blend record, or, at top level, one of its
 body pair's replicated top-level records, which ``top_level_kernel`` finally sums into the
-scene totals (value, (nbodies, 6) gradient and dense (6 nbodies)^2 Hessian; static bodies
-receive nothing). Blend records are resolved from the deepest nesting level up, each
+scene totals (value, (nbodies, 6) gradient and dense Hessian over the non-static bodies;
+static bodies receive nothing). Blend records are resolved from the deepest nesting level up, each
 applying
 
     B       = (1 - phi) S + phi P_c
@@ -68,6 +68,9 @@ class Targets:
     top_record: int
     top_replicas: int
     body_dynamic: wp.array(dtype=wp.int32)
+    # Each body's block of the scene Hessian, which holds the non-static bodies only (in
+    # index order); -1 for a static body.
+    hessian_slot: wp.array(dtype=wp.int32)
 
 
 @wp.func
@@ -489,13 +492,13 @@ def _add_top_level_entry(
         return
     i = (entry - 13) / 12
     j = (entry - 13) % 12
-    body_r = pair[i / 6]
-    body_c = pair[j / 6]
-    if j < i or targets.body_dynamic[body_r] == 0 or targets.body_dynamic[body_c] == 0:
-        return  # records hold upper triangles only
+    slot_r = targets.hessian_slot[pair[i / 6]]
+    slot_c = targets.hessian_slot[pair[j / 6]]
+    if j < i or slot_r < 0 or slot_c < 0:
+        return  # records hold upper triangles only; static bodies have no block
     for r in range(targets.top_replicas):
         total += targets.record_hess[seed * targets.top_replicas + r, i, j]
-    row, col = upper_entry(body_r, body_c, i % 6, j % 6)
+    row, col = upper_entry(slot_r, slot_c, i % 6, j % 6)
     wp.atomic_add(total_hess_out, row, col, total)
 
 
@@ -513,8 +516,8 @@ def top_level_kernel(
 ):
     """Sums entries [group * entries_per_thread, (group + 1) * entries_per_thread) of
     RECORD_ENTRIES of a body pair's top-level replicas into the scene totals (value,
-    (nbodies, 6) gradient, upper triangle of the (6 nbodies)^2 Hessian); static bodies'
-    entries are dropped. Launched over (body pairs, entry groups): on a GPU one entry a
+    (nbodies, 6) gradient, upper triangle of the (6 ndynamic)^2 Hessian over the non-static
+    bodies, ``Targets.hessian_slot``); static bodies' entries are dropped. Launched over (body pairs, entry groups): on a GPU one entry a
     thread; on a CPU, whose threads run one after another, all of a body pair's entries in
     one thread, since a thread each made the launch cost more than its sums. Each total
     receives the body pairs in the same order either way."""

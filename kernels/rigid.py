@@ -62,9 +62,10 @@ def rigid_point_curvature(g: wp.vec3d, r: wp.vec3d):
 
 @wp.func
 def upper_entry(body_r: int, body_c: int, i: int, j: int):
-    """Where entry (i, j) of block (body_r, body_c) of a symmetric (6 nbodies)^2 Hessian is
-    kept in its upper triangle: (row, column), or (-1, -1) for the lower triangle of a
-    diagonal block, which is not kept (its mirror is)."""
+    """Where entry (i, j) of block (body_r, body_c) of a symmetric Hessian of 6 x 6 blocks
+    (indexed by body, or by a body's Hessian slot) is kept in its upper triangle: (row,
+    column), or (-1, -1) for the lower triangle of a diagonal block, which is not kept (its
+    mirror is)."""
     row = 6 * body_r + i
     col = 6 * body_c + j
     if body_r == body_c and j < i:

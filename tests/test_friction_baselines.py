@@ -83,7 +83,7 @@ def test_no_friction_beyond_the_support_and_friction_inside(mode, dhat):
 def test_friction_replicas_give_the_same_terms(mode):
     # GPUs spread each body pair's friction adds over replicated records, as they do the
     # potential's top-level terms (CPU default: 1); any count gives the same terms, with
-    # empty static rows and an exactly symmetric Hessian.
+    # no static rows and an exactly symmetric Hessian.
     meshes = [grid_ground(2.0, 0.5), box((0.4, 0.4, 0.4))]
     poses = np.array([[0.03, 0.07, 0.0, 0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.204, 0.0, 0.0, np.sin(0.15), np.cos(0.15)]])
     friction = wp.array([0.5], dtype=wp.float64)
@@ -99,7 +99,7 @@ def test_friction_replicas_give_the_same_terms(mode):
     assert value == pytest.approx(ref_value, rel=1e-13)
     np.testing.assert_allclose(grad, ref_grad, rtol=1e-12, atol=1e-13 * np.abs(ref_grad).max())
     np.testing.assert_allclose(hess, ref_hess, rtol=1e-12, atol=1e-13 * np.abs(ref_hess).max())
-    assert np.all(grad[:6] == 0) and np.all(hess[:6] == 0) and np.all(hess[:, :6] == 0)
+    assert np.all(grad[:6] == 0) and hess.shape == (6, 6)  # the static ground has no rows
     np.testing.assert_array_equal(hess, hess.T)
 
 

@@ -20,6 +20,17 @@ def test_rigid_derivatives_match_finite_differences():
     assert grad_err < 1e-6 and hess_err < 1e-5
 
 
+def test_static_bodies_have_no_hessian_rows():
+    """Three balls, the first and last static: the Hessian holds the middle one only, and
+    it matches finite differences (it was (18, 18) with zero static rows)."""
+    model = IpcContactModel([icosphere(1)] * 3, dhat=0.1, static=[True, False, True])
+    poses = identity_poses([[0, 0, 0], [1.03, 0.1, 0.05], [2.06, 0.0, 0.0]])
+    poses[1, 3:] = quat([1, 2, 3], 0.4)
+    base, grad_err, hess_err = fd_check(model, poses, h=1e-7)
+    assert list(model.hessian_bodies) == [1] and base.hessian.shape == (6, 6) and base.num_leaf > 0
+    assert grad_err < 1e-6 and hess_err < 1e-5
+
+
 def test_potential_vanishes_beyond_dhat_and_is_infinite_on_contact():
     model = IpcContactModel([icosphere(1), icosphere(1)], dhat=0.1, names=["a", "b"])
     far = model.evaluate(identity_poses([[0, 0, 0], [1.2, 0, 0]]))

@@ -203,6 +203,8 @@ class ArticulationModel:
         self.num_bodies = n
         self.body_names = list(body_names)
         static = np.asarray(body_static, dtype=bool)
+        # Rows of J for the non-static bodies, whose blocks the contact Hessians hold.
+        self._hessian_rows = np.flatnonzero(np.repeat(~static, 6))
         poses = np.asarray(body_poses, dtype=np.float64)
         parent_joint = {}
         for j, joint in enumerate(joints):
@@ -628,10 +630,13 @@ class ArticulationModel:
         return self._jacobian_and_curvature(poses, grad)[1]
 
     def reduce(self, poses: np.ndarray, grad: np.ndarray, hess: np.ndarray):
-        """(J, J^T g, J^T H J + C) for a rigid-coordinate gradient (6 nbodies,) and Hessian;
-        J (6 nbodies, m) holds the rigid coordinates (dp, dtheta) of each body per DOF increment."""
+        """(J, J^T g, J^T H J + C) for a rigid-coordinate gradient (6 nbodies,) and a Hessian
+        over the non-static bodies (6 ndynamic, 6 ndynamic), as the contact models give them;
+        J (6 nbodies, m) holds the rigid coordinates (dp, dtheta) of each body per DOF
+        increment (zero rows for static bodies)."""
         J, C = self._jacobian_and_curvature(poses, grad.reshape(-1, 6))
-        return J, J.T @ grad, J.T @ hess @ J + C
+        moving = J[self._hessian_rows]
+        return J, J.T @ grad, moving.T @ hess @ moving + C
 
     def _jacobian_and_curvature(self, poses, grad):
         axes, points = self.twists(poses)

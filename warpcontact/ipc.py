@@ -83,6 +83,10 @@ class IpcContactModel:
         self.static = np.zeros(self.num_bodies, dtype=bool) if static is None else np.asarray(static, dtype=bool)
         self.dhat = float(dhat)
         self.body_pairs = contact_body_pairs(self.static, exclude_pairs)
+        # As in ContactModel: the Hessians hold the non-static bodies only.
+        self.hessian_bodies = np.flatnonzero(~self.static)
+        self._hessian_slot = np.full(self.num_bodies, -1, dtype=np.int64)
+        self._hessian_slot[self.hessian_bodies] = np.arange(len(self.hessian_bodies))
         vertices, faces, body_of = [], [], []
         offset = 0
         for b, (V, F) in enumerate(meshes):
@@ -133,7 +137,8 @@ class IpcContactModel:
         n = self.num_bodies
         if ipctk.has_intersections(self._mesh, V):
             pairs = [(self.names[a], self.names[b]) for a, b in self.body_pairs if self._pair_intersects(V, a, b)]
-            return ContactEvaluation(np.inf, np.zeros((n, 6)), np.zeros((6 * n, 6 * n)), 0, 0, 0, pairs, [], 0.0, np.zeros(len(self.body_pairs)))
+            m = 6 * len(self.hessian_bodies)
+            return ContactEvaluation(np.inf, np.zeros((n, 6)), np.zeros((m, m)), 0, 0, 0, pairs, [], 0.0, np.zeros(len(self.body_pairs)))
         value, g, H, collisions = self._vertex_terms(V)
         self._collisions = collisions
         grad, hess = self._rigid_terms(V, poses[:, :3], g, H)
@@ -143,7 +148,8 @@ class IpcContactModel:
     def _rigid_terms(self, V: np.ndarray, positions: np.ndarray, g: np.ndarray, H):
         """A vertex-coordinate gradient (nv, 3) and sparse Hessian in rigid coordinates
         (dp, dtheta) of the bodies at ``positions``: J = [I, -[r]x] per vertex, plus the
-        exponential map's curvature; zero for static bodies."""
+        exponential map's curvature; a zero gradient for static bodies, and a Hessian over
+        the non-static bodies only (``hessian_bodies``)."""
         n = self.num_bodies
         r = V - positions[self._body_of]
         dynamic = ~self.static[self._body_of]
@@ -154,15 +160,17 @@ class IpcContactModel:
         J[:, :, 3:] = -skew(r)
         J[~dynamic] = 0.0
         shape = (len(V), 3, 6)
+        slot = np.maximum(self._hessian_slot[self._body_of], 0)  # static vertices' J is zero
+        m = len(self.hessian_bodies)
         rows = np.broadcast_to(3 * np.arange(len(V))[:, None, None] + np.arange(3)[None, :, None], shape)
-        cols = np.broadcast_to(6 * self._body_of[:, None, None] + np.arange(6)[None, None, :], shape)
-        Jsp = self._sparse.csr_matrix((J.reshape(-1), (rows.reshape(-1), cols.reshape(-1))), shape=(3 * len(V), 6 * n))
+        cols = np.broadcast_to(6 * slot[:, None, None] + np.arange(6)[None, None, :], shape)
+        Jsp = self._sparse.csr_matrix((J.reshape(-1), (rows.reshape(-1), cols.reshape(-1))), shape=(3 * len(V), 6 * m))
         hess = np.asarray((Jsp.T @ (H @ Jsp)).todense())
         curvature = 0.5 * (np.einsum("vi,vj->vij", g, r) + np.einsum("vi,vj->vij", r, g)) - np.einsum("vi,vi->v", g, r)[:, None, None] * np.eye(3)
-        blocks = np.zeros((n, 3, 3))
-        np.add.at(blocks, self._body_of[dynamic], curvature[dynamic])
-        for b in np.flatnonzero(~self.static):
-            hess[6 * b + 3 : 6 * b + 6, 6 * b + 3 : 6 * b + 6] += blocks[b]
+        blocks = np.zeros((m, 3, 3))
+        np.add.at(blocks, slot[dynamic], curvature[dynamic])
+        for k in range(m):
+            hess[6 * k + 3 : 6 * k + 6, 6 * k + 3 : 6 * k + 6] += blocks[k]
         grad[self.static] = 0.0
         return grad, hess
 
@@ -207,12 +215,13 @@ class IpcContactModel:
         return LaggedFriction(pairs=len(collisions), mu=float(mu), friction=friction, slip_smoothing=float(slip_smoothing), data=data)
 
     def friction_terms(self, lagged: LaggedFriction, *, poses: np.ndarray | None = None):
-        """Friction value, (6 nbodies,) gradient and dense Hessian in rigid coordinates at the
-        last evaluated poses, or at ``poses`` (see ``ContactModel.friction_terms``)."""
-        n = self.num_bodies
+        """Friction value, (6 nbodies,) gradient and dense Hessian over ``hessian_bodies`` in
+        rigid coordinates at the last evaluated poses, or at ``poses`` (see
+        ``ContactModel.friction_terms``)."""
         data = lagged.data
         if not lagged.pairs:
-            return 0.0, np.zeros(6 * n), np.zeros((6 * n, 6 * n))
+            m = 6 * len(self.hessian_bodies)
+            return 0.0, np.zeros(6 * self.num_bodies), np.zeros((m, m))
         world, positions = (self._world, self._positions) if poses is None else (self._world_vertices(poses), poses[:, :3])
         slip = world - data.lagged_vertices
         value = float(data.potential(data.collisions, self._mesh, slip))

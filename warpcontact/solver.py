@@ -420,13 +420,13 @@ class ImplicitSolver:
             value += f_value
             grad += f_grad
             hess += f_hess
+        # The contact Hessians hold the dynamic bodies only, in index order.
         blocks = read("energy_hess")
-        for b in np.flatnonzero(self._dynamic):
-            hess[6 * b : 6 * b + 6, 6 * b : 6 * b + 6] += blocks[b]
+        for k, b in enumerate(np.flatnonzero(self._dynamic)):
+            hess[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] += blocks[b]
         art = self._articulation
         if art is None:
-            d = self._dofs
-            return value, grad[d], hess[np.ix_(d, d)], contact, None
+            return value, grad[self._dofs], hess, contact, None
         J, reduced_grad, reduced_hess = art.reduce(poses, grad, hess)
         if art.cones:
             c_value, c_grad, c_hess = art.cone_terms(poses)
@@ -517,7 +517,7 @@ class ImplicitSolver:
         evaluated_at, f_value, f_grad, f_hess = self._friction_at_evaluation
         if not np.array_equal(evaluated_at, q):  # a rejected warm start was evaluated last
             f_value, f_grad, f_hess = contact.friction_terms(friction, poses=q)
-        f_grad, f_hess = f_grad[dofs], f_hess[np.ix_(dofs, dofs)]
+        f_grad = f_grad[dofs]
         g_other, h_other = grad - f_grad, hess - f_hess
         try:
             np.linalg.cholesky(h_other)
@@ -529,7 +529,7 @@ class ImplicitSolver:
 
         def friction_at(d):
             value, g, h = contact.friction_terms(friction, poses=retract(q, self._step_travel(d)[0]))
-            return value - f_value, g[dofs], h[np.ix_(dofs, dofs)]
+            return value - f_value, g[dofs], h
 
         tol = self.tolerance * self._length_scale
         d = np.zeros_like(grad)
