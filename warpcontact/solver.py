@@ -217,6 +217,32 @@ def retract(poses: np.ndarray, step: np.ndarray) -> np.ndarray:
     return out
 
 
+# Block size of the triangular solves with a Cholesky factor. numpy has no triangular solve,
+# and np.linalg.solve on a whole factor factorises it again (LU): its two solves cost four
+# times the Cholesky factorisation (198 ms against 56 ms for scipy's triangular solves at
+# 1,536 unknowns, 256 dynamic boxes). By blocks only the diagonal blocks are factorised;
+# up to one block (42 bodies) it is the one solve of the whole factor it always was.
+_TRIANGULAR_BLOCK = 256
+
+
+def _solve_lower(lower: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """x with ``lower`` x = rhs for a lower-triangular ``lower``, by forward substitution over blocks."""
+    x = np.empty_like(rhs)
+    for start in range(0, len(rhs), _TRIANGULAR_BLOCK):
+        stop = start + _TRIANGULAR_BLOCK
+        x[start:stop] = np.linalg.solve(lower[start:stop, start:stop], rhs[start:stop] - lower[start:stop, :start] @ x[:start])
+    return x
+
+
+def _solve_upper(upper: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """x with ``upper`` x = rhs for an upper-triangular ``upper``, by back substitution over blocks."""
+    x = np.empty_like(rhs)
+    for stop in range(len(rhs), 0, -_TRIANGULAR_BLOCK):
+        start = max(stop - _TRIANGULAR_BLOCK, 0)
+        x[start:stop] = np.linalg.solve(upper[start:stop, start:stop], rhs[start:stop] - upper[start:stop, stop:] @ x[stop:])
+    return x
+
+
 def _backtrack_factor(value: float, slope: float, t_value: float, t_slope: float | None, alpha: float) -> float:
     """Factor for the next trial step after a rejected trial at ``alpha``: the minimiser of the
     cubic through L and its slope along the step at 0 and at the trial (Nocedal & Wright,
@@ -490,7 +516,7 @@ class ImplicitSolver:
         """
         try:
             chol = np.linalg.cholesky(hess)
-            return -np.linalg.solve(chol.T, np.linalg.solve(chol, grad))
+            return -_solve_upper(chol.T, _solve_lower(chol, grad))
         except np.linalg.LinAlgError:
             values, vectors = np.linalg.eigh(hess)
             floor = 1e-10 * np.abs(values).max()
