@@ -78,6 +78,7 @@ negative one means Earth's gravity, as UsdPhysics specifies).
 
 from __future__ import annotations
 
+import inspect
 import os
 import tempfile
 import warnings
@@ -118,19 +119,23 @@ ROUND_SEGMENTS = 32
 _NS = "warpcontact:"
 
 
+# The model settings a scene leaves out take ModelBuilder's own defaults.
+_BUILDER_DEFAULTS = {name: parameter.default for name, parameter in inspect.signature(ModelBuilder.__init__).parameters.items()}
+
+
 @dataclass
 class SimulationSettings:
-    """Simulation settings of a scene (SI units)."""
+    """Simulation settings of a scene (SI units); the model's default to ModelBuilder's."""
 
     time_step: float = 0.04
     frames: int = 100
-    contact_stiffness: float = 1e-6
-    eps: float = 0.5
-    centred_weight: str = "paper"
-    leaf_precision: str = "float64"
-    friction: float = 0.0
-    friction_smoothing: float = 1e-4
-    contact_mode: str = "bsh"
+    contact_stiffness: float = _BUILDER_DEFAULTS["contact_stiffness"]
+    eps: float = _BUILDER_DEFAULTS["eps"]
+    centred_weight: str = _BUILDER_DEFAULTS["centred_weight"]
+    leaf_precision: str = _BUILDER_DEFAULTS["leaf_precision"]
+    friction: float = _BUILDER_DEFAULTS["friction"]
+    friction_smoothing: float = _BUILDER_DEFAULTS["friction_smoothing"]
+    contact_mode: str = _BUILDER_DEFAULTS["contact_mode"]
 
 
 @dataclass
