@@ -110,3 +110,28 @@ def test_poses_are_checked_by_the_contact_model_s_rules():
                 call(bad)
     with pytest.raises(ValueError, match="expected 2 rows"):
         model.evaluate(poses[:1])
+
+
+@pytest.mark.parametrize("mode", ["ipc", "brute", "bsh"])
+def test_a_scene_of_static_bodies_alone_steps(mode):
+    """Nothing moves, so the Hessians have no rows: the IPC model's projection onto no
+    columns raised (axis 1 index 5 exceeds matrix dimension 0), and brute force's empty
+    lists could not be sliced for friction."""
+    import warp as wp
+
+    import warpcontact as wc
+
+    builder = wc.ModelBuilder(friction=0.5, contact_mode=mode)
+    builder.add_box((2.0, 2.0, 0.2), static=True, pose=(0, 0, -0.1, 0, 0, 0, 1), name="ground")
+    builder.add_box((0.2, 0.2, 0.2), static=True, pose=(0, 0, 0.1005, 0, 0, 0, 1), name="block")
+    model = builder.finalize()
+    contact = model.contact
+    assert contact.evaluate(model.state().body_q.numpy()).hessian.shape == (0, 0)
+    assert contact.friction_terms(contact.friction_frame(1e-6, model.friction, 1e-4))[2].shape == (0, 0)
+    states = [model.state(requires_grad=True) for _ in range(2)]
+    tape = wp.Tape()
+    with tape:
+        wc.ImplicitSolver(model).step(states[0], states[1], None, 0.02)
+    np.testing.assert_array_equal(states[1].body_q.numpy(), states[0].body_q.numpy())
+    tape.backward(grads={states[1].body_q: wp.array([[1.0, 0, 0, 0, 0, 0, 0]] * 2, dtype=wp.transformd)})
+    np.testing.assert_array_equal(states[0].body_q.grad.numpy()[:, 0], [1.0, 1.0])

@@ -160,12 +160,14 @@ class IpcContactModel:
         J[:, :, 3:] = -skew(r)
         J[~dynamic] = 0.0
         shape = (len(V), 3, 6)
-        slot = np.maximum(self._hessian_slot[self._body_of], 0)  # static vertices' J is zero
+        slot = self._hessian_slot[self._body_of]
         m = len(self.hessian_bodies)
         rows = np.broadcast_to(3 * np.arange(len(V))[:, None, None] + np.arange(3)[None, :, None], shape)
         cols = np.broadcast_to(6 * slot[:, None, None] + np.arange(6)[None, None, :], shape)
-        Jsp = self._sparse.csr_matrix((J.reshape(-1), (rows.reshape(-1), cols.reshape(-1))), shape=(3 * len(V), 6 * m))
-        hess = np.asarray((Jsp.T @ (H @ Jsp)).todense())
+        # Static vertices have no columns (and no entries: explicit zeros changed the sums).
+        Jsp = self._sparse.csr_matrix((J[dynamic].reshape(-1), (rows[dynamic].reshape(-1), cols[dynamic].reshape(-1))), shape=(3 * len(V), 6 * m))
+        # Row-major, as the rest of the solver's matrices (the layout changes BLAS rounding).
+        hess = np.ascontiguousarray((Jsp.T @ (H @ Jsp)).toarray())
         curvature = 0.5 * (np.einsum("vi,vj->vij", g, r) + np.einsum("vi,vj->vij", r, g)) - np.einsum("vi,vi->v", g, r)[:, None, None] * np.eye(3)
         blocks = np.zeros((m, 3, 3))
         np.add.at(blocks, slot[dynamic], curvature[dynamic])
