@@ -42,6 +42,9 @@ def _second_moment_from_inertia(inertia: np.ndarray) -> np.ndarray:
 
 
 _ARTICULATION_CONTACT = ("nonadjacent", "all", "none")
+# Below this blend margin the blend is steep enough to slow Newton several times (measured,
+# docs/architecture.md, "Small eps"); the builder warns, and step failures say so.
+STEEP_BLEND_EPS = 1e-2
 # The contact models a ModelBuilder makes: ContactModel's modes and the IPC baseline.
 MODEL_CONTACT_MODES = (*CONTACT_MODES, "ipc")
 
@@ -50,8 +53,10 @@ def contact_setting_problem(name: str, value: float) -> str | None:
     """Why ``value`` is not admissible for the ModelBuilder contact setting ``name``
     (contact_stiffness, friction, friction_smoothing or eps), or None. One rule for the
     builder and for ``io.load_scene``, which names the USD attribute."""
+    if not is_real(value):
+        return f"must be a number, not {type(value).__name__}"
     if name == "friction":
-        return None if is_real(value) and np.isfinite(value) and value >= 0 else "must be >= 0 and finite"
+        return None if np.isfinite(value) and value >= 0 else "must be >= 0 and finite"
     return None if is_positive_finite(value) else "must be positive and finite"
 _IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 
@@ -216,7 +221,7 @@ class ModelBuilder:
         for name, value in (("contact_stiffness", contact_stiffness), ("friction", friction), ("friction_smoothing", friction_smoothing), ("eps", eps)):
             problem = contact_setting_problem(name, value)
             if problem:
-                raise ValueError(f"{name}: {problem}, got {value}")
+                raise ValueError(f"{name}: {problem}, got {value!r}")
         # These were checked only by finalize, the supports under the name "dhat".
         if centred_weight not in CENTRED_WEIGHTS:
             raise ValueError(f"centred_weight: {centred_weight!r} is not one of {CENTRED_WEIGHTS}")
@@ -231,6 +236,15 @@ class ModelBuilder:
         if contact_mode not in MODEL_CONTACT_MODES:
             raise ValueError(f"contact_mode: {contact_mode!r} is not one of {MODEL_CONTACT_MODES}")
         self.contact_mode = contact_mode
+        if eps < STEEP_BLEND_EPS and contact_mode in ("bsh", "brute"):
+            # brute's friction weight blends over the same margin.
+            warnings.warn(
+                f"eps {eps:g} is below {STEEP_BLEND_EPS:g}: the blend over a margin of eps times the spheres' "
+                "radii is steep (its slope grows as 1/eps), and implicit steps take more Newton iterations "
+                "(a ball dropped on a grid: 5 a frame at eps 0.5, 8 at 0.01, 35 at 0.001) and stop converging "
+                "below about 1e-5",
+                stacklevel=2,
+            )
         float32_search(leaf_precision, mode=contact_mode)
         self.leaf_precision = leaf_precision
         self.ipc_dhat = ipc_dhat

@@ -35,7 +35,7 @@ from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
 from .articulation import joint_limit_energy
-from .builder import contact_setting_problem
+from .builder import STEEP_BLEND_EPS, contact_setting_problem
 from .contact import UNSOLVED_HINT, ContactModel, LaggedFriction
 from .rotation import normalized_poses, quat_from_matrix, quat_from_rotation_vector, quat_mul, quat_to_matrix, rigid_step_between, rigid_step_travel
 from .types import Control, Model, State
@@ -1050,6 +1050,9 @@ class ImplicitSolver:
         coast[~self._dynamic] = 0.0
         fastest = int(np.argmax(coast))
         hint = f"; {names[fastest]} would move {coast[fastest]:.3g} times its radius in free flight in this step of {dt:g} s: reduce dt" if coast[fastest] > 1.0 else ""
+        eps = getattr(self.model.contact, "eps", None)
+        if eps is not None and eps < STEEP_BLEND_EPS and self.model.contact.mode in ("bsh", "brute"):
+            hint += f"; eps {eps:g} is below {STEEP_BLEND_EPS:g}, where the blend is steep and Newton slow: a larger eps converges"
         return (
             f"implicit step: {what} after {iterations} Newton iterations; last Newton step moves points "
             f"up to {step_length:.3e} m (tolerance {self.tolerance * self._length_scale:.3e} m), L = {value:.9e}; "
