@@ -190,11 +190,16 @@ class ModelBuilder:
             throws it ~17 m high). Choose it for the lightest body that rests on another;
             ``finalize`` warns about dynamic bodies whose estimated gap exceeds a tenth of
             their radius (a 1 cm cube of 500 kg/m^3 at 1e-6: thrown 0.69 m up, resting 0.25 m
-            above the table after 16 s).
+            above the table after 16 s), and whose gap falls below 2e-7 of their radius,
+            where impacts stall Newton. Between, gaps below ~1e-4 of the radius make impact
+            steps stiff enough to land on one of several nearby solutions: gradients through
+            such impacts are right locally but jump (docs/architecture.md, "Its length
+            scale"); the shipped scenes rest at 2e-4 to 6e-3 of their radii.
+        eps: blend margin of the hierarchical contact potential; below 0.01 the blend is
+            steep and Newton slow (warned about).
         friction: friction coefficient; 0 disables friction (and all its work, its gradient
             included unless ``model.friction.requires_grad`` is set).
         friction_smoothing: slip speed (m/s) below which the friction law is smoothed.
-        eps: blend margin of the hierarchical contact potential.
         centred_weight: ``"paper"`` or ``"pairs"``: how a far cluster pair's centred term
             counts in the hierarchical potential (``ContactModel``).
         contact_mode: ``"bsh"``, ``"brute"`` (the paper's model, hierarchical or exact),
