@@ -193,8 +193,8 @@ class ModelBuilder:
             above the table after 16 s), and whose gap falls below 2e-7 of their radius,
             where impacts stall Newton. Between, gaps below ~1e-4 of the radius make impact
             steps stiff enough to land on one of several nearby solutions: gradients through
-            such impacts are right locally but jump (docs/architecture.md, "Its length
-            scale"); the shipped scenes rest at 2e-4 to 6e-3 of their radii.
+            such impacts are right locally but jump (docs/architecture.md, "Where it cannot
+            be solved"); the shipped scenes rest at 2e-4 to 6e-3 of their radii.
         eps: blend margin of the hierarchical contact potential; below 0.01 the blend is
             steep and Newton slow (warned about).
         friction: friction coefficient; 0 disables friction (and all its work, its gradient
