@@ -845,6 +845,7 @@ def load_scene(path) -> Scene:
     static_bodies: dict[str, BodySpec] = {}
     disabled = {str(prim_path) for prim_path, desc in descs.get("RigidBody", []) if not desc.rigidBodyEnabled}
     colliders: dict[str, list] = {}  # rigid body path -> its collider prims
+    mesh_parts: dict[int, tuple] = {}  # id(body) -> (body, vertex parts, face parts, [vertex count])
     collider_materials: dict[str, list] = {}  # collider path -> its bound physics materials
     planes = []  # (path, world frame in stage units, axis token) of Plane colliders
     shape_kinds = [k for k in descs if k.endswith("Shape")]
@@ -912,11 +913,17 @@ def load_scene(path) -> Scene:
                     str(prim_path),
                     BodySpec(name=prim.GetName(), path=str(prim_path), vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), dtype=np.int64), pose=local_pose, static=True),
                 )
-            offset = len(target.vertices)
-            target.vertices = np.concatenate([target.vertices, vertices])
-            target.faces = np.concatenate([target.faces, faces + offset])
+            # Joined once all are read: joining at each collider was quadratic (a body of
+            # 4,000 colliders loaded in 20.9 s, the same colliders as bodies in 2.5 s).
+            parts = mesh_parts.setdefault(id(target), (target, [target.vertices], [target.faces], [len(target.vertices)]))
+            parts[1].append(vertices)
+            parts[2].append(faces + parts[3][0])
+            parts[3][0] += len(vertices)
             if owner:
                 colliders.setdefault(owner, []).append(prim)
+    for target, vertex_parts, face_parts, _ in mesh_parts.values():
+        target.vertices = np.concatenate(vertex_parts)
+        target.faces = np.concatenate(face_parts)
     for body_path, (joint_path, desc) in welds.items():
         _check_weld(stage, bodies[body_path], joint_path, desc, static_bodies, meters, UsdGeom, Usd, source)
     others = [*bodies.values(), *static_bodies.values()]  # without the planes: each sized by the rest alone
