@@ -428,6 +428,28 @@ def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
     if counts.sum() != len(indices) or (indices < 0).any() or (indices >= len(points)).any():
         raise ValueError(f"{where}: faceVertexIndices do not match faceVertexCounts and points")
     holes = set(int(h) for h in (mesh.GetHoleIndicesAttr().Get() or []))
+    if (counts == 3).all():
+        # Triangles only, the common case, at once (a loop over 229k faces took 2.9 s).
+        kept = np.ones(len(counts), dtype=bool)
+        kept[[h for h in holes if 0 <= h < len(counts)]] = False
+        faces = indices.reshape(-1, 3)[kept]
+    else:
+        faces = _polygon_mesh_faces(points, counts, indices, holes, where)
+    if not len(faces):
+        raise ValueError(f"{where}: every face is a hole (holeIndices)")
+    faces = np.asarray(faces, dtype=np.int64)
+    if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
+        # Clockwise winding: reversed, so that a closed mesh stays outward-oriented for its mass.
+        faces = faces[:, ::-1]
+    tri = points[faces]
+    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not (area2 > 0).any():
+        raise ValueError(f"{where}: mesh is degenerate (every triangle has zero area)")
+    return points, faces
+
+
+def _polygon_mesh_faces(points: np.ndarray, counts: np.ndarray, indices: np.ndarray, holes: set, where: str) -> list:
+    """Triangles of a mesh's polygons, face by face in order (holes skipped)."""
     faces = []
     start = 0
     for f, n in enumerate(counts):
@@ -441,17 +463,7 @@ def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
         if corners is None:
             raise ValueError(f"{where}: face {f} ({n} vertices) is a self-intersecting polygon, which has no triangulation; split it into simple polygons")
         faces.extend(tuple(poly[list(c)]) for c in corners)
-    if not faces:
-        raise ValueError(f"{where}: every face is a hole (holeIndices)")
-    faces = np.asarray(faces, dtype=np.int64)
-    if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
-        # Clockwise winding: reversed, so that a closed mesh stays outward-oriented for its mass.
-        faces = faces[:, ::-1]
-    tri = points[faces]
-    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    if not (area2 > 0).any():
-        raise ValueError(f"{where}: mesh is degenerate (every triangle has zero area)")
-    return points, faces
+    return faces
 
 
 def _shape_triangles(kind, prim, UsdGeom, source, desc=None) -> tuple[np.ndarray, np.ndarray]:
