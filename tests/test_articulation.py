@@ -940,3 +940,15 @@ def test_links_of_one_chain_folding_fast_are_not_refused_as_passing_through():
     out = model.state()
     wc.ImplicitSolver(model).step(model.state(), out, control, 0.02)
     assert model.contact.evaluate(out.body_q.numpy()).ok and out.joint_q.numpy()[2] > 0.1
+
+
+def test_joint_order_is_topological_for_long_chains_added_leaf_first():
+    """Joints are ordered parent first whatever order they were added in; the recursive
+    walk overflowed Python's stack on a chain of ~1,000 joints added leaf first."""
+    links = 1050
+    builder = wc.ModelBuilder(articulation_contact="none", contact_stiffness=1e-9)
+    bodies = [builder.add_box((0.02, 0.02, 0.08), mass=0.1, pose=(0, 0, -0.1 * i - 0.05, 0, 0, 0, 1), name=f"l{i}") for i in range(links)]
+    for i in reversed(range(links)):
+        builder.add_joint("revolute", child=bodies[i], parent=bodies[i - 1] if i else None, anchor=(0, 0, -0.1 * i), axis=(0, 1, 0), name=f"j{i}")
+    art = builder.finalize().articulation
+    assert [joint.name for joint in art.joints] == [f"j{i}" for i in range(links)]

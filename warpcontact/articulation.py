@@ -173,6 +173,25 @@ def _relative_rotation(parent: np.ndarray, child: np.ndarray) -> np.ndarray:
     return quat_mul(quat_conjugate(parent), child)
 
 
+def _same_group_pairs(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, columns) of the ordered pairs of distinct positions of ``groups`` (a body
+    chain's DOF groups, -1 for none) that share a group, an index into the chain's DOFs."""
+    grouped = np.flatnonzero(groups >= 0)
+    order = grouped[np.argsort(groups[grouped], kind="stable")]
+    keys = groups[order]
+    rows, columns = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)]
+    # Sorted by group, members of a group are neighbours: pairs at distance 1, 2, ... until
+    # no two positions that far apart share one.
+    for distance in range(1, len(order)):
+        match = np.flatnonzero(keys[distance:] == keys[:-distance])
+        if not match.size:
+            break
+        first, second = order[match], order[match + distance]
+        rows += [first, second]
+        columns += [second, first]
+    return np.concatenate(rows), np.concatenate(columns)
+
+
 class ArticulationModel:
     """The kinematic forest of a model's dynamic bodies (host, numpy, float64).
 
@@ -290,13 +309,10 @@ class ArticulationModel:
             self.body_dofs.append(np.concatenate(path[::-1]) if path else np.zeros(0, dtype=np.int64))
         # Dynamic bodies are those with DOFs; rows of J for static bodies stay zero.
         self.dynamic_bodies = np.flatnonzero([len(d) > 0 for d in self.body_dofs])
-        # Pairs of distinct DOFs of one body's chain that belong to the same ball joint.
-        self._same_group = []
-        for dofs in self.body_dofs:
-            groups = self.dof_group[dofs]
-            same = (groups[:, None] == groups[None, :]) & (groups[:, None] >= 0)
-            np.fill_diagonal(same, False)
-            self._same_group.append(same)
+        # Pairs of distinct DOFs of one body's chain that belong to the same ball joint: a
+        # boolean mask per body took time and memory cubic in a chain's length (45 MB at
+        # 512 links).
+        self._same_group = [_same_group_pairs(self.dof_group[dofs]) for dofs in self.body_dofs]
         self.cones = [self._cone(j, joint, poses) for j, joint in enumerate(self.joints) if joint.kind == "ball" and np.isfinite(joint.cone_limit)]
         balls = [(j, joint) for j, joint in enumerate(self.joints) if joint.kind == "ball"]
         self.num_ball_joints = len(balls)
@@ -314,25 +330,28 @@ class ArticulationModel:
     # --- construction ---------------------------------------------------------------------
 
     def _topological_order(self, joints: list[Joint], parent_joint: dict) -> list[int]:
-        order, state = [], {}
-
-        def visit(j, trail):
-            if state.get(j) == "done":
-                return
-            if state.get(j) == "active":
-                names = " -> ".join(joints[i].name for i in trail)
-                raise ValueError(f"joints form a cycle: {names}")
-            state[j] = "active"
-            parent = joints[j].parent
-            if parent >= 0:
+        """Joint indices with every joint after its parent body's joint. Walks up each
+        joint's ancestors iteratively: recursion overflowed Python's stack on chains of
+        ~1,000 joints added leaf first."""
+        order, done = [], set()
+        for first in range(len(joints)):
+            trail, on_trail = [], set()
+            j = first
+            while j not in done:
+                if j in on_trail:
+                    names = " -> ".join(joints[i].name for i in [*trail, j])
+                    raise ValueError(f"joints form a cycle: {names}")
+                trail.append(j)
+                on_trail.add(j)
+                parent = joints[j].parent
+                if parent < 0:
+                    break
                 if parent not in parent_joint:
                     raise ValueError(f"joint {joints[j].name!r}: parent body {self.body_names[parent]!r} is static or unknown; attach to the world (parent None) instead")
-                visit(parent_joint[parent], [*trail, parent_joint[parent]])
-            state[j] = "done"
-            order.append(j)
-
-        for j in range(len(joints)):
-            visit(j, [j])
+                j = parent_joint[parent]
+            for j in reversed(trail):
+                done.add(j)
+                order.append(j)
         return order
 
     def _frames(self, joint: Joint, poses: np.ndarray):

@@ -201,16 +201,7 @@ def symmetric_from_upper(upper: np.ndarray) -> np.ndarray:
 def contact_body_pairs(static: np.ndarray, exclude_pairs=()) -> np.ndarray:
     """(npairs, 2) body pairs a < b with contact: not both static, not excluded."""
     n = len(static)
-    excluded = set()
-    try:
-        pairs = [tuple(pair) for pair in exclude_pairs]
-    except TypeError:
-        raise ValueError(f"exclude_pairs: expected a sequence of (a, b) body index pairs, got {exclude_pairs!r}") from None
-    for pair in pairs:
-        if len(pair) != 2 or not all(is_whole(i) for i in pair) or not (0 <= pair[0] < n and 0 <= pair[1] < n) or pair[0] == pair[1]:
-            raise ValueError(f"exclude_pairs: {pair!r} is not a pair of distinct body indices in [0, {n})")
-        a, b = (int(i) for i in pair)
-        excluded.add((min(a, b), max(a, b)))
+    excluded = _excluded_pair_keys(exclude_pairs, n)
     # By rows, in time and memory proportional to the pairs kept: a Python walk over all
     # n^2 / 2 pairs took 154 ms at 2,049 bodies, and a mask over them 1.45 GB at 10,000.
     static = np.asarray(static, dtype=bool)
@@ -220,9 +211,37 @@ def contact_body_pairs(static: np.ndarray, exclude_pairs=()) -> np.ndarray:
         partners = dynamic[np.searchsorted(dynamic, a, side="right") :] if static[a] else np.arange(a + 1, n)
         rows.append(np.column_stack([np.full(len(partners), a), partners]))
     pairs = np.concatenate(rows) if rows else np.zeros((0, 2), dtype=np.int64)
-    if excluded:
-        pairs = pairs[~np.isin(pairs[:, 0] * n + pairs[:, 1], [i * n + j for i, j in excluded])]
+    if len(excluded):
+        pairs = pairs[~np.isin(pairs[:, 0] * n + pairs[:, 1], excluded)]
     return pairs.astype(np.int32).reshape(-1, 2)
+
+
+def _excluded_pair_keys(exclude_pairs, n: int) -> np.ndarray:
+    """min(a, b) n + max(a, b) of each pair in ``exclude_pairs``, or ValueError naming the
+    first pair that is not two distinct body indices in [0, n). An integer array of pairs is
+    checked at once: pair by pair, an articulation of 1,050 links with contact off inside
+    it (550,000 excluded pairs) took 3.3 s."""
+    try:
+        array = np.asarray(exclude_pairs)
+    except ValueError:  # ragged
+        array = None
+    if array is not None and array.dtype.kind in "iu" and array.ndim == 2 and array.shape[1] == 2:
+        bad = np.flatnonzero((array < 0).any(axis=1) | (array >= n).any(axis=1) | (array[:, 0] == array[:, 1]))
+        if bad.size:
+            pair = tuple(array[bad[0]].tolist())
+            raise ValueError(f"exclude_pairs: {pair!r} is not a pair of distinct body indices in [0, {n})")
+        return np.minimum(array[:, 0], array[:, 1]).astype(np.int64) * n + np.maximum(array[:, 0], array[:, 1])
+    try:
+        pairs = [tuple(pair) for pair in exclude_pairs]
+    except TypeError:
+        raise ValueError(f"exclude_pairs: expected a sequence of (a, b) body index pairs, got {exclude_pairs!r}") from None
+    keys = []
+    for pair in pairs:
+        if len(pair) != 2 or not all(is_whole(i) for i in pair) or not (0 <= pair[0] < n and 0 <= pair[1] < n) or pair[0] == pair[1]:
+            raise ValueError(f"exclude_pairs: {pair!r} is not a pair of distinct body indices in [0, {n})")
+        a, b = (int(i) for i in pair)
+        keys.append(min(a, b) * n + max(a, b))
+    return np.array(keys, dtype=np.int64)
 
 
 class ContactModel:
