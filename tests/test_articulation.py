@@ -952,3 +952,42 @@ def test_joint_order_is_topological_for_long_chains_added_leaf_first():
         builder.add_joint("revolute", child=bodies[i], parent=bodies[i - 1] if i else None, anchor=(0, 0, -0.1 * i), axis=(0, 1, 0), name=f"j{i}")
     art = builder.finalize().articulation
     assert [joint.name for joint in art.joints] == [f"j{i}" for i in range(links)]
+
+
+def test_articulated_steps_start_from_the_inertial_prediction():
+    """A chain of 8 ball-jointed links swinging in 3-D: Newton starts from the DOF increment
+    closest to where the links would coast, as free bodies' steps do, and reaches the same
+    solutions in fewer iterations (started from q^t: 11 a step at 8 links, 28 at 32)."""
+    from warpcontact import solver as solver_module
+
+    def swing(warm: bool):
+        builder = wc.ModelBuilder(articulation_contact="none", contact_stiffness=1e-9)
+        parent = None
+        for i in range(8):
+            body = builder.add_box((0.03, 0.03, 0.08), mass=0.1, pose=(0, 0, -0.1 * i - 0.05, 0, 0, 0, 1), name=f"l{i}")
+            builder.add_joint("ball", child=body, parent=parent, anchor=(0, 0, -0.1 * i), name=f"j{i}")
+            parent = body
+        model = builder.finalize()
+        art = model.articulation
+        bend = np.zeros(art.num_dofs)
+        bend[1], bend[6] = 0.5, 0.3
+        state = model.state()
+        q = art.retract(model.initial_q, bend)
+        state.body_q.assign(q)
+        state.body_q_prev.assign(q)
+        solver = wc.ImplicitSolver(model)
+        if not warm:
+            solver._joint_warm_start = lambda q, coords, value, grad, hess, contact, jacobian, step_in: (q, coords, value, grad, hess, contact, jacobian, None)
+        iterations, poses = [], []
+        for _ in range(15):
+            after = model.state()
+            iterations.append(solver.step(state, after, None, 0.01).iterations)
+            poses.append(after.body_q.numpy())
+            state = after
+        return np.array(iterations), np.array(poses)
+
+    assert hasattr(solver_module.ImplicitSolver, "_joint_warm_start")
+    cold_iterations, cold = swing(False)
+    warm_iterations, warm = swing(True)
+    np.testing.assert_allclose(warm, cold, atol=1e-8)
+    assert warm_iterations.sum() < 0.8 * cold_iterations.sum()
