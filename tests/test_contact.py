@@ -926,3 +926,17 @@ def test_body_pairs_are_every_pair_with_a_moving_body_in_order():
     static[7] = False
     pairs = contact_body_pairs(static)
     assert pairs.shape == (19999, 2) and pairs[0].tolist() == [0, 7] and pairs[-1].tolist() == [7, 19999]
+
+
+def test_excluded_pairs_holding_bools_are_refused():
+    """A list holding True became an integer array on the vectorised check and read as
+    the pair (1, 2); lists are checked pair by pair, integer arrays at once."""
+    from warpcontact.contact import contact_body_pairs
+
+    static = np.zeros(4, dtype=bool)
+    for pairs in ([(True, 2)], [(np.True_, 2)]):
+        with pytest.raises(ValueError, match=r"exclude_pairs: \((True|np.True_), 2\) is not a pair of distinct body indices in \[0, 4\)"):
+            contact_body_pairs(static, pairs)
+    with pytest.raises(ValueError, match=r"exclude_pairs: \(0, 5\) is not a pair"):
+        contact_body_pairs(static, np.array([[1, 2], [0, 5]]))
+    assert len(contact_body_pairs(static, np.array([[2, 1]]))) == len(contact_body_pairs(static, [(1, 2)])) == 5

@@ -15,6 +15,7 @@ __all__ = [
     "is_positive_finite",
     "is_real",
     "is_whole",
+    "shown",
     "validated_poses",
 ]
 
@@ -38,6 +39,12 @@ MAX_COUNT = 2**31 - 1
 def is_real(value) -> bool:
     """A Python or numpy real scalar, not a bool (which Python counts as an int)."""
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+
+
+def shown(value) -> str:
+    """A value as an error message shows it: a number as it prints (np.float64(-1.0) as
+    -1.0), anything else as its repr (a string quoted, so '0.5' does not read as a number)."""
+    return str(value) if is_real(value) else repr(value)
 
 
 def is_positive_finite(value) -> bool:

@@ -9,7 +9,7 @@ import trimesh
 import warp as wp
 
 from ._runtime import resolve_device
-from ._validate import QUATERNION_TOLERANCE, check_barrier_support, is_positive_finite, is_real, is_whole
+from ._validate import QUATERNION_TOLERANCE, check_barrier_support, is_positive_finite, is_real, is_whole, shown
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, frame_in_body
 from .contact import CENTRED_WEIGHTS, CONTACT_MODES, ContactModel
 from .leaf import float32_search
@@ -45,6 +45,12 @@ _ARTICULATION_CONTACT = ("nonadjacent", "all", "none")
 # Below this blend margin the blend is steep enough to slow Newton several times (measured,
 # docs/architecture.md, "Small eps"); the builder warns, and step failures say so.
 STEEP_BLEND_EPS = 1e-2
+
+
+def steep_blend(eps: float, contact_mode: str) -> bool:
+    """Whether ``eps`` makes the blend of contact mode ``contact_mode`` steep (brute force's
+    friction weight blends over the same margin; sdrs and ipc have no blend)."""
+    return eps < STEEP_BLEND_EPS and contact_mode in ("bsh", "brute")
 # The contact models a ModelBuilder makes: ContactModel's modes and the IPC baseline.
 MODEL_CONTACT_MODES = (*CONTACT_MODES, "ipc")
 
@@ -226,7 +232,7 @@ class ModelBuilder:
         for name, value in (("contact_stiffness", contact_stiffness), ("friction", friction), ("friction_smoothing", friction_smoothing), ("eps", eps)):
             problem = contact_setting_problem(name, value)
             if problem:
-                raise ValueError(f"{name}: {problem}, got {value!r}")
+                raise ValueError(f"{name}: {problem}, got {shown(value)}")
         # These were checked only by finalize, the supports under the name "dhat".
         if centred_weight not in CENTRED_WEIGHTS:
             raise ValueError(f"centred_weight: {centred_weight!r} is not one of {CENTRED_WEIGHTS}")
@@ -241,8 +247,7 @@ class ModelBuilder:
         if contact_mode not in MODEL_CONTACT_MODES:
             raise ValueError(f"contact_mode: {contact_mode!r} is not one of {MODEL_CONTACT_MODES}")
         self.contact_mode = contact_mode
-        if eps < STEEP_BLEND_EPS and contact_mode in ("bsh", "brute"):
-            # brute's friction weight blends over the same margin.
+        if steep_blend(eps, contact_mode):
             warnings.warn(
                 f"eps {eps:g} is below {STEEP_BLEND_EPS:g}: the blend over a margin of eps times the spheres' "
                 "radii is steep (its slope grows as 1/eps), and implicit steps take more Newton iterations "
@@ -608,7 +613,7 @@ class ModelBuilder:
         body_radius = np.array([np.linalg.norm(b.vertices, axis=1).max() for b in bodies])
         self._warn_floating_bodies(body_radius)
         articulation = ArticulationModel(self._joints, body_names=names, body_static=static, body_poses=initial_q, body_radius=body_radius)
-        exclude = self._excluded_pairs()
+        exclude = np.array(self._excluded_pairs(), dtype=np.int64).reshape(-1, 2)
         if self.contact_mode == "ipc":
             from .ipc import IpcContactModel
 

@@ -89,7 +89,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ._validate import MAX_COORDINATE, is_positive_finite, is_real
+from ._validate import MAX_COORDINATE, is_positive_finite, is_real, shown
 from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact_setting_problem, coordinate_limits
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
@@ -926,7 +926,7 @@ def load_scene(path) -> Scene:
                     BodySpec(name=prim.GetName(), path=str(prim_path), vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), dtype=np.int64), pose=local_pose, static=True),
                 )
             # Joined once all are read: joining at each collider was quadratic (a body of
-            # 4,000 colliders loaded in 20.9 s, the same colliders as bodies in 2.5 s).
+            # 4,000 colliders loaded in 7.5 s, now 2.6 s).
             parts = mesh_parts.setdefault(id(target), (target, [target.vertices], [target.faces], [len(target.vertices)]))
             parts[1].append(vertices)
             parts[2].append(faces + parts[3][0])
@@ -1712,7 +1712,7 @@ def _check_settings(settings: SimulationSettings, where: str):
         value = getattr(settings, field_name)
         problem = contact_setting_problem(field_name, value)
         if problem:
-            raise ValueError(f"{where}: warpcontact:{attr_name} {problem}, got {value}")
+            raise ValueError(f"{where}: warpcontact:{attr_name} {problem}, got {shown(value)}")
     if settings.frames < 1:
         raise ValueError(f"{where}: warpcontact:frames must be >= 1, got {settings.frames}")
     if settings.contact_mode not in MODEL_CONTACT_MODES:

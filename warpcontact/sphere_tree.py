@@ -219,7 +219,8 @@ def _unique_vertex_means(
     # Sorted, then deduplicated: np.unique took its hashing path here, 19x slower (1.33 s
     # against 71 ms for 687k keys, numpy 2.4), for the same sorted keys.
     group_vertex_key = np.sort(group_vertex_key)
-    group_vertex_key = group_vertex_key[np.concatenate(([True], group_vertex_key[1:] != group_vertex_key[:-1]))]
+    first = np.ones(min(len(group_vertex_key), 1), dtype=bool)
+    group_vertex_key = group_vertex_key[np.concatenate((first, group_vertex_key[1:] != group_vertex_key[:-1]))]
     group, vertex = np.divmod(group_vertex_key, num_vertices)
     counts = np.bincount(group, minlength=num_groups)
     sums = np.stack(
