@@ -810,8 +810,6 @@ class ImplicitSolver:
         q_lists = None
         if art is None and np.isfinite(value):
             q, value, grad, hess, contact, q_lists = self._warm_start(q, value, grad, hess, contact, coords, step_in)
-        elif np.isfinite(value):
-            q, coords, value, grad, hess, contact, jacobian, q_lists = self._joint_warm_start(q, coords, value, grad, hess, contact, jacobian, step_in)
         if not np.isfinite(value):
             if control is not None:
                 # Read back only on failure: a non-finite PD target, or a zero rotation for a
@@ -867,7 +865,7 @@ class ImplicitSolver:
             decrement = -float(grad @ direction)
             # The contact model holds the term lists of q (or q_lists does, after a rejected
             # warm start): trials come after this.
-            frame = q_lists if q_lists is not None or art is None else model.contact.advancement_frame()
+            frame = model.contact.advancement_frame() if art is not None else q_lists
             q_lists = None
             alpha = min(model.contact.advancement_limit(full, fraction=self.advancement_fraction, frame=frame), self._limit_step(q, coords, direction))
             if art is None and alpha < _BLOCKED_ALPHA:
@@ -936,7 +934,14 @@ class ImplicitSolver:
         evaluated and rejected, an ``AdvancementFrame`` of q's term lists for the first
         Newton step's bound (else None), instead of evaluating q again."""
         model = self.model
-        velocity = self._predicted_step(q)
+        dynamic = np.flatnonzero(self._dynamic)
+        position = self._predicted_position.numpy()
+        rotation = self._predicted_rotation.numpy()
+        predicted = q[dynamic].copy()
+        predicted[:, :3] = position[dynamic]
+        predicted[:, 3:] = np.array([quat_from_matrix(rotation[b]) for b in dynamic]).reshape(-1, 4)
+        velocity = np.zeros((model.num_bodies, 6))
+        velocity[dynamic] = rigid_step_between(q[dynamic], predicted)
         if not np.any(velocity):
             return q, value, grad, hess, contact, None
         if model.contact.advancement_limit(velocity, fraction=self.advancement_fraction) < 1.0:
@@ -949,47 +954,6 @@ class ImplicitSolver:
         if np.isfinite(t_value) and t_value < value:
             return trial, t_value, t_grad, t_hess, t_contact, None
         return q, value, grad, hess, contact, q_lists
-
-    def _predicted_step(self, q: np.ndarray) -> np.ndarray:
-        """(nbodies, 6) rigid step from q to the inertial prediction (``predict_kernel``);
-        zero rows for static bodies."""
-        dynamic = np.flatnonzero(self._dynamic)
-        position = self._predicted_position.numpy()
-        rotation = self._predicted_rotation.numpy()
-        predicted = q[dynamic].copy()
-        predicted[:, :3] = position[dynamic]
-        predicted[:, 3:] = np.array([quat_from_matrix(rotation[b]) for b in dynamic]).reshape(-1, 4)
-        step = np.zeros((self.model.num_bodies, 6))
-        step[dynamic] = rigid_step_between(q[dynamic], predicted)
-        return step
-
-    def _joint_warm_start(self, q, coords, value, grad, hess, contact, jacobian, step_in):
-        """``_warm_start`` for articulated models: the DOF increment whose motion comes
-        closest (least squares over the bodies' rigid coordinates) to the inertial
-        prediction, taken when it stays within the joint limits, conservative advancement
-        certifies the straight path to its poses, and L is lower there.
-
-        Returns (q, coords, value, grad, hess, contact, jacobian) of the start and, when the
-        prediction was evaluated and rejected, an ``AdvancementFrame`` of q's term lists."""
-        unchanged = (q, coords, value, grad, hess, contact, jacobian, None)
-        art = self._articulation
-        velocity = self._predicted_step(q).reshape(-1)
-        if not np.any(velocity):
-            return unchanged
-        rows = self._dofs
-        increment = np.linalg.lstsq(jacobian[rows], velocity[rows], rcond=None)[0]
-        if self._limit_step(q, coords, increment) < 1.0:
-            return unchanged
-        trial = art.retract(q, increment)
-        contact_model = self.model.contact
-        if contact_model.advancement_limit(rigid_step_between(q, trial), fraction=self.advancement_fraction) < 1.0:
-            return unchanged
-        q_lists = contact_model.advancement_frame()
-        t_coords = coords + increment[art.coordinate_dof]
-        t_value, t_grad, t_hess, t_contact, t_jacobian = self._evaluate(trial, t_coords, step_in)
-        if np.isfinite(t_value) and t_value < value:
-            return trial, t_coords, t_value, t_grad, t_hess, t_contact, t_jacobian, None
-        return (*unchanged[:-1], q_lists)
 
     def _pass_through(self, q_from: np.ndarray, q_to: np.ndarray, dt: float) -> str | None:
         """Why the step from ``q_from`` to its solution ``q_to`` moved one body through
