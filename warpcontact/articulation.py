@@ -173,6 +173,25 @@ def _relative_rotation(parent: np.ndarray, child: np.ndarray) -> np.ndarray:
     return quat_mul(quat_conjugate(parent), child)
 
 
+def connected_labels(count: int, links) -> np.ndarray:
+    """(count,) label of each of the nodes 0 .. count - 1: the smallest node of its
+    connected component under ``links`` ((a, b) pairs). One rule for the groups bodies form
+    through joints (the solver's articulation trees, the builder's contact exclusions) and
+    through excluded pairs (the IPC model's vertex patches)."""
+    root = list(range(count))
+
+    def find(node: int) -> int:
+        while root[node] != node:
+            root[node] = root[root[node]]
+            node = root[node]
+        return node
+
+    for a, b in links:
+        first, second = find(int(a)), find(int(b))
+        root[max(first, second)] = min(first, second)
+    return np.array([find(node) for node in range(count)], dtype=np.int64)
+
+
 def _same_group_pairs(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(rows, columns) of the ordered pairs of distinct positions of ``groups`` (a body
     chain's DOF groups, -1 for none) that share a group, an index into the chain's DOFs."""

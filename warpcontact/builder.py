@@ -10,7 +10,7 @@ import warp as wp
 
 from ._runtime import resolve_device
 from ._validate import QUATERNION_TOLERANCE, check_barrier_support, is_positive_finite, is_real, is_whole, shown
-from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, frame_in_body
+from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, connected_labels, frame_in_body
 from .contact import CENTRED_WEIGHTS, CONTACT_MODES, ContactModel
 from .leaf import float32_search
 from .rotation import pose_mul, quat_rotate
@@ -655,20 +655,11 @@ class ModelBuilder:
         if self.articulation_contact == "nonadjacent":
             return sorted({(min(a, b), max(a, b)) for a, b in links})
         static = [body.static for body in self._bodies]
-        root = list(range(len(self._bodies)))
-
-        def find(b):
-            while root[b] != b:
-                b = root[b]
-            return b
-
-        for parent, child in links:
-            if not static[parent]:
-                root[find(child)] = find(parent)
+        group = connected_labels(len(self._bodies), [(parent, child) for parent, child in links if not static[parent]])
         members = {}
         for b in range(len(self._bodies)):
             if not static[b]:
-                members.setdefault(find(b), []).append(b)
-        pairs = {(a, b) for group in members.values() for i, a in enumerate(group) for b in group[i + 1 :]}
-        pairs |= {(min(parent, b), max(parent, b)) for parent, child in links if static[parent] for b in members[find(child)]}
+                members.setdefault(group[b], []).append(b)
+        pairs = {(a, b) for group_members in members.values() for i, a in enumerate(group_members) for b in group_members[i + 1 :]}
+        pairs |= {(min(parent, b), max(parent, b)) for parent, child in links if static[parent] for b in members[group[child]]}
         return sorted(pairs)

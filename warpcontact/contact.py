@@ -120,6 +120,16 @@ def _static_flags(static, num_bodies: int) -> np.ndarray:
     return flags.astype(bool)
 
 
+def hessian_slots(static: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(the non-static bodies in index order, whose 6 x 6 blocks the contact and friction
+    Hessians hold; each body's block index, -1 for a static body, which has none). One rule
+    for every contact model."""
+    bodies = np.flatnonzero(~np.asarray(static, dtype=bool))
+    slot = np.full(len(static), -1, dtype=np.int32)
+    slot[bodies] = np.arange(len(bodies), dtype=np.int32)
+    return bodies, slot
+
+
 def _leading_rows(array: wp.array, count: int) -> wp.array:
     """A device copy of the first ``count`` rows of ``array``. Warp cannot slice an array of
     no rows (brute force over static bodies alone allocates its lists empty)."""
@@ -345,7 +355,7 @@ class ContactModel:
         self.num_bodies = num_bodies
         self.static = static_flags
         # The bodies the Hessians hold, in index order: 6 rows and columns each.
-        self.hessian_bodies = np.flatnonzero(~static_flags)
+        self.hessian_bodies, self._hessian_slot_host = hessian_slots(static_flags)
         self._hessian_shape = (6 * len(self.hessian_bodies), 6 * len(self.hessian_bodies))
         self.device = resolve_device(device)
         self.sync_free = (not self.device.is_cpu) if sync_free is None else bool(sync_free)
@@ -412,9 +422,7 @@ class ContactModel:
             self._root_task_seed = wp.array(np.arange(len(roots), dtype=np.int32), dtype=wp.int32)
             self._triangle_vertices = wp.array(np.concatenate(triangles), dtype=wp.mat33d)
             self._body_dynamic = wp.array((~self.static).astype(np.int32), dtype=wp.int32)
-            slot = np.full(self.num_bodies, -1, dtype=np.int32)
-            slot[self.hessian_bodies] = np.arange(len(self.hessian_bodies), dtype=np.int32)
-            self._hessian_slot = wp.array(slot, dtype=wp.int32)
+            self._hessian_slot = wp.array(self._hessian_slot_host, dtype=wp.int32)
             self._seed_body_pair = wp.array(self.body_pairs, dtype=wp.vec2i)
             self._pose = wp.empty(self.num_bodies, dtype=wp.transformd)
             self._step = wp.empty(self.num_bodies, dtype=rigid_kernels.vec6d)

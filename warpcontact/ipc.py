@@ -34,7 +34,8 @@ import numpy as np
 
 from dataclasses import dataclass
 
-from .contact import ContactEvaluation, LaggedFriction, contact_body_pairs
+from .articulation import connected_labels
+from .contact import ContactEvaluation, LaggedFriction, contact_body_pairs, hessian_slots
 from .rotation import quat_from_rotation_vector, quat_to_matrix, skew
 from ._validate import as_float64_array, check_barrier_support, check_coordinates, validated_poses
 
@@ -83,10 +84,7 @@ class IpcContactModel:
         self.static = np.zeros(self.num_bodies, dtype=bool) if static is None else np.asarray(static, dtype=bool)
         self.dhat = float(dhat)
         self.body_pairs = contact_body_pairs(self.static, exclude_pairs)
-        # As in ContactModel: the Hessians hold the non-static bodies only.
-        self.hessian_bodies = np.flatnonzero(~self.static)
-        self._hessian_slot = np.full(self.num_bodies, -1, dtype=np.int64)
-        self._hessian_slot[self.hessian_bodies] = np.arange(len(self.hessian_bodies))
+        self.hessian_bodies, self._hessian_slot = hessian_slots(self.static)
         vertices, faces, body_of = [], [], []
         offset = 0
         for b, (V, F) in enumerate(meshes):
@@ -108,11 +106,7 @@ class IpcContactModel:
     def _patches(self, exclude_pairs) -> np.ndarray:
         """Patch id per body: ipctk's filter only separates patches, so bodies joined by
         excluded pairs share one patch (all contact inside such a group is off)."""
-        patch = np.arange(self.num_bodies)
-        for a, b in exclude_pairs:
-            old, new = patch[max(a, b)], patch[min(a, b)]
-            patch[patch == old] = new
-        return patch.astype(np.int32)
+        return connected_labels(self.num_bodies, exclude_pairs).astype(np.int32)
 
     def _world_vertices(self, poses: np.ndarray) -> np.ndarray:
         R = quat_to_matrix(poses[:, 3:])

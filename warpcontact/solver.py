@@ -34,7 +34,7 @@ from ._validate import QUATERNION_TOLERANCE, check_time_step, is_real, is_whole
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
-from .articulation import joint_limit_energy
+from .articulation import connected_labels, joint_limit_energy
 from .builder import STEEP_BLEND_EPS, contact_setting_problem, steep_blend
 from .contact import UNSOLVED_HINT, ContactModel, LaggedFriction
 from .rotation import normalized_poses, quat_from_matrix, quat_from_rotation_vector, quat_mul, quat_to_matrix, rigid_step_between, rigid_step_travel
@@ -341,10 +341,7 @@ class ImplicitSolver:
         self._crossing_geometries: dict[int, tuple] = {}
         # The tree (root body) each body's joints tie it to; links of one tree move along joint
         # arcs, which the pass-through check's straight motion does not follow.
-        self._joint_tree = np.arange(n)
-        for joint in model.articulation.joints:
-            if joint.parent >= 0:
-                self._joint_tree[self._joint_tree == self._joint_tree[joint.child]] = self._joint_tree[joint.parent]
+        self._joint_tree = connected_labels(n, [(joint.parent, joint.child) for joint in model.articulation.joints if joint.parent >= 0])
         with wp.ScopedDevice(model.device):
             self._predicted_position = wp.zeros(n, dtype=wp.vec3d)
             self._predicted_rotation = wp.zeros(n, dtype=wp.mat33d)
