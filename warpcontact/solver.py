@@ -1181,5 +1181,13 @@ class ImplicitSolver:
                     state_in.joint_q.grad.assign(state_in.joint_q.grad.numpy() + adj_coords)
                     if not joint_target_is_start and control.joint_target.requires_grad:
                         control.joint_target.grad.assign(control.joint_target.grad.numpy() - art.kp * lam_coords)
+                # The step's outputs' adjoints are consumed, as Warp's adjoints of array writes
+                # consume theirs: a second tape.backward() without tape.zero() then adds its
+                # gradient to the first instead of passing this step's adjoints through again.
+                state_out.body_q.grad.zero_()
+                state_out.body_q_prev.grad.zero_()
+                if model.num_joint_coordinates:
+                    state_out.joint_q.grad.zero_()
+                    state_out.joint_q_prev.grad.zero_()
 
         return backward, arrays, control_values
