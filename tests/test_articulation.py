@@ -7,6 +7,7 @@ import pytest
 import warp as wp
 
 import warpcontact as wc
+from warpcontact.articulation import joint_limit_energy
 from warpcontact.kernels import task as task_kernels
 from warpcontact.robots import add_ant
 from warpcontact.scenes import ground_rectangle
@@ -438,9 +439,31 @@ def test_a_state_whose_coordinates_disagree_with_its_poses_is_refused():
         wc.ImplicitSolver(model).step(state, model.state(), None, 0.01)
 
 
+def test_joint_limit_barrier_derivatives_match_finite_differences():
+    """Value, gradient and Hessian of the limit barrier at both limits, deep in the margin and
+    just inside its edge, against central differences; zero beyond the margin, +inf past a limit."""
+    lower, upper = np.array([-1.0, -0.5, 0.0]), np.array([1.0, 0.5, 2.0])
+    margin, stiffness = np.array([0.1, 0.05, 0.3]), np.array([2.0, 50.0, 0.7])
+    q = np.array([0.999, -0.46, 0.2999])  # near the upper limit, the lower one, the margin's edge
+    value, grad, hess = joint_limit_energy(q, lower, upper, margin, stiffness)
+    assert np.all(value > 0)
+    h = 1e-7
+    plus = joint_limit_energy(q + h, lower, upper, margin, stiffness)
+    minus = joint_limit_energy(q - h, lower, upper, margin, stiffness)
+    np.testing.assert_allclose(grad, (plus[0] - minus[0]) / (2 * h), rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(hess, (plus[1] - minus[1]) / (2 * h), rtol=1e-6, atol=1e-9)
+    assert grad[0] > 0 > grad[1]  # pushed away from each limit
+    clear = joint_limit_energy(np.array([0.5, 0.0, 1.0]), lower, upper, margin, stiffness)
+    assert all(np.all(part == 0.0) for part in clear)
+    assert np.all(np.isinf(joint_limit_energy(np.array([1.0, 0.0, 1.0]), lower, upper, margin, stiffness)[0]))
+
+
 def test_start_state_gradient_along_a_consistent_perturbation_matches_finite_differences():
     """body_q, body_q_prev and joint_q hold one configuration; their adjoints together give the
-    derivative along a perturbation of all three (a double pendulum with PD and a limit)."""
+    derivative along a perturbation of all three (a double pendulum with PD and a limit). The
+    shoulder starts inside its limit's margin and is driven past the limit, so the limit's
+    barrier acts in every step (a start at 0.4 rad never reached it, and a 10% error in the
+    barrier's Hessian passed)."""
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
     upper = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, -0.5, 0, 0, 0, 1), name="upper")
     lower = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, -1.5, 0, 0, 0, 1), name="lower")
@@ -450,7 +473,7 @@ def test_start_state_gradient_along_a_consistent_perturbation_matches_finite_dif
     art = model.articulation
     solver = wc.ImplicitSolver(model, tolerance=1e-13)
     weights = np.array([[0.3, 0.0, -0.7], [1.1, 0.0, 0.4]])
-    angles = np.array([0.4, -0.3])
+    angles = np.array([0.95, -0.3])
 
     def rollout(delta, tape=None):
         state = model.state()
@@ -461,7 +484,7 @@ def test_start_state_gradient_along_a_consistent_perturbation_matches_finite_dif
             arr.assign(art.initial_coordinates + delta)
         states = [state] + [model.state() for _ in range(6)]
         control = model.control()
-        control.joint_target.assign([0.9, 0.0])
+        control.joint_target.assign([1.4, 0.0])
         with tape or contextlib.nullcontext():
             for t in range(6):
                 solver.step(states[t], states[t + 1], control, 0.01)
@@ -469,6 +492,8 @@ def test_start_state_gradient_along_a_consistent_perturbation_matches_finite_dif
 
     tape = wp.Tape()
     states = rollout(angles, tape)
+    shoulder = np.array([s.joint_q.numpy()[0] for s in states])
+    assert np.all(shoulder > art.upper[0] - art.limit_margin[0]) and np.all(shoulder < art.upper[0])
     adjoint = np.zeros((2, 7))
     adjoint[:, :3] = weights
     states[-1].body_q.grad.assign(adjoint)

@@ -4,7 +4,7 @@ normal forces from each model's own barrier (zero beyond its support) and exact 
 import numpy as np
 import pytest
 import warp as wp
-from helpers_rigid import box
+from helpers_rigid import box, perturbed, quat, quat_mul, skew
 from test_solver import assert_frictional_gradients, grid_ground, incline_model, position_loss_kernel, record, rollout
 
 import warpcontact as wc
@@ -77,6 +77,35 @@ def test_no_friction_beyond_the_support_and_friction_inside(mode, dhat):
             assert value == 0.0 and np.all(grad == 0.0)
             if mode == "sdrs":  # listed by the broad phase, yet no normal force
                 assert lagged.pairs > 0 and np.all(lagged.data.normal_force.numpy() == 0.0)
+
+
+@pytest.mark.parametrize("mode", ["bsh", "sdrs", "ipc"])
+@pytest.mark.parametrize("slip", [3e-5, 1e-2])
+def test_friction_terms_match_finite_differences(mode, slip):
+    """The friction term's gradient and Hessian in rigid coordinates against central
+    differences of its value and gradient, at a slip within the smoothing length (1e-4 m,
+    where the smoothed law is curved most) and beyond it, the box also turned. As in
+    helpers_rigid.fd_check, the gradient at a turned pose is taken about that pose, so
+    differences of it carry the exponential map's bracket -1/2 [g_theta]x."""
+    model = box_on_ground(mode, gap=0.004)
+    poses = model.initial_q
+    lagged = lagged_friction(model, poses)
+    contact = model.contact
+    at = poses.copy()
+    at[1, :2] += (slip, -0.4 * slip)
+    at[1, 3:] = quat_mul(quat([0.2, -0.1, 1.0], 20.0 * slip), poses[1, 3:])
+    value, grad, hess = contact.friction_terms(lagged, poses=at)
+    assert lagged.pairs > 0 and value > 0
+    h = 1e-7 if slip < 1e-3 else 1e-6
+    fd_grad, fd_hess = np.zeros(6), np.zeros((6, 6))
+    for k in range(6):
+        plus = contact.friction_terms(lagged, poses=perturbed(at, 1, k, h))
+        minus = contact.friction_terms(lagged, poses=perturbed(at, 1, k, -h))
+        fd_grad[k] = (plus[0] - minus[0]) / (2 * h)
+        fd_hess[:, k] = (plus[1][6:] - minus[1][6:]) / (2 * h)
+    fd_hess[3:, 3:] += 0.5 * skew(grad[9:12])
+    assert np.abs(fd_grad - grad[6:]).max() <= 2e-6 * np.abs(grad[6:]).max()
+    assert np.abs(fd_hess - hess).max() <= 2e-6 * np.abs(hess).max()
 
 
 @pytest.mark.parametrize("mode", ["bsh", "sdrs"])
