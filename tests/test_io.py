@@ -501,6 +501,18 @@ def _author(path, edit):
         (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:task:horizon", Sdf.ValueTypeNames.String).Set("long"), r"prim /World/physicsScene: warpcontact:task:horizon must be a whole number, got 'long'"),
         (lambda st: st.GetPrimAtPath("/World/box").CreateAttribute("warpcontact:pd:kpLinear", Sdf.ValueTypeNames.DoubleArray).Set([1.0, 2.0]), r"prim /World/box: warpcontact:pd:kpLinear must be 1 or 3 numbers"),
         (lambda st: st.GetPrimAtPath("/World/box").CreateAttribute("warpcontact:control:dofs", Sdf.ValueTypeNames.String).Set("x"), r"prim /World/box: warpcontact:control:dofs must be a list of strings, got 'x'"),
+        # Values of another type were converted: a bool timeStep of 1 ran frames of 1 s, the
+        # text "0.1" ran 0.1 s, bool arrays became positions, text arrays numbers.
+        (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:timeStep", Sdf.ValueTypeNames.Bool).Set(True), r"prim /World/physicsScene: warpcontact:timeStep must be a number, got True"),
+        (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:timeStep", Sdf.ValueTypeNames.String).Set("0.1"), r"prim /World/physicsScene: warpcontact:timeStep must be a number, got '0.1'"),
+        (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:task:name", Sdf.ValueTypeNames.Int).Set(3), r"prim /World/physicsScene: warpcontact:task:name must be text, got 3"),
+        (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:task:sampleLow", Sdf.ValueTypeNames.StringArray).Set(["0"]), r"prim /World/physicsScene: warpcontact:task:sampleLow must be a list of numbers"),
+        (lambda st: st.GetPrimAtPath("/World/box").CreateAttribute("warpcontact:target:position", Sdf.ValueTypeNames.BoolArray).Set([True, False, True]), r"prim /World/box: warpcontact:target:position must be a list of numbers"),
+        (lambda st: st.GetPrimAtPath("/World/box").CreateAttribute("warpcontact:pd:kpLinear", Sdf.ValueTypeNames.Bool).Set(True), r"prim /World/box: warpcontact:pd:kpLinear must be 1 or 3 numbers, got True"),
+        (lambda st: st.GetPrimAtPath("/World/box").CreateAttribute("warpcontact:control:dofs", Sdf.ValueTypeNames.IntArray).Set([1, 2]), r"prim /World/box: warpcontact:control:dofs must be a list of strings"),
+        # A non-finite transform ended in numpy's "SVD did not converge", naming nothing.
+        (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).GetOrderedXformOps()[0].Set(Gf.Vec3d(0, 0, float("nan"))), r"prim /World/box: /World/box.xformOp:translate must be finite, got \(0, 0, nan\)"),
+        (lambda st: UsdGeom.Xform.Define(st, "/World").AddScaleOp().Set(Gf.Vec3f(float("inf"), 1, 1)), r"prim /World/\w+: /World.xformOp:scale must be finite, got \(inf, 1, 1\)"),
         (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:timestep", Sdf.ValueTypeNames.Double).Set(0.01), r"prim /World/physicsScene: unknown attribute warpcontact:timestep here \(did you mean warpcontact:timeStep\?\)"),
         (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:task:learningrate", Sdf.ValueTypeNames.Double).Set(0.1), r"prim /World/physicsScene: unknown attribute warpcontact:task:learningrate here \(did you mean warpcontact:task:learningRate\?\)"),
         (lambda st: st.GetPrimAtPath("/World/ground").CreateAttribute("warpcontact:target:position", Sdf.ValueTypeNames.Double3).Set(Gf.Vec3d(1, 0, 0)), r"prim /World/ground: unknown attribute warpcontact:target:position here \(it belongs on a rigid-body prim\)"),
@@ -518,6 +530,10 @@ def test_unreadable_files_are_clear_errors(tmp_path):
     (tmp_path / "broken.usda").write_text("#usda 1.0\n( not a layer }}}\n")
     with pytest.raises(ValueError, match=r"broken\.usda: not a readable USD stage \(.*broken\.usda:2"):
         io.load_scene(tmp_path / "broken.usda")
+    # USD's error quotes the bytes, and reading it raised UnicodeDecodeError naming nothing.
+    (tmp_path / "latin1.usda").write_bytes(b'#usda 1.0\ndef Xform "W" {\n    custom string note = "caf\xe9"\n}\n')
+    with pytest.raises(ValueError, match=r"latin1\.usda: not a readable USD stage \(it holds bytes that are not UTF-8"):
+        io.load_scene(tmp_path / "latin1.usda")
     (tmp_path / "binary.usda").write_bytes(b"\x00\x01 not text")
     with pytest.raises(ValueError, match=r"binary\.usda: not a readable USD stage"):
         io.load_scene(tmp_path / "binary.usda")

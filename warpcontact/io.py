@@ -558,8 +558,20 @@ def _align_axis(mesh, axis: str):
     return mesh
 
 
-def _world_matrix(prim, UsdGeom, Usd):
-    return UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+def _world_matrix(prim, UsdGeom, Usd, source: str):
+    """A prim's local-to-world matrix; ValueError naming the transform attribute (the prim's
+    own or an ancestor's) whose value is not finite (an SVD failed on it, naming nothing)."""
+    matrix = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    if np.isfinite(np.array(matrix)).all():
+        return matrix
+    for attr in _transform_attributes(prim, UsdGeom):
+        value = attr.Get()
+        if value is None:
+            continue
+        numbers = [value.GetReal(), *value.GetImaginary()] if hasattr(value, "GetReal") else value
+        if not np.isfinite(np.asarray(numbers, dtype=np.float64)).all():
+            raise ValueError(f"{source}: prim {prim.GetPath()}: {attr.GetPath()} must be finite, got {value}")
+    raise ValueError(f"{source}: prim {prim.GetPath()}: its world transform is not finite (its transform values overflow)")
 
 
 def _linear_part(m) -> np.ndarray:
@@ -720,10 +732,14 @@ def _in_frame(points: np.ndarray, matrix, frame: np.ndarray) -> np.ndarray:
 
 def _usd_error_text(exc) -> str:
     """The first message of a USD error, without the C++ function and source line."""
-    for line in str(exc).splitlines():
+    try:
+        text = str(exc)
+    except UnicodeDecodeError:  # the message quotes the file's bytes, and they are not UTF-8
+        return "it holds bytes that are not UTF-8 text; USD files are UTF-8"
+    for line in text.splitlines():
         if " : " in line:
             return line.split(" : ", 1)[1].strip().strip("'")
-    return str(exc).strip()
+    return text.strip()
 
 
 def load_scene(path) -> Scene:
@@ -817,7 +833,7 @@ def load_scene(path) -> Scene:
                 f"{source}: prim {prim_path}: a kinematic body moved by time-sampled transforms is not supported (it would be "
                 "held at its default pose as a static body); remove the animation or make the body dynamic"
             )
-        matrix = _world_matrix(prim, UsdGeom, Usd)
+        matrix = _world_matrix(prim, UsdGeom, Usd, source)
         linear = _linear_part(matrix)
         body_frames[str(prim_path)] = (_frame(matrix), _unscaled(linear))
         if np.linalg.det(linear) < 0:
@@ -841,7 +857,7 @@ def load_scene(path) -> Scene:
         # A prim that resets the transform stack is placed in the world, not in its parent.
         if parent.IsA(UsdGeom.Xformable) and not UsdGeom.Xformable(prim).GetResetXformStack():
             # Velocities are authored "in the same space as the node's xform": its parent's.
-            above = _linear_part(_world_matrix(parent, UsdGeom, Usd))
+            above = _linear_part(_world_matrix(parent, UsdGeom, Usd, source))
             if not np.array_equal(above, np.eye(3)):
                 body.linear_velocity = body.linear_velocity @ above
                 # An angular velocity is a pseudovector: a mirroring parent also reverses it.
@@ -878,10 +894,10 @@ def load_scene(path) -> Scene:
                 if owner:
                     raise ValueError(f"{source}: prim {prim_path}: a Plane collider is infinite; it cannot belong to rigid body {owner}")
                 # Its size depends on every other body: built after them.
-                planes.append((str(prim_path), _frame(_world_matrix(prim, UsdGeom, Usd)), _axis_token(desc.axis)))
+                planes.append((str(prim_path), _frame(_world_matrix(prim, UsdGeom, Usd, source)), _axis_token(desc.axis)))
                 continue
             approximation = _approximation(kind, desc, prim, source)
-            matrix = _world_matrix(prim, UsdGeom, Usd)
+            matrix = _world_matrix(prim, UsdGeom, Usd, source)
             linear = _linear_part(matrix)
             owner_frame, owner_unscaled = body_frames[owner] if owner else (None, True)
             if adopted or not (_scaled_along_own_axes(linear) and np.linalg.det(linear) > 0 and owner_unscaled):
@@ -1052,7 +1068,7 @@ def _check_weld(stage, body: BodySpec, joint_path: str, desc, static_bodies: dic
         elif end in static_bodies:
             owner = static_bodies[end].pose
         elif end:
-            owner = _frame(_world_matrix(stage.GetPrimAtPath(end), UsdGeom, Usd))
+            owner = _frame(_world_matrix(stage.GetPrimAtPath(end), UsdGeom, Usd, source))
             owner[:3] *= meters
         else:
             owner = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
@@ -1564,7 +1580,7 @@ def target_problem(body: BodySpec) -> str | None:
 
 def _read_warpcontact_body(prim, body: BodySpec, meters: float, source: str):
     target = _cast_attr(prim, "target:position", _numbers, source)
-    tolerance = _cast_attr(prim, "target:tolerance", float, source)
+    tolerance = _cast_attr(prim, "target:tolerance", _number, source)
     if target is None and tolerance is not None:
         raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:target:tolerance is authored without a warpcontact:target:position, which makes a body a target")
     if target is not None:
@@ -1593,7 +1609,7 @@ def _cast_attr(prim, attr_name: str, cast, source: str):
     try:
         return cast(value)
     except (TypeError, ValueError, OverflowError):
-        kind = {_whole: "a whole number", float: "a number", _vector3: "1 or 3 numbers", _numbers: "a list of numbers", _strings: "a list of strings"}.get(cast, cast.__name__)
+        kind = {_whole: "a whole number", _number: "a number", _text: "text", _vector3: "1 or 3 numbers", _numbers: "a list of numbers", _strings: "a list of strings"}[cast]
         raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:{attr_name} must be {kind}, got {value!r}") from None
 
 
@@ -1605,11 +1621,28 @@ def _whole(value) -> int:
     return int(value)
 
 
+def _number(value) -> float:
+    """A number, authored as one: float() read a bool as 0 or 1 and the text "0.1" as 0.1
+    (a `bool warpcontact:timeStep = 1` ran frames of 1 s)."""
+    if isinstance(value, (bool, str, np.bool_)):
+        raise ValueError(value)
+    return float(value)
+
+
+def _text(value) -> str:
+    if not isinstance(value, str):
+        raise ValueError(value)
+    return value
+
+
 def _numbers(value) -> np.ndarray:
-    """Numbers, flat; text is not numbers (numpy would read "5" as 5)."""
+    """Numbers, flat; text and bools are not numbers (numpy read "5" as 5 and True as 1)."""
     if isinstance(value, str):
         raise ValueError(value)
-    return np.asarray(value, dtype=np.float64).reshape(-1)
+    array = np.asarray(value)
+    if array.dtype.kind not in "iuf":
+        raise ValueError(value)
+    return array.astype(np.float64).reshape(-1)
 
 
 def _vector3(value) -> np.ndarray:
@@ -1621,44 +1654,44 @@ def _vector3(value) -> np.ndarray:
 
 
 def _strings(value) -> tuple:
-    if isinstance(value, str):
+    if isinstance(value, str) or not all(isinstance(v, str) for v in value):
         raise ValueError(value)
-    return tuple(str(v) for v in value)
+    return tuple(value)
 
 
 # The warpcontact: namespace (module docstring): attribute -> (field, cast) on the PhysicsScene
 # prim (settings, task) and on rigid-body prims; target:position and task:sample* are read
 # apart (units, tuples).
 _SETTING_ATTRIBUTES = {
-    "timeStep": ("time_step", float),
+    "timeStep": ("time_step", _number),
     "frames": ("frames", _whole),
-    "contactStiffness": ("contact_stiffness", float),
-    "eps": ("eps", float),
-    "centredWeight": ("centred_weight", str),
-    "leafPrecision": ("leaf_precision", str),
-    "friction": ("friction", float),
-    "frictionSmoothing": ("friction_smoothing", float),
-    "contactMode": ("contact_mode", str),
+    "contactStiffness": ("contact_stiffness", _number),
+    "eps": ("eps", _number),
+    "centredWeight": ("centred_weight", _text),
+    "leafPrecision": ("leaf_precision", _text),
+    "friction": ("friction", _number),
+    "frictionSmoothing": ("friction_smoothing", _number),
+    "contactMode": ("contact_mode", _text),
 }
 _TASK_ATTRIBUTES = {
-    "task:name": ("name", str),
-    "task:control": ("control", str),
+    "task:name": ("name", _text),
+    "task:control": ("control", _text),
     "task:horizon": ("horizon", _whole),
     "task:recedingHorizon": ("receding_horizon", _whole),
-    "task:learningRate": ("learning_rate", float),
+    "task:learningRate": ("learning_rate", _number),
     "task:iterations": ("iterations", _whole),
     "task:recedingStride": ("receding_stride", _whole),
     "task:quick:horizon": ("quick_horizon", _whole),
     "task:quick:recedingHorizon": ("quick_receding_horizon", _whole),
-    "task:quick:learningRate": ("quick_learning_rate", float),
+    "task:quick:learningRate": ("quick_learning_rate", _number),
     "task:quick:iterations": ("quick_iterations", _whole),
     "task:quick:recedingStride": ("quick_receding_stride", _whole),
 }
 _BODY_ATTRIBUTES = {
     "pd:kpLinear": ("kp_linear", _vector3),
     "pd:kdLinear": ("kd_linear", _vector3),
-    "pd:kpAngular": ("kp_angular", float),
-    "pd:kdAngular": ("kd_angular", float),
+    "pd:kpAngular": ("kp_angular", _number),
+    "pd:kdAngular": ("kd_angular", _number),
     "control:dofs": ("control_dofs", _strings),
     "group": ("group", _whole),
 }
