@@ -418,6 +418,22 @@ def test_commands_check_their_output_folder_before_any_work(tmp_path, capsys, ar
     assert main(argv + ["--out", str(out), "--overwrite"]) == 0
 
 
+@pytest.mark.parametrize("command", [["run", "--quick", "--iters", "1"], ["simulate", "--frames", "1"]])
+def test_a_scene_that_is_one_of_the_outputs_is_refused(tmp_path, monkeypatch, capsys, command):
+    """A scene saved as OUT/trajectory.usda was called "an earlier run's results", and with
+    --overwrite the run replaced it with its trajectory (the next run found no bodies)."""
+    from warpcontact.scenes import shipped_scene
+
+    scene = tmp_path / "trajectory.usda"
+    scene.write_bytes(shipped_scene("push").read_bytes())
+    original = scene.read_bytes()
+    monkeypatch.chdir(tmp_path)
+    for given in (str(scene), "trajectory.usda"):
+        assert main([command[0], given, *command[1:], "--out", str(tmp_path), "--overwrite"]) == 2
+        assert "the input scene is this command's output trajectory.usda" in capsys.readouterr().err
+    assert scene.read_bytes() == original
+
+
 def test_shipped_scenes_are_found_from_any_folder(tmp_path, monkeypatch, capsys):
     """A task name means the scene installed with the package, not ./scenes of the caller."""
     from warpcontact.scenes import SCENE_NAMES, shipped_scene

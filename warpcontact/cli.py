@@ -185,6 +185,17 @@ def _refuse_earlier_results(out: Path, names: tuple, overwrite: bool):
             raise FileExistsError(f"{out / name} holds an earlier run's results")
 
 
+def _refuse_input_among_outputs(args, out: Path):
+    """ValueError when the scene a command reads is one of the files it writes: a run on
+    OUT/trajectory.usda called the scene an earlier run's results, and with --overwrite
+    replaced it with the trajectory (no physics schemas: the next run had no bodies)."""
+    inputs = [getattr(args, name, None) for name in ("task", "scene")] + list(getattr(args, "scenes", None) or [])
+    outputs = {(out / name).resolve(): name for name in args.outputs}
+    for given in inputs:
+        if given is not None and Path(given).resolve() in outputs:
+            raise ValueError(f"{given}: the input scene is this command's output {outputs[Path(given).resolve()]} in {out}, which it would replace; choose another --out")
+
+
 def _refuse_unwritable_names(out: Path, names: tuple):
     """ValueError when an output's name in OUT is taken by a folder (or anything but a file),
     found before the work rather than when its results are written."""
@@ -758,6 +769,7 @@ def main(argv=None) -> int:
             # a resumed run continues the one that was allowed to start there.
             out = _output_folder(args.out)
             _refuse_unwritable_names(out, args.outputs)
+            _refuse_input_among_outputs(args, out)
             if not getattr(args, "resume", False):
                 _refuse_earlier_results(out, args.outputs, args.overwrite)
         return args.func(args)
