@@ -1659,6 +1659,7 @@ def test_a_joint_far_from_the_origin_loads_despite_float32_anchors(tmp_path):
         (lambda s: setattr(s.bodies[0], "target_position", np.zeros(3)), r"static body 'ground' has a target, which only a dynamic body takes"),
         (lambda s: setattr(s.settings, "frames", True), r"warpcontact:frames: expected a number, got True"),
         (lambda s: setattr(s.settings, "frames", 2.5), r"warpcontact:frames: expected a whole number, got 2.5"),
+        (lambda s: setattr(s.task, "horizon", 2**62), r"warpcontact:task:horizon: expected a whole number a 32-bit int holds, got 4611686018427387904"),
     ],
 )
 def test_save_scene_refuses_what_load_scene_would(tmp_path, change, message):

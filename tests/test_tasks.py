@@ -283,6 +283,7 @@ def test_quick_uses_the_scene_preset_or_caps_the_paper_settings():
     ("field", "value", "message"),
     [
         ("iterations", 0, "warpcontact:task:iterations must be a whole number >= 1, got 0"),
+        ("horizon", 10**9, "warpcontact:task:horizon must be a whole number from 1 to 1,000,000, got 1000000000"),
         ("learning_rate", -0.1, "warpcontact:task:learningRate must be positive and finite, got -0.1"),
         ("learning_rate", float("nan"), "warpcontact:task:learningRate must be positive and finite"),
         ("receding_horizon", -2, "warpcontact:task:recedingHorizon must be a whole number >= 0, got -2"),
@@ -335,8 +336,10 @@ def test_a_scene_built_in_python_is_refused_a_goal_that_is_not_finite(field, val
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
-        (dict(horizon=0), "settings.horizon must be a whole number >= 1, got 0"),
-        (dict(horizon=8.5), "settings.horizon must be a whole number >= 1, got 8.5"),
+        (dict(horizon=0), "settings.horizon must be a whole number from 1 to 1,000,000, got 0"),
+        (dict(horizon=8.5), "settings.horizon must be a whole number from 1 to 1,000,000, got 8.5"),
+        # Allocated up front: 1e9 frames ended in numpy's MemoryError, naming nothing.
+        (dict(horizon=10**9, receding_horizon=2, receding_stride=2), "settings.horizon must be a whole number from 1 to 1,000,000, got 1000000000"),
         (dict(iterations=0), "settings.iterations must be a whole number >= 1, got 0"),
         (dict(learning_rate=float("nan")), "settings.learning_rate must be positive and finite, got nan"),
         (dict(receding_horizon=-4), "settings.receding_horizon must be a whole number >= 0, got -4"),

@@ -1841,6 +1841,8 @@ def _usd_scalar(value, kind, Sdf, name: str):
     if kind == Sdf.ValueTypeNames.Int:
         if not float(value).is_integer():  # int() truncated 2.5 frames to 2
             raise ValueError(f"warpcontact:{name}: expected a whole number, got {value!r}")
+        if not -(2**31) <= int(value) < 2**31:  # a raw pxr type-mismatch error ('long')
+            raise ValueError(f"warpcontact:{name}: expected a whole number a 32-bit int holds, got {value!r}")
         return int(value)
     return str(value)
 

@@ -166,7 +166,7 @@ class TaskSettings:
         window = self.window if is_whole(self.horizon) and is_whole(self.receding_horizon) else None
         betas = tuple(self.betas) if isinstance(self.betas, (tuple, list, np.ndarray)) else ()
         for name, rule, ok in (
-            ("horizon", "a whole number >= 1", is_whole(self.horizon) and self.horizon >= 1),
+            ("horizon", f"a whole number from 1 to {MAX_HORIZON:,}", is_whole(self.horizon) and 1 <= self.horizon <= MAX_HORIZON),
             ("receding_horizon", "a whole number >= 0", is_whole(self.receding_horizon) and self.receding_horizon >= 0),
             ("receding_stride", f"a whole number >= 1 and at most the window ({window})", is_whole(self.receding_stride) and window is not None and 1 <= self.receding_stride <= window),
             ("iterations", "a whole number >= 1", is_whole(self.iterations) and self.iterations >= 1),
@@ -191,6 +191,12 @@ class TaskResult:
     trajectory: np.ndarray  # (frames + 1, nbodies, 7) centre-of-mass poses; the executed ones when extra["stopped"]
     extra: dict = field(default_factory=dict)
 
+
+# The most frames a task may plan: its plan and trajectory are allocated up front, and a
+# horizon of 1e9 frames ended in a numpy MemoryError (44.7 GiB) instead of naming the
+# attribute. A million frames is 11 hours at the paper's 0.04 s and ~3 hours of stepping
+# per rollout at 10 ms a frame; the paper's longest task plans 700.
+MAX_HORIZON = 1_000_000
 
 # Long-range gradients can be ~1e-9 (far objects, small mu); a customary eps of 1e-8 would
 # then shrink Adam's steps by orders of magnitude. In float64 a tiny eps keeps steps
