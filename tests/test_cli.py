@@ -131,6 +131,33 @@ def test_bench_frame_writes_results_and_plot(tmp_path):
     assert (tmp_path / "frame.png").stat().st_size > 1000
 
 
+def test_the_strike_is_set_up_across_the_stage_up_axis():
+    """bench frame's strike on a Y-up scene: the same set-up as on the Z-up scene, turned
+    (it moved the rod along y, part way up, and launched it partly vertically); a striker
+    straight above its target is an error naming both (it divided by zero and then blamed
+    the scene file for a NaN pose)."""
+    from warpcontact import bench, scenes
+    from warpcontact.rotation import quat_mul, quat_rotate
+
+    z_up = scenes.build_scene("push")
+    y_up = scenes.build_scene("push")
+    turn = np.array([-np.sin(np.pi / 4), 0.0, 0.0, np.cos(np.pi / 4)])  # -90 degrees about x: z -> y
+    y_up.up_axis = "Y"
+    for body in y_up.bodies:
+        body.pose = np.array([*quat_rotate(turn, body.pose[:3]), *quat_mul(turn, body.pose[3:])])
+    setups = [bench.strike_setup(scene, gap=0.02, speed=1.0) for scene in (z_up, y_up)]
+    rod_z, rod_y = (scene.body("rod") for scene in (z_up, y_up))
+    np.testing.assert_allclose(rod_y.pose[:3], quat_rotate(turn, rod_z.pose[:3]), atol=1e-12)
+    np.testing.assert_allclose(rod_y.linear_velocity, quat_rotate(turn, rod_z.linear_velocity), atol=1e-12)
+    np.testing.assert_allclose(setups[1]["control_target"], quat_rotate(turn, np.array(setups[0]["control_target"])), atol=1e-12)
+    assert setups[0]["struck"] == setups[1]["struck"] and rod_z.linear_velocity[2] == 0.0
+
+    above = scenes.build_scene("push")
+    above.body("rod").pose[:2] = above.body(setups[0]["struck"]).pose[:2]
+    with pytest.raises(ValueError, match="the striker 'rod' stands straight above or below 'box'"):
+        bench.strike_setup(above, gap=0.02, speed=1.0)
+
+
 def test_bench_frame_times_brute_contact_only_above_the_cap(tmp_path):
     args = ["bench", "frame", "--scenes", str(_tiny_billiards(tmp_path)), "--models", "bsh", "brute", "--frames", "1", "--warmup", "0", "--brute-max-triangles", "0", "--out", str(tmp_path)]
     assert main(args) == 0

@@ -511,20 +511,27 @@ def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path =
     return scene
 
 
-def _horizontal_radius(body) -> float:
+def _horizontal(vectors: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Vectors' components across the stage's up axis (a unit axis vector: exact for Z and Y)."""
+    return vectors - np.multiply.outer(vectors @ up, up)
+
+
+def _horizontal_radius(body, up: np.ndarray) -> float:
     """Largest horizontal distance of a body's vertices from its prim origin (m)."""
     world = quat_rotate(body.pose[3:], body.vertices)
-    return float(np.linalg.norm(world[:, :2], axis=1).max())
+    return float(np.linalg.norm(_horizontal(world, up), axis=1).max())
 
 
 def strike_setup(scene, *, gap: float, speed: float) -> dict:
     """Put the scene's striker (``cue``, else ``rod``) ``gap`` metres (horizontal bounding
-    circles) in front of the dynamic body nearest to it, moving into it at ``speed`` m/s,
-    so the frames that follow involve contact. A PD-actuated striker (the rod) gets its
-    target on the far side of that body, so it keeps pushing.
+    circles, across the stage's up axis) in front of the dynamic body nearest to it, moving
+    into it at ``speed`` m/s, so the frames that follow involve contact. A PD-actuated striker
+    (the rod) gets its target on the far side of that body, so it keeps pushing.
 
     Returns a description (striker, struck body, gap, speed, direction) and sets
     ``control_target`` (prim-frame translation of the striker's PD target, or None).
+    ValueError when the striker stands straight above or below that body (no horizontal
+    direction to strike along).
     """
     names = [b.name for b in scene.bodies]
     striker_name = "cue" if "cue" in names else "rod" if "rod" in names else None
@@ -532,16 +539,19 @@ def strike_setup(scene, *, gap: float, speed: float) -> dict:
         raise ValueError(f"{scene.source or '<scene>'}: no 'cue' or 'rod' body to strike with")
     striker = scene.body(striker_name)
     others = [b for b in scene.bodies if not b.static and b is not striker]
-    struck = min(others, key=lambda b: np.linalg.norm(b.pose[:2] - striker.pose[:2]))
-    direction = struck.pose[:2] - striker.pose[:2]
-    direction /= np.linalg.norm(direction)
-    reach = _horizontal_radius(striker) + _horizontal_radius(struck)
-    striker.pose[:2] = struck.pose[:2] - direction * (reach + gap)
-    striker.linear_velocity = np.array([*(speed * direction), 0.0])
+    # The horizontal plane is the stage's: a Y-up scene's rod was moved along y, part way up.
+    up = np.array([0.0, 1.0, 0.0]) if scene.up_axis == "Y" else np.array([0.0, 0.0, 1.0])
+    struck = min(others, key=lambda b: np.linalg.norm(_horizontal(b.pose[:3] - striker.pose[:3], up)))
+    offset = _horizontal(struck.pose[:3] - striker.pose[:3], up)
+    reach = _horizontal_radius(striker, up) + _horizontal_radius(struck, up)
+    if np.linalg.norm(offset) <= 1e-9 * reach:
+        raise ValueError(f"{scene.source or '<scene>'}: the striker {striker_name!r} stands straight above or below {struck.name!r}: there is no horizontal direction to strike it along")
+    direction = offset / np.linalg.norm(offset)
+    striker.pose[:3] = _horizontal(struck.pose[:3], up) - direction * (reach + gap) + (striker.pose[:3] @ up) * up
+    striker.linear_velocity = speed * direction
     striker.angular_velocity = np.zeros(3)
     pd = bool(np.any(striker.kp_linear > 0))
-    target = striker.pose[:3].copy()
-    target[:2] += direction * (2 * reach + gap)
+    target = striker.pose[:3] + direction * (2 * reach + gap)
     return {
         "striker": striker_name,
         "struck": struck.name,
