@@ -880,7 +880,7 @@ def accuracy_scene(*, balls: int = 3, points_per_ball: int = 18, gap: float = 0.
     scene = benchmark_rack(*fibonacci_ball(points_per_ball))
     keep = {"ground", "cue", *(f"ball{i:02d}" for i in range(balls))}
     scene.bodies = [b for b in scene.bodies if b.name in keep]
-    setup = strike_setup(scene, gap=gap, speed=speed)
+    strike_setup(scene, gap=gap, speed=speed)
     for i, b in enumerate(b for b in scene.bodies if b.name.startswith("ball")):
         b.target_position = b.pose[:3] + np.array([1.0, 0.5 * (-1) ** i, 0.0])
         b.target_tolerance = 0.0
@@ -889,8 +889,9 @@ def accuracy_scene(*, balls: int = 3, points_per_ball: int = 18, gap: float = 0.
     ground = ground_rectangle(*(hi - lo), centre=(lo + hi) / 2)
     scene.bodies = [ground if b.name == "ground" else b for b in scene.bodies]
     cue = scene.body("cue")
+    controls = np.array([0.0, 0.0, *cue.linear_velocity[:2]])  # the rack is Z-up
     cue.linear_velocity = np.zeros(3)  # the controls carry it (initial-state task)
-    return scene, np.array([0.0, 0.0, *(speed * np.asarray(setup["direction"]))])
+    return scene, controls
 
 
 def _accuracy_run(scene, controls, *, mode: str, eps: float, tolerance: float, frames: int, dev, leaf_precision: str = "float64"):
