@@ -550,8 +550,9 @@ def test_bad_model_input_raises_clear_errors():
         (dict(max_leaf_iterations=2**31), "max_leaf_iterations: must be a whole number from 1 to 2147483647, got 2147483648"),
         (dict(term_chunks=1.5), "term_chunks: must be a whole number from 1 to 2147483647, got 1.5"),
         # Strings were read as truthy flags (both bodies static: no pair, no contact) and 0.3 as True.
-        (dict(static=["False", "True"]), "static: entry 0 is 'False'; expected True/False"),
-        (dict(static=[0.3, 0]), "static: entry 0 is 0.3"),
+        (dict(static=["False", "True"]), r"static: entry 0: expected True/False \(or 1/0\), got 'False'"),
+        (dict(static=[0.3, 0]), "static: entry 0: expected True/False .*, got 0.3"),
+        (dict(sync_free="no"), r"sync_free: expected True/False \(or 1/0\), got 'no'"),
         (dict(names=["ball", "ball"]), "names: 'ball' names more than one body"),
         (dict(exclude_pairs=[(0,)]), r"exclude_pairs: \(0,\) is not a pair of distinct body indices in \[0, 2\)"),
         (dict(exclude_pairs=[(0.7, 1.2)]), r"exclude_pairs: \(0.7, 1.2\) is not a pair"),

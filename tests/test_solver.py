@@ -831,12 +831,46 @@ def test_bad_input_raises_before_writing_state():
         (dict(density=1.0, center_of_mass=[0.0, 0.0]), r"'crate': center_of_mass must be 3 finite numbers \(m, mesh frame\), got \[0.0, 0.0\]"),
         (dict(mass=1.0, center_of_mass=[np.nan, 0.0, 0.0]), r"'crate': center_of_mass must be 3 finite numbers"),
         (dict(static=True, center_of_mass=[0.0, 0.0, 0.0]), r"'crate': a static body takes no mass properties, got center_of_mass"),
+        # Truth-tested: "False" made the body static, silently.
+        (dict(density=1.0, static="False"), r"body 'crate': static: expected True/False \(or 1/0\), got 'False'"),
+        # Read as numbers by np.asarray.
+        (dict(density=1.0, pose=("0", "0", "1", "0", "0", "0", "1")), r"'crate': pose must be 7 finite numbers"),
+        # Symmetric to an absolute 1e-8 kg m^2 and definite by one triangle: this 1 g box's
+        # inertia (its symmetric part has an eigenvalue of -3e-9) was accepted; x1e3, refused.
+        (dict(mass=1e-3, inertia=[[1e-9, 8e-9, 0.0], [0.0, 1e-9, 0.0], [0.0, 0.0, 1e-9]]), r"'crate': inertia must be a finite, symmetric positive definite"),
     ],
 )
 def test_builder_rejects_bad_bodies(kwargs, match):
     b = wc.ModelBuilder()
     with pytest.raises(ValueError, match=match):
         b.add_body(trimesh.creation.box(extents=(1.0, 1.0, 1.0)), name="crate", **kwargs)
+
+
+def test_api_objects_of_the_wrong_kind_are_named():
+    """Each was an AttributeError naming no argument, or (gravity as text or bools) read as numbers."""
+    for make, match in (
+        (lambda: wc.ModelBuilder(gravity=("0", "0", "-9.81")), r"gravity: expected 3 finite numbers, got \('0', '0', '-9.81'\)"),
+        (lambda: wc.ModelBuilder(gravity=(True, False, True)), "gravity: expected 3 finite numbers"),
+        (lambda: wc.ImplicitSolver(None), "model: expected a Model"),
+        (lambda: wc.set_body_velocity(None, None, None, 0.1), "state: expected a State"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            make()
+    b = wc.ModelBuilder()
+    b.add_box((1.0, 1.0, 1.0), density=1.0, pose=(0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 1.0))
+    for index in (-1, 99, True):  # -1 returned the last body's
+        with pytest.raises(ValueError, match=f"index: expected a body index from 0 to 0, got {index}"):
+            b.body_center_of_mass(index)
+    model = b.finalize()
+    solver = wc.ImplicitSolver(model)
+    with pytest.raises(ValueError, match="control: expected a Control"):
+        solver.step(model.state(), model.state(), "push", 0.01)
+    with pytest.raises(ValueError, match="state_in: expected a State"):
+        solver.step(None, model.state(), None, 0.01)
+    with pytest.raises(ValueError, match="exact_friction_steps: expected True/False"):
+        wc.ImplicitSolver(model, exact_friction_steps="no")
+    with pytest.raises(ValueError, match="derivatives: expected True/False"):
+        wc.triangle_pair_potential(np.eye(3)[None], np.eye(3)[None] + 2.0, derivatives="no")
 
 
 _BOX = trimesh.creation.box(extents=(1.0, 1.0, 1.0))

@@ -12,6 +12,7 @@ __all__ = [
     "check_coordinates",
     "check_count",
     "check_time_step",
+    "checked_flag",
     "is_positive_finite",
     "is_real",
     "is_whole",
@@ -68,6 +69,14 @@ def check_barrier_support(dhat, name: str = "dhat") -> None:
 def is_whole(value) -> bool:
     """A Python or numpy integer scalar, not a bool."""
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def checked_flag(value, name: str) -> bool:
+    """``value`` as a bool, given as True/False (numpy's too) or 1/0; ValueError naming
+    ``name`` otherwise: truth-testing read static="False" as True and derivatives="no" as yes."""
+    if isinstance(value, (bool, np.bool_)) or (is_whole(value) and value in (0, 1)):
+        return bool(value)
+    raise ValueError(f"{name}: expected True/False (or 1/0), got {value!r}")
 
 
 def check_count(value, name: str) -> None:

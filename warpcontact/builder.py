@@ -9,7 +9,7 @@ import trimesh
 import warp as wp
 
 from ._runtime import resolve_device
-from ._validate import QUATERNION_TOLERANCE, check_barrier_support, is_positive_finite, is_real, is_whole, shown
+from ._validate import QUATERNION_TOLERANCE, check_barrier_support, checked_flag, is_positive_finite, is_real, is_whole, shown
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, connected_labels, frame_in_body
 from .contact import CENTRED_WEIGHTS, CONTACT_MODES, ContactModel
 from .leaf import float32_search
@@ -132,6 +132,18 @@ def _soup_hint(mesh: trimesh.Trimesh) -> str:
     return ""
 
 
+def _real_vector(value, size: int) -> np.ndarray | None:
+    """``value`` as ``size`` finite float64 numbers, or None: text and bools are not numbers
+    (np.asarray read ("0", "0", "-9.81") as gravity and True as 1)."""
+    try:
+        array = np.asarray(value)
+    except (TypeError, ValueError):
+        return None
+    if array.dtype.kind not in "iuf" or array.shape != (size,) or not np.isfinite(array).all():
+        return None
+    return array.astype(np.float64)
+
+
 def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia, center_of_mass) -> tuple[float, np.ndarray, np.ndarray]:
     """(mass, centre of mass in the mesh frame, second moment about it) of a dynamic body
     from ``add_body``'s arguments, each checked and named."""
@@ -173,7 +185,15 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
         raise ValueError(f"{where}: inertia must be a finite, symmetric positive definite 3x3 matrix (kg m^2), got {inertia!r}") from None
     with np.errstate(over="ignore", invalid="ignore"):
         second_moment = _second_moment_from_inertia(inertia) if inertia.shape == (3, 3) else None
-    if second_moment is None or not (np.isfinite(inertia).all() and np.isfinite(second_moment).all()) or not np.allclose(inertia, inertia.T) or np.linalg.eigvalsh(inertia).min() <= 0:
+    # Symmetric relative to its own size, and definite as a whole matrix: an absolute 1e-8
+    # kg m^2 passed a 1 g box's inertia of 1e-9 with an 8e-9 off-diagonal on one side only,
+    # and eigvalsh reads one triangle (the matrix's symmetric part had an eigenvalue -3e-9).
+    if (
+        second_moment is None
+        or not (np.isfinite(inertia).all() and np.isfinite(second_moment).all())
+        or np.abs(inertia - inertia.T).max() > 1e-6 * np.abs(inertia).max()
+        or np.linalg.eigvalsh(0.5 * (inertia + inertia.T)).min() <= 0
+    ):
         raise ValueError(f"{where}: inertia must be a finite, symmetric positive definite 3x3 matrix (kg m^2)")
     if np.linalg.eigvalsh(second_moment).min() < -1e-12 * np.trace(inertia):
         raise ValueError(f"{where}: inertia violates the triangle inequality (not physical)")
@@ -226,9 +246,10 @@ class ModelBuilder:
     """
 
     def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, friction_smoothing: float = 1e-4, eps: float = 0.5, centred_weight: str = "paper", contact_mode: str = "bsh", leaf_precision: str = "float64", ipc_dhat: float = 1e-2, sdrs_dhat: float = 1e-2, articulation_contact: str = "nonadjacent"):
-        gravity = np.asarray(gravity, dtype=np.float64)
-        if gravity.shape != (3,) or not np.isfinite(gravity).all():
-            raise ValueError(f"gravity: expected 3 finite numbers, got {gravity}")
+        given = gravity
+        gravity = _real_vector(gravity, 3)
+        if gravity is None:
+            raise ValueError(f"gravity: expected 3 finite numbers, got {given!r}")
         for name, value in (("contact_stiffness", contact_stiffness), ("friction", friction), ("friction_smoothing", friction_smoothing), ("eps", eps)):
             problem = contact_setting_problem(name, value)
             if problem:
@@ -301,6 +322,7 @@ class ModelBuilder:
             kp_angular, kd_angular: PD gains of the orientation.
         """
         name = self._body_name(name)
+        static = checked_flag(static, f"body {name!r}: static")
         if isinstance(mesh, trimesh.Trimesh):
             vertices, faces = mesh.vertices, mesh.faces
         else:
@@ -316,9 +338,10 @@ class ModelBuilder:
         used, faces = np.unique(faces, return_inverse=True)
         vertices, faces = vertices[used], faces.reshape(-1, 3)
         tm = trimesh.Trimesh(vertices, faces, process=False)
-        pose = np.asarray(pose, dtype=np.float64)
-        if pose.shape != (7,) or not np.isfinite(pose).all():
-            raise ValueError(f"body {name!r}: pose must be 7 finite numbers (px, py, pz, qx, qy, qz, qw), got {pose}")
+        given = pose
+        pose = _real_vector(pose, 7)
+        if pose is None:
+            raise ValueError(f"body {name!r}: pose must be 7 finite numbers (px, py, pz, qx, qy, qz, qw), got {given!r}")
         qnorm = np.linalg.norm(pose[3:])
         if abs(qnorm - 1.0) > QUATERNION_TOLERANCE:
             raise ValueError(f"body {name!r}: pose quaternion has norm {qnorm:.9g}, expected 1")
@@ -535,6 +558,8 @@ class ModelBuilder:
     def body_center_of_mass(self, index: int) -> np.ndarray:
         """(3,) centre of mass of added body ``index`` in its mesh frame (m); a static body's
         frame origin (the mean of its vertices)."""
+        if not (is_whole(index) and 0 <= index < len(self._bodies)):
+            raise ValueError(f"index: expected a body index from 0 to {len(self._bodies) - 1}, got {index!r}")
         return self._bodies[index].center_of_mass.copy()
 
     def _body_name(self, name: str | None) -> str:

@@ -33,7 +33,7 @@ from .kernels import reduction as reduction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels import traversal as traversal_kernels
 from ._runtime import HostReadback, LaunchCache, host_buffer, resolve_device, run_concurrently
-from ._validate import QUATERNION_TOLERANCE, as_float64_array, check_barrier_support, check_coordinates, check_count, is_positive_finite, is_real, is_whole, validated_poses
+from ._validate import QUATERNION_TOLERANCE, as_float64_array, check_barrier_support, check_coordinates, check_count, checked_flag, is_positive_finite, is_real, is_whole, validated_poses
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus, float32_search
 from .rotation import rigid_step_travel
 from .sphere_tree import SphereTree, build_sphere_tree
@@ -114,10 +114,7 @@ def _static_flags(static, num_bodies: int) -> np.ndarray:
     flags = np.asarray(static, dtype=object)
     if flags.shape != (num_bodies,):
         raise ValueError(f"static: expected {num_bodies} flags, got shape {flags.shape}")
-    for i, flag in enumerate(flags):
-        if not (isinstance(flag, (bool, np.bool_)) or (is_whole(flag) and flag in (0, 1))):
-            raise ValueError(f"static: entry {i} is {flag!r}; expected True/False (or 1/0)")
-    return flags.astype(bool)
+    return np.array([checked_flag(flag, f"static: entry {i}") for i, flag in enumerate(flags)], dtype=bool)
 
 
 def hessian_slots(static: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -358,7 +355,7 @@ class ContactModel:
         self.hessian_bodies, self._hessian_slot_host = hessian_slots(static_flags)
         self._hessian_shape = (6 * len(self.hessian_bodies), 6 * len(self.hessian_bodies))
         self.device = resolve_device(device)
-        self.sync_free = (not self.device.is_cpu) if sync_free is None else bool(sync_free)
+        self.sync_free = (not self.device.is_cpu) if sync_free is None else checked_flag(sync_free, "sync_free")
         # Launches sized on the device cannot be split on the host.
         self._term_chunks = 1 if (self.sync_free or not self.device.is_cpu) else (min(os.cpu_count() or 1, 8) if term_chunks is None else int(term_chunks))
         self._min_chunk_leaf_terms = _MIN_CHUNK_LEAF_TERMS  # tests lower it to split small scenes

@@ -8,7 +8,7 @@ import warp as wp
 from .kernels import blend as blend_kernels
 from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
-from ._validate import as_float64_array, check_barrier_support, check_coordinates, check_count
+from ._validate import as_float64_array, check_barrier_support, check_coordinates, check_count, checked_flag
 
 __all__ = [
     "LEAF_PRECISIONS",
@@ -104,6 +104,7 @@ def triangle_pair_potential(
     if a.shape[0] != b.shape[0]:
         raise ValueError(f"A and B: pair counts differ ({a.shape[0]} vs {b.shape[0]})")
     check_count(max_iterations, "max_iterations")
+    derivatives = checked_flag(derivatives, "derivatives")
     if dhat is not None:
         check_barrier_support(dhat)
     search32 = float32_search(precision, mode="bsh" if dhat is None else "sdrs")
@@ -171,6 +172,7 @@ def centered_potential(r, *, derivatives: bool = False, device="cpu"):
     Returns the values (same shape as ``r``), or ``(P_c, dP_c/dr, d2P_c/dr2)`` when
     ``derivatives`` is set. r = 0 gives +inf; negative distances raise ValueError.
     """
+    derivatives = checked_flag(derivatives, "derivatives")
     arr = _scalar_input(r, "r")
     if (arr < 0).any():
         raise ValueError(f"r: distances must be >= 0, got {arr[arr < 0].flat[0]}")
@@ -183,6 +185,7 @@ def quintic_blend(s, *, derivatives: bool = False, device="cpu"):
 
     Returns the values, or ``(Phi, Phi', Phi'')`` when ``derivatives`` is set.
     """
+    derivatives = checked_flag(derivatives, "derivatives")
     arr = _scalar_input(s, "s")
     out = _evaluate_scalar_kernel(blend_kernels.quintic_blend_kernel, arr, device)
     return out if derivatives else out[0]

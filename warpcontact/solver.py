@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ._validate import QUATERNION_TOLERANCE, check_time_step, is_real, is_whole
+from ._validate import QUATERNION_TOLERANCE, check_time_step, checked_flag, is_real, is_whole
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
@@ -323,11 +323,13 @@ class ImplicitSolver:
                 raise ValueError(f"{label}: must be a number in (0, 1), got {value!r}")
         if not (is_whole(max_iterations) and max_iterations >= 1):
             raise ValueError(f"max_iterations: must be a whole number >= 1, got {max_iterations!r}")
+        if not isinstance(model, Model):
+            raise ValueError(f"model: expected a Model (ModelBuilder.finalize()), got {type(model).__name__}")
         self.model = model
         self.tolerance = float(tolerance)
         self.max_iterations = int(max_iterations)
         self.advancement_fraction = float(advancement_fraction)
-        self.exact_friction_steps = bool(exact_friction_steps)
+        self.exact_friction_steps = checked_flag(exact_friction_steps, "exact_friction_steps")
         self.last_step: StepInfo | None = None
         n = model.num_bodies
         self._dynamic = ~model.static
@@ -733,6 +735,11 @@ class ImplicitSolver:
     def _solve(self, state_in: State, state_out: State, control: Control | None, dt: float, *, taped: bool = False):
         check_time_step(dt)
         model = self.model
+        for label, given in (("state_in", state_in), ("state_out", state_out)):
+            if not isinstance(given, State):
+                raise ValueError(f"{label}: expected a State (model.state()), got {type(given).__name__}")
+        if control is not None and not isinstance(control, Control):
+            raise ValueError(f"control: expected a Control (model.control()) or None, got {type(control).__name__}")
         if state_out is state_in:
             raise ValueError("state_out: must be a different State from state_in (one buffer per time step)")
         for label, state in (("state_in", state_in), ("state_out", state_out)):

@@ -157,6 +157,8 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
 
     Recorded on an active ``wp.Tape``, so gradients reach the velocity arrays.
     """
+    if not isinstance(state, State):
+        raise ValueError(f"state: expected a State (model.state()), got {type(state).__name__}")
     for label in ("body_q", "body_q_prev"):
         poses = getattr(state, label)
         if not isinstance(poses, wp.array) or poses.dtype != wp.transformd or poses.ndim != 1:
