@@ -93,6 +93,13 @@ _FULL_STEP_TOL_F32 = wp.constant(wp.float32(1.0e-2))
 # beyond the support (see sdrs_solve).
 _SUPPORT_TOL = wp.constant(wp.float64(1.0e-8))
 _MAX_BACKTRACKS = wp.constant(60)
+# Farthest separation (m) a leaf plane search resolves: beyond ~1e29 m the barrier terms
+# (1/g ~ 1e-29) vanish against the plane term's 12 in float64, and pairs converged to planes
+# tilted up to 80 degrees from the separation (forces of ~1e-44 N in wrong directions) or
+# read as contact. Such pairs are reported not converged. A body-level potential never
+# solves them (they are far terms there unless eps is huge); ten times the size of the
+# observable universe is no limit on a scene.
+_MAX_LEAF_SEPARATION = wp.constant(wp.float64(1.0e27))
 
 
 @wp.struct
@@ -578,6 +585,9 @@ def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int, fl
     ``float32_search`` runs the plane search in float32 (``_solve_from_float32``)."""
     sol, e = _leaf_start(ta_world, tb_world, wp.float64(0.0))
     if sol.status != LEAF_OK:
+        return sol
+    if wp.length(ta_world[0] - tb_world[0]) > _MAX_LEAF_SEPARATION:
+        sol.status = LEAF_NOT_CONVERGED
         return sol
     start = _scaled_bisector(sol, e)
     if float32_search:

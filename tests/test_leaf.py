@@ -295,6 +295,21 @@ def test_force_does_not_vanish_at_huge_distance(distance):
     _assert_forces_in_cone(A, B, res)
 
 
+@pytest.mark.parametrize("distance", [1e26, 1e28, 1e40])
+def test_pairs_beyond_the_plane_searchs_reach_are_reported_not_converged(distance):
+    """Past ~1e29 m the barrier's 1/g vanishes against the plane term's 12 in float64: pairs
+    converged to planes tilted up to 80 degrees from the separation (status OK), or read as
+    contact at 1e40 m (+inf, disjoint triangles). Beyond 1e27 m they are not converged."""
+    A, _ = vertex_face(0.0)
+    u = np.array([0.0, 1.0, 1.0]) / np.sqrt(2.0)
+    res = evaluate(A, np.zeros((3, 3)) + u * distance)
+    if distance < 1e27:
+        net = -res.grad[0, 1].sum(axis=0)
+        assert res.ok[0] and net @ u == pytest.approx(np.linalg.norm(net), rel=1e-12)
+    else:
+        assert res.status[0] == wc.LeafStatus.NOT_CONVERGED and not np.isfinite(res.value[0])
+
+
 # --- hard cases ------------------------------------------------------------------------------
 
 
