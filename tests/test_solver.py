@@ -846,6 +846,20 @@ def test_builder_rejects_bad_bodies(kwargs, match):
         b.add_body(trimesh.creation.box(extents=(1.0, 1.0, 1.0)), name="crate", **kwargs)
 
 
+def test_a_failing_step_names_the_trials_with_unsolved_leaf_pairs():
+    """A 1 m box landing over the diagonal of a 40 km two-triangle ground: gaps of ~1e-3 m
+    against 4e4 m triangles are below what the leaf search resolves, nearly every trial pose
+    is rejected for it, and the error said only "no convergence" (after 50 s at the default
+    cap; 40 iterations here)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), friction=0.3)
+    ground = scenes.ground_rectangle(40000.0, 40000.0)
+    b.add_body((ground.vertices, ground.faces), static=True, name="ground")
+    b.add_box((1.0, 1.0, 1.0), density=1000.0, name="box", pose=(0.0, 0.0, 0.51, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    with pytest.raises(wc.SolverError, match=r"no convergence after 40 Newton iterations.*; \d+ of \d+ trial poses had unsolved leaf pairs \(last: ground and box\): .*split triangles far larger"):
+        rollout(model, 5, 0.02, solver=wc.ImplicitSolver(model, max_iterations=40))
+
+
 def test_api_objects_of_the_wrong_kind_are_named():
     """Each was an AttributeError naming no argument, or (gravity as text or bools) read as numbers."""
     for make, match in (

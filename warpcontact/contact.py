@@ -49,7 +49,8 @@ CENTRED_WEIGHTS = ("paper", "pairs")
 # number of ~4e15, which float64 cannot solve (docs/architecture.md, "The leaf potential").
 UNSOLVED_HINT = (
     "their leaf plane searches did not converge, most likely because they are closer than float64 resolves against "
-    "their triangles' size (a gap below about 1e-8 of it); start them farther apart. Bodies far below a micrometre "
+    "their triangles' size (a gap below about 1e-8 of it); start them farther apart, or split triangles far larger than "
+    "the bodies on them. Bodies far below a micrometre "
     "meet this at any gap (the search is sized for 1e-6 m and up; docs/architecture.md, 'Its length scale'), and so do "
     "triangles more than 1e27 m apart"
 )

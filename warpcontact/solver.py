@@ -191,6 +191,23 @@ def _check_no_shared_arrays(state_in: State, state_out: State) -> None:
                 )
 
 
+class _UnsolvedTrials:
+    """How many of a step's trial evaluations had leaf pairs whose plane searches failed
+    (the trial is then rejected like a contact), and the last such pairs. A step on a 40 km
+    two-triangle ground failed after 500 iterations, 1,389 of its 1,451 trials with unsolved
+    pairs, and its error said only "no convergence"."""
+
+    def __init__(self):
+        self.trials = self.failed = 0
+        self.pairs = ()
+
+    def count(self, contact) -> None:
+        self.trials += 1
+        if contact.unsolved_pairs:
+            self.failed += 1
+            self.pairs = contact.unsolved_pairs
+
+
 class SolverError(RuntimeError):
     """The implicit step did not converge; the message carries the diagnostics."""
 
@@ -852,6 +869,8 @@ class ImplicitSolver:
         converged = False
         iterations = 0
         step_length = np.inf
+        # Trial evaluations whose leaf searches failed: a failing step names them.
+        unsolved = _UnsolvedTrials()
         for iterations in range(1, self.max_iterations + 1):
             direction = self._newton_direction(hess, grad)
             full, travel = self._step_travel(direction, None if art is None else jacobian)
@@ -895,6 +914,7 @@ class ImplicitSolver:
                         alpha *= min(max(certified, 0.1), 0.9)
                         continue
                 t_value, t_grad, t_hess, t_contact, t_jacobian = self._evaluate(trial, t_coords, step_in)
+                unsolved.count(t_contact)
                 # Below the rounding of L an Armijo test is noise; full steps are safe there.
                 if np.isfinite(t_value) and (quadratic_regime or t_value <= value - 1e-4 * alpha * decrement):
                     accepted = True
@@ -904,10 +924,10 @@ class ImplicitSolver:
                 if step_length <= rounding_step:
                     converged = True  # stalled at the rounding floor of L
                     break
-                raise SolverError(self._diagnostics("line search failed", iterations, step_length, value, travel, q_start, dt))
+                raise SolverError(self._diagnostics("line search failed", iterations, step_length, value, travel, q_start, dt, unsolved))
             q, coords, value, grad, hess, contact, jacobian = trial, t_coords, t_value, t_grad, t_hess, t_contact, t_jacobian
         if not converged:
-            raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt))
+            raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved))
 
         q[~dynamic] = q_now[~dynamic]
         passed = self._pass_through(q_start, q, dt)
@@ -1054,7 +1074,7 @@ class ImplicitSolver:
         chord, t = hit
         return float(s[chord] + t / _PASS_THROUGH_CHORDS)
 
-    def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray, q_start: np.ndarray, dt: float) -> str:
+    def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray, q_start: np.ndarray, dt: float, unsolved: "_UnsolvedTrials") -> str:
         worst = np.argsort(-travel)[:3]
         names = self.model.body_names
         bodies = ", ".join(f"{names[i]} ({travel[i]:.3e} m)" for i in worst if travel[i] > 0)
@@ -1068,6 +1088,9 @@ class ImplicitSolver:
         contact = self.model.contact
         if steep_blend(getattr(contact, "eps", np.inf), contact.mode):
             hint += f"; eps {contact.eps:g} is below {STEEP_BLEND_EPS:g}, where the blend is steep and Newton slow: a larger eps converges"
+        if unsolved.failed:
+            pairs = ", ".join(f"{a} and {b}" for a, b in unsolved.pairs)
+            hint += f"; {unsolved.failed} of {unsolved.trials} trial poses had unsolved leaf pairs (last: {pairs}): {UNSOLVED_HINT}"
         return (
             f"implicit step: {what} after {iterations} Newton iterations; last Newton step moves points "
             f"up to {step_length:.3e} m (tolerance {self.tolerance * self._length_scale:.3e} m), L = {value:.9e}; "
