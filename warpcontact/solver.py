@@ -105,6 +105,9 @@ _PASS_THROUGH_TRAVEL = 0.5
 # as converged (a lone 1 cm box 50 km up took Newton steps of 0.2 ulp against a tolerance of
 # 6e-13 m and failed after 500 iterations).
 _ROUNDING = 16.0 * np.finfo(np.float64).eps
+# Newton systems whose eigenvalue magnitudes span more than this factor are named in a failing
+# step's error: their steps are resolved to no better than this times float64's roundoff.
+_RESOLVED_CONDITION = 1e12
 # Chords per step of a body centre's straight-motion path relative to another body, tested
 # for crossing that body's surface (``ImplicitSolver._centre_crossing``).
 _PASS_THROUGH_CHORDS = 16
@@ -522,22 +525,36 @@ class ImplicitSolver:
         return float(min(1.0, cone_alpha, ratio.min(initial=np.inf)))
 
     def _newton_direction(self, hess: np.ndarray, grad: np.ndarray) -> np.ndarray:
-        """Descent direction from H d = -g.
+        """Descent direction from H d = -g (``_saddle_free_direction``'s first part)."""
+        return self._saddle_free_direction(hess, grad)[0]
+
+    def _saddle_free_direction(self, hess: np.ndarray, grad: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Descent direction from H d = -g, and the part of it that a floor cut short.
 
         The contact potential is not convex, so H can be indefinite away from the minimum;
         then its negative eigenvalues are replaced by their magnitudes (floored at 1e-10 of
         the largest), which keeps the curvature of every other direction, unlike a uniform
-        diagonal shift that degrades Newton to gradient descent.
+        diagonal shift that degrades Newton to gradient descent. The second part is None,
+        or, where the floor raised eigenvalues, the direction along those eigenvectors with
+        their own magnitudes: a step the floor shortened below the tolerance is no
+        convergence (a box between walls 1e-9 m away, stiffness ~1e23 against its inertia's
+        ~1e4, stood still in free fall, "converged" at every step).
         """
         try:
             chol = np.linalg.cholesky(hess)
-            return -_solve_upper(chol.T, _solve_lower(chol, grad))
+            return -_solve_upper(chol.T, _solve_lower(chol, grad)), None
         except np.linalg.LinAlgError:
             values, vectors = np.linalg.eigh(hess)
-            floor = 1e-10 * np.abs(values).max()
+            magnitude = np.abs(values)
+            floor = 1e-10 * magnitude.max()
             if not np.isfinite(floor) or floor == 0.0:
                 raise SolverError(f"Newton system is singular or not finite (eigenvalues {values.min():.3e} .. {values.max():.3e})") from None
-            return -vectors @ ((vectors.T @ grad) / np.maximum(np.abs(values), floor))
+            along = vectors.T @ grad
+            direction = -vectors @ (along / np.maximum(magnitude, floor))
+            floored = magnitude < floor
+            if not floored.any():
+                return direction, None
+            return direction, -vectors[:, floored] @ (along[floored] / np.maximum(magnitude[floored], np.finfo(float).tiny))
 
     def _friction_exact_direction(self, q: np.ndarray, grad: np.ndarray, hess: np.ndarray, direction: np.ndarray, friction: LaggedFriction) -> np.ndarray:
         """Minimiser d of m(d) = g_o.d + 1/2 d^T H_o d + D(q + d) - D(q) over the free bodies'
@@ -872,7 +889,7 @@ class ImplicitSolver:
         # Trial evaluations whose leaf searches failed: a failing step names them.
         unsolved = _UnsolvedTrials()
         for iterations in range(1, self.max_iterations + 1):
-            direction = self._newton_direction(hess, grad)
+            direction, floored = self._saddle_free_direction(hess, grad)
             full, travel = self._step_travel(direction, None if art is None else jacobian)
             step_length = float(travel.max())
             # Over slips much shorter than the smoothing length the friction term's quadratic
@@ -883,6 +900,9 @@ class ImplicitSolver:
                 full, travel = self._step_travel(direction)
                 step_length = float(travel.max())
             if step_length <= max(tol, _ROUNDING * float(np.abs(q[dynamic, :3]).max(initial=0.0))):
+                hidden = 0.0 if floored is None else float(self._step_travel(floored, None if art is None else jacobian)[1].max())
+                if hidden > tol:
+                    raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, hidden=hidden))
                 converged = True
                 break
             decrement = -float(grad @ direction)
@@ -924,10 +944,10 @@ class ImplicitSolver:
                 if step_length <= rounding_step:
                     converged = True  # stalled at the rounding floor of L
                     break
-                raise SolverError(self._diagnostics("line search failed", iterations, step_length, value, travel, q_start, dt, unsolved))
+                raise SolverError(self._diagnostics("line search failed", iterations, step_length, value, travel, q_start, dt, unsolved, hess))
             q, coords, value, grad, hess, contact, jacobian = trial, t_coords, t_value, t_grad, t_hess, t_contact, t_jacobian
         if not converged:
-            raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved))
+            raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess))
 
         q[~dynamic] = q_now[~dynamic]
         passed = self._pass_through(q_start, q, dt)
@@ -1074,7 +1094,7 @@ class ImplicitSolver:
         chord, t = hit
         return float(s[chord] + t / _PASS_THROUGH_CHORDS)
 
-    def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray, q_start: np.ndarray, dt: float, unsolved: "_UnsolvedTrials") -> str:
+    def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray, q_start: np.ndarray, dt: float, unsolved: "_UnsolvedTrials", hess: np.ndarray, *, hidden: float = 0.0) -> str:
         worst = np.argsort(-travel)[:3]
         names = self.model.body_names
         bodies = ", ".join(f"{names[i]} ({travel[i]:.3e} m)" for i in worst if travel[i] > 0)
@@ -1088,6 +1108,15 @@ class ImplicitSolver:
         contact = self.model.contact
         if steep_blend(getattr(contact, "eps", np.inf), contact.mode):
             hint += f"; eps {contact.eps:g} is below {STEEP_BLEND_EPS:g}, where the blend is steep and Newton slow: a larger eps converges"
+        values = np.abs(np.linalg.eigvalsh(hess)) if np.isfinite(hess).all() else np.array([1.0])
+        if hidden or values.max() > _RESOLVED_CONDITION * values.min():
+            hidden_move = f"; eigenvalues floored at 1e-10 of the largest hid a move of {hidden:.1e} m" if hidden else ""
+            condition = values.max() / max(values.min(), np.finfo(float).tiny)
+            hint += (
+                f"; the Newton system's eigenvalue magnitudes span {values.min():.1e} .. {values.max():.1e} (float64 resolves its steps "
+                f"to about {min(1.0, condition * np.finfo(float).eps):.0e} of their size){hidden_move}: contact pressed this close is far "
+                "stiffer than the bodies' inertia; start the bodies farther apart"
+            )
         if unsolved.failed:
             pairs = ", ".join(f"{a} and {b}" for a, b in unsolved.pairs)
             hint += f"; {unsolved.failed} of {unsolved.trials} trial poses had unsolved leaf pairs (last: {pairs}): {UNSOLVED_HINT}"
