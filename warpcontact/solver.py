@@ -105,9 +105,10 @@ _PASS_THROUGH_TRAVEL = 0.5
 # as converged (a lone 1 cm box 50 km up took Newton steps of 0.2 ulp against a tolerance of
 # 6e-13 m and failed after 500 iterations).
 _ROUNDING = 16.0 * np.finfo(np.float64).eps
-# Newton systems whose eigenvalue magnitudes span more than this factor are named in a failing
-# step's error: their steps are resolved to no better than this times float64's roundoff.
-_RESOLVED_CONDITION = 1e12
+# Bodies closer than this fraction of the smaller one's radius are named in a failing step's
+# error as pressed beyond what Newton resolves in float64 (a box 1e-8 m between walls, 6e-8
+# of its radius, did not converge; at 1e-7 m it falls).
+_PRESSED_SEPARATION = 1e-7
 # Chords per step of a body centre's straight-motion path relative to another body, tested
 # for crossing that body's surface (``ImplicitSolver._centre_crossing``).
 _PASS_THROUGH_CHORDS = 16
@@ -899,10 +900,12 @@ class ImplicitSolver:
                 direction = self._friction_exact_direction(q, grad, hess, direction, friction)
                 full, travel = self._step_travel(direction)
                 step_length = float(travel.max())
-            if step_length <= max(tol, _ROUNDING * float(np.abs(q[dynamic, :3]).max(initial=0.0))):
-                hidden = 0.0 if floored is None else float(self._step_travel(floored, None if art is None else jacobian)[1].max())
-                if hidden > tol:
-                    raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, hidden=hidden))
+            converged_length = max(tol, _ROUNDING * float(np.abs(q[dynamic, :3]).max(initial=0.0)))
+            # A step the saddle-free floor made short is no convergence (_saddle_free_direction).
+            hidden = 0.0 if floored is None else float(self._step_travel(floored, None if art is None else jacobian)[1].max())
+            if step_length <= converged_length:
+                if hidden > converged_length:
+                    raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden))
                 converged = True
                 break
             decrement = -float(grad @ direction)
@@ -941,13 +944,13 @@ class ImplicitSolver:
                     break
                 alpha *= _backtrack_factor(value, -decrement, t_value, None if t_grad is None else float(t_grad @ direction), alpha)
             if not accepted:
-                if step_length <= rounding_step:
+                if step_length <= rounding_step and hidden <= converged_length:
                     converged = True  # stalled at the rounding floor of L
                     break
-                raise SolverError(self._diagnostics("line search failed", iterations, step_length, value, travel, q_start, dt, unsolved, hess))
+                raise SolverError(self._diagnostics("line search failed", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden))
             q, coords, value, grad, hess, contact, jacobian = trial, t_coords, t_value, t_grad, t_hess, t_contact, t_jacobian
         if not converged:
-            raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess))
+            raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact))
 
         q[~dynamic] = q_now[~dynamic]
         passed = self._pass_through(q_start, q, dt)
@@ -1094,7 +1097,7 @@ class ImplicitSolver:
         chord, t = hit
         return float(s[chord] + t / _PASS_THROUGH_CHORDS)
 
-    def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray, q_start: np.ndarray, dt: float, unsolved: "_UnsolvedTrials", hess: np.ndarray, *, hidden: float = 0.0) -> str:
+    def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray, q_start: np.ndarray, dt: float, unsolved: "_UnsolvedTrials", hess: np.ndarray, evaluation, *, hidden: float = 0.0) -> str:
         worst = np.argsort(-travel)[:3]
         names = self.model.body_names
         bodies = ", ".join(f"{names[i]} ({travel[i]:.3e} m)" for i in worst if travel[i] > 0)
@@ -1108,14 +1111,13 @@ class ImplicitSolver:
         contact = self.model.contact
         if steep_blend(getattr(contact, "eps", np.inf), contact.mode):
             hint += f"; eps {contact.eps:g} is below {STEEP_BLEND_EPS:g}, where the blend is steep and Newton slow: a larger eps converges"
-        values = np.abs(np.linalg.eigvalsh(hess)) if np.isfinite(hess).all() else np.array([1.0])
-        if hidden or values.max() > _RESOLVED_CONDITION * values.min():
+        pressed = self._pressed_pair(evaluation)
+        if hidden or pressed:
+            values = np.abs(np.linalg.eigvalsh(hess)) if np.isfinite(hess).all() else np.array([np.nan])
             hidden_move = f"; eigenvalues floored at 1e-10 of the largest hid a move of {hidden:.1e} m" if hidden else ""
-            condition = values.max() / max(values.min(), np.finfo(float).tiny)
             hint += (
-                f"; the Newton system's eigenvalue magnitudes span {values.min():.1e} .. {values.max():.1e} (float64 resolves its steps "
-                f"to about {min(1.0, condition * np.finfo(float).eps):.0e} of their size){hidden_move}: contact pressed this close is far "
-                "stiffer than the bodies' inertia; start the bodies farther apart"
+                f"; the Newton system's eigenvalue magnitudes span {values.min():.1e} .. {values.max():.1e}{hidden_move}: {pressed or 'contact'} "
+                "pressed this close is far stiffer than the bodies' inertia, beyond what float64 resolves; start the bodies farther apart"
             )
         if unsolved.failed:
             pairs = ", ".join(f"{a} and {b}" for a, b in unsolved.pairs)
@@ -1125,6 +1127,20 @@ class ImplicitSolver:
             f"up to {step_length:.3e} m (tolerance {self.tolerance * self._length_scale:.3e} m), L = {value:.9e}; "
             f"largest moves: {bodies}{hint}"
         )
+
+    def _pressed_pair(self, evaluation) -> str:
+        """The closest body pair of ``evaluation`` (of this model's ContactModel)
+        when closer than _PRESSED_SEPARATION of the smaller body's radius, as "a and b (d m
+        apart)", else ""."""
+        if not isinstance(self.model.contact, ContactModel) or not len(evaluation.pair_separation):
+            return ""
+        k = int(np.argmin(evaluation.pair_separation))
+        a, b = self.model.contact.body_pairs[k]
+        gap = float(evaluation.pair_separation[k])
+        if gap > _PRESSED_SEPARATION * min(self.model.body_radius[a], self.model.body_radius[b]):
+            return ""
+        names = self.model.body_names
+        return f"contact between {names[a]} and {names[b]} ({gap:.1e} m apart)"
 
     # --- backward -----------------------------------------------------------------------------
 
