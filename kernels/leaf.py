@@ -580,13 +580,25 @@ def _scaled_bisector(sol: LeafSolution, e: wp.vec3d):
 
 
 @wp.func
+def _separation_lower_bound(ta: wp.mat33d, tb: wp.mat33d):
+    """A lower bound on the distance between triangles A and B: their centroids' distance
+    less each one's farthest vertex from its centroid."""
+    third = wp.float64(1.0) / wp.float64(3.0)
+    ca = (ta[0] + ta[1] + ta[2]) * third
+    cb = (tb[0] + tb[1] + tb[2]) * third
+    ra = wp.max(wp.length(ta[0] - ca), wp.max(wp.length(ta[1] - ca), wp.length(ta[2] - ca)))
+    rb = wp.max(wp.length(tb[0] - cb), wp.max(wp.length(tb[1] - cb), wp.length(tb[2] - cb)))
+    return wp.length(ca - cb) - ra - rb
+
+
+@wp.func
 def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int, float32_search: bool):
     """Solve the leaf plane problem for triangles A, B (rows = vertices, world frame);
     ``float32_search`` runs the plane search in float32 (``_solve_from_float32``)."""
     sol, e = _leaf_start(ta_world, tb_world, wp.float64(0.0))
     if sol.status != LEAF_OK:
         return sol
-    if wp.length(ta_world[0] - tb_world[0]) > _MAX_LEAF_SEPARATION:
+    if _separation_lower_bound(ta_world, tb_world) > _MAX_LEAF_SEPARATION:
         sol.status = LEAF_NOT_CONVERGED
         return sol
     start = _scaled_bisector(sol, e)

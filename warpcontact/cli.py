@@ -190,7 +190,8 @@ def _refuse_input_among_outputs(args, out: Path):
     OUT/trajectory.usda called the scene an earlier run's results, and with --overwrite
     replaced it with the trajectory (no physics schemas: the next run had no bodies)."""
     inputs = [getattr(args, name, None) for name in ("task", "scene")] + list(getattr(args, "scenes", None) or [])
-    outputs = {(out / name).resolve(): name for name in args.outputs}
+    # An output is replaced as a file (os.replace): a link there is replaced, not followed.
+    outputs = {out.resolve() / name: name for name in args.outputs}
     for given in inputs:
         if given is not None and Path(given).resolve() in outputs:
             raise ValueError(f"{given}: the input scene is this command's output {outputs[Path(given).resolve()]} in {out}, which it would replace; choose another --out")
