@@ -1648,6 +1648,17 @@ def test_a_joint_far_from_the_origin_loads_despite_float32_anchors(tmp_path):
     assert io.load_scene(path).build_model().articulation.coordinate_names == ["hinge:0"]
 
 
+def test_overwrite_must_be_a_flag(tmp_path):
+    """overwrite="False" was truth-tested, and replaced the file."""
+    from warpcontact.scenes import build_scene
+
+    path = tmp_path / "kept.usda"
+    path.write_text("keep")
+    with pytest.raises(ValueError, match="overwrite: expected True/False"):
+        io.save_scene(build_scene("push"), path, overwrite="False")
+    assert path.read_text() == "keep"
+
+
 @pytest.mark.parametrize(
     ("change", "message"),
     [

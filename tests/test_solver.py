@@ -909,6 +909,22 @@ def test_api_objects_of_the_wrong_kind_are_named():
         wc.ImplicitSolver(model, exact_friction_steps="no")
     with pytest.raises(ValueError, match="derivatives: expected True/False"):
         wc.triangle_pair_potential(np.eye(3)[None], np.eye(3)[None] + 2.0, derivatives="no")
+    for call, match in (
+        (lambda: model.state(requires_grad="no"), "requires_grad: expected True/False"),
+        (lambda: model.control(requires_grad="no"), "requires_grad: expected True/False"),
+        (lambda: model.contact.evaluate(model.initial_q, reuse="no"), "reuse: expected True/False"),
+        # Text read as numbers through np.asarray(..., dtype=float).
+        (lambda: b.add_box(("1", "1", "1"), density=1.0), "box extents must be 3 positive finite numbers"),
+        (lambda: b.add_box((1.0, 1.0, 1.0), mass=1.0, center_of_mass=("0", "0", "0")), "center_of_mass must be 3 finite numbers"),
+        (lambda: b.add_box((1.0, 1.0, 1.0), mass=1.0, inertia=[["1", "0", "0"], ["0", "1", "0"], ["0", "0", "1"]]), "inertia must be a finite"),
+        (lambda: b.add_box((1.0, 1.0, 1.0), density=1.0, kp_linear=["1", "1", "1"]), "kp_linear must be 1 or 3 numbers"),
+        (lambda: b.add_joint("revolute", child=0, anchor=("0", "0", "0"), axis=(0.0, 1.0, 0.0)), "anchor must be 3 finite numbers"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            call()
+    empty = wc.ModelBuilder()
+    with pytest.raises(ValueError, match=r"index: expected a body index \(no body has been added\), got 0"):
+        empty.body_center_of_mass(0)
 
 
 _BOX = trimesh.creation.box(extents=(1.0, 1.0, 1.0))

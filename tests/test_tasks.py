@@ -302,6 +302,15 @@ def test_out_of_range_task_settings_are_clear_errors(tmp_path, field, value, mes
         TaskSettings.from_task(io.load_scene(path), quick=field.startswith("quick"))
 
 
+def test_a_horizon_taken_from_the_scenes_frames_names_them():
+    """Without warpcontact:task:horizon the scene's frames are the horizon; past the cap the
+    error named warpcontact:task:horizon, which the scene never authored."""
+    scene = space_billiards()
+    scene.task.horizon, scene.settings.frames = 0, 2_000_000
+    with pytest.raises(ValueError, match=r"warpcontact:frames \(the horizon: no warpcontact:task:horizon\) must be a whole number from 1 to 1,000,000, got 2000000"):
+        TaskSettings.from_task(scene)
+
+
 def test_a_rollout_from_a_non_finite_start_names_it():
     # It was blamed on zero velocities: "velocities give a non-finite previous pose".
     problem = TaskProblem(space_billiards(), settings=TaskSettings(horizon=2, receding_horizon=0, iterations=1, learning_rate=0.1))

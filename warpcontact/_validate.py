@@ -16,6 +16,7 @@ __all__ = [
     "is_positive_finite",
     "is_real",
     "is_whole",
+    "real_array",
     "shown",
     "validated_poses",
 ]
@@ -94,6 +95,19 @@ def check_coordinates(arr: np.ndarray, name: str) -> None:
             f"{name}: {arr[tuple(first)]:g} at index {tuple(int(i) for i in first)} is beyond the +-{MAX_COORDINATE:g} m "
             "that float64 distances between such points can represent"
         )
+
+
+def real_array(value) -> np.ndarray | None:
+    """``value`` as a float64 array when it holds real numbers (integers or floats), else
+    None: text and bools are not numbers, which np.asarray(value, dtype=float) read as such
+    ("-9.81" as -9.81, True as 1)."""
+    if isinstance(value, str):
+        return None
+    try:
+        array = np.asarray(value)
+    except (TypeError, ValueError):  # ragged nesting
+        return None
+    return array.astype(np.float64) if array.dtype.kind in "iuf" else None
 
 
 def as_float64_array(value, name: str, *, trailing_shape: tuple[int, ...] = (), allow_empty: bool = True) -> np.ndarray:

@@ -9,7 +9,7 @@ import trimesh
 import warp as wp
 
 from ._runtime import resolve_device
-from ._validate import QUATERNION_TOLERANCE, check_barrier_support, checked_flag, is_positive_finite, is_real, is_whole, shown
+from ._validate import QUATERNION_TOLERANCE, check_barrier_support, checked_flag, is_positive_finite, is_real, is_whole, real_array, shown
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, connected_labels, frame_in_body
 from .contact import CENTRED_WEIGHTS, CONTACT_MODES, ContactModel
 from .leaf import float32_search
@@ -86,8 +86,8 @@ def coordinate_limits(limits, count: int, where: str) -> tuple[np.ndarray, np.nd
     or nested). ValueError naming ``where`` otherwise."""
     if limits is None:
         return np.full(count, -np.inf), np.full(count, np.inf)
-    pairs = np.asarray(limits, dtype=np.float64)
-    if pairs.size % 2:
+    pairs = real_array(limits)
+    if pairs is None or pairs.size % 2:
         raise ValueError(f"{where}: limits must be {count} (lower, upper) pairs with lower < upper, got {limits!r}")
     pairs = pairs.reshape(-1, 2)
     if pairs.shape[0] == 1 and count > 1:
@@ -98,8 +98,8 @@ def coordinate_limits(limits, count: int, where: str) -> tuple[np.ndarray, np.nd
 
 
 def _unit_axes(axis, count: int, where: str) -> np.ndarray:
-    axes = np.asarray(axis, dtype=np.float64) if axis is not None else np.zeros((0, 3))
-    if axes.size % 3:
+    axes = real_array(axis) if axis is not None else np.zeros((0, 3))
+    if axes is None or axes.size % 3:
         raise ValueError(f"{where}: expected {count} axis vector(s) of 3 values, got {axis!r}")
     axes = axes.reshape(-1, 3)
     if axes.shape[0] != count or not np.isfinite(axes).all():
@@ -133,15 +133,11 @@ def _soup_hint(mesh: trimesh.Trimesh) -> str:
 
 
 def _real_vector(value, size: int) -> np.ndarray | None:
-    """``value`` as ``size`` finite float64 numbers, or None: text and bools are not numbers
-    (np.asarray read ("0", "0", "-9.81") as gravity and True as 1)."""
-    try:
-        array = np.asarray(value)
-    except (TypeError, ValueError):
+    """``value`` as ``size`` finite float64 numbers (``real_array``), or None."""
+    array = real_array(value)
+    if array is None or array.shape != (size,) or not np.isfinite(array).all():
         return None
-    if array.dtype.kind not in "iuf" or array.shape != (size,) or not np.isfinite(array).all():
-        return None
-    return array.astype(np.float64)
+    return array
 
 
 def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia, center_of_mass) -> tuple[float, np.ndarray, np.ndarray]:
@@ -163,11 +159,8 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
     props = mesh.mass_properties if closed else None
     body_mass = float(props["volume"]) * float(density) if density is not None else float(mass)
     if center_of_mass is not None:
-        try:
-            com = np.asarray(center_of_mass, dtype=np.float64)
-        except (TypeError, ValueError):
-            com = np.zeros(0)
-        if com.shape != (3,) or not np.isfinite(com).all():
+        com = real_array(center_of_mass)
+        if com is None or com.shape != (3,) or not np.isfinite(com).all():
             raise ValueError(f"{where}: center_of_mass must be 3 finite numbers (m, mesh frame), got {center_of_mass!r}")
     elif closed:
         com = np.asarray(props["center_mass"], dtype=np.float64)
@@ -179,10 +172,10 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
     if inertia is None:
         scale = float(density) if density is not None else body_mass / float(props["mass"])
         inertia = np.asarray(props["inertia"], dtype=np.float64) * scale
-    try:
-        inertia = np.asarray(inertia, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{where}: inertia must be a finite, symmetric positive definite 3x3 matrix (kg m^2), got {inertia!r}") from None
+    given = inertia
+    inertia = real_array(given)
+    if inertia is None:
+        raise ValueError(f"{where}: inertia must be a finite, symmetric positive definite 3x3 matrix (kg m^2), got {given!r}")
     with np.errstate(over="ignore", invalid="ignore"):
         second_moment = _second_moment_from_inertia(inertia) if inertia.shape == (3, 3) else None
     # Symmetric relative to its own size, and definite as a whole matrix: an absolute 1e-8
@@ -362,11 +355,12 @@ class ModelBuilder:
 
         gains = {}
         for label, value, count in (("kp_linear", kp_linear, 3), ("kd_linear", kd_linear, 3), ("kp_angular", kp_angular, 1), ("kd_angular", kd_angular, 1)):
-            try:
-                gain = np.broadcast_to(np.asarray(value, dtype=np.float64), (count,)).copy()
-            except (TypeError, ValueError):
+            gain = real_array(value)
+            if gain is not None and gain.size in (1, count) and gain.ndim <= 1:
+                gain = np.broadcast_to(gain, (count,)).copy()
+            else:
                 gain = None
-            if gain is None or not np.isfinite(gain).all() or (gain < 0).any() or isinstance(value, (str, bool)):
+            if gain is None or not np.isfinite(gain).all() or (gain < 0).any():
                 wanted = "1 or 3 numbers, each >= 0 and finite" if count == 3 else "a number >= 0 and finite"
                 raise ValueError(f"body {name!r}: {label} must be {wanted}, got {value!r}")
             gains[label] = gain
@@ -489,17 +483,19 @@ class ModelBuilder:
             if anchor is not None:
                 if parent_frame is not None or child_frame is not None:
                     raise ValueError(f"{where}: give an anchor or joint frames, not both")
-                anchor = np.asarray(anchor, dtype=np.float64)
-                if anchor.shape != (3,) or not np.isfinite(anchor).all():
-                    raise ValueError(f"{where}: anchor must be 3 finite numbers, got {anchor!r}")
+                given = anchor
+                anchor = real_array(given)
+                if anchor is None or anchor.shape != (3,) or not np.isfinite(anchor).all():
+                    raise ValueError(f"{where}: anchor must be 3 finite numbers, got {given!r}")
                 world_frame = np.concatenate([anchor, [0.0, 0.0, 0.0, 1.0]])
                 frames = (frame_in_body(parent_pose, world_frame), frame_in_body(child_body.pose, world_frame))
             elif parent_frame is not None and child_frame is not None:
                 frames = []
                 for label, frame, body in (("parent_frame", parent_frame, self._bodies[parent] if parent is not None else None), ("child_frame", child_frame, child_body)):
-                    frame = np.asarray(frame, dtype=np.float64)
-                    if frame.shape != (7,) or not np.isfinite(frame).all() or abs(np.linalg.norm(frame[3:]) - 1.0) > QUATERNION_TOLERANCE:
-                        raise ValueError(f"{where}: {label} must be 7 finite numbers (p, unit quaternion), got {frame!r}")
+                    given = frame
+                    frame = real_array(given)
+                    if frame is None or frame.shape != (7,) or not np.isfinite(frame).all() or abs(np.linalg.norm(frame[3:]) - 1.0) > QUATERNION_TOLERANCE:
+                        raise ValueError(f"{where}: {label} must be 7 finite numbers (p, unit quaternion), got {given!r}")
                     frame = frame.copy()
                     frame[3:] /= np.linalg.norm(frame[3:])
                     if body is not None:  # mesh frame -> centre-of-mass frame (same axes)
@@ -563,7 +559,8 @@ class ModelBuilder:
         """(3,) centre of mass of added body ``index`` in its mesh frame (m); a static body's
         frame origin (the mean of its vertices)."""
         if not (is_whole(index) and 0 <= index < len(self._bodies)):
-            raise ValueError(f"index: expected a body index from 0 to {len(self._bodies) - 1}, got {index!r}")
+            added = f"from 0 to {len(self._bodies) - 1}" if self._bodies else "(no body has been added)"
+            raise ValueError(f"index: expected a body index {added}, got {index!r}")
         return self._bodies[index].center_of_mass.copy()
 
     def _body_name(self, name: str | None) -> str:
@@ -574,11 +571,8 @@ class ModelBuilder:
 
     def add_box(self, extents, **kwargs) -> int:
         """Add a box with the given (x, y, z) extents (m), centred on its frame."""
-        try:
-            sizes = np.asarray(extents, dtype=np.float64) if not isinstance(extents, str) else np.zeros(0)
-        except (TypeError, ValueError):
-            sizes = np.zeros(0)
-        if sizes.shape != (3,) or not (np.isfinite(sizes).all() and (sizes > 0).all()):
+        sizes = real_array(extents)
+        if sizes is None or sizes.shape != (3,) or not (np.isfinite(sizes).all() and (sizes > 0).all()):
             raise ValueError(f"body {self._body_name(kwargs.get('name'))!r}: box extents must be 3 positive finite numbers (m), got {extents!r}")
         return self.add_body(trimesh.creation.box(extents=sizes), **kwargs)
 

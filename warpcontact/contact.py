@@ -814,7 +814,7 @@ class ContactModel:
         """
         poses = self._validated_poses(poses)
         last = self._last_evaluation
-        if reuse and last is not None and np.array_equal(poses, last[0]):
+        if checked_flag(reuse, "reuse") and last is not None and np.array_equal(poses, last[0]):
             return _copy_evaluation(last[1])
         # Until this evaluation succeeds the buffers hold no evaluation's lists and planes.
         self._last_evaluation = None

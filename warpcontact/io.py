@@ -89,7 +89,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ._validate import MAX_COORDINATE, is_positive_finite, is_real, shown
+from ._validate import MAX_COORDINATE, checked_flag, is_positive_finite, is_real, real_array, shown
 from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact_setting_problem, coordinate_limits
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
@@ -1624,7 +1624,7 @@ def _whole(value) -> int:
 def _number(value) -> float:
     """A number, authored as one: float() read a bool as 0 or 1 and the text "0.1" as 0.1
     (a `bool warpcontact:timeStep = 1` ran frames of 1 s)."""
-    if isinstance(value, (bool, str, np.bool_)):
+    if not is_real(value):
         raise ValueError(value)
     return float(value)
 
@@ -1636,13 +1636,11 @@ def _text(value) -> str:
 
 
 def _numbers(value) -> np.ndarray:
-    """Numbers, flat; text and bools are not numbers (numpy read "5" as 5 and True as 1)."""
-    if isinstance(value, str):
+    """Numbers, flat (``real_array``: text and bools are not numbers)."""
+    array = real_array(value)
+    if array is None:
         raise ValueError(value)
-    array = np.asarray(value)
-    if array.dtype.kind not in "iuf":
-        raise ValueError(value)
-    return array.astype(np.float64).reshape(-1)
+    return array.reshape(-1)
 
 
 def _vector3(value) -> np.ndarray:
@@ -1813,7 +1811,7 @@ def _atomic_save(stage_writer, path, overwrite: bool):
         raise ValueError(f"{path}: a USD file name must end in {', '.join(USD_SUFFIXES)}")
     if path.is_dir():
         raise ValueError(f"{path}: is a folder, not a file name")
-    if path.exists() and not overwrite:
+    if path.exists() and not checked_flag(overwrite, "overwrite"):
         raise FileExistsError(f"{path}: exists; pass overwrite=True to replace it")
     if not path.parent.is_dir():
         raise ValueError(f"{path.parent}: output folder does not exist")

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from .articulation import connected_labels
 from .contact import ContactEvaluation, LaggedFriction, contact_body_pairs, hessian_slots
 from .rotation import quat_from_rotation_vector, quat_to_matrix, skew
-from ._validate import as_float64_array, check_barrier_support, check_coordinates, validated_poses
+from ._validate import as_float64_array, check_barrier_support, check_coordinates, checked_flag, validated_poses
 
 # A step's arc is checked in chord pieces whose bulge stays below this fraction of dhat.
 ARC_BULGE = 1e-3
@@ -124,6 +124,7 @@ class IpcContactModel:
         ``reuse`` is accepted for ``ContactModel``'s signature and ignored: ipctk's
         collision set is rebuilt at every call.
         """
+        checked_flag(reuse, "reuse")
         poses = self._validated_poses(poses)
         ipctk = self._ipctk
         V = self._world_vertices(poses)

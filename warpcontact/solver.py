@@ -661,7 +661,9 @@ class ImplicitSolver:
         or a zero quaternion, or bodies intersect in it; raises SolverError with diagnostics
         if Newton does not converge, or if its solution moves one body through another
         (``_pass_through``: dt too large for the impact). Nothing is written then.
-        Inside ``with wp.Tape()``, records the step's implicit-function-theorem backward; the
+        Inside ``with wp.Tape()``, records the step's implicit-function-theorem backward, which
+        consumes ``state_out``'s gradients (zeroes them once read, as Warp's adjoints of array
+        writes do: intermediate states hold none after ``tape.backward()``); the
         states must then have gradient arrays, and no model array other than body_mass,
         contact_stiffness and friction may have requires_grad set (ValueError before anything
         is written).

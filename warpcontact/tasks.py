@@ -140,7 +140,8 @@ class TaskSettings:
                 raise ValueError(f"{source}: --stride applies to receding-window tasks; this one optimises a single window of {settings.horizon} frames")
             settings.receding_stride, stride_name = receding_stride, "--stride"
         names = {
-            "horizon": f"warpcontact:{prefix}horizon",
+            # Without a task horizon the scene's frames are the horizon.
+            "horizon": f"warpcontact:{prefix}horizon" if prefix == "task:quick:" or t.horizon else "warpcontact:frames (the horizon: no warpcontact:task:horizon)",
             "receding_horizon": f"warpcontact:{prefix}recedingHorizon",
             "receding_stride": stride_name,
             "iterations": iterations_name,

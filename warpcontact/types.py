@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from ._validate import check_time_step
+from ._validate import check_time_step, checked_flag
 from .articulation import ArticulationModel
 from .contact import ContactModel
 from .kernels import state as state_kernels
@@ -124,6 +124,7 @@ class Model:
 
     def state(self, *, requires_grad: bool = True) -> State:
         """A state at the initial poses, at rest."""
+        requires_grad = checked_flag(requires_grad, "requires_grad")
         return State(
             body_q=wp.array(self.initial_q, dtype=wp.transformd, device=self.device, requires_grad=requires_grad),
             body_q_prev=wp.array(self.initial_q, dtype=wp.transformd, device=self.device, requires_grad=requires_grad),
@@ -134,6 +135,7 @@ class Model:
     def control(self, *, requires_grad: bool = True) -> Control:
         """A control whose PD targets are the initial poses, the joints' default targets (their
         ``target``, else the initial coordinates) and the initial ball-joint rotations."""
+        requires_grad = checked_flag(requires_grad, "requires_grad")
         return Control(
             body_target=wp.array(self.initial_q, dtype=wp.transformd, device=self.device, requires_grad=requires_grad),
             joint_target=self._coordinates(requires_grad, self.articulation.default_targets),
