@@ -205,7 +205,8 @@ MAX_HORIZON = 1_000_000
 ADAM_EPS = 1e-30
 
 
-# Halvings of an Adam update that makes the rollout infeasible before the descent stops.
+# Rollouts an infeasible Adam update gets before the descent stops: the update itself, then
+# its halves down to 2^-19 of it.
 FEASIBLE_HALVINGS = 20
 
 
