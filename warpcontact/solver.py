@@ -1131,8 +1131,8 @@ class ImplicitSolver:
         )
 
     def _pressed_pair(self, evaluation) -> str:
-        """The closest body pair of ``evaluation`` (of this model's ContactModel)
-        when closer than _PRESSED_SEPARATION of the smaller body's radius, as "a and b (d m
+        """The closest body pair of ``evaluation`` (of this model's ContactModel) when closer
+        than _PRESSED_SEPARATION of the smaller body's radius, as "contact between a and b (d m
         apart)", else ""."""
         if not isinstance(self.model.contact, ContactModel) or not len(evaluation.pair_separation):
             return ""
