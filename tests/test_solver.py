@@ -927,6 +927,23 @@ def test_api_objects_of_the_wrong_kind_are_named():
         empty.body_center_of_mass(0)
 
 
+def test_an_inside_out_piece_is_refused_and_a_cavity_is_not():
+    """A 0.5 m box wound inside out beside a 2 m box: each edge is consistently wound and the
+    total volume positive, and its volume was subtracted (7,875 kg for 8,125, the centre of
+    mass on the wrong side). The same inverted box inside the big one is a cavity."""
+    big = trimesh.creation.box((2.0, 2.0, 2.0))
+    beside = trimesh.creation.box((0.5, 0.5, 0.5))
+    beside.apply_translation([1.6, 0.0, 0.0])
+    beside.invert()
+    with pytest.raises(ValueError, match="'pair': mass from density needs a closed, consistently outward-oriented mesh \\(a separate closed piece of it is wound inside out"):
+        wc.ModelBuilder().add_body(trimesh.util.concatenate([big, beside]), density=1000.0, name="pair")
+    cavity = trimesh.creation.box((0.5, 0.5, 0.5))
+    cavity.invert()
+    b = wc.ModelBuilder()
+    b.add_body(trimesh.util.concatenate([big, cavity]), density=1000.0, name="hollow")
+    assert b.finalize().body_mass.numpy()[0] == pytest.approx(8000.0 - 125.0)
+
+
 _BOX = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
 
 

@@ -119,12 +119,44 @@ def _encloses_volume(mesh: trimesh.Trimesh) -> bool:
     but the wrong one (one flipped face of a unit cube gave 500 kg at 1,000 kg/m^3 and its
     centre of mass 0.25 m off); a flat closed mesh has none (trimesh divides by it)."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        return bool(mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0)
+        return bool(mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0 and not _inside_out_piece(mesh))
 
 
-def _soup_hint(mesh: trimesh.Trimesh) -> str:
-    """Why an open mesh may be closed after all: faces that share no vertices (a triangle
-    soup, as many exporters write) close once coincident vertices are merged."""
+def _winding_numbers(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Generalised winding numbers of ``points`` (n, 3) about closed ``triangles`` (m, 3, 3):
+    about 1 inside an outward-oriented surface, 0 outside (solid angles, Van Oosterom and
+    Strackee)."""
+    a, b, c = (triangles[None, :, k] - points[:, None] for k in range(3))
+    la, lb, lc = (np.linalg.norm(v, axis=2) for v in (a, b, c))
+    det = np.einsum("pfi,pfi->pf", a, np.cross(b, c))
+    den = la * lb * lc + np.einsum("pfi,pfi->pf", a, b) * lc + np.einsum("pfi,pfi->pf", a, c) * lb + np.einsum("pfi,pfi->pf", b, c) * la
+    return np.arctan2(det, den).sum(axis=1) / (2.0 * np.pi)
+
+
+def _inside_out_piece(mesh: trimesh.Trimesh) -> bool:
+    """Whether a closed piece of the mesh (faces connected through edges) encloses a negative
+    volume without lying inside the outward pieces, as a cavity's inward-facing wall does: a
+    separate inside-out box beside a body's box had its volume subtracted (8,125 kg read as
+    7,875 kg, the centre of mass on the wrong side)."""
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    triangles = mesh.triangles
+    signed = np.einsum("fi,fi->f", triangles[:, 0], np.cross(triangles[:, 1], triangles[:, 2])) / 6.0
+    volumes = np.bincount(labels, weights=signed)
+    outward = volumes[labels] > 0
+    for piece in np.flatnonzero(volumes <= 0):
+        probe = triangles[labels == piece][0].mean(axis=0, keepdims=True)
+        if _winding_numbers(probe, triangles[outward])[0] < 0.5:
+            return True
+    return False
+
+
+def _closure_hint(mesh: trimesh.Trimesh) -> str:
+    """Why a mesh that does not enclose a volume may not: a closed piece wound inside out
+    (``_inside_out_piece``), or faces that share no vertices (a triangle soup, as many
+    exporters write), which close once coincident vertices are merged."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0:
+            return " (a separate closed piece of it is wound inside out: invert that piece's faces)"
     merged = mesh.copy()
     merged.merge_vertices()
     if len(merged.vertices) < len(mesh.vertices) and _encloses_volume(merged):
@@ -153,9 +185,9 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
     if not is_positive_finite(value):
         raise ValueError(f"{where}: {label} must be positive and finite, got {value!r}")
     if density is not None and not closed:
-        raise ValueError(f"{where}: mass from density needs a closed, consistently outward-oriented mesh{_soup_hint(mesh)}; give mass and inertia instead")
+        raise ValueError(f"{where}: mass from density needs a closed, consistently outward-oriented mesh{_closure_hint(mesh)}; give mass and inertia instead")
     if inertia is None and not closed:
-        raise ValueError(f"{where}: inertia is needed for a mesh that is not closed and consistently outward-oriented (no volume to take it from){_soup_hint(mesh)}")
+        raise ValueError(f"{where}: inertia is needed for a mesh that is not closed and consistently outward-oriented (no volume to take it from){_closure_hint(mesh)}")
     props = mesh.mass_properties if closed else None
     body_mass = float(props["volume"]) * float(density) if density is not None else float(mass)
     if center_of_mass is not None:
