@@ -6,6 +6,7 @@ __all__ = [
     "MAX_BARRIER_SUPPORT",
     "MAX_COORDINATE",
     "MAX_COUNT",
+    "MIN_EXTENT",
     "QUATERNION_TOLERANCE",
     "as_float64_array",
     "check_barrier_support",
@@ -17,6 +18,7 @@ __all__ = [
     "is_real",
     "is_whole",
     "real_array",
+    "real_dtype",
     "shown",
     "validated_poses",
 ]
@@ -29,6 +31,11 @@ MAX_BARRIER_SUPPORT = 1e6
 # differences, which overflow float64 from ~1e154 m (the far field's force then read -0.0
 # and a leaf solve NaN).
 MAX_COORDINATE = 1e150
+
+# Smallest extent (m) of a body that is not collapsed to one point: squared distances
+# underflow below ~1e-154 m, where its bounding spheres read radius 0 and missed its
+# triangles (a 1e-170 m ball's every leaf sphere).
+MIN_EXTENT = 1e-150
 
 # Largest deviation from unit norm of a quaternion given as a rotation (poses, frames,
 # targets); within it the quaternion is normalised, beyond it refused.
@@ -107,7 +114,12 @@ def real_array(value) -> np.ndarray | None:
         array = np.asarray(value)
     except (TypeError, ValueError):  # ragged nesting
         return None
-    return array.astype(np.float64) if array.dtype.kind in "iuf" else None
+    return array.astype(np.float64) if real_dtype(array) else None
+
+
+def real_dtype(array: np.ndarray) -> bool:
+    """Whether an array holds real numbers: integers or floats, not bools, text or objects."""
+    return array.dtype.kind in "iuf"
 
 
 def as_float64_array(value, name: str, *, trailing_shape: tuple[int, ...] = (), allow_empty: bool = True) -> np.ndarray:
@@ -119,7 +131,7 @@ def as_float64_array(value, name: str, *, trailing_shape: tuple[int, ...] = (), 
         arr = np.asarray(value)
     except Exception as exc:  # ragged lists and the like
         raise ValueError(f"{name}: cannot be read as a numeric array ({exc})") from None
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+    if not real_dtype(arr):
         raise ValueError(f"{name}: expected a real numeric array, got dtype {arr.dtype}")
     expected = ("N",) + tuple(trailing_shape)
     if arr.ndim != len(expected) or tuple(arr.shape[1:]) != tuple(trailing_shape):

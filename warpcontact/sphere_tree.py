@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._validate import check_coordinates
+from ._validate import MIN_EXTENT, check_coordinates, real_dtype
 
 __all__ = ["SphereTree", "build_sphere_tree", "validated_mesh"]
 
@@ -240,6 +240,9 @@ def validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
         bad = int(np.flatnonzero(~finite_vertex)[0])
         raise ValueError(f"mesh {name!r}: vertex {bad} is not finite: {positions[bad].tolist()}")
     check_coordinates(positions, f"mesh {name!r}: vertices")
+    extent = float(np.ptp(positions, axis=0).max()) if len(positions) else 0.0
+    if 0.0 < extent < MIN_EXTENT:
+        raise ValueError(f"mesh {name!r}: spans {extent:g} m, below the {MIN_EXTENT:g} m that float64 squared distances resolve (a mesh collapsed to one point is valid)")
 
     raw_faces = _real_array(faces, name, "faces")
     if raw_faces.ndim != 2 or raw_faces.shape[1] != 3:
@@ -267,7 +270,6 @@ def _real_array(value, name: str, what: str) -> np.ndarray:
         array = np.asarray(value)
     except Exception as exc:  # ragged nesting and the like
         raise ValueError(f"mesh {name!r}: {what} cannot be read as a numeric array ({exc})") from None
-    # Booleans are not integers here: np.issubdtype(bool, np.integer) is False.
-    if not (np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating)):
+    if not real_dtype(array):
         raise ValueError(f"mesh {name!r}: {what} must be real numbers, got dtype {array.dtype}")
     return array
