@@ -78,10 +78,38 @@ def test_nearly_coinciding_points_give_a_right_hull_or_a_named_error(distance):
     assert mesh.volume == pytest.approx(trimesh.Trimesh(sphere, convex_hull(sphere), process=False).volume, rel=1e-5)
 
 
-@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # the overflow the check catches
-def test_a_cube_too_large_for_float64_products_is_refused_not_misbuilt():
-    # Squared lengths overflow: a cube of 1e120 m came back a tetrahedron, its corners outside.
+def test_hulls_at_any_scale_are_the_same():
+    """Built at an extent of about 1 (scaled by a power of two, exactly): squared lengths
+    overflowed or underflowed, and a cube of 1e120 m came back a tetrahedron (then refused),
+    one of 1e100 m or 1e-100 m read as flat."""
     cube = np.asarray(trimesh.creation.box(extents=(1.0, 1.0, 1.0)).vertices)
-    with pytest.raises(ValueError, match="could not be built reliably"):
-        convex_hull(cube * 1e120)
-    assert len(convex_hull(cube * 1e-9)) == len(convex_hull(cube * 1e9)) == 12
+    cloud = np.random.default_rng(3).normal(size=(60, 3))
+    for points in (cube, cloud):
+        reference = convex_hull(points)
+        volume = trimesh.Trimesh(points, reference, process=False).volume
+        for exponent in (-465, -332, -30, 30, 332, 465):  # scales of 1e-140 .. 1e140, exact
+            np.testing.assert_array_equal(convex_hull(np.ldexp(points, exponent)), reference)
+        for scale in (1e-140, 1e-100, 1e100, 1e140):  # rounded: ties of the cube's faces may split otherwise
+            scaled = points * scale
+            assert trimesh.Trimesh(scaled / scale, convex_hull(scaled), process=False).volume == pytest.approx(volume, rel=1e-12)
+
+
+@pytest.mark.parametrize("thickness", [1e-11, 2e-10, 5e-9])
+def test_a_nearly_flat_set_is_refused(thickness):
+    """Thinner than 1e-8 of its extent, a set's hull errors escape the check (1e-9 of the
+    extent): a 1 x 1 x 1.8e-11 slab came back with 6% more volume, points outside it."""
+    rng = np.random.default_rng(7)
+    slab = rng.uniform(size=(60, 3)) * [1.0, 1.0, thickness]
+    with pytest.raises(ValueError, match=r"they span almost no volume \(a thickness of .* of their extent, below 1e-08\)"):
+        convex_hull(slab)
+    assert len(convex_hull(rng.uniform(size=(60, 3)) * [1.0, 1.0, 1e-6])) > 0
+
+
+def test_a_first_three_points_on_one_line_do_not_seed_the_hull():
+    """The first four points seeded the hull when the fourth stood off their base's plane,
+    whose normal, for three points on one line, was rounding noise: a flat grid moved 220 m
+    from the origin came back a 4-face hull of volume 7e-17."""
+    grid = np.array([[x, y, 0.0] for x in range(3) for y in range(3)], dtype=float)
+    points = np.vstack([grid[[0, 1, 2]], [[0.5, 0.5, 1.0]], grid[3:]])  # 0, 1, 2 on the line x = 0
+    hull = convex_hull(points)
+    assert trimesh.Trimesh(points, hull, process=False).volume == pytest.approx(4.0 / 3.0 * 1.0 / 1.0 * 1.0, rel=1e-12)

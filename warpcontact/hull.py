@@ -16,6 +16,10 @@ _PLANE_TOLERANCE = 1e-12
 # The returned hull may miss a point by this fraction of the extent (rounding of the plane
 # tests of sliver faces); a larger miss, or a hull that is not closed, is refused.
 _CHECK_TOLERANCE = 1e-9
+# Sets thinner than this fraction of their extent are refused as nearly flat: the check
+# above cannot see errors in them (a 1 x 1 x 1.8e-11 slab came back with 6% more volume and
+# points 0.9 of its thickness outside).
+_FLAT_TOLERANCE = 1e-8
 
 
 def convex_hull(points, *, all_on_hull: bool = False) -> np.ndarray:
@@ -46,7 +50,13 @@ def convex_hull(points, *, all_on_hull: bool = False) -> np.ndarray:
         raise ValueError(f"points: expected (N, 3) with N >= 4, got shape {points.shape}")
     if not np.isfinite(points).all():
         raise ValueError("points: not all finite")
-    tolerance = _PLANE_TOLERANCE * max(float(np.ptp(points, axis=0).max()), np.finfo(np.float64).tiny)
+    extent = float(np.ptp(points, axis=0).max())
+    if not 0.0 < extent < np.inf:
+        raise ValueError(f"points: they span {extent:g} m, which float64 differences of them cannot represent" if extent else "points: they all coincide")
+    # Scaled by a power of two to an extent of about 1, exactly: squared lengths overflowed or
+    # underflowed beyond ~1e80 and below ~1e-85 (a unit cube of 1e100 m read as flat).
+    points = np.ldexp(points, -int(np.frexp(extent)[1]))
+    tolerance = _PLANE_TOLERANCE * float(np.ptp(points, axis=0).max())
     seed = _seed_tetrahedron(points, tolerance)
     centre = points[list(seed)].mean(axis=0)
     a, b, c, d = seed
@@ -117,9 +127,33 @@ def convex_hull_mesh(points) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _seed_tetrahedron(points: np.ndarray, tolerance: float) -> tuple[int, int, int, int]:
-    """The first four points where they span a tetrahedron, else four extreme points."""
-    if _tetrahedron_height(points, (0, 1, 2), 3) > tolerance:
+    """Four extreme points, or the first four where they span a tetrahedron on a base that is
+    no line; ValueError for points that span no volume, or almost none (_FLAT_TOLERANCE)."""
+    first, second, third, heights = _extreme_triangle(points, tolerance)
+    fourth = int(np.argmax(heights))
+    extent = float(np.ptp(points, axis=0).max())
+    if heights[fourth] <= tolerance:
+        raise ValueError("points: they span no volume (all in one plane)")
+    if heights[fourth] <= _FLAT_TOLERANCE * extent:
+        raise ValueError(f"points: they span almost no volume (a thickness of {heights[fourth] / extent:.1e} of their extent, below {_FLAT_TOLERANCE:g}), where their hull is not reliable in float64")
+    # A first three on one line gave a base whose normal was rounding noise.
+    if _distance_from_line(points, 0, 1, 2) > tolerance and _tetrahedron_height(points, (0, 1, 2), 3) > tolerance:
         return 0, 1, 2, 3
+    return first, second, third, fourth
+
+
+def _distance_from_line(points: np.ndarray, i: int, j: int, k: int) -> float:
+    """Distance of ``points[k]`` from the line through ``points[i]`` and ``points[j]`` (from
+    ``points[i]`` where they coincide)."""
+    axis = points[j] - points[i]
+    offset = points[k] - points[i]
+    length = np.linalg.norm(axis)
+    return float(np.linalg.norm(offset if length == 0.0 else offset - (offset @ axis) / length**2 * axis))
+
+
+def _extreme_triangle(points: np.ndarray, tolerance: float) -> tuple[int, int, int, list]:
+    """Three extreme points (the lowest in x, the farthest from it, the farthest from their
+    line) and every point's height over their plane; ValueError for points on one line."""
     first = int(np.argmin(points[:, 0]))
     second = int(np.argmax(np.linalg.norm(points - points[first], axis=1)))
     axis = points[second] - points[first]
@@ -129,11 +163,7 @@ def _seed_tetrahedron(points: np.ndarray, tolerance: float) -> tuple[int, int, i
     third = int(np.argmax(np.linalg.norm(off_line, axis=1)))
     if np.linalg.norm(off_line[third]) <= tolerance:
         raise ValueError("points: they span no volume (all on one line)")
-    heights = [_tetrahedron_height(points, (first, second, third), p) for p in range(len(points))]
-    fourth = int(np.argmax(heights))
-    if heights[fourth] <= tolerance:
-        raise ValueError("points: they span no volume (all in one plane)")
-    return first, second, third, fourth
+    return first, second, third, [_tetrahedron_height(points, (first, second, third), p) for p in range(len(points))]
 
 
 def _tetrahedron_height(points: np.ndarray, base: tuple, apex: int) -> float:
