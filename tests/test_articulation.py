@@ -661,6 +661,16 @@ def test_bad_joint_options_are_named():
             b.add_joint(**options)
 
 
+def test_a_base_joint_on_a_static_parent_is_refused():
+    """It was taken, and the body's contact with that parent dropped as a joint's own: a box
+    on a base joint "from" the floor fell through it (0.6 m below after 0.4 s)."""
+    b = wc.ModelBuilder()
+    floor = b.add_box((2.0, 2.0, 0.2), static=True, pose=(0, 0, -0.1, 0, 0, 0, 1), name="floor")
+    box = b.add_box((0.2, 0.2, 0.2), density=100.0, pose=(0, 0, 0.11, 0, 0, 0, 1), name="box")
+    with pytest.raises(ValueError, match=r"a base joint connects a body to the world \(parent None\)"):
+        b.add_joint("base", child=box, parent=floor, dofs=("x", "y", "z"))
+
+
 def test_bad_cone_limits_are_refused():
     b, a, c = two_boxes()
     with pytest.raises(ValueError, match="cone_limit only applies to ball joints"):

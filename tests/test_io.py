@@ -1547,6 +1547,11 @@ def test_joint_limits_open_on_one_side_and_a_zero_drive_target_load(tmp_path, jo
         (lambda st: UsdPhysics.DriveAPI(st.GetPrimAtPath("/World/hinge"), "angular").GetTargetPositionAttr().Set(float("nan")), "drive:angular:physics:targetPosition must be finite, got nan"),
         (lambda st: st.GetPrimAtPath("/World/hinge").GetRelationship("physics:body0").SetTargets(["/World/no_such_body"]), "physics:body0 targets /World/no_such_body, which does not exist"),
         (lambda st: st.GetPrimAtPath("/World/hinge").GetRelationship("physics:body1").AddTarget("/World/box/shape"), "physics:body1 targets 2 prims"),
+        # Read as the identity (a zero quaternion) or normalised, with no word.
+        (lambda st: st.GetPrimAtPath("/World/hinge").CreateAttribute("physics:localRot0", Sdf.ValueTypeNames.Quatf).Set(Gf.Quatf(0.0, 0.0, 0.0, 0.0)), r"prim /World/hinge: physics:localRot0 must be a unit quaternion, got \(0, 0, 0, 0\) \(norm 0\)"),
+        (lambda st: st.GetPrimAtPath("/World/hinge").CreateAttribute("physics:localRot1", Sdf.ValueTypeNames.Quatf).Set(Gf.Quatf(2.0, 0.0, 0.0, 0.0)), r"prim /World/hinge: physics:localRot1 must be a unit quaternion"),
+        # A body1 that is no body read as "physics:body1 is not set".
+        (lambda st: [UsdGeom.Xform.Define(st, "/World/plain"), st.GetPrimAtPath("/World/hinge").GetRelationship("physics:body1").SetTargets(["/World/plain"])], r"prim /World/hinge: body1 /World/plain is not a rigid body with a collider"),
     ],
 )
 def test_joint_values_the_parser_drops_are_refused(tmp_path, author, match):
@@ -1684,6 +1689,35 @@ def test_save_scene_refuses_what_load_scene_would(tmp_path, change, message):
     with pytest.raises(ValueError, match=message):
         io.save_scene(scene, path)
     assert not path.exists()
+
+
+def test_a_universal_joint_with_axes_not_of_unit_length_saves_them_as_the_model_reads_them(tmp_path):
+    """The model normalises a joint's axes; the saved frames were turned by the first axis as
+    given, and (0, 0, 2), (0, 3, 0) reloaded with its first axis 37 degrees off, silently."""
+    box = trimesh.creation.box(extents=(0.1, 0.1, 0.5))
+    vertices, faces = np.asarray(box.vertices, dtype=np.float64), np.asarray(box.faces, dtype=np.int64)
+    upper = io.BodySpec("upper", "/World/upper", vertices, faces, np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]), density=500.0)
+    lower = io.BodySpec("lower", "/World/lower", vertices, faces, np.array([0.0, 0.0, 0.48, 0.0, 0.0, 0.0, 1.0]), density=500.0)
+    joints = [
+        io.JointSpec("top", "/World/joints/top", "ball", None, "upper", np.array([0.0, 0.0, 1.26, 0.0, 0.0, 0.0, 1.0]), np.array([0.0, 0.0, 0.26, 0.0, 0.0, 0.0, 1.0])),
+        io.JointSpec(
+            "cardan", "/World/joints/cardan", "universal", "upper", "lower", np.array([0.0, 0.0, -0.26, 0.0, 0.0, 0.0, 1.0]), np.array([0.0, 0.0, 0.26, 0.0, 0.0, 0.0, 1.0]),
+            axes=np.array([[0.0, 0.0, 2.0], [0.0, 3.0, 0.0]]), kp=np.array([2.0, 3.0]), kd=np.array([0.2, 0.3]), targets=np.array([0.2, -0.1]),
+        ),
+    ]
+    scene = io.Scene(bodies=[upper, lower], joints=joints)
+    io.save_scene(scene, tmp_path / "cardan.usda")
+    models = [scene.build_model(), io.load_scene(tmp_path / "cardan.usda").build_model()]
+    poses = []
+    for model in models:
+        state, control = model.state(requires_grad=False), model.control(requires_grad=False)
+        solver = wc.ImplicitSolver(model)
+        for _ in range(10):
+            nxt = model.state(requires_grad=False)
+            solver.step(state, nxt, control, 0.01)
+            state = nxt
+        poses.append(state.body_q.numpy())
+    np.testing.assert_allclose(poses[1], poses[0], atol=1e-6)  # the save rounds to float32
 
 
 def test_saving_keeps_joint_frames_whose_axis_is_x(tmp_path):

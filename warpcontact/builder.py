@@ -486,7 +486,9 @@ class ModelBuilder:
             if not parent_body.static:
                 parent_index = int(parent)
         if kind == "base":
-            if parent_index >= 0:
+            # A static parent too: the base moves its body along world axes all the same, and
+            # the body's contact with that parent was dropped as a joint's (it fell through).
+            if parent is not None:
                 raise ValueError(f"{where}: a base joint connects a body to the world (parent None)")
             given = [label for label, value in (("anchor", anchor), ("axis", axis), ("parent_frame", parent_frame), ("child_frame", child_frame)) if value is not None]
             if given:

@@ -89,7 +89,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ._validate import MAX_COORDINATE, checked_flag, is_positive_finite, is_real, real_array, shown
+from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, checked_flag, is_positive_finite, is_real, real_array, shown
 from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact_setting_problem, coordinate_limits
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
@@ -1102,8 +1102,18 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
                 if targets and not stage.GetPrimAtPath(targets[0]):
                     # The UsdPhysics parser reads such a body as none: body0 became the world.
                     raise ValueError(f"{where}: physics:{label} targets {targets[0]}, which does not exist")
+            for label in ("localRot0", "localRot1"):
+                # The parser reads a zero quaternion as the identity and normalises others.
+                rotation = _attr(prim, f"physics:{label}")
+                if rotation is not None:
+                    norm = float(np.linalg.norm([rotation.GetReal(), *rotation.GetImaginary()]))
+                    if not abs(norm - 1.0) <= QUATERNION_TOLERANCE:
+                        raise ValueError(f"{where}: physics:{label} must be a unit quaternion, got {rotation} (norm {norm:.9g})")
             parent_path, child_path = str(desc.body0), str(desc.body1)
             if not child_path:
+                targets = prim.GetRelationship("physics:body1").GetTargets() if prim.GetRelationship("physics:body1") else []
+                if targets:  # the parser reads a prim that is no body as none
+                    raise ValueError(f"{where}: body1 {targets[0]} is not a rigid body with a collider (every link needs a mesh)")
                 raise ValueError(f"{where}: physics:body1 is not set; a joint here moves the rigid body in body1 (and body0 empty joins it to the world)")
             if child_path not in bodies:
                 raise ValueError(f"{where}: body1 {child_path} is not a rigid body with a collider (every link needs a mesh)")
@@ -1981,6 +1991,9 @@ def _frames_along_x(j: JointSpec):
     axes = np.asarray(j.axes, dtype=np.float64).reshape(-1, 3)
     if len(axes) == 0:
         return j.parent_frame, j.child_frame
+    # Unit axes, as the model reads them: a universal joint's (0, 0, 2), (0, 3, 0) was saved
+    # turned 37 degrees.
+    axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
     first = axes[0]
     if len(axes) > 1:
         second = axes[1] - (axes[1] @ first) * first
