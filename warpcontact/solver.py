@@ -354,6 +354,9 @@ class ImplicitSolver:
         self.last_step: StepInfo | None = None
         n = model.num_bodies
         self._dynamic = ~model.static
+        # Per body, tr of its second moment per unit mass (m^2): the size of the rotational
+        # inertia term, which L computes as a difference of such terms (``_solve``).
+        self._unit_second_moment_trace = np.trace(model.body_unit_second_moment.numpy(), axis1=1, axis2=2)
         self._dofs = np.flatnonzero(np.repeat(self._dynamic, 6))
         # Free bodies only: the reduced coordinates are the rigid coordinates (J = I).
         self._articulation = None if model.articulation.identity else model.articulation
@@ -399,8 +402,8 @@ class ImplicitSolver:
         bodies.dt = float(dt)
         return bodies
 
-    def _checked_model_parameters(self) -> tuple[float, float]:
-        """The contact stiffness mu and the friction coefficient, after checking the model parameters a user may change (or
+    def _checked_model_parameters(self) -> tuple[float, float, np.ndarray]:
+        """The contact stiffness mu, the friction coefficient and the body masses, after checking the model parameters a user may change (or
         a gradient step may push) after ``finalize``: a zero mass sent a resting puck 16 m up
         and a negative friction spun it, silently; the others failed as "no convergence" or
         blamed dt. ValueError naming the parameter (and body)."""
@@ -415,7 +418,7 @@ class ImplicitSolver:
         bad = np.flatnonzero(self._dynamic & ~(np.isfinite(mass) & (mass > 0.0)))
         if bad.size:
             raise ValueError(f"model.body_mass: body {model.body_names[bad[0]]!r} has mass {float(mass[bad[0]])!r}; a dynamic body's mass must be positive and finite")
-        return mu, friction
+        return mu, friction, mass
 
     def _friction_frame(self, mu: float, friction: float, dt: float) -> "LaggedFriction | None":
         """Lagged friction data at the configuration the contact model evaluated last (q^t);
@@ -797,7 +800,7 @@ class ImplicitSolver:
         q = normalized_poses(q_now)
         coords_now, joint_target = self._joint_arrays(state_in, state_out, control, q)
         ball_target, ball_start = self._ball_arrays(control, q_now)
-        mu, friction_coefficient = self._checked_model_parameters()
+        mu, friction_coefficient, mass = self._checked_model_parameters()
         dynamic = self._dynamic
         art = self._articulation
 
@@ -886,6 +889,12 @@ class ImplicitSolver:
         # noise; the cap keeps that true for loose tolerances (1e3 x 1e-6 would let full steps
         # cycle at millimetres).
         rounding_step = min(1e3 * self.tolerance, 1e-7) * self._length_scale
+        # Nor does Armijo resolve a decrease below L's rounding, which its rotational inertia
+        # term sets: (tr S - tr(R_hat S R^T)) / dt^2 is a difference of terms of this size, so
+        # L moves in quanta of about eps times it. A rod spinning in free flight near a post
+        # (the warm start refused) ended each step with decrements of 1.7e-14 against quanta
+        # of 5.7e-14, and its line search failed.
+        rounding_energy = _ROUNDING * float(np.sum((mass * self._unit_second_moment_trace)[dynamic])) / dt**2
         converged = False
         iterations = 0
         step_length = np.inf
@@ -923,7 +932,7 @@ class ImplicitSolver:
                 decrement = -float(grad @ direction)
             # L's rounding scales with its terms, not with L, which is ~0 in free flight under
             # a locally supported contact model (ipc, sdrs): short steps are taken in full.
-            quadratic_regime = (decrement <= 1e-10 * max(abs(value), 1e-300) or step_length <= rounding_step) and alpha == 1.0
+            quadratic_regime = (decrement <= max(1e-10 * max(abs(value), 1e-300), rounding_energy) or step_length <= rounding_step) and alpha == 1.0
             accepted = False
             for _ in range(60):
                 if art is None:
