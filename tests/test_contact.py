@@ -588,6 +588,13 @@ def test_step_bounds_need_an_evaluation_and_keep_their_own_separations():
         frame = model.advancement_frame()
         frame.pair_separation[:] = 1e9  # nor an edit of a frame's
         assert model.advancement_limit(step) == model.advancement_limit(step, frame=model.advancement_frame()) == alpha
+        # term_lists moves the transforms without evaluating: friction at "the last evaluated
+        # poses" silently read term_lists' poses.
+        lagged = model.friction_frame(0.1, wp.array([0.5], dtype=wp.float64), 1e-4)
+        model.term_lists(identity_poses([[0.01, 0, 1.55], [0, 0, 0]]))
+        with pytest.raises(RuntimeError, match=r"friction_terms: uses .* last evaluate\(poses\), and the model holds none"):
+            model.friction_terms(lagged)
+        assert model.friction_terms(lagged, poses=poses)[0] == 0.0
         model.term_lists(poses)  # lists without planes
         with pytest.raises(RuntimeError, match="term_lists does not compute planes"):
             model.advancement_limit(step)

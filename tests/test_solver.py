@@ -681,6 +681,28 @@ def test_a_second_backward_adds_the_same_gradient_again():
     assert not np.any(out["states"][4].body_q.grad.numpy()) and not np.any(out["states"][-1].body_q_prev.grad.numpy())
 
 
+def test_a_recorded_step_s_backward_uses_the_parameters_it_stepped_with():
+    """The step's backward read the model's masses and friction coefficient when it ran:
+    changed after a recorded step (a second step recorded with new values, say), the first
+    step's gradient came out with the new ones (off by 2.6x the gradient, a probe's two-step
+    case)."""
+
+    def gradients(change):
+        sim = Collision(steps=6, tolerance=1e-13)
+        tape = wp.Tape()
+        out = sim.run(velocity=np.array([2.0, 0.4, 0.0]), mu=1e-3, friction=0.5, tape=tape)
+        model = out["model"]
+        if change:
+            model.body_mass.assign(model.body_mass.numpy() * [4.0, 0.3, 2.0])
+            model.friction.assign([0.9])
+        tape.backward(out["loss"])
+        return [a.grad.numpy().copy() for a in (out["vel"], out["states"][0].body_q, model.contact_stiffness)]
+
+    for kept, changed in zip(gradients(False), gradients(True)):
+        assert np.abs(kept).max() > 0
+        np.testing.assert_array_equal(changed, kept)
+
+
 def test_tape_gradients_with_friction_match_finite_differences():
     """Friction's lagged normal force and normal depend on q^t: their derivatives must be exact."""
     sim = Collision(steps=20, tolerance=1e-13)

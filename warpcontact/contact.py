@@ -995,6 +995,10 @@ class ContactModel:
                 totals = (wp.zeros(1, dtype=wp.float64), wp.zeros((n, 6), dtype=wp.float64), wp.zeros(self._hessian_shape, dtype=wp.float64))
             self._friction_records = (self._new_records(0), totals)
         at_poses = poses is not None
+        if not at_poses:
+            # term_lists moves the transforms without evaluating: "the last evaluated poses"
+            # were silently term_lists' (friction 0 read 0.44).
+            self._require_evaluation("friction_terms")
         if at_poses:
             # The solver's retracted poses as given, to the last bit (their norms are 1 within rounding).
             self._friction_pose_host.numpy()[:] = self._validated_poses(poses, normalize=False)

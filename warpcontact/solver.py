@@ -25,6 +25,7 @@ recorded step refuses a model array that asks for a gradient it does not compute
 second moments), which would otherwise stay zero.
 """
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -388,16 +389,19 @@ class ImplicitSolver:
 
     # --- forward ------------------------------------------------------------------------------
 
-    def _body_model(self, dt: float) -> dynamics_kernels.BodyModel:
+    def _body_model(self, dt: float, *, snapshot: bool = False) -> dynamics_kernels.BodyModel:
+        """The model's per-body data for a step of ``dt``: its arrays, or with ``snapshot``
+        copies of them, which a taped step's backward reads when it runs."""
         m = self.model
+        take = (lambda array: wp.clone(array, requires_grad=False)) if snapshot else (lambda array: array)
         bodies = dynamics_kernels.BodyModel()
-        bodies.mass = m.body_mass
-        bodies.unit_second_moment = m.body_unit_second_moment
-        bodies.dynamic = m.body_dynamic
-        bodies.kp_linear = m.body_kp_linear
-        bodies.kd_linear = m.body_kd_linear
-        bodies.kp_angular = m.body_kp_angular
-        bodies.kd_angular = m.body_kd_angular
+        bodies.mass = take(m.body_mass)
+        bodies.unit_second_moment = take(m.body_unit_second_moment)
+        bodies.dynamic = take(m.body_dynamic)
+        bodies.kp_linear = take(m.body_kp_linear)
+        bodies.kd_linear = take(m.body_kd_linear)
+        bodies.kp_angular = take(m.body_kp_angular)
+        bodies.kd_angular = take(m.body_kd_angular)
         bodies.gravity = wp.vec3d(*m.gravity)
         bodies.dt = float(dt)
         return bodies
@@ -1175,6 +1179,12 @@ class ImplicitSolver:
         dynamic = self._dynamic
         art = self._articulation
         hess = hess.copy()
+        # The model's masses, gains and friction coefficient as they were in this step: changed
+        # between two taped steps, the first step's backward read the new values (gradients off
+        # by 2.6x the gradient itself).
+        bodies = self._body_model(dt, snapshot=True)
+        if friction is not None:
+            friction = dataclasses.replace(friction, friction=wp.clone(friction.friction, requires_grad=False))
         contact_grad = contact_grad.copy()
         with wp.ScopedDevice(dev):
             # Snapshots: the backward must see this step's values, not later contents.
@@ -1185,7 +1195,6 @@ class ImplicitSolver:
             predicted_position = wp.clone(self._predicted_position)
             predicted_rotation = wp.clone(self._predicted_rotation)
             sensitivity = wp.clone(self._prediction_sensitivity)
-        bodies = step_in.bodies
         arrays = [array for _, array in self._taped_state_arrays(state_in, state_out)] + [getattr(model, name) for name in _DIFFERENTIATED_MODEL_ARRAYS if getattr(model, name).requires_grad]
         arrays += [array for _, array in _taped_control_arrays(control)]
         joints = art is not None and art.num_coordinates > 0
