@@ -1,5 +1,7 @@
 """Implicit time step: physics checks, non-penetration, tape gradients, bad input."""
 
+import subprocess
+import sys
 import warnings
 
 import numpy as np
@@ -964,6 +966,40 @@ def test_an_inside_out_piece_is_refused_and_a_cavity_is_not():
     b = wc.ModelBuilder()
     b.add_body(trimesh.util.concatenate([big, cavity]), density=1000.0, name="hollow")
     assert b.finalize().body_mass.numpy()[0] == pytest.approx(8000.0 - 125.0)
+    # Inside a cavity an inverted piece is inside-out again; a double-sided sheet has no
+    # volume to be inside-out with; a 1 mm cube 1 km from the mesh's origin keeps its sign.
+    inner = trimesh.creation.box((0.2, 0.2, 0.2))
+    inner.invert()
+    with pytest.raises(ValueError, match="a separate closed piece of it is wound inside out"):
+        wc.ModelBuilder().add_body(trimesh.util.concatenate([big, cavity, inner]), density=1000.0)
+    sheet = trimesh.Trimesh([[3.0, 0.0, 0.0], [4.0, 0.0, 0.0], [3.0, 1.0, 0.0]], [[0, 1, 2], [0, 2, 1]], process=False)
+    far = trimesh.creation.box((1e-3, 1e-3, 1e-3))
+    far.apply_translation([2.0, 0.0, 0.0])
+    for pieces, mass in (([big, sheet], 8000.0), ([big, far], 8000.0 + 1e-6)):
+        mesh = trimesh.util.concatenate(pieces)
+        mesh.apply_translation([1000.0, 0.0, 0.0])
+        assert wc.ModelBuilder().add_body(mesh, density=1000.0) == 0
+
+
+def test_mass_from_density_needs_no_scipy():
+    """The pieces were labelled by trimesh's graph code, which needs scipy: not one of this
+    package's dependencies (it was in the test environment only through ipctk). Run in a
+    fresh interpreter where scipy cannot be imported."""
+    script = (
+        "import sys\n"
+        "class NoScipy:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name == 'scipy' or name.startswith('scipy.'):\n"
+        "            raise ImportError('scipy is blocked')\n"
+        "sys.meta_path.insert(0, NoScipy())\n"
+        "import warpcontact as wc\n"
+        "b = wc.ModelBuilder()\n"
+        "b.add_box((1.0, 1.0, 1.0), density=1000.0)\n"
+        "print(b.finalize().body_mass.numpy()[0])\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert float(done.stdout.strip().splitlines()[-1]) == pytest.approx(1000.0)
 
 
 _BOX = trimesh.creation.box(extents=(1.0, 1.0, 1.0))

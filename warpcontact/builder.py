@@ -118,8 +118,31 @@ def _encloses_volume(mesh: trimesh.Trimesh) -> bool:
     volume. A closed mesh with some faces wound inward still has a positive signed volume,
     but the wrong one (one flipped face of a unit cube gave 500 kg at 1,000 kg/m^3 and its
     centre of mass 0.25 m off); a flat closed mesh has none (trimesh divides by it)."""
+    return _closed_outward(mesh) and not _inside_out_piece(mesh)
+
+
+def _closed_outward(mesh: trimesh.Trimesh) -> bool:
+    """Closed, consistently wound and of positive total volume (each piece aside)."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        return bool(mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0 and not _inside_out_piece(mesh))
+        return bool(mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0)
+
+
+def _piece_labels(count: int, pairs: np.ndarray) -> np.ndarray:
+    """Labels 0..k-1 of the connected pieces of ``count`` nodes joined by ``pairs`` (m, 2):
+    union-find by hooking roots onto smaller roots and halving paths, in numpy (trimesh's
+    labelling needs scipy, which this package does not)."""
+    parent = np.arange(count)
+    while True:
+        root_a, root_b = parent[pairs[:, 0]], parent[pairs[:, 1]]
+        apart = root_a != root_b
+        if not apart.any():
+            return np.unique(parent, return_inverse=True)[1].reshape(-1)
+        np.minimum.at(parent, np.maximum(root_a, root_b)[apart], np.minimum(root_a, root_b)[apart])
+        while True:
+            grand = parent[parent]
+            if np.array_equal(grand, parent):
+                break
+            parent = grand
 
 
 def _winding_numbers(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -135,17 +158,23 @@ def _winding_numbers(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 def _inside_out_piece(mesh: trimesh.Trimesh) -> bool:
     """Whether a closed piece of the mesh (faces connected through edges) encloses a negative
-    volume without lying inside the outward pieces, as a cavity's inward-facing wall does: a
-    separate inside-out box beside a body's box had its volume subtracted (8,125 kg read as
-    7,875 kg, the centre of mass on the wrong side)."""
-    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    volume without lying inside the material of the other pieces, as a cavity's inward wall
+    does (their winding number there at least 1): a separate inside-out box beside a body's
+    box had its volume subtracted (8,125 kg read as 7,875 kg, the centre of mass on the wrong
+    side). Each piece's volume is taken about its own centre, so that rounding far from the
+    mesh's origin cannot flip a small piece's sign; a piece of no volume (a double-sided
+    sheet) is no inside-out piece."""
     triangles = mesh.triangles
-    signed = np.einsum("fi,fi->f", triangles[:, 0], np.cross(triangles[:, 1], triangles[:, 2])) / 6.0
+    labels = _piece_labels(len(triangles), np.asarray(mesh.face_adjacency).reshape(-1, 2))
+    counts = np.bincount(labels)
+    centre = np.stack([np.bincount(labels, weights=triangles[:, :, k].mean(axis=1)) for k in range(3)], axis=1) / counts[:, None]
+    local = triangles - centre[labels][:, None, :]
+    signed = np.einsum("fi,fi->f", local[:, 0], np.cross(local[:, 1], local[:, 2])) / 6.0
     volumes = np.bincount(labels, weights=signed)
-    outward = volumes[labels] > 0
-    for piece in np.flatnonzero(volumes <= 0):
-        probe = triangles[labels == piece][0].mean(axis=0, keepdims=True)
-        if _winding_numbers(probe, triangles[outward])[0] < 0.5:
+    for piece in np.flatnonzero(volumes < -1e-9 * np.bincount(labels, weights=np.abs(signed))):
+        inside = labels == piece
+        probe = triangles[inside][0].mean(axis=0, keepdims=True)
+        if _winding_numbers(probe, triangles[~inside])[0] < 0.5:
             return True
     return False
 
@@ -154,9 +183,8 @@ def _closure_hint(mesh: trimesh.Trimesh) -> str:
     """Why a mesh that does not enclose a volume may not: a closed piece wound inside out
     (``_inside_out_piece``), or faces that share no vertices (a triangle soup, as many
     exporters write), which close once coincident vertices are merged."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        if mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0:
-            return " (a separate closed piece of it is wound inside out: invert that piece's faces)"
+    if _closed_outward(mesh):
+        return " (a separate closed piece of it is wound inside out: invert that piece's faces)"
     merged = mesh.copy()
     merged.merge_vertices()
     if len(merged.vertices) < len(mesh.vertices) and _encloses_volume(merged):

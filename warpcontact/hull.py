@@ -151,7 +151,7 @@ def _distance_from_line(points: np.ndarray, i: int, j: int, k: int) -> float:
     return float(np.linalg.norm(offset if length == 0.0 else offset - (offset @ axis) / length**2 * axis))
 
 
-def _extreme_triangle(points: np.ndarray, tolerance: float) -> tuple[int, int, int, list]:
+def _extreme_triangle(points: np.ndarray, tolerance: float) -> tuple[int, int, int, np.ndarray]:
     """Three extreme points (the lowest in x, the farthest from it, the farthest from their
     line) and every point's height over their plane; ValueError for points on one line."""
     first = int(np.argmin(points[:, 0]))
@@ -163,7 +163,8 @@ def _extreme_triangle(points: np.ndarray, tolerance: float) -> tuple[int, int, i
     third = int(np.argmax(np.linalg.norm(off_line, axis=1)))
     if np.linalg.norm(off_line[third]) <= tolerance:
         raise ValueError("points: they span no volume (all on one line)")
-    return first, second, third, [_tetrahedron_height(points, (first, second, third), p) for p in range(len(points))]
+    normal = np.cross(points[second] - points[first], points[third] - points[first])
+    return first, second, third, np.abs((points - points[first]) @ (normal / np.linalg.norm(normal)))
 
 
 def _tetrahedron_height(points: np.ndarray, base: tuple, apex: int) -> float:

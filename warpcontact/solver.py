@@ -895,9 +895,10 @@ class ImplicitSolver:
         rounding_step = min(1e3 * self.tolerance, 1e-7) * self._length_scale
         # Nor does Armijo resolve a decrease below L's rounding, which its rotational inertia
         # term sets: (tr S - tr(R_hat S R^T)) / dt^2 is a difference of terms of this size, so
-        # L moves in quanta of about eps times it. A rod spinning in free flight near a post
-        # (the warm start refused) ended each step with decrements of 1.7e-14 against quanta
-        # of 5.7e-14, and its line search failed.
+        # L moves in quanta of about eps times it, and an increase within them is no increase
+        # (Armijo's slack). A rod spinning in free flight near a post (the warm start refused)
+        # ended each step with decrements of 1.7e-14 against quanta of 5.7e-14, and its line
+        # search failed.
         rounding_energy = _ROUNDING * float(np.sum((mass * self._unit_second_moment_trace)[dynamic])) / dt**2
         converged = False
         iterations = 0
@@ -936,7 +937,7 @@ class ImplicitSolver:
                 decrement = -float(grad @ direction)
             # L's rounding scales with its terms, not with L, which is ~0 in free flight under
             # a locally supported contact model (ipc, sdrs): short steps are taken in full.
-            quadratic_regime = (decrement <= max(1e-10 * max(abs(value), 1e-300), rounding_energy) or step_length <= rounding_step) and alpha == 1.0
+            quadratic_regime = (decrement <= 1e-10 * max(abs(value), 1e-300) or step_length <= rounding_step) and alpha == 1.0
             accepted = False
             for _ in range(60):
                 if art is None:
@@ -954,7 +955,7 @@ class ImplicitSolver:
                 t_value, t_grad, t_hess, t_contact, t_jacobian = self._evaluate(trial, t_coords, step_in)
                 unsolved.count(t_contact)
                 # Below the rounding of L an Armijo test is noise; full steps are safe there.
-                if np.isfinite(t_value) and (quadratic_regime or t_value <= value - 1e-4 * alpha * decrement):
+                if np.isfinite(t_value) and (quadratic_regime or t_value <= value - 1e-4 * alpha * decrement + rounding_energy):
                     accepted = True
                     break
                 alpha *= _backtrack_factor(value, -decrement, t_value, None if t_grad is None else float(t_grad @ direction), alpha)
