@@ -231,7 +231,7 @@ def _unique_vertex_means(
 
 def validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
     """Return (float64 (nv, 3) positions, int64 (nf, 3) face indices) or raise ValueError."""
-    positions = _real_array(vertices, name, "vertices")
+    positions = _mesh_array(vertices, name, "vertices")
     if positions.ndim != 2 or positions.shape[1] != 3:
         raise ValueError(f"mesh {name!r}: vertices must have shape (nv, 3), got {positions.shape}")
     positions = np.ascontiguousarray(positions, dtype=np.float64)
@@ -244,7 +244,7 @@ def validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
     if 0.0 < extent < MIN_EXTENT:
         raise ValueError(f"mesh {name!r}: spans {extent:g} m, below the {MIN_EXTENT:g} m that float64 squared distances resolve (a mesh collapsed to one point is valid)")
 
-    raw_faces = _real_array(faces, name, "faces")
+    raw_faces = _mesh_array(faces, name, "faces")
     if raw_faces.ndim != 2 or raw_faces.shape[1] != 3:
         raise ValueError(f"mesh {name!r}: faces must have shape (nf, 3), got {raw_faces.shape}")
     if raw_faces.shape[0] == 0:
@@ -264,7 +264,7 @@ def validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
     return positions, np.ascontiguousarray(raw_faces, dtype=np.int64)
 
 
-def _real_array(value, name: str, what: str) -> np.ndarray:
+def _mesh_array(value, name: str, what: str) -> np.ndarray:
     """``value`` as a numpy array of a real, non-boolean dtype, or ValueError naming the mesh."""
     try:
         array = np.asarray(value)
