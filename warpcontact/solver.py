@@ -1199,6 +1199,8 @@ class ImplicitSolver:
         arrays = [array for _, array in self._taped_state_arrays(state_in, state_out)] + [getattr(model, name) for name in _DIFFERENTIATED_MODEL_ARRAYS if getattr(model, name).requires_grad]
         arrays += [array for _, array in _taped_control_arrays(control)]
         joints = art is not None and art.num_coordinates > 0
+        if joints:
+            joint_kp, joint_kd = art.kp.copy(), art.kd.copy()  # as this step used them
         balls = art is not None and art.has_ball_drives
         # Targets a step is not given hold the joints where the step starts (_joint_arrays,
         # _ball_arrays): their adjoints belong to the start.
@@ -1271,12 +1273,12 @@ class ImplicitSolver:
                     # d(grad)/d(target) = -kp and d(grad)/d(q^t) = -kd/dt on each coordinate;
                     # state_out.joint_q_prev is a copy of state_in.joint_q.
                     lam_coords = lam_reduced[art.coordinate_dof]
-                    adj_coords = -art.kd / dt * lam_coords + state_out.joint_q_prev.grad.numpy()
+                    adj_coords = -joint_kd / dt * lam_coords + state_out.joint_q_prev.grad.numpy()
                     if joint_target_is_start:
-                        adj_coords -= art.kp * lam_coords
+                        adj_coords -= joint_kp * lam_coords
                     state_in.joint_q.grad.assign(state_in.joint_q.grad.numpy() + adj_coords)
                     if not joint_target_is_start and control.joint_target.requires_grad:
-                        control.joint_target.grad.assign(control.joint_target.grad.numpy() - art.kp * lam_coords)
+                        control.joint_target.grad.assign(control.joint_target.grad.numpy() - joint_kp * lam_coords)
                 # The step's outputs' adjoints are consumed, as Warp's adjoints of array writes
                 # consume theirs: a second tape.backward() without tape.zero() then adds its
                 # gradient to the first instead of passing this step's adjoints through again.
