@@ -981,7 +981,7 @@ def test_an_inside_out_piece_is_refused_and_a_cavity_is_not():
         assert wc.ModelBuilder().add_body(mesh, density=1000.0) == 0
 
 
-def test_mass_from_density_needs_no_scipy():
+def test_mass_from_density_needs_no_scipy(tmp_path):
     """The pieces were labelled by trimesh's graph code, which needs scipy: not one of this
     package's dependencies (it was in the test environment only through ipctk). Run in a
     fresh interpreter where scipy cannot be imported."""
@@ -997,7 +997,9 @@ def test_mass_from_density_needs_no_scipy():
         "b.add_box((1.0, 1.0, 1.0), density=1000.0)\n"
         "print(b.finalize().body_mass.numpy()[0])\n"
     )
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    # From another folder: "-c" puts the working folder first on the path, and a checkout's
+    # own warpcontact/ (without its kernels) would shadow the installed package.
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]
     assert float(done.stdout.strip().splitlines()[-1]) == pytest.approx(1000.0)
 
