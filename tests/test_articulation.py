@@ -671,6 +671,46 @@ def test_a_base_joint_on_a_static_parent_is_refused():
         b.add_joint("base", child=box, parent=floor, dofs=("x", "y", "z"))
 
 
+@wp.kernel
+def _first_body_x_kernel(q: wp.array(dtype=wp.transformd), loss: wp.array(dtype=wp.float64)):
+    loss[0] = wp.transform_get_translation(q[0])[0]
+
+
+@pytest.mark.parametrize("kind", ["revolute", "ball"])
+def test_a_recorded_step_s_backward_uses_the_joint_gains_it_stepped_with(kind):
+    """Gains changed after recording: the backward read the joints' gains when it ran (a ball
+    joint's target gradient 13x off)."""
+
+    def gradients(change):
+        b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+        arm = b.add_box((0.05, 0.05, 0.5), density=800.0, pose=(0, 0, 1.0, 0, 0, 0, 1))
+        if kind == "ball":
+            b.add_joint("ball", child=arm, anchor=(0, 0, 1.25), kp=5.0, kd=0.5)
+        else:
+            b.add_joint("revolute", child=arm, anchor=(0, 0, 1.25), axis=(0, 1, 0), kp=5.0, kd=0.5)
+        model = b.finalize()
+        art, solver = model.articulation, wc.ImplicitSolver(model)
+        states = [model.state() for _ in range(3)]
+        control = model.control()
+        target = control.ball_target if kind == "ball" else control.joint_target
+        target.assign([[0.0, np.sin(0.15), 0.0, np.cos(0.15)]] if kind == "ball" else [0.3])
+        loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+        tape = wp.Tape()
+        with tape:
+            solver.step(states[0], states[1], control, 0.02)
+            solver.step(states[1], states[2], control, 0.02)
+            wp.launch(_first_body_x_kernel, dim=1, inputs=[states[2].body_q], outputs=[loss])
+        if change:
+            for gains in ((art.ball_kp, art.ball_kd) if kind == "ball" else (art.kp, art.kd)):
+                gains *= 10.0
+        tape.backward(loss)
+        return target.grad.numpy().copy(), states[0].body_q.grad.numpy().copy()
+
+    for kept, changed in zip(gradients(False), gradients(True)):
+        assert np.abs(kept).max() > 0
+        np.testing.assert_array_equal(changed, kept)
+
+
 def test_bad_cone_limits_are_refused():
     b, a, c = two_boxes()
     with pytest.raises(ValueError, match="cone_limit only applies to ball joints"):

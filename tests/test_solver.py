@@ -931,6 +931,8 @@ def test_api_objects_of_the_wrong_kind_are_named():
     for make, match in (
         (lambda: wc.ModelBuilder(gravity=("0", "0", "-9.81")), r"gravity: expected 3 finite numbers, got \('0', '0', '-9.81'\)"),
         (lambda: wc.ModelBuilder(gravity=(True, False, True)), "gravity: expected 3 finite numbers"),
+        (lambda: wc.ModelBuilder(gravity=(0.0, 0.0, True)), "gravity: expected 3 finite numbers"),  # numpy read (0.0, 0.0, 1.0)
+        (lambda: wc.ModelBuilder().add_box((1.0, 1.0, True), density=1.0), "box extents must be 3 positive finite numbers"),
         (lambda: wc.ImplicitSolver(None), "model: expected a Model"),
         (lambda: wc.set_body_velocity(None, None, None, 0.1), "state: expected a State"),
     ):

@@ -108,13 +108,21 @@ def real_array(value) -> np.ndarray | None:
     """``value`` as a float64 array when it holds real numbers (integers or floats), else
     None: text and bools are not numbers, which np.asarray(value, dtype=float) read as such
     ("-9.81" as -9.81, True as 1)."""
-    if isinstance(value, str):
+    if _holds_text_or_bool(value):
         return None
     try:
         array = np.asarray(value)
     except (TypeError, ValueError):  # ragged nesting
         return None
     return array.astype(np.float64) if real_dtype(array) else None
+
+
+def _holds_text_or_bool(value) -> bool:
+    """Whether a value, or an entry of nested lists and tuples, is text or a bool: numpy
+    reads (0.0, 0.0, True) as floats, the bool as 1."""
+    if isinstance(value, (str, bool, np.bool_)):
+        return True
+    return isinstance(value, (list, tuple)) and any(_holds_text_or_bool(v) for v in value)
 
 
 def real_dtype(array: np.ndarray) -> bool:

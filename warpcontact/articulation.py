@@ -537,14 +537,16 @@ class ArticulationModel:
         world's for a joint to the world), the convention of ``Control.ball_target``."""
         return _relative_rotation(*self._ball_frames(poses))
 
-    def _ball_drive_matrices(self, poses: np.ndarray, target: np.ndarray, start: np.ndarray, dt: float):
+    def _ball_drive_matrices(self, poses: np.ndarray, target: np.ndarray, start: np.ndarray, dt: float, gains: tuple | None = None):
         """World frame rotations (parent, child) as quaternions, P as matrices, and the spring
-        and damper matrices kp P R* C^T and kd/dt P R^t C^T, (nball, 3, 3) each."""
+        and damper matrices kp P R* C^T and kd/dt P R^t C^T, (nball, 3, 3) each; ``gains``
+        (kp, kd) instead of the joints' own."""
+        kp, kd = gains if gains is not None else (self.ball_kp, self.ball_kd)
         parent, child = self._ball_frames(poses)
         P = quat_to_matrix(parent)
         C_transposed = np.swapaxes(quat_to_matrix(child), 1, 2)
-        spring = self.ball_kp[:, None, None] * (P @ quat_to_matrix(target) @ C_transposed)
-        damper = (self.ball_kd / dt)[:, None, None] * (P @ quat_to_matrix(start) @ C_transposed)
+        spring = kp[:, None, None] * (P @ quat_to_matrix(target) @ C_transposed)
+        damper = (kd / dt)[:, None, None] * (P @ quat_to_matrix(start) @ C_transposed)
         return parent, child, P, spring, damper
 
     def ball_drive_terms(self, poses: np.ndarray, target: np.ndarray, start: np.ndarray, dt: float):
@@ -578,7 +580,7 @@ class ArticulationModel:
             hess[np.ix_(dofs, dofs)] += 0.5 * (np.trace(m) * np.eye(3) - 0.5 * (m + m.T))
         return value, grad, hess
 
-    def ball_drive_adjoint(self, poses: np.ndarray, poses_start: np.ndarray, lam: np.ndarray, target: np.ndarray, dt: float, *, target_is_start: bool = False):
+    def ball_drive_adjoint(self, poses: np.ndarray, poses_start: np.ndarray, lam: np.ndarray, target: np.ndarray, dt: float, *, target_is_start: bool = False, gains: tuple | None = None):
         """lambda^T d(gradient of ``ball_drive_terms``)/d(inputs) at ``poses`` for a reduced
         adjoint ``lam`` (m,), with R^t taken from the step's start poses ``poses_start``.
 
@@ -591,10 +593,11 @@ class ArticulationModel:
         ``target_is_start``: the targets are the start's relative rotations (a step without
         ball targets holds each joint where it starts), so their cotangents are also turns of
         the start poses: a left turn g of R^t is a turn P_t g of the child's start.
+        ``gains``: (kp, kd) the step used, when the joints' own have changed since.
         """
         parent_start, child_start = self._ball_frames(poses_start)
         start = _relative_rotation(parent_start, child_start)
-        _, _, P, spring, damper = self._ball_drive_matrices(poses, target, start, dt)
+        _, _, P, spring, damper = self._ball_drive_matrices(poses, target, start, dt, gains)
         P_start = quat_to_matrix(parent_start)
 
         def turn_adjoint(m, l):

@@ -39,11 +39,13 @@ def convex_hull(points, *, all_on_hull: bool = False) -> np.ndarray:
     more than 1e-9 of the extent. Points that nearly coincide (a copy of each point 1e-11
     away, an exporter's seam) can make the plane tests' rounding decide visibility, and such a
     hull came back open, with up to 200 times the volume and points outside it; it is refused
-    now, as is a set so large or small that its squared lengths overflow or underflow (a cube
-    of 1e120 m came back a tetrahedron).
+    now. The points are scaled by a power of two (exactly) to an extent of about 1, so sets of
+    any size within float64's range give the same hull (a cube of 1e120 m came back a
+    tetrahedron).
 
     Raises ValueError for fewer than 4 points, non-finite points, points that span no volume
-    (collinear or coplanar), or a hull that fails its check.
+    (collinear or coplanar) or almost none (thinner than 1e-8 of their extent), or a hull
+    that fails its check.
     """
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4:

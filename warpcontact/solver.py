@@ -1202,6 +1202,8 @@ class ImplicitSolver:
         if joints:
             joint_kp, joint_kd = art.kp.copy(), art.kd.copy()  # as this step used them
         balls = art is not None and art.has_ball_drives
+        if balls:
+            ball_gains = (art.ball_kp.copy(), art.ball_kd.copy())
         # Targets a step is not given hold the joints where the step starts (_joint_arrays,
         # _ball_arrays): their adjoints belong to the start.
         joint_target_is_start = control is None or control.joint_target is None
@@ -1251,7 +1253,7 @@ class ImplicitSolver:
                     _, adj_friction, _ = model.contact.friction_adjoint(step_in.friction_rate, q_next, q_now, lam_full.reshape(n, 6))
                     _accumulate(model.friction, adj_friction)
                 if balls:
-                    target_adj, start_adj = art.ball_drive_adjoint(q_next, q_now, lam_reduced, step_in.ball_target, dt, target_is_start=ball_target_is_start)
+                    target_adj, start_adj = art.ball_drive_adjoint(q_next, q_now, lam_reduced, step_in.ball_target, dt, target_is_start=ball_target_is_start, gains=ball_gains)
                     adj_now.assign(adj_now.numpy() + start_adj)
                     if ball_target_grad:
                         wp.launch(dynamics_kernels.rotation_adjoint_to_quat_kernel, dim=art.num_ball_joints, inputs=[ball_target_arr, wp.array(target_adj, dtype=wp.vec3d)], outputs=[control.ball_target.grad])
