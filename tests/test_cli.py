@@ -222,6 +222,41 @@ def test_interrupted_benches_keep_their_finished_rows(tmp_path, capsys, monkeypa
     assert [r["mode"] for r in json.loads((tmp_path / "contact.json").read_text())["rows"]] == ["brute"]
 
 
+def test_an_overwriting_bench_interrupted_before_its_first_row_leaves_no_earlier_rows(tmp_path, capsys, monkeypatch):
+    """With --overwrite, a bench interrupted before its first row kept the earlier run's rows
+    (and lost their plot), as if they were its own."""
+    args = ["bench", "scaling", "--points", "8", "--repeats", "1", "--out", str(tmp_path)]
+    assert main(args) == 0
+    assert (tmp_path / "scaling.json").exists() and (tmp_path / "scaling.csv").exists()
+    from warpcontact import bench
+
+    def interrupted(fn, repeats):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(bench, "_median_seconds", interrupted)
+    assert main([*args, "--overwrite"]) == 130
+    assert not any((tmp_path / name).exists() for name in ("scaling.json", "scaling.csv", "scaling.png"))
+
+
+def test_bench_frame_refuses_bad_pickles_and_strikerless_scenes_before_timing(tmp_path, capsys):
+    """A pickle of something else was a traceback (exit 1), a missing one exit 1 where a missing
+    .usda is 2, and a scene with no cue or rod was refused only after the scenes before it."""
+    import pickle
+
+    (tmp_path / "dict.pkl").write_bytes(pickle.dumps({"bodies": []}))
+    (tmp_path / "text.pkl").write_text("not a pickle")
+    for scene, message in (
+        (tmp_path / "dict.pkl", "holds a dict, not a pickled warpcontact Scene"),
+        (tmp_path / "text.pkl", "not a pickled Scene (UnpicklingError"),
+        (tmp_path / "missing.pkl", "missing.pkl: file not found"),
+    ):
+        assert main(["bench", "frame", "--scenes", str(scene), "--models", "bsh", "--frames", "1", "--out", str(tmp_path / "b"), "--overwrite"]) == 2
+        assert message in capsys.readouterr().err
+    assert main(["bench", "frame", "--scenes", "billiards_512", "ant_push", "--models", "bsh", "--frames", "1", "--warmup", "0", "--out", str(tmp_path / "c")]) == 2
+    assert "ant_push.usda: no 'cue' or 'rod' body to strike with" in capsys.readouterr().err
+    assert not (tmp_path / "c" / "frame.json").exists()  # nothing was timed
+
+
 def test_a_failing_plot_does_not_hide_an_interruption(tmp_path, capsys, monkeypatch):
     """The plot is drawn in a finally: an error there (a zero gradient's missing cosine) replaced
     Ctrl-C with a traceback."""

@@ -481,8 +481,16 @@ def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path =
     if path.suffix == ".pkl":
         import pickle
 
-        with path.open("rb") as f:
-            return pickle.load(f)
+        if not path.is_file():
+            raise ValueError(f"{spec}: file not found")
+        try:
+            with path.open("rb") as f:
+                scene = pickle.load(f)
+        except Exception as exc:  # pickle raises many kinds for a file that is not one
+            raise ValueError(f"{spec}: not a pickled Scene ({type(exc).__name__}: {exc})") from None
+        if not isinstance(scene, io.Scene):
+            raise ValueError(f"{spec}: holds a {type(scene).__name__}, not a pickled warpcontact Scene")
+        return scene
     if path.suffix.lower() in io.USD_READ_SUFFIXES:
         return io.load_scene(path)
     if spec.startswith("peer_billiards_"):
@@ -788,6 +796,8 @@ def run_frame_benchmark(
     # Every scene is read before any is timed: a bad name or a missing peer-mesh folder used
     # to end the default run after hours of the scenes before it.
     built = {spec: frame_scene(spec, scene_dir=scene_dir, peer_meshes=peer_meshes) for spec in dict.fromkeys(scenes)}
+    for scene in built.values():  # and set up (a scene without a striker failed after the others' timing)
+        strike_setup(copy.deepcopy(scene), gap=gap, speed=speed)
     # bsh first: brute force above --brute-max-triangles is timed at bsh's solved poses (listed
     # after it, brute's rows were dropped without a word).
     models = sorted(dict.fromkeys(models), key=lambda mode: mode != "bsh")

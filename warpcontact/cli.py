@@ -773,6 +773,11 @@ def main(argv=None) -> int:
             _refuse_input_among_outputs(args, out)
             if not getattr(args, "resume", False):
                 _refuse_earlier_results(out, args.outputs, args.overwrite)
+            if getattr(args, "saves_rows", False) and args.overwrite:
+                # A bench saves its rows as they finish: interrupted before its first, it left
+                # the earlier run's results as if they were its own (its plot deleted).
+                for name in args.outputs:
+                    (out / name).unlink(missing_ok=True)
         return args.func(args)
     except KeyboardInterrupt:
         # run, compare and simulate keep their own partial results; the benches save a row at a time.
