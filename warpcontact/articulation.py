@@ -176,20 +176,24 @@ def _relative_rotation(parent: np.ndarray, child: np.ndarray) -> np.ndarray:
 def connected_labels(count: int, links) -> np.ndarray:
     """(count,) label of each of the nodes 0 .. count - 1: the smallest node of its
     connected component under ``links`` ((a, b) pairs). One rule for the groups bodies form
-    through joints (the solver's articulation trees, the builder's contact exclusions) and
-    through excluded pairs (the IPC model's vertex patches)."""
-    root = list(range(count))
-
-    def find(node: int) -> int:
-        while root[node] != node:
-            root[node] = root[root[node]]
-            node = root[node]
-        return node
-
-    for a, b in links:
-        first, second = find(int(a)), find(int(b))
-        root[max(first, second)] = min(first, second)
-    return np.array([find(node) for node in range(count)], dtype=np.int64)
+    through joints (the solver's articulation trees, the builder's contact exclusions),
+    through excluded pairs (the IPC model's vertex patches) and for the pieces faces form
+    through shared edges (the builder's mass check). Union-find in numpy: every link hooks
+    the larger of its two roots onto the smaller, then paths are halved until each node
+    points at its root, the smallest node of its component."""
+    pairs = np.asarray(links, dtype=np.int64).reshape(-1, 2)
+    root = np.arange(count, dtype=np.int64)
+    while True:
+        root_a, root_b = root[pairs[:, 0]], root[pairs[:, 1]]
+        apart = root_a != root_b
+        if not apart.any():
+            return root
+        np.minimum.at(root, np.maximum(root_a, root_b)[apart], np.minimum(root_a, root_b)[apart])
+        while True:
+            grand = root[root]
+            if np.array_equal(grand, root):
+                break
+            root = grand
 
 
 def _same_group_pairs(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -127,24 +127,6 @@ def _closed_outward(mesh: trimesh.Trimesh) -> bool:
         return bool(mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0)
 
 
-def _piece_labels(count: int, pairs: np.ndarray) -> np.ndarray:
-    """Labels 0..k-1 of the connected pieces of ``count`` nodes joined by ``pairs`` (m, 2):
-    union-find by hooking roots onto smaller roots and halving paths, in numpy (trimesh's
-    labelling needs scipy, which this package does not)."""
-    parent = np.arange(count)
-    while True:
-        root_a, root_b = parent[pairs[:, 0]], parent[pairs[:, 1]]
-        apart = root_a != root_b
-        if not apart.any():
-            return np.unique(parent, return_inverse=True)[1].reshape(-1)
-        np.minimum.at(parent, np.maximum(root_a, root_b)[apart], np.minimum(root_a, root_b)[apart])
-        while True:
-            grand = parent[parent]
-            if np.array_equal(grand, parent):
-                break
-            parent = grand
-
-
 def _winding_numbers(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Generalised winding numbers of ``points`` (n, 3) about closed ``triangles`` (m, 3, 3):
     about 1 inside an outward-oriented surface, 0 outside (solid angles, Van Oosterom and
@@ -165,7 +147,8 @@ def _inside_out_piece(mesh: trimesh.Trimesh) -> bool:
     mesh's origin cannot flip a small piece's sign; a piece of no volume (a double-sided
     sheet) is no inside-out piece."""
     triangles = mesh.triangles
-    labels = _piece_labels(len(triangles), np.asarray(mesh.face_adjacency).reshape(-1, 2))
+    # Labels 0 .. pieces - 1 (trimesh's labelling needs scipy, which this package does not).
+    labels = np.unique(connected_labels(len(triangles), mesh.face_adjacency), return_inverse=True)[1].reshape(-1)
     counts = np.bincount(labels)
     centre = np.stack([np.bincount(labels, weights=triangles[:, :, k].mean(axis=1)) for k in range(3)], axis=1) / counts[:, None]
     local = triangles - centre[labels][:, None, :]
