@@ -57,9 +57,10 @@ def convex_hull(points, *, all_on_hull: bool = False) -> np.ndarray:
         raise ValueError(f"points: they span {extent:g} m, which float64 differences of them cannot represent" if extent else "points: they all coincide")
     # Scaled by a power of two to an extent of about 1, exactly: squared lengths overflowed or
     # underflowed beyond ~1e80 and below ~1e-85 (a unit cube of 1e100 m read as flat).
-    points = np.ldexp(points, -int(np.frexp(extent)[1]))
-    tolerance = _PLANE_TOLERANCE * float(np.ptp(points, axis=0).max())
-    seed = _seed_tetrahedron(points, tolerance)
+    exponent = int(np.frexp(extent)[1])
+    points, extent = np.ldexp(points, -exponent), float(np.ldexp(extent, -exponent))
+    tolerance = _PLANE_TOLERANCE * extent
+    seed = _seed_tetrahedron(points, tolerance, extent)
     centre = points[list(seed)].mean(axis=0)
     a, b, c, d = seed
     faces = []
@@ -128,29 +129,28 @@ def convex_hull_mesh(points) -> tuple[np.ndarray, np.ndarray]:
     return points[used], faces.reshape(-1, 3)
 
 
-def _seed_tetrahedron(points: np.ndarray, tolerance: float) -> tuple[int, int, int, int]:
+def _seed_tetrahedron(points: np.ndarray, tolerance: float, extent: float) -> tuple[int, int, int, int]:
     """Four extreme points, or the first four where they span a tetrahedron on a base that is
     no line; ValueError for points that span no volume, or almost none (_FLAT_TOLERANCE)."""
     first, second, third, heights = _extreme_triangle(points, tolerance)
     fourth = int(np.argmax(heights))
-    extent = float(np.ptp(points, axis=0).max())
     if heights[fourth] <= tolerance:
         raise ValueError("points: they span no volume (all in one plane)")
     if heights[fourth] <= _FLAT_TOLERANCE * extent:
         raise ValueError(f"points: they span almost no volume (a thickness of {heights[fourth] / extent:.1e} of their extent, below {_FLAT_TOLERANCE:g}), where their hull is not reliable in float64")
     # A first three on one line gave a base whose normal was rounding noise.
-    if _distance_from_line(points, 0, 1, 2) > tolerance and _tetrahedron_height(points, (0, 1, 2), 3) > tolerance:
+    if np.linalg.norm(_off_line(points[:3], 0, 1)[2]) > tolerance and _tetrahedron_height(points, (0, 1, 2), 3) > tolerance:
         return 0, 1, 2, 3
     return first, second, third, fourth
 
 
-def _distance_from_line(points: np.ndarray, i: int, j: int, k: int) -> float:
-    """Distance of ``points[k]`` from the line through ``points[i]`` and ``points[j]`` (from
-    ``points[i]`` where they coincide)."""
+def _off_line(points: np.ndarray, i: int, j: int) -> np.ndarray:
+    """Each point's offset from the line through ``points[i]`` and ``points[j]``, across it
+    (from ``points[i]`` where the two coincide)."""
     axis = points[j] - points[i]
-    offset = points[k] - points[i]
-    length = np.linalg.norm(axis)
-    return float(np.linalg.norm(offset if length == 0.0 else offset - (offset @ axis) / length**2 * axis))
+    axis /= max(np.linalg.norm(axis), np.finfo(np.float64).tiny)
+    offsets = points - points[i]
+    return offsets - np.outer(offsets @ axis, axis)
 
 
 def _extreme_triangle(points: np.ndarray, tolerance: float) -> tuple[int, int, int, np.ndarray]:
@@ -158,10 +158,7 @@ def _extreme_triangle(points: np.ndarray, tolerance: float) -> tuple[int, int, i
     line) and every point's height over their plane; ValueError for points on one line."""
     first = int(np.argmin(points[:, 0]))
     second = int(np.argmax(np.linalg.norm(points - points[first], axis=1)))
-    axis = points[second] - points[first]
-    axis /= max(np.linalg.norm(axis), np.finfo(np.float64).tiny)
-    offsets = points - points[first]
-    off_line = offsets - np.outer(offsets @ axis, axis)
+    off_line = _off_line(points, first, second)
     third = int(np.argmax(np.linalg.norm(off_line, axis=1)))
     if np.linalg.norm(off_line[third]) <= tolerance:
         raise ValueError("points: they span no volume (all on one line)")
