@@ -568,7 +568,7 @@ def _world_matrix(prim, UsdGeom, Usd, source: str):
         value = attr.Get()
         if value is None:
             continue
-        numbers = [value.GetReal(), *value.GetImaginary()] if hasattr(value, "GetReal") else value
+        numbers = _quat_xyzw(value) if hasattr(value, "GetReal") else value
         if not np.isfinite(np.asarray(numbers, dtype=np.float64)).all():
             raise ValueError(f"{source}: prim {prim.GetPath()}: {attr.GetPath()} must be finite, got {value}")
     raise ValueError(f"{source}: prim {prim.GetPath()}: its world transform is not finite (its transform values overflow)")
@@ -1106,7 +1106,7 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
                 # The parser reads a zero quaternion as the identity and normalises others.
                 rotation = _attr(prim, f"physics:{label}")
                 if rotation is not None:
-                    norm = float(np.linalg.norm([rotation.GetReal(), *rotation.GetImaginary()]))
+                    norm = float(np.linalg.norm(_quat_xyzw(rotation)))
                     if not abs(norm - 1.0) <= QUATERNION_TOLERANCE:
                         raise ValueError(f"{where}: physics:{label} must be a unit quaternion, got {rotation} (norm {norm:.9g})")
             parent_path, child_path = str(desc.body0), str(desc.body1)
