@@ -391,13 +391,14 @@ class ImplicitSolver:
 
     def _body_model(self, dt: float, *, snapshot: bool = False) -> dynamics_kernels.BodyModel:
         """The model's per-body data for a step of ``dt``: its arrays, or with ``snapshot``
-        copies of them, which a taped step's backward reads when it runs."""
+        copies of those a user may change between steps (masses and gains), which a taped
+        step's backward reads when it runs; shapes and static flags are set by ``finalize``."""
         m = self.model
         take = (lambda array: wp.clone(array, requires_grad=False)) if snapshot else (lambda array: array)
         bodies = dynamics_kernels.BodyModel()
         bodies.mass = take(m.body_mass)
-        bodies.unit_second_moment = take(m.body_unit_second_moment)
-        bodies.dynamic = take(m.body_dynamic)
+        bodies.unit_second_moment = m.body_unit_second_moment
+        bodies.dynamic = m.body_dynamic
         bodies.kp_linear = take(m.body_kp_linear)
         bodies.kd_linear = take(m.body_kd_linear)
         bodies.kp_angular = take(m.body_kp_angular)
