@@ -796,8 +796,8 @@ def run_frame_benchmark(
     # Every scene is read before any is timed: a bad name or a missing peer-mesh folder used
     # to end the default run after hours of the scenes before it.
     built = {spec: frame_scene(spec, scene_dir=scene_dir, peer_meshes=peer_meshes) for spec in dict.fromkeys(scenes)}
-    for scene in built.values():  # and set up (a scene without a striker failed after the others' timing)
-        strike_setup(copy.deepcopy(scene), gap=gap, speed=speed)
+    # and set up for its strike, once (a scene without a striker failed after the others' timing)
+    setups = {spec: strike_setup(scene, gap=gap, speed=speed) for spec, scene in built.items()}
     # bsh first: brute force above --brute-max-triangles is timed at bsh's solved poses (listed
     # after it, brute's rows were dropped without a word).
     models = sorted(dict.fromkeys(models), key=lambda mode: mode != "bsh")
@@ -806,7 +806,7 @@ def run_frame_benchmark(
             solved = None  # (bsh Model, its solved poses) for contact-only rows
             for mode in models:
                 scene = copy.deepcopy(built[spec])  # each model sets its own contact settings
-                setup = strike_setup(scene, gap=gap, speed=speed)
+                setup = setups[spec]
                 dynamic, total = _scene_triangles(scene)
                 base = {
                     "scene": Path(spec).stem if spec.endswith((".pkl", ".usda")) else spec,
