@@ -1001,6 +1001,29 @@ def test_an_inside_out_piece_is_refused_and_a_cavity_is_not():
         assert wc.ModelBuilder().add_body(mesh, density=1000.0) == 0
 
 
+def test_zero_area_triangles_do_not_push_a_body():
+    """A box whose mesh also holds a zero-area triangle (a vertex named twice, or a vertex in
+    the middle of a bottom edge and the sliver closing it) was pushed sideways with ~600 N
+    above the ground: each leaf pair counted the sliver as one more copy of that edge."""
+    cube = trimesh.creation.box((0.5, 0.5, 0.5))
+    vertices, faces = np.asarray(cube.vertices, dtype=np.float64), np.asarray(cube.faces)
+    bottom = np.flatnonzero(np.isclose(vertices[:, 2], -0.25))[:2]
+    middle = len(vertices)
+    slivered = np.vstack([vertices, vertices[bottom].mean(axis=0)])
+    extra = np.array([[bottom[0], bottom[0], bottom[1]], [bottom[0], middle, bottom[1]]])
+
+    def contact_gradient(mesh):
+        b = wc.ModelBuilder()
+        b.add_body(mesh, mass=10.0, inertia=0.4 * np.eye(3), pose=(0.0, 0.0, 0.3, 0.0, 0.0, 0.0, 1.0), name="box")
+        b.add_box((4.0, 4.0, 0.1), static=True, pose=(0.0, 0.0, -0.05, 0.0, 0.0, 0.0, 1.0))
+        model = b.finalize()
+        return model.contact.evaluate(model.state().body_q.numpy()).grad[0]
+
+    plain = contact_gradient((vertices, faces))
+    assert plain[2] < 0 and np.abs(plain[[0, 1, 3, 4]]).max() < 1e-9 * abs(plain[2])
+    np.testing.assert_allclose(contact_gradient((slivered, np.vstack([faces, extra]))), plain, rtol=1e-12, atol=1e-12 * abs(plain[2]))
+
+
 def test_mass_from_density_needs_no_scipy(tmp_path):
     """The pieces were labelled by trimesh's graph code, which needs scipy: not one of this
     package's dependencies (it was in the test environment only through ipctk). Run in a

@@ -175,6 +175,29 @@ def _closure_hint(mesh: trimesh.Trimesh) -> str:
     return ""
 
 
+# A triangle whose area is below this fraction of its longest edge squared is a segment or a
+# point as far as float64 geometry goes.
+_FLAT_TRIANGLE = 1e-12
+
+
+def _contact_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh without its zero-area triangles and the vertices only they used, where any
+    triangle has an area (a mesh that is all points and segments is kept as it is).
+
+    A zero-area triangle (a polygon fanned over a straight corner, a face naming a vertex
+    twice) encloses nothing, but a leaf pair counts it as one more copy of its edge: one
+    lying on a box's bottom edge pushed the box sideways with ~600 N. Mass properties keep
+    these triangles, which close some meshes' T-junctions."""
+    corners = vertices[faces]
+    edges = corners[:, [1, 2, 0]] - corners
+    area2 = np.linalg.norm(np.cross(edges[:, 0], edges[:, 1]), axis=1)
+    flat = area2 <= _FLAT_TRIANGLE * np.max(np.sum(edges * edges, axis=2), axis=1)
+    if flat.all() or not flat.any():
+        return vertices, faces
+    used, kept = np.unique(faces[~flat], return_inverse=True)
+    return vertices[used], kept.reshape(-1, 3)
+
+
 def _real_vector(value, size: int) -> np.ndarray | None:
     """``value`` as ``size`` finite float64 numbers (``real_array``), or None."""
     array = real_array(value)
@@ -412,6 +435,7 @@ class ModelBuilder:
         if static and (kp_lin.any() or kd_lin.any() or kp_angular or kd_angular):
             raise ValueError(f"body {name!r}: a static body cannot be PD-actuated")
 
+        vertices, faces = _contact_faces(vertices, faces)
         # Body frame: origin at the centre of mass, axes of the mesh frame.
         com_pose = pose.copy()
         com_pose[:3] = pose[:3] + quat_rotate(pose[3:], com)

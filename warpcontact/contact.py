@@ -254,7 +254,8 @@ class ContactModel:
 
     Args:
         meshes: list of (V, F) per body: V (nv, 3) vertices in the body frame (m), F (nf, 3)
-            triangle vertex indices.
+            triangle vertex indices. Every triangle counts, a zero-area one as the segment or
+            point it is (``ModelBuilder.add_body`` drops those from a mesh with an area).
         eps: blend margin epsilon > 0 of P_BSH (d2 = (1 + eps) d1); larger is closer to the
             brute-force sum and costlier.
         mode: ``"bsh"``, ``"brute"`` or ``"sdrs"``.
