@@ -272,6 +272,34 @@ def test_quads_fanned_at_once_give_the_face_by_face_triangles():
     np.testing.assert_array_equal(with_hole, expected)
 
 
+@pytest.mark.parametrize("kind", ["Sphere", "Capsule", "Cylinder"])
+def test_round_colliders_scaled_unevenly_take_the_shape_usd_draws(tmp_path, kind):
+    """UsdPhysics gives a round shape one radius, its largest scale's: a Sphere of radius
+    0.5 scaled (1, 1, 4) came out a sphere of radius 2 (16x the ellipsoid's mass), and a
+    Capsule's caps stayed round when scaled along its axis."""
+    stage = Usd.Stage.CreateNew(str(tmp_path / "scaled.usda"))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    body = UsdGeom.Xform.Define(stage, "/World/ball")
+    body.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 3.0))
+    UsdPhysics.RigidBodyAPI.Apply(body.GetPrim())
+    shape = getattr(UsdGeom, kind).Define(stage, "/World/ball/shape")
+    shape.CreateRadiusAttr(0.5)
+    if kind != "Sphere":
+        shape.CreateHeightAttr(1.0)
+        shape.CreateAxisAttr("Z")
+    shape.AddScaleOp().Set(Gf.Vec3f(1.0, 3.0, 4.0))
+    UsdPhysics.CollisionAPI.Apply(shape.GetPrim())
+    stage.GetRootLayer().Save()
+    unscaled = np.array([1.0, 1.0, 2.0 if kind == "Capsule" else 1.0])
+    extent = np.ptp(io.load_scene(tmp_path / "scaled.usda").body("ball").vertices, axis=0)
+    np.testing.assert_allclose(extent, unscaled * [1.0, 3.0, 4.0], rtol=2e-2)
+    # Scaled uniformly, the description path reads it as before.
+    shape.GetPrim().GetAttribute("xformOp:scale").Set(Gf.Vec3f(2.0, 2.0, 2.0))
+    stage.GetRootLayer().Save()
+    np.testing.assert_allclose(np.ptp(io.load_scene(tmp_path / "scaled.usda").body("ball").vertices, axis=0), 2.0 * unscaled, rtol=2e-2)
+
+
 _METRE_STAGE = """#usda 1.0
 (
     metersPerUnit = 1

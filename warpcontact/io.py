@@ -636,6 +636,12 @@ def _scaled_along_own_axes(linear: np.ndarray) -> bool:
     return bool(np.abs(gram - np.diag(np.diag(gram))).max() <= 1e-9 * np.abs(gram).max())
 
 
+def _uniformly_scaled(linear: np.ndarray) -> bool:
+    """Whether x L (scaled along the prim's own axes) scales every axis alike."""
+    scales = np.sqrt(np.diag(linear @ linear.T))
+    return bool(scales.max() - scales.min() <= 1e-9 * scales.max())
+
+
 def _transform_attributes(prim, UsdGeom):
     """The xformOp attributes that compose a prim's world transform: its own and its ancestors'."""
     ancestor = prim
@@ -945,11 +951,13 @@ def load_scene(path) -> Scene:
             matrix = _world_matrix(prim, UsdGeom, Usd, source)
             linear = _linear_part(matrix)
             owner_frame, owner_unscaled = body_frames[owner] if owner else (None, True)
-            if adopted or not (_scaled_along_own_axes(linear) and np.linalg.det(linear) > 0 and owner_unscaled):
+            if adopted or not (_scaled_along_own_axes(linear) and np.linalg.det(linear) > 0 and owner_unscaled and (kind in ("CubeShape", "MeshShape") or _uniformly_scaled(linear))):
                 # UsdPhysics describes a collider by a rigid pose and a scale along its own axes,
                 # which cannot hold a shear (a box under a body scaled (1, 1, 3) and turned 45
                 # degrees inside it came out 0.5 m off at its corners); and a scaled body's frame
-                # is the polar one (``_frame``). Its points are then moved by the full world
+                # is the polar one (``_frame``). Its round shapes keep one radius, the largest
+                # scale's (a Sphere scaled (1, 1, 4) came out a sphere of radius 4, 16x the mass
+                # of the ellipsoid USD draws). Its points are then moved by the full world
                 # matrix into the frame of its body (or its own); a mirroring matrix also
                 # reverses the triangles' winding, which keeps a closed mesh outward-oriented.
                 vertices, faces = _shape_triangles(kind, prim, UsdGeom, source)
