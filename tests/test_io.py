@@ -892,6 +892,15 @@ def test_velocities_are_read_in_the_parent_s_space(tmp_path):
     box = io.load_scene(path).body("box")
     np.testing.assert_allclose(box.linear_velocity, [0.0, 1.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(box.angular_velocity, [-np.pi / 2, 0.0, 0.0], atol=1e-7)
+    # A Scope between them has no transform of its own: the turned root still places the
+    # body (its velocities were read in world axes).
+    UsdGeom.Scope.Define(stage, "/World/group")
+    Sdf.CopySpec(stage.GetRootLayer(), "/World/box", stage.GetRootLayer(), "/World/group/box")
+    stage.RemovePrim("/World/box")
+    stage.GetRootLayer().Save()
+    box = io.load_scene(path).body("box")
+    np.testing.assert_allclose(box.linear_velocity, [0.0, 1.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(box.angular_velocity, [-np.pi / 2, 0.0, 0.0], atol=1e-7)
 
 
 def _cube_collider(stage, path, size, position):

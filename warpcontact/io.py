@@ -904,7 +904,11 @@ def load_scene(path) -> Scene:
         for label, value in (("velocity", body.linear_velocity), ("angularVelocity", body.angular_velocity)):
             if not np.isfinite(value).all():
                 raise ValueError(f"{source}: prim {prim_path}: physics:{label} must be finite, got {np.asarray(value).tolist()}")
+        # A Scope or a typeless prim has no transform: its nearest transformable ancestor
+        # places the body (a Scope under a turned root read velocities in world axes).
         parent = prim.GetParent()
+        while parent and not parent.IsPseudoRoot() and not parent.IsA(UsdGeom.Xformable):
+            parent = parent.GetParent()
         # A prim that resets the transform stack is placed in the world, not in its parent.
         if parent.IsA(UsdGeom.Xformable) and not UsdGeom.Xformable(prim).GetResetXformStack():
             # Velocities are authored "in the same space as the node's xform": its parent's.
