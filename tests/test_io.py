@@ -1449,6 +1449,14 @@ def test_mass_properties_authored_at_their_unspecified_values_are_not_specified(
     assert io.load_scene(path).build_model().body_mass.numpy()[1] == pytest.approx(1000.0 * 0.5**3)  # the default density
     mass.GetDiagonalInertiaAttr().Set(Gf.Vec3f(1.0, 0.0, 1.0))  # partly zero: not a default
     _load_refused(stage, path, r"prim /World/box: diagonalInertia must be positive \(or 0 on every axis: not specified\)")
+    # A rotation that is no unit quaternion also scaled the inertia: (0.1, 0.1, 0.1) loaded
+    # as (0.05, 0.05, 0.1).
+    mass.GetDiagonalInertiaAttr().Set(Gf.Vec3f(0.1, 0.1, 0.1))
+    mass.GetPrincipalAxesAttr().Set(Gf.Quatf(0.5, 0.5, 0.0, 0.0))
+    _load_refused(stage, path, r"prim /World/box: physics:principalAxes must be a unit quaternion \(or all 0: not specified\), got .* \(norm 0.707106")
+    mass.GetPrincipalAxesAttr().Set(Gf.Quatf(0.5**0.5, 0.5**0.5, 0.0, 0.0))
+    stage.GetRootLayer().Save()
+    np.testing.assert_allclose(io.load_scene(path).body("box").inertia, 0.1 * np.eye(3), rtol=1e-6, atol=1e-7)
 
 
 def test_a_body_welded_to_the_world_by_a_fixed_joint_is_static(tmp_path):

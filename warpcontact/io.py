@@ -1468,7 +1468,12 @@ def _read_mass(prim, body: BodySpec, UsdPhysics, units: _Units, source: str):
             raise ValueError(f"{where}: centerOfMass must be finite (or -inf on every axis: not specified), got {body.center_of_mass.tolist()}")
     if "diagonalInertia" in specified:
         diag = specified["diagonalInertia"] * units.inertia
-        R = quat_to_matrix(specified.get("principalAxes", np.array([0.0, 0.0, 0.0, 1.0])))
+        axes = specified.get("principalAxes", np.array([0.0, 0.0, 0.0, 1.0]))
+        norm = float(np.linalg.norm(axes))
+        # Not normalised, the rotation also scaled the inertia: (0.1, 0.1, 0.1) became 0.05s.
+        if not abs(norm - 1.0) <= QUATERNION_TOLERANCE:
+            raise ValueError(f"{where}: physics:principalAxes must be a unit quaternion (or all 0: not specified), got {UsdPhysics.MassAPI(prim).GetPrincipalAxesAttr().Get()} (norm {norm:.9g})")
+        R = quat_to_matrix(axes / norm)
         if not (np.isfinite(diag).all() and (diag > 0).all()):
             raise ValueError(f"{where}: diagonalInertia must be positive (or 0 on every axis: not specified), got {diag}")
         body.inertia = R @ np.diag(diag) @ R.T
