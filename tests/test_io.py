@@ -963,6 +963,18 @@ def test_colliders_of_one_body_with_different_material_densities_are_refused(tmp
     _load_refused(stage, path, r"prim /World/box: its colliders' physics materials give different densities")
 
 
+@pytest.mark.parametrize("name", ["density", "dynamicFriction"])
+def test_a_physics_material_value_authored_only_in_time_samples_is_refused(tmp_path, name):
+    """It read as its fallback 0, "not specified": a sampled 3,000 kg/m^3 gave the default
+    density's mass, a sampled friction none."""
+    path = write_physics_scene(tmp_path / "sampled.usda", drop_height=3.0)
+    stage = Usd.Stage.Open(str(path))
+    _bind_physics_material(stage, "/World/box/shape", "/World/steel")
+    attr = getattr(UsdPhysics.MaterialAPI(stage.GetPrimAtPath("/World/steel")), f"Create{name[0].upper()}{name[1:]}Attr")()
+    attr.Set(0.7 if name == "dynamicFriction" else 3000.0, 0.0)
+    _load_refused(stage, path, rf"prim /World/box/shape: /World/steel.physics:{name} is animated \(time samples or a spline\) but has no default value")
+
+
 def test_collision_filters_are_refused_naming_the_prim(tmp_path):
     """They were ignored: the filtered bodies still pushed each other."""
     path = write_physics_scene(tmp_path / "filtered.usda")

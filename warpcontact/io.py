@@ -665,11 +665,16 @@ def _require_default_values(prim, UsdGeom, Usd, source: str) -> None:
     size of 0.5 the fallback 2)."""
     read = [attr for attr in prim.GetAttributes() if attr.GetName().startswith(_READ_PREFIXES) or attr.GetName() in _READ_GEOMETRY]
     for attr in (*_transform_attributes(prim, UsdGeom), *read):
-        if _varies(attr) and attr.GetResolveInfo(Usd.TimeCode.Default()).GetSource() != Usd.ResolveInfoSourceDefault:
-            raise ValueError(
-                f"{source}: prim {prim.GetPath()}: {attr.GetPath()} is animated (time samples or a spline) but has no default value; the initial "
-                "state is read at the default time (author the first frame's value as the default)"
-            )
+        _require_default_value(attr, Usd, f"{source}: prim {prim.GetPath()}")
+
+
+def _require_default_value(attr, Usd, where: str) -> None:
+    """Refuse an attribute that is animated but has no default value (``where`` names it)."""
+    if _varies(attr) and attr.GetResolveInfo(Usd.TimeCode.Default()).GetSource() != Usd.ResolveInfoSourceDefault:
+        raise ValueError(
+            f"{where}: {attr.GetPath()} is animated (time samples or a spline) but has no default value; the initial "
+            "state is read at the default time (author the first frame's value as the default)"
+        )
 
 
 def _varies(attr) -> bool:
@@ -1582,11 +1587,16 @@ def _material_value(materials, name: str, UsdPhysics, where: str):
     """The ``density`` or ``dynamicFriction`` (``name``) that a collider's bound physics
     materials author, else None; ValueError naming ``where`` when they author different
     values (a collider with per-face materials took the first one's)."""
+    from pxr import Usd
+
     values = {}
     for material in materials:
         if not material or not material.HasAPI(UsdPhysics.MaterialAPI):
             continue
         attr = getattr(UsdPhysics.MaterialAPI(material), f"Get{name[0].upper()}{name[1:]}Attr")()
+        if attr:
+            # Sampled only, it read as its fallback 0: "not specified".
+            _require_default_value(attr, Usd, where)
         if attr and attr.HasAuthoredValue():
             values[str(material.GetPath())] = float(attr.Get())
     if len(set(values.values())) > 1:
