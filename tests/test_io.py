@@ -990,7 +990,7 @@ def test_collision_filters_are_refused_naming_the_prim(tmp_path):
     io.load_scene(path)  # a group that filters nothing loads
 
 
-def test_an_animated_kinematic_body_is_refused(tmp_path):
+def test_an_animated_kinematic_body_or_static_collider_is_refused(tmp_path):
     """It loaded as a static body held at its default pose, its animation ignored."""
     path = write_physics_scene(tmp_path / "platform.usda")
     stage = Usd.Stage.Open(str(path))
@@ -1001,6 +1001,14 @@ def test_an_animated_kinematic_body_is_refused(tmp_path):
     assert io.load_scene(path).body("box").static  # not animated: a static body, as documented
     UsdGeom.Xformable(box).GetOrderedXformOps()[0].Set(Gf.Vec3d(0.5, 0.0, 0.6), 10.0)
     _load_refused(stage, path, r"prim /World/box: a kinematic body moved by time-sampled transforms is not supported")
+    UsdGeom.Xformable(box).GetOrderedXformOps()[0].GetAttr().Clear()
+    UsdGeom.Xformable(box).GetOrderedXformOps()[0].Set(Gf.Vec3d(0.1, 0.0, 0.6))
+    stage.GetRootLayer().Save()
+    io.load_scene(path)
+    ground = UsdGeom.Xformable(stage.GetPrimAtPath("/World/ground"))
+    ground.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 0.0))
+    ground.GetOrderedXformOps()[0].Set(Gf.Vec3d(3.0, 0.0, 0.0), 50.0)
+    _load_refused(stage, path, r"prim /World/ground: a static collider moved by time-sampled transforms is not supported")
 
 
 def _mesh_box_collider(stage, path, *, left_handed=False, extra_hole=False):

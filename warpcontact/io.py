@@ -949,6 +949,11 @@ def load_scene(path) -> Scene:
             # same, placed by their world matrix, since their localPos is then the world's.
             adopted = "" if owner else _disabled_owner(prim, disabled, UsdPhysics)
             owner = owner or adopted
+            if not owner and _animated(prim, UsdGeom):
+                raise ValueError(
+                    f"{source}: prim {prim_path}: a static collider moved by time-sampled transforms is not supported (it would be "
+                    "held at its default pose); remove the animation, or make it a rigid body"
+                )
             collider_materials[str(prim_path)] = _bound_physics_materials(stage, prim, desc)
             if kind == "PlaneShape":
                 if owner:
