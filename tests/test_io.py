@@ -300,6 +300,31 @@ def test_round_colliders_scaled_unevenly_take_the_shape_usd_draws(tmp_path, kind
     np.testing.assert_allclose(np.ptp(io.load_scene(tmp_path / "scaled.usda").body("ball").vertices, axis=0), 2.0 * unscaled, rtol=2e-2)
 
 
+@pytest.mark.parametrize(
+    "kind, values, message",
+    [
+        ("Cube", {"size": -0.5}, "size must be a positive finite number, got -0.5"),
+        ("Cube", {"size": 0.0}, "size must be a positive finite number, got 0"),
+        ("Sphere", {"radius": float("inf")}, "radius must be a positive finite number, got inf"),
+        ("Capsule", {"radius": 0.2, "height": -0.5}, "height must be a finite number >= 0, got -0.5"),
+        ("Cylinder", {"radius": -0.2, "height": 0.5}, "radius must be a positive finite number, got -0.2"),
+        ("Cone", {"radius": 0.2, "height": float("nan")}, "height must be a positive finite number, got nan"),
+    ],
+)
+@pytest.mark.parametrize("body_scale", [1.0, 2.0])
+def test_primitive_dimensions_that_make_no_solid_are_refused(tmp_path, kind, values, message, body_scale):
+    """A Cube of size -0.5 loaded as a 0.5 m cube on an unscaled body and inside out on a
+    scaled one; a Sphere of radius inf gave NaN vertices, naming no attribute."""
+    stage = _hanging_box_stage(tmp_path / "bad.usda")
+    UsdGeom.Xformable(stage.GetPrimAtPath("/World/box")).AddScaleOp().Set(Gf.Vec3f(1.0, 1.0, body_scale))
+    stage.RemovePrim("/World/box/shape")
+    shape = getattr(UsdGeom, kind).Define(stage, "/World/box/shape")
+    for name, value in values.items():
+        shape.GetPrim().GetAttribute(name).Set(value)
+    UsdPhysics.CollisionAPI.Apply(shape.GetPrim())
+    _load_refused(stage, tmp_path / "bad.usda", rf"prim /World/box/shape: {message}")
+
+
 _METRE_STAGE = """#usda 1.0
 (
     metersPerUnit = 1

@@ -519,6 +519,7 @@ def _shape_triangles(kind, prim, UsdGeom, source, desc=None) -> tuple[np.ndarray
     if kind == "MeshShape":
         points, faces = _mesh_triangles(prim, UsdGeom, source)
         return (points if desc is None else points * np.asarray(desc.meshScale, dtype=np.float64)), faces
+    _check_dimensions(kind, prim, where)
     size = _primitive_size(kind, prim, UsdGeom, desc)
     if size is None:
         raise ValueError(f"{where}: collider type {kind} is not supported (use a Mesh, Cube, Sphere, Capsule, Cylinder, Cone or Plane)")
@@ -537,6 +538,28 @@ def _shape_triangles(kind, prim, UsdGeom, source, desc=None) -> tuple[np.ndarray
     if "axis" in size:
         m = _align_axis(m, size["axis"])
     return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
+
+
+# The dimensions of the primitives that have no tapered form (``_tapered`` checks those),
+# and whether each may be 0 (a capsule of height 0 is a sphere).
+_DIMENSIONS = {
+    "CubeShape": (("size", False),),
+    "SphereShape": (("radius", False),),
+    "CapsuleShape": (("radius", False), ("height", True)),
+    "CylinderShape": (("radius", False), ("height", False)),
+    "ConeShape": (("radius", False), ("height", False)),
+}
+
+
+def _check_dimensions(kind, prim, where: str) -> None:
+    """Refuse a primitive's own dimension that is not finite, or negative or 0 where that
+    makes no solid: a Cube of size -0.5 loaded as a 0.5 m cube unscaled and inside out under
+    a scaled body, and a Sphere of radius inf as NaN vertices that named no attribute."""
+    for name, zero_allowed in _DIMENSIONS.get(kind, ()):
+        value = float(prim.GetAttribute(name).Get())
+        if not (np.isfinite(value) and (value > 0 or (zero_allowed and value == 0))):
+            wanted = "a finite number >= 0" if zero_allowed else "a positive finite number"
+            raise ValueError(f"{where}: {name} must be {wanted}, got {value:g}")
 
 
 def _primitive_size(kind, prim, UsdGeom, desc=None) -> dict | None:
