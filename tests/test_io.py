@@ -634,6 +634,13 @@ def _author(path, edit):
         # A non-finite transform ended in numpy's "SVD did not converge", naming nothing.
         (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).GetOrderedXformOps()[0].Set(Gf.Vec3d(0, 0, float("nan"))), r"prim /World/box: /World/box.xformOp:translate must be finite, got \(0, 0, nan\)"),
         (lambda st: UsdGeom.Xform.Define(st, "/World").AddScaleOp().Set(Gf.Vec3f(float("inf"), 1, 1)), r"prim /World/\w+: /World.xformOp:scale must be finite, got \(inf, 1, 1\)"),
+        # An orient of real part NaN composed to the identity, a finite matrix.
+        (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).AddOrientOp().Set(Gf.Quatf(float("nan"), 0, 0, 0)), r"prim /World/box: /World/box.xformOp:orient must be finite, got \(nan, 0, 0, 0\)"),
+        # A projective matrix op had its last column dropped: the body sat metres off.
+        (
+            lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).AddTransformOp().Set(Gf.Matrix4d(1, 0, 0, 0.1, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1)),
+            r"prim /World/box: /World/box.xformOp:transform is not an affine transform \(its last column must be 0, 0, 0, 1\)",
+        ),
         (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:timestep", Sdf.ValueTypeNames.Double).Set(0.01), r"prim /World/physicsScene: unknown attribute warpcontact:timestep here \(did you mean warpcontact:timeStep\?\)"),
         (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:task:learningrate", Sdf.ValueTypeNames.Double).Set(0.1), r"prim /World/physicsScene: unknown attribute warpcontact:task:learningrate here \(did you mean warpcontact:task:learningRate\?\)"),
         (lambda st: st.GetPrimAtPath("/World/ground").CreateAttribute("warpcontact:target:position", Sdf.ValueTypeNames.Double3).Set(Gf.Vec3d(1, 0, 0)), r"prim /World/ground: unknown attribute warpcontact:target:position here \(it belongs on a rigid-body prim\)"),

@@ -628,17 +628,21 @@ def _align_axis(mesh, axis: str):
 
 def _world_matrix(prim, UsdGeom, Usd, source: str):
     """A prim's local-to-world matrix; ValueError naming the transform attribute (the prim's
-    own or an ancestor's) whose value is not finite (an SVD failed on it, naming nothing)."""
-    matrix = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
-    if np.isfinite(np.array(matrix)).all():
-        return matrix
+    own or an ancestor's) whose value is not finite (an SVD failed on it, naming nothing; an
+    orient of real part NaN composed to the identity), or a matrix op that is not affine
+    (its projective column was dropped: the body sat metres from where USD draws it)."""
     for attr in _transform_attributes(prim, UsdGeom):
         value = attr.Get()
         if value is None:
             continue
-        numbers = _quat_xyzw(value) if hasattr(value, "GetReal") else value
-        if not np.isfinite(np.asarray(numbers, dtype=np.float64)).all():
+        numbers = np.asarray(_quat_xyzw(value) if hasattr(value, "GetReal") else value, dtype=np.float64)
+        if not np.isfinite(numbers).all():
             raise ValueError(f"{source}: prim {prim.GetPath()}: {attr.GetPath()} must be finite, got {value}")
+        if numbers.shape == (4, 4) and not np.array_equal(numbers[:, 3], [0.0, 0.0, 0.0, 1.0]):
+            raise ValueError(f"{source}: prim {prim.GetPath()}: {attr.GetPath()} is not an affine transform (its last column must be 0, 0, 0, 1), got {value}")
+    matrix = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    if np.isfinite(np.array(matrix)).all():
+        return matrix
     raise ValueError(f"{source}: prim {prim.GetPath()}: its world transform is not finite (its transform values overflow)")
 
 
