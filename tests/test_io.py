@@ -1022,6 +1022,28 @@ def test_collision_filters_are_refused_naming_the_prim(tmp_path):
     io.load_scene(path)  # a group that filters nothing loads
 
 
+def test_a_static_body_with_a_target_or_gains_is_refused_on_load_as_on_save(tmp_path):
+    """A kinematic body with a target, or a disabled one with PD gains, loaded without a word
+    and its scene could not be saved ("static body ... has a target")."""
+    path = write_physics_scene(tmp_path / "kinematic.usda")
+    stage = Usd.Stage.Open(str(path))
+    box = stage.GetPrimAtPath("/World/box")
+    box.CreateAttribute("warpcontact:target:position", Sdf.ValueTypeNames.Double3Array).Set([(1.0, 0.0, 0.3)])
+    UsdPhysics.RigidBodyAPI(box).CreateKinematicEnabledAttr(True)
+    _load_refused(stage, path, r"prim /World/box: a static body here \(kinematic, disabled or welded to the world\) has a target, which only a dynamic body takes")
+    box.RemoveProperty("warpcontact:target:position")
+    box.CreateAttribute("warpcontact:pd:kpLinear", Sdf.ValueTypeNames.Double).Set(100.0)
+    _load_refused(stage, path, r"prim /World/box: a static body here .* has PD gains")
+
+
+def test_task_metadata_without_a_name_is_saved_as_authored(tmp_path):
+    """save_scene wrote the task only where it had a name: its horizon and control were lost."""
+    scene = io.load_scene(write_physics_scene(tmp_path / "partial.usda"))
+    scene.task = io.TaskSpec(control="pd_targets", horizon=9)
+    io.save_scene(scene, tmp_path / "saved.usda")
+    assert io.load_scene(tmp_path / "saved.usda").task == scene.task
+
+
 def test_an_animated_kinematic_body_or_static_collider_is_refused(tmp_path):
     """It loaded as a static body held at its default pose, its animation ignored."""
     path = write_physics_scene(tmp_path / "platform.usda")

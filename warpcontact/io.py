@@ -955,6 +955,9 @@ def load_scene(path) -> Scene:
             # centerOfMass is in the prim's local, scaled space; the body frame is unscaled.
             body.center_of_mass = body.center_of_mass @ linear @ quat_to_matrix(body.pose[3:])
         _read_warpcontact_body(prim, body, meters, source)
+        dynamic_only = _dynamic_only(body)
+        if dynamic_only:
+            raise ValueError(f"{source}: prim {prim_path}: a static body here (kinematic, disabled or welded to the world) has {dynamic_only}, which only a dynamic body takes")
         bodies[str(prim_path)] = body
 
     static_bodies: dict[str, BodySpec] = {}
@@ -1692,6 +1695,22 @@ def target_problem(body: BodySpec) -> str | None:
     return None
 
 
+def _dynamic_only(body: BodySpec) -> str:
+    """What a static body holds that only a dynamic body takes ("" where nothing): one rule
+    for loading and saving (a kinematic body with a target loaded, and could not be saved)."""
+    if not body.static:
+        return ""
+    return ", ".join(
+        label
+        for label, present in (
+            ("a target", body.target_position is not None),
+            ("PD gains", bool(np.any(body.kp_linear) or np.any(body.kd_linear) or body.kp_angular or body.kd_angular)),
+            ("control dofs", bool(body.control_dofs)),
+        )
+        if present
+    )
+
+
 def _read_warpcontact_body(prim, body: BodySpec, meters: float, source: str):
     target = _cast_attr(prim, "target:position", _numbers, source)
     tolerance = _cast_attr(prim, "target:tolerance", _number, source)
@@ -1976,18 +1995,9 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
         for label, values in (("mesh vertices", body.vertices), ("pose", body.pose)):
             if not np.all(np.isfinite(np.asarray(values, dtype=np.float64))):
                 raise ValueError(f"{path}: body {body.name!r}: its {label} are not all finite")
-        if body.static:
-            dynamic_only = [
-                label
-                for label, present in (
-                    ("a target", body.target_position is not None),
-                    ("PD gains", bool(np.any(body.kp_linear) or np.any(body.kd_linear) or body.kp_angular or body.kd_angular)),
-                    ("control dofs", bool(body.control_dofs)),
-                )
-                if present
-            ]
-            if dynamic_only:
-                raise ValueError(f"{path}: static body {body.name!r} has {', '.join(dynamic_only)}, which only a dynamic body takes (a static collider's file holds none of them)")
+        dynamic_only = _dynamic_only(body)
+        if dynamic_only:
+            raise ValueError(f"{path}: static body {body.name!r} has {dynamic_only}, which only a dynamic body takes (a static collider's file holds none of them)")
 
     def write(tmp: Path):
         stage = _new_stage(Usd, UsdGeom, tmp, scene.up_axis)
@@ -2010,7 +2020,7 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
             ("contactMode", s.contact_mode, Sdf.ValueTypeNames.Token),
         ):
             prim.CreateAttribute(_NS + name, kind).Set(_usd_scalar(value, kind, Sdf, name))
-        if t.name:
+        if t != TaskSpec():  # partial metadata too: what was authored is saved
             for name, value, kind in (
                 ("task:name", t.name, Sdf.ValueTypeNames.String),
                 ("task:control", t.control, Sdf.ValueTypeNames.Token),
