@@ -1,5 +1,7 @@
 """USD import / export: hand-written UsdPhysics scenes, round trips, trajectories, errors."""
 
+import warnings
+
 import numpy as np
 import pytest
 import trimesh
@@ -323,6 +325,30 @@ def test_primitive_dimensions_that_make_no_solid_are_refused(tmp_path, kind, val
         shape.GetPrim().GetAttribute(name).Set(value)
     UsdPhysics.CollisionAPI.Apply(shape.GetPrim())
     _load_refused(stage, tmp_path / "bad.usda", rf"prim /World/box/shape: {message}")
+
+
+def test_a_referenced_layer_in_other_units_is_named(tmp_path):
+    """USD does not convert units across a reference: a 50 cm asset in a metre stage was read
+    as 50 m with nothing said but the builder's stiffness warning."""
+    asset = Usd.Stage.CreateNew(str(tmp_path / "asset.usda"))
+    UsdGeom.SetStageMetersPerUnit(asset, 0.01)
+    UsdGeom.SetStageUpAxis(asset, UsdGeom.Tokens.z)
+    cube = UsdGeom.Cube.Define(asset, "/box")
+    cube.CreateSizeAttr(50.0)
+    asset.SetDefaultPrim(cube.GetPrim())
+    asset.GetRootLayer().Save()
+    stage = _hanging_box_stage(tmp_path / "root.usda")
+    crate = stage.DefinePrim("/World/crate")
+    crate.GetReferences().AddReference("./asset.usda")
+    UsdPhysics.CollisionAPI.Apply(crate)
+    stage.GetRootLayer().Save()
+    with pytest.warns(UserWarning, match=r"layer .*asset.usda authors metersPerUnit = 0.01, the stage 1.0; USD does not convert"):
+        io.load_scene(tmp_path / "root.usda")
+    UsdGeom.SetStageMetersPerUnit(asset, 1.0)
+    asset.GetRootLayer().Save()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        io.load_scene(tmp_path / "root.usda")
 
 
 _METRE_STAGE = """#usda 1.0

@@ -867,6 +867,7 @@ def load_scene(path) -> Scene:
         raise ValueError(f"{source}: kilogramsPerUnit must be positive and finite, got {kilograms}")
     units = _Units(meters, kilograms)
     up = UsdGeom.GetStageUpAxis(stage)
+    _warn_foreign_layer_units(stage, {"metersPerUnit": meters, "kilogramsPerUnit": kilograms, "upAxis": up}, source)
     parsed = _load_physics(stage, UsdPhysics)
     descs = {str(k): list(zip(v[0], v[1])) for k, v in parsed.items()}
     _refuse_collision_filters(stage, UsdPhysics, Usd, source)
@@ -1572,6 +1573,23 @@ def _warn_unmodelled(stage, collider_materials: dict, UsdPhysics, Usd, source: s
             found.append(f"{path} physics:restitution {attr.Get():g}")
     if found:
         warnings.warn(f"{source}: not modelled, so ignored: {', '.join(found[:5])}{' ...' if len(found) > 5 else ''}", stacklevel=3)
+
+
+def _warn_foreign_layer_units(stage, stage_units: dict, source: str) -> None:
+    """Warn where a layer the stage uses (a reference, payload or sublayer) authors other
+    units or another up axis than the stage: USD never converts them, so a 50 cm asset in
+    a metre stage is read as 50 m (unless the referencing prim scales it)."""
+    root = stage.GetRootLayer()
+    for layer in stage.GetUsedLayers():
+        if layer == root or layer.anonymous:
+            continue
+        for key, value in stage_units.items():
+            if layer.pseudoRoot.HasInfo(key) and layer.pseudoRoot.GetInfo(key) != value:
+                warnings.warn(
+                    f"{source}: layer {layer.identifier} authors {key} = {layer.pseudoRoot.GetInfo(key)}, the stage {value}; "
+                    "USD does not convert between them, so its prims are read in the stage's (scale or turn the prim that references it)",
+                    stacklevel=3,
+                )
 
 
 def _refuse_collision_filters(stage, UsdPhysics, Usd, source: str) -> None:
