@@ -959,6 +959,8 @@ def test_api_objects_of_the_wrong_kind_are_named():
         (lambda: model.contact.evaluate(model.initial_q, reuse="no"), "reuse: expected True/False"),
         # Text read as numbers through np.asarray(..., dtype=float).
         (lambda: b.add_box(("1", "1", "1"), density=1.0), "box extents must be 3 positive finite numbers"),
+        # Named only by a later "poses: ... at index (1, 2)", which names no body.
+        (lambda: b.add_box((1.0, 1.0, 1.0), density=1.0, pose=(0.0, 0.0, 1e200, 0.0, 0.0, 0.0, 1.0), name="far"), r"body 'far': pose position: 1e\+200 at index \(2,\) is beyond"),
         (lambda: b.add_box((1.0, 1.0, 1.0), mass=1.0, center_of_mass=("0", "0", "0")), "center_of_mass must be 3 finite numbers"),
         (lambda: b.add_box((1.0, 1.0, 1.0), mass=1.0, inertia=[["1", "0", "0"], ["0", "1", "0"], ["0", "0", "1"]]), "inertia must be a finite"),
         (lambda: b.add_box((1.0, 1.0, 1.0), density=1.0, kp_linear=["1", "1", "1"]), "kp_linear must be 1 or 3 numbers"),

@@ -9,7 +9,7 @@ import trimesh
 import warp as wp
 
 from ._runtime import resolve_device
-from ._validate import QUATERNION_TOLERANCE, check_barrier_support, checked_flag, is_positive_finite, is_real, is_whole, real_array, shown
+from ._validate import QUATERNION_TOLERANCE, check_barrier_support, check_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array, shown
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, connected_labels, frame_in_body
 from .contact import CENTRED_WEIGHTS, CONTACT_MODES, ContactModel
 from .leaf import float32_search
@@ -405,6 +405,7 @@ class ModelBuilder:
         pose = _real_vector(pose, 7)
         if pose is None:
             raise ValueError(f"body {name!r}: pose must be 7 finite numbers (px, py, pz, qx, qy, qz, qw), got {given!r}")
+        check_coordinates(pose[:3], f"body {name!r}: pose position")
         qnorm = np.linalg.norm(pose[3:])
         if abs(qnorm - 1.0) > QUATERNION_TOLERANCE:
             raise ValueError(f"body {name!r}: pose quaternion has norm {qnorm:.9g}, expected 1")
