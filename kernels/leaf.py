@@ -521,6 +521,13 @@ def _plane_newton(ta: Any, tb: Any, start: Any, dhat: Any, max_iterations: int, 
 def _finish_solution(sol: LeafSolution, p: wp.vec4d, energy: wp.float64, hess: wp.mat44d, converged: bool, iterations: int):
     """Stores the plane p, L and the inverse plane Hessian (taken at p) in ``sol``."""
     sol.iterations = iterations
+    if wp.isnan(energy):
+        # No iterate at all: rounding lost the start plane of a pair ~1e-16 of its size
+        # apart (1/0 - 1/0 in its scale). Unsolved, at +inf and with no plane: NaN was
+        # written as the value and the plane.
+        sol.value = wp.float64(wp.inf)
+        sol.status = LEAF_NOT_CONVERGED
+        return sol
     sol = _store_plane(sol, p)
     sol.value = energy
     if not converged:

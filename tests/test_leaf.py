@@ -364,6 +364,18 @@ def test_zero_area_triangles_act_as_segments_and_points():
     assert evaluate(crossing, segment).status[0] == wc.LeafStatus.CONTACT
 
 
+def test_a_pair_whose_start_plane_rounding_loses_is_unsolved_without_nan():
+    """A vertex 5.5e-17 m from a face (exact arithmetic), turned off the axes: the start
+    plane's scale came out 1/0 - 1/0 and NaN was written as the value and the plane."""
+    A = np.array([[0.3298709889692813, -0.06178526355210071, 0.09789984604497347], [0.9398965576189913, 0.32256537902070465, 0.7383242281131999], [0.3364213011026686, 0.02745987138678219, 1.3028863187079225]])
+    B = np.array([[1.2901103071871201e-03, -1.5821473644789930e00, 1.2100153955026624e-01], [1.7139234029676438e00, 2.0916077916922016e-01, -4.7741498710202801e-01], [-2.7951514105705461e-01, 7.9843616052956157e-01, 4.2754760666597724e-01]])
+    res = evaluate(A, B)
+    assert res.status[0] == wc.LeafStatus.NOT_CONVERGED and not res.ok[0]
+    assert np.isposinf(res.value[0])
+    for values in (res.plane, res.grad, res.hessian):
+        assert np.isfinite(values).all()
+
+
 def test_iteration_cap_flags_pair_without_nan():
     A, B = vertex_face(1e-8)  # the closest-point start is far from this optimum
     res = evaluate(A, B, max_iterations=1)
