@@ -238,6 +238,39 @@ def test_an_overwriting_bench_interrupted_before_its_first_row_leaves_no_earlier
     assert not any((tmp_path / name).exists() for name in ("scaling.json", "scaling.csv", "scaling.png"))
 
 
+def test_an_overwriting_bench_with_a_bad_argument_keeps_the_earlier_results(tmp_path, capsys):
+    """--overwrite removed the earlier run's outputs before the arguments were checked: a
+    mistyped device or scene name lost them."""
+    args = ["bench", "scaling", "--points", "8", "--repeats", "1", "--out", str(tmp_path)]
+    assert main(args) == 0
+    before = {name: (tmp_path / name).read_bytes() for name in ("scaling.json", "scaling.csv")}
+    assert main([*args, "--device", "cuda:7", "--overwrite"]) == 2
+    assert "device: 'cuda:7' is not available" in capsys.readouterr().err
+    assert {name: (tmp_path / name).read_bytes() for name in before} == before
+
+
+def test_results_are_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
+    """compare.json, metrics.json and a bench's JSON and CSV were rewritten in place: a full
+    disk left them truncated, every finished model or row in them lost. A NaN (a ratio to an
+    infinite reference) was written as a bare NaN token, which JSON parsers refuse."""
+    from warpcontact import _files
+
+    path = tmp_path / "results.json"
+    _files.replace_json(path, {"rows": [1.0, float("nan"), np.float64("inf"), np.array([2.0, np.nan])]})
+    assert json.loads(path.read_text()) == {"rows": [1.0, None, None, [2.0, None]]}
+
+    def full_disk(self, text):
+        Path.write_bytes(self, text[: len(text) // 2].encode())
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        _files.replace_json(path, {"rows": list(range(100))})
+    monkeypatch.undo()
+    assert json.loads(path.read_text())["rows"][1] is None  # the earlier file, whole
+    assert [p.name for p in tmp_path.iterdir()] == ["results.json"]  # no temporary left
+
+
 def test_bench_frame_refuses_bad_pickles_and_strikerless_scenes_before_timing(tmp_path, capsys):
     """A pickle of something else was a traceback (exit 1), a missing one exit 1 where a missing
     .usda is 2, and a scene with no cue or rod was refused only after the scenes before it."""

@@ -412,6 +412,10 @@ def test_cli_run_says_when_it_cannot_plot(tmp_path, monkeypatch, capsys):
     assert main(["run", str(scene_path), "--iters", "1", "--out", str(tmp_path / "out")]) == 0
     assert "not convergence.png (matplotlib is not installed" in capsys.readouterr().out
     assert not (tmp_path / "out" / "convergence.png").exists() and (tmp_path / "out" / "metrics.json").exists()
+    # An earlier run's plot stayed beside the new metrics.
+    (tmp_path / "out" / "convergence.png").write_bytes(b"an earlier plot")
+    assert main(["run", str(scene_path), "--iters", "1", "--out", str(tmp_path / "out"), "--overwrite"]) == 0
+    assert not (tmp_path / "out" / "convergence.png").exists()
 
 
 def test_cli_run_writes_metrics_plot_and_trajectory(tmp_path):
@@ -491,8 +495,13 @@ def test_cli_compare_runs_baselines_with_friction_and_reports_models_that_cannot
     assert data["frictionless"] and "loss_history" in data["models"]["ours"]
     assert "cannot run" in data["models"]["sdrs"]["error"]
     assert "sdrs: skipped" in capsys.readouterr().err
-    assert main(["compare", str(scene_path), "--models", "sdrs", "--iters", "1", "--out", str(tmp_path / "c2")]) == 1
-    assert "no model could run" in capsys.readouterr().err
+    # Where no model runs, no plot says "loss 0 at every iteration" beside compare.json.
+    (tmp_path / "c2").mkdir()
+    (tmp_path / "c2" / "compare.png").write_bytes(b"an earlier plot")
+    assert main(["compare", str(scene_path), "--models", "sdrs", "--iters", "1", "--out", str(tmp_path / "c2"), "--overwrite"]) == 1
+    captured = capsys.readouterr()
+    assert "no model could run" in captured.err and "not compare.png (no model ran)" in captured.out
+    assert not (tmp_path / "c2" / "compare.png").exists() and "error" in json.loads((tmp_path / "c2" / "compare.json").read_text())["models"]["sdrs"]
 
 
 def test_cli_compare_interrupted_keeps_and_plots_the_finished_models(tmp_path, capsys, monkeypatch):
@@ -507,6 +516,15 @@ def test_cli_compare_interrupted_keeps_and_plots_the_finished_models(tmp_path, c
     assert list(json.loads((out / "compare.json").read_text())["models"]) == ["ours"]
     assert (out / "compare.png").is_file()
     assert "interrupted during sdrs: the models before it are in" in capsys.readouterr().err
+    # Stopped during the first model, an earlier comparison's compare.json was announced as
+    # this one's, beside a new plot of "loss 0 at every iteration".
+    earlier = {name: (out / name).read_bytes() for name in ("compare.json", "compare.png")}
+    interrupt_call(monkeypatch, TaskProblem, "optimize", 1)
+    assert main(["compare", str(scene_path), "--models", "sdrs,ours", "--iters", "1", "--out", str(out), "--overwrite"]) == 130
+    captured = capsys.readouterr()
+    assert "interrupted during sdrs before any model finished: nothing written (compare.json, compare.png in" in captured.err
+    assert "wrote" not in captured.out
+    assert {name: (out / name).read_bytes() for name in earlier} == earlier
 
 
 def test_a_partial_quick_preset_says_what_a_preset_is(tmp_path):
@@ -515,6 +533,17 @@ def test_a_partial_quick_preset_says_what_a_preset_is(tmp_path):
     scene.task.quick_horizon = 3
     with pytest.raises(ValueError, match=r"warpcontact:task:quick:iterations must be .* \(a --quick preset is warpcontact:task:quick:horizon, recedingHorizon"):
         TaskSettings.from_task(scene, quick=True)
+    # A bad command-line value is not the preset's fault.
+    scene.task.quick_receding_horizon, scene.task.quick_iterations, scene.task.quick_learning_rate = 2, 1, 0.1
+    with pytest.raises(ValueError, match=r"--stride must be .*got 1000$"):
+        TaskSettings.from_task(scene, quick=True, receding_stride=1000)
+
+
+def test_iterations_are_capped_with_a_clear_error():
+    """gb's sigma schedule holds one number per iteration: --iters 1e12 died in a 7.3 TiB
+    MemoryError traceback."""
+    with pytest.raises(ValueError, match=r"--iters must be a whole number from 1 to 10,000,000, got 1000000000000"):
+        TaskSettings.from_task(space_billiards(), iterations=10**12)
 
 
 def test_cli_compare_skips_ipc_without_ipctk_and_keeps_the_other_models(tmp_path, capsys, monkeypatch):

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from ._files import replace_file, replace_json
 from .contact import ContactModel
 from .hull import convex_hull_mesh
 from .kernels import leaf as leaf_kernels
@@ -75,7 +76,7 @@ def _write_results(out_dir: Path, name: str, device, repeats: int, fields: dict)
         **fields,
     }
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / f"{name}.json").write_text(json.dumps(payload, indent=2, default=_json_default) + "\n")
+    replace_json(out_dir / f"{name}.json", payload)
     if "rows" in fields:
         _write_csv(out_dir / f"{name}.csv", fields["rows"])
     return payload
@@ -106,11 +107,15 @@ def _json_default(value):
 def _write_csv(path: Path, rows: list[dict]):
     """One line per row; columns are the union of the rows' keys in first-seen order."""
     columns = list(dict.fromkeys(key for row in rows for key in row))
-    with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=columns, restval="")
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({k: ("" if v is None else json.dumps(v, default=_json_default) if isinstance(v, (list, tuple, dict)) else v) for k, v in row.items()})
+
+    def write(temporary):
+        with temporary.open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=columns, restval="")
+            writer.writeheader()
+            for row in rows:
+                writer.writerow({k: ("" if v is None else json.dumps(v, default=_json_default) if isinstance(v, (list, tuple, dict)) else v) for k, v in row.items()})
+
+    replace_file(path, write)
 
 
 def _median_seconds(fn, repeats: int) -> float:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._files import replace_json
 from .contact import CENTRED_WEIGHTS
 from .leaf import LEAF_PRECISIONS
 from .tasks import IPC_TASK_STIFFNESS, MODELS
@@ -57,7 +58,7 @@ def _demo(args) -> int:
         print(f"{gap:10.1e} {res.value.sum():16.6e} {force[2]:24.6e} {res.iterations.mean():17.2f} {seconds:8.3f}")
     out = Path(args.out)
     payload = {"triangles_per_body": nt, "device": args.device, "results": rows}
-    (out / "demo.json").write_text(json.dumps(payload, indent=2) + "\n")
+    replace_json(out / "demo.json", payload)
     print(f"wrote {out / 'demo.json'}")
     return 0
 
@@ -121,7 +122,7 @@ def _simulate(args) -> int:
         "targets": targets,
         **({"stopped": stopped} if stopped else {}),
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    replace_json(out / "summary.json", summary)
     newton = f", mean {np.mean(iterations):.1f} Newton iterations per frame" if iterations else ""
     print(f"wrote {trajectory} and {out / 'summary.json'} ({seconds:.1f} s{newton})")
     if stopped:
@@ -301,7 +302,7 @@ def _run(args) -> int:
     # The checkpoint goes only once the results are written: an interrupted or failed
     # write is resumed (the finished descent replays its last state), not run again.
     try:
-        (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+        replace_json(out / "metrics.json", metrics)
         plotted = _plot_convergence({args.model: result.loss_history}, out / "convergence.png", title=f"{t.name} ({args.model})")
         io.export_trajectory(scene, io.model_to_scene_poses(scene, problem.model, result.trajectory), out / "trajectory.usda", overwrite=True)
     except KeyboardInterrupt:
@@ -359,7 +360,14 @@ def _compare(args) -> int:
             print()
             results[model] = _result_metrics(result)
         # Rewritten after every model, so an interrupted comparison keeps the finished ones.
-        (out / "compare.json").write_text(json.dumps(payload, indent=2) + "\n")
+        replace_json(out / "compare.json", payload)
+    if not results:
+        # Stopped during the first model: an earlier comparison's compare.json was announced
+        # as this one's, beside a plot of "loss 0 at every iteration".
+        earlier = [name for name in ("compare.json", "compare.png") if (out / name).exists()]
+        left = f" ({', '.join(earlier)} in {out} are an earlier run's, left as they were)" if earlier else ""
+        print(f"\ninterrupted during {interrupted} before any model finished: nothing written{left}", file=sys.stderr)
+        return 130
     ran = {m: r["loss_history"] for m, r in results.items() if "error" not in r}
     plotted = _plot_convergence(ran, out / "compare.png", title=f"{t.name}: loss from the same initial guess")
     print(f"{'model':>6} {'initial loss':>13} {'final loss':>13} {'success':>8} {'seconds':>8}")
@@ -369,7 +377,7 @@ def _compare(args) -> int:
         else:
             stopped = f"  stopped at frame {r['stopped']['frame']} (see compare.json)" if "stopped" in r else ""
             print(f"{model:>6} {_loss_text(r['initial_loss']):>13} {r['final_loss']:13.6g} {r['success']!s:>8} {r['seconds']:8.1f}{stopped}")
-    print(f"wrote {out}/compare.json, {_plot_name('compare.png', plotted)}")
+    print(f"wrote {out}/compare.json, {_plot_name('compare.png', plotted) if ran else 'not compare.png (no model ran)'}")
     if interrupted is not None:
         print(f"\ninterrupted during {interrupted}: the models before it are in {out}/compare.json", file=sys.stderr)
         return 130
@@ -398,12 +406,15 @@ def _plot_convergence(histories: dict, path: Path, *, title: str) -> bool:
     """Loss against optimiser iteration, log scale (as the paper's figures), one line per model.
 
     A loss of exactly 0 (every target within tolerance) has no place on a log axis; such
-    points are left out and the legend says the model reached 0.
+    points are left out and the legend says the model reached 0. Where nothing is drawn (no
+    history, no matplotlib) an earlier run's plot at ``path`` is removed: it stayed beside
+    the new results (with no history it became "loss 0 at every iteration").
     """
     from .bench import optional_pyplot
 
     plt = optional_pyplot()
-    if plt is None:
+    if plt is None or not histories:
+        path.unlink(missing_ok=True)
         return False
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
     # Stalled baselines share one flat line; distinct dashes and markers keep each visible.
@@ -762,8 +773,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _signature(path: Path) -> tuple | None:
+    """What tells a file from its replacement (a new file, renamed into place), or None."""
+    try:
+        stat = path.stat()
+    except FileNotFoundError:
+        return None
+    return stat.st_ino, stat.st_mtime_ns, stat.st_size
+
+
+def _earlier_files(args) -> dict:
+    """A bench's outputs that an earlier run left in OUT, which --overwrite replaces: path
+    -> ``_signature``; empty for other commands and without --overwrite."""
+    if not (getattr(args, "saves_rows", False) and args.overwrite):
+        return {}
+    paths = [Path(args.out) / name for name in args.outputs]
+    return {path: _signature(path) for path in paths if path.is_file()}
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    earlier = {}
     try:
         if getattr(args, "out", None) is not None:
             # Every command that writes checks its folder and earlier results before any work;
@@ -773,15 +803,19 @@ def main(argv=None) -> int:
             _refuse_input_among_outputs(args, out)
             if not getattr(args, "resume", False):
                 _refuse_earlier_results(out, args.outputs, args.overwrite)
-            if getattr(args, "saves_rows", False) and args.overwrite:
-                # A bench saves its rows as they finish: interrupted before its first, it left
-                # the earlier run's results as if they were its own (its plot deleted).
-                for name in args.outputs:
-                    (out / name).unlink(missing_ok=True)
+        earlier = _earlier_files(args)
         return args.func(args)
     except KeyboardInterrupt:
         # run, compare and simulate keep their own partial results; the benches save a row at a time.
-        kept = f"; the rows finished before it are in {args.out}" if getattr(args, "saves_rows", False) else ""
+        kept = ""
+        if getattr(args, "saves_rows", False):
+            # Interrupted before its first row, a bench with --overwrite left the earlier run's
+            # results as if they were its own. They go only now: removed before the run, a
+            # mistyped device or scene name lost them.
+            stale = [path for path, signature in earlier.items() if _signature(path) == signature]
+            for path in stale:
+                path.unlink()
+            kept = f"; the rows finished before it are in {args.out}" + (f" (the earlier run's {', '.join(p.name for p in stale)} removed)" if stale else "")
         print(f"\ninterrupted{kept}", file=sys.stderr)
         return 130
     except FileExistsError as exc:

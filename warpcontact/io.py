@@ -80,7 +80,6 @@ from __future__ import annotations
 
 import inspect
 import os
-import tempfile
 import warnings
 from collections import Counter
 from dataclasses import dataclass, field, replace
@@ -89,6 +88,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from ._files import replace_file
 from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, checked_flag, is_positive_finite, is_real, real_array, shown
 from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact_setting_problem, coordinate_limits
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
@@ -1968,15 +1968,7 @@ def _atomic_save(stage_writer, path, overwrite: bool):
         raise ValueError(f"{path.parent}: output folder does not exist")
     if not os.access(path.parent, os.W_OK):
         raise ValueError(f"{path.parent}: output folder is not writable")
-    fd, tmp = tempfile.mkstemp(suffix=path.suffix or ".usda", prefix=".tmp-", dir=path.parent)
-    os.close(fd)
-    os.unlink(tmp)  # Usd.Stage.CreateNew refuses an existing file
-    try:
-        stage_writer(Path(tmp))
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    replace_file(path, stage_writer)
 
 
 def _usd_scalar(value, kind, Sdf, name: str):

@@ -40,7 +40,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,6 +47,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from ._files import replace_file
 from ._validate import is_positive_finite, is_real, is_whole
 from .bundle import BundleSettings, bundled_gradient
 from .io import target_problem
@@ -147,10 +147,16 @@ class TaskSettings:
             "iterations": iterations_name,
             "learning_rate": f"warpcontact:{prefix}learningRate",
         }
+        failed = []
+
+        def where(field):
+            failed.append(names.get(field, field))
+            return f"{source}: {failed[-1]}"
+
         try:
-            settings.check(lambda field: f"{source}: {names.get(field, field)}")
+            settings.check(where)
         except ValueError as exc:
-            if prefix != "task:quick:":
+            if prefix != "task:quick:" or failed[-1].startswith("--"):
                 raise
             # A preset with some attributes left out read them as 0, and the error named an
             # attribute the scene never authored.
@@ -170,7 +176,7 @@ class TaskSettings:
             ("horizon", f"a whole number from 1 to {MAX_HORIZON:,}", is_whole(self.horizon) and 1 <= self.horizon <= MAX_HORIZON),
             ("receding_horizon", "a whole number >= 0", is_whole(self.receding_horizon) and self.receding_horizon >= 0),
             ("receding_stride", f"a whole number >= 1 and at most the window ({window})", is_whole(self.receding_stride) and window is not None and 1 <= self.receding_stride <= window),
-            ("iterations", "a whole number >= 1", is_whole(self.iterations) and self.iterations >= 1),
+            ("iterations", f"a whole number from 1 to {MAX_ITERATIONS:,}", is_whole(self.iterations) and 1 <= self.iterations <= MAX_ITERATIONS),
             ("learning_rate", "positive and finite", is_positive_finite(self.learning_rate)),
             ("betas", "two numbers in [0, 1)", len(betas) == 2 and all(unit_interval(b) for b in betas)),
             ("initial_samples", "a whole number >= 0", is_whole(self.initial_samples) and self.initial_samples >= 0),
@@ -198,6 +204,9 @@ class TaskResult:
 # attribute. A million frames is 11 hours at the paper's 0.04 s and ~3 hours of stepping
 # per rollout at 10 ms a frame; the paper's longest task plans 700.
 MAX_HORIZON = 1_000_000
+# Far more than any run can finish (a rollout each); gb's sigma schedule holds one number per
+# iteration, and 1e12 of them died in a 7.3 TiB MemoryError.
+MAX_ITERATIONS = 10_000_000
 
 # Long-range gradients can be ~1e-9 (far objects, small mu); a customary eps of 1e-8 would
 # then shrink Adam's steps by orders of magnitude. In float64 a tiny eps keeps steps
@@ -369,10 +378,11 @@ class TaskCheckpoint:
         meta = {k: v for k, v in state.items() if k not in _CHECKPOINT_ARRAYS}
         meta.update(version=CHECKPOINT_VERSION, fingerprint=fingerprint)
         arrays = {k: np.asarray(state[k], dtype=np.float64) for k in _CHECKPOINT_ARRAYS if k in state}
-        temporary = self.path.with_name(self.path.name + ".tmp.npz")
-        with temporary.open("wb") as f:
-            np.savez(f, meta=np.array(json.dumps(meta, default=_json_scalar)), **arrays)
-        os.replace(temporary, self.path)
+        def write(temporary):
+            with temporary.open("wb") as f:
+                np.savez(f, meta=np.array(json.dumps(meta, default=_json_scalar)), **arrays)
+
+        replace_file(self.path, write)
 
     def load(self, fingerprint: dict | None = None) -> dict:
         """The saved state; ValueError naming the file when it is missing, unreadable, of

@@ -1,0 +1,53 @@
+"""Output files written whole: a failed or interrupted write leaves the earlier file."""
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["replace_file", "replace_json", "replace_text"]
+
+
+def replace_file(path, write) -> None:
+    """Write ``path`` by ``write(temporary)``, a fresh name beside it (not yet a file, with
+    the same suffix), then rename it into place. A write that fails or is interrupted (a
+    full disk, Ctrl-C) leaves the earlier file as it was: results rewritten in place were
+    left truncated, and every finished row or model in them lost."""
+    path = Path(path)
+    fd, temporary = tempfile.mkstemp(suffix=path.suffix, prefix=".tmp-", dir=path.parent)
+    os.close(fd)
+    os.unlink(temporary)  # some writers (Usd.Stage.CreateNew) refuse an existing file
+    try:
+        write(Path(temporary))
+        os.replace(temporary, path)
+    finally:
+        if os.path.exists(temporary):
+            os.unlink(temporary)
+
+
+def replace_text(path, text: str) -> None:
+    """``replace_file`` for a text file."""
+    replace_file(path, lambda temporary: temporary.write_text(text))
+
+
+def replace_json(path, payload) -> None:
+    """``replace_text`` of ``payload`` as strict JSON, indented: numpy values as numbers and
+    lists, and a NaN or infinity (a ratio to an infinite reference, a failed loss) as null;
+    ``json.dumps`` wrote them as bare NaN and Infinity tokens, which JSON parsers refuse."""
+    replace_text(path, json.dumps(_strict(payload), indent=2, allow_nan=False) + "\n")
+
+
+def _strict(value):
+    """``value`` with numpy arrays and scalars as Python lists and numbers, and every float
+    that is not finite as None."""
+    if isinstance(value, (np.ndarray, np.generic)):
+        value = value.tolist()
+    if isinstance(value, dict):
+        return {k: _strict(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_strict(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
