@@ -1,5 +1,7 @@
 """Body-level contact model: BSH vs brute force, coverage, smoothness, properties, bad input."""
 
+import warnings
+
 import numpy as np
 import pytest
 import trimesh
@@ -236,6 +238,31 @@ def test_net_forces_push_bodies_apart(weight):
 
 
 # --- static bodies ----------------------------------------------------------------------------
+
+
+def test_pairs_weights_below_eps_0_1_can_pull_and_the_builder_says_so():
+    """The paper's proof that blends push apart needs S >= P_c, which the pairs-weighted
+    centred terms need not meet: at eps 0.05 two separated boxes pull together (a probe found
+    5 such poses in 3,600); the same pose pushes at eps 0.5 and with the paper's weights."""
+    extents = (0.8, 0.5, 0.3)
+    boxes = [box(extents), box(extents)]
+    poses = identity_poses([[0.0, 0.0, 0.0], [-1.3995097573964421, 0.1906316077202483, -0.7717740951973643]])
+    poses[1, 3:] = [0.01650523946831536, 0.02178514957973302, -0.9928091250127852, -0.11654623811702519]
+    direction = poses[1, :3] / np.linalg.norm(poses[1, :3])
+
+    def push(eps, weight):
+        res = wc.ContactModel(boxes, eps=eps, centred_weight=weight).evaluate(poses)
+        assert res.ok and res.pair_separation[0] > 0.05
+        return -res.grad[1, :3] @ direction
+
+    assert push(0.05, "pairs") < 0  # pulls: the documented limit
+    assert push(0.5, "pairs") > 0 and push(0.05, "paper") > 0
+    with pytest.warns(UserWarning, match="eps 0.05 is below 0.1 with centred_weight 'pairs'"):
+        wc.ModelBuilder(eps=0.05, centred_weight="pairs")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        wc.ModelBuilder(eps=0.1, centred_weight="pairs")
+        wc.ModelBuilder(eps=0.05)
 
 
 @pytest.mark.parametrize("gap", [0.2, 1e-3])
