@@ -282,7 +282,7 @@ def test_quick_uses_the_scene_preset_or_caps_the_paper_settings():
 @pytest.mark.parametrize(
     ("field", "value", "message"),
     [
-        ("iterations", 0, "warpcontact:task:iterations must be a whole number >= 1, got 0"),
+        ("iterations", 0, "warpcontact:task:iterations must be a whole number from 1 to 10,000,000, got 0"),
         ("horizon", 10**9, "warpcontact:task:horizon must be a whole number from 1 to 1,000,000, got 1000000000"),
         ("learning_rate", -0.1, "warpcontact:task:learningRate must be positive and finite, got -0.1"),
         ("learning_rate", float("nan"), "warpcontact:task:learningRate must be positive and finite"),
@@ -349,7 +349,7 @@ def test_a_scene_built_in_python_is_refused_a_goal_that_is_not_finite(field, val
         (dict(horizon=8.5), "settings.horizon must be a whole number from 1 to 1,000,000, got 8.5"),
         # Allocated up front: 1e9 frames ended in numpy's MemoryError, naming nothing.
         (dict(horizon=10**9, receding_horizon=2, receding_stride=2), "settings.horizon must be a whole number from 1 to 1,000,000, got 1000000000"),
-        (dict(iterations=0), "settings.iterations must be a whole number >= 1, got 0"),
+        (dict(iterations=0), "settings.iterations must be a whole number from 1 to 10,000,000, got 0"),
         (dict(learning_rate=float("nan")), "settings.learning_rate must be positive and finite, got nan"),
         (dict(receding_horizon=-4), "settings.receding_horizon must be a whole number >= 0, got -4"),
         (dict(receding_stride=3), r"settings.receding_stride must be a whole number >= 1 and at most the window \(2\), got 3"),

@@ -314,7 +314,7 @@ class ImplicitSolver:
     Args:
         model: the model.
         tolerance: converged when the Newton step moves no body point farther than
-            ``tolerance`` times the largest body radius.
+            ``tolerance`` times the largest dynamic body's radius.
         max_iterations: Newton iteration cap; exceeding it raises ``SolverError``. Most steps
             take 2-10 iterations; a step in which a faceted body must roll or slide on a
             contact (an unstable equilibrium of the step objective) can take hundreds, each
@@ -361,7 +361,13 @@ class ImplicitSolver:
         self._dofs = np.flatnonzero(np.repeat(self._dynamic, 6))
         # Free bodies only: the reduced coordinates are the rigid coordinates (J = I).
         self._articulation = None if model.articulation.identity else model.articulation
-        self._length_scale = float(model.body_radius.max())
+        radii = np.asarray(model.body_radius)
+        # The moving bodies' size sets the Newton tolerance: a static body's does not (a 1,000
+        # km slab far away made a 1 cm box's tolerance 70 um, and its friction was lost).
+        self._length_scale = float(radii[self._dynamic].max() if self._dynamic.any() else radii.max())
+        # Every body's coordinates round, a static one's too (a gap of a few of their ulps is
+        # touching).
+        self._rounding_scale = float(radii.max())
         # Per body, what the pass-through check reads (``_crossing_geometry``), made when a
         # suspect pair first needs it: made for every body here, it was most of the solver's
         # construction (1.2 s of 1.3 s at 2,003 bodies, nearly all static and never suspect).
@@ -816,7 +822,7 @@ class ImplicitSolver:
             raise ValueError(f"state_in: bodies intersect or touch at the start of the step: {names}")
         # Gaps of a few units of roundoff: a box set exactly on a plate (z = half height + top,
         # 1.7e-17 m apart) took one Newton iteration a step and hardly moved, silently.
-        touching = np.flatnonzero(start.pair_separation <= _ROUNDING * self._length_scale)
+        touching = np.flatnonzero(start.pair_separation <= _ROUNDING * self._rounding_scale)
         # Unsolved pairs have their own error, below; ipc's separation is one global distance
         # for every pair (it named the first pair, not the touching one) and its barrier
         # refuses a zero distance itself.
@@ -924,6 +930,16 @@ class ImplicitSolver:
                 if hidden > converged_length:
                     raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden))
                 converged = True
+                if iterations == 1:
+                    # No step was taken: the start holds none of this step's forces. Dropping
+                    # a first step under the tolerance lost them all, every step: at dt 1e-6 a
+                    # thrown box felt no gravity, a sliding one no friction, a pendulum never
+                    # swung. Taken in full, unevaluated: its terms move by less than the
+                    # tolerance, as after any converged step.
+                    if art is None:
+                        q = retract(q, full)
+                    else:
+                        q, coords = art.retract(q, direction), coords + direction[art.coordinate_dof]
                 break
             decrement = -float(grad @ direction)
             # The contact model holds the term lists of q (or q_lists does, after a rejected
