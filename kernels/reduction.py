@@ -40,13 +40,27 @@ SDRS barrier (``dhat`` > 0).
 import warp as wp
 
 from .blend import centered_potential, shell_blend
-from .leaf import LEAF_OK, LeafSolution, leaf_mixed_block, leaf_vertex_barrier, leaf_vertex_gradient, pair_solve
+from .leaf import LEAF_CONTACT, LEAF_OK, LeafSolution, leaf_mixed_block, leaf_vertex_barrier, leaf_vertex_gradient, pair_solve
 from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, upper_entry, vec6d, world_triangle
 from .traversal import COUNTER_BLEND, COUNTER_FAR, COUNTER_LEAF, listed
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["RECORD_ENTRIES", "Targets", "add_record_gradient", "add_term_hessian_block", "add_record_value", "target_record", "blend_weight_kernel", "far_term_kernel", "leaf_term_kernel", "blend_level_kernel", "top_level_kernel", "advancement_kernel"]
+__all__ = ["PAIR_CONTACT", "RECORD_ENTRIES", "Targets", "add_record_gradient", "add_term_hessian_block", "add_record_value", "target_record", "blend_weight_kernel", "far_term_kernel", "leaf_term_kernel", "blend_level_kernel", "top_level_kernel", "advancement_kernel"]
+
+
+# A body pair's merged leaf status (``leaf_term_kernel``'s max) when any of its triangle
+# pairs touches: it outranks the leaf statuses, so contact is never hidden by an unsolved
+# pair (one triangle pair touching to rounding, unsolved, hid 15 intersecting ones, and an
+# intersecting start was blamed on float64's resolution).
+PAIR_CONTACT = wp.constant(8)
+
+
+@wp.func
+def _pair_status_rank(status: int):
+    if status == LEAF_CONTACT:
+        return PAIR_CONTACT
+    return status
 
 
 @wp.struct
@@ -311,7 +325,7 @@ def leaf_term_kernel(
     leaf_plane_out[tid] = wp.vec4d(sol.n[0], sol.n[1], sol.n[2], sol.d - wp.dot(sol.n, sol.origin))
     record = target_record(targets, item[2], seed, tid)
     if sol.status != LEAF_OK:
-        wp.atomic_max(seed_status_out, seed, sol.status)
+        wp.atomic_max(seed_status_out, seed, _pair_status_rank(sol.status))
         wp.atomic_min(seed_separation_out, seed, wp.float64(0.0))
         add_record_value(targets, record, wp.float64(wp.inf))
         return

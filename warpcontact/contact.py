@@ -823,8 +823,8 @@ class ContactModel:
         num_far, num_blend, num_leaf, _ = self._counts
         read = self._readback.read
         status = read("status")
-        contact = [tuple(self.names[i] for i in self.body_pairs[s]) for s in np.flatnonzero(status == LeafStatus.CONTACT)]
-        unsolved = [tuple(self.names[i] for i in self.body_pairs[s]) for s in np.flatnonzero(status > LeafStatus.CONTACT)]
+        contact = [tuple(self.names[i] for i in self.body_pairs[s]) for s in np.flatnonzero(status == reduction_kernels.PAIR_CONTACT)]
+        unsolved = [tuple(self.names[i] for i in self.body_pairs[s]) for s in np.flatnonzero((status > LeafStatus.CONTACT) & (status != reduction_kernels.PAIR_CONTACT))]
         value = float(read("value")[0])
         if contact or unsolved:
             value = float("inf")
