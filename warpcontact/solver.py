@@ -1084,6 +1084,12 @@ class ImplicitSolver:
                 where = self._centre_crossing(mover, other, q_from, step) if self._crossing_geometry(mover)[0] else None
                 if where is not None:
                     return refusal(i, f"{names[mover]!r}'s centre of mass crosses {names[other]!r}'s surface at {where:.0%} of it")
+        # The sampled intersection is for pairs the centre test cannot follow (a ring's or an
+        # open mesh's centre is no material point): the straight motion it samples is not the
+        # path the bodies took, and clips a tumbling box's corner (random piles of boxes and
+        # balls at dt 0.02 were refused in 4 of 8 seeds, though sub-steps showed nothing passing).
+        followed = np.array([self._crossing_geometry(a[i])[0] and self._crossing_geometry(b[i])[0] for i in suspect], dtype=bool)
+        suspect = suspect[~followed]
         closest = suspect[(fraction[suspect] > 0.0) & (fraction[suspect] < 1.0)]
         for s in np.unique(np.round(fraction[closest], 3)):
             hits = self.model.contact.evaluate(retract(q_from, s * step)).contact_pairs
