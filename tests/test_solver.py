@@ -344,6 +344,9 @@ def test_a_body_set_exactly_on_a_support_is_refused_naming_both():
         (lambda m: m.friction.assign(np.array([-0.5])), r"model.friction: must be >= 0 and finite, got -0.5"),
         (lambda m: m.contact_stiffness.assign(np.array([0.0])), r"model.contact_stiffness: must be positive and finite, got 0.0"),
         (lambda m: setattr(m, "friction_smoothing", 0.0), r"model.friction_smoothing: must be positive and finite, got 0.0"),
+        # Blamed on dt and the control's targets, and on Warp's vector constructor.
+        (lambda m: setattr(m, "gravity", np.array([0.0, 0.0, np.nan])), r"model.gravity: expected 3 finite numbers \(m/s\^2\), got array\(\[ 0.,  0., nan\]\)"),
+        (lambda m: setattr(m, "gravity", np.array([0.0, 0.0, -9.81, 1.0])), r"model.gravity: expected 3 finite numbers"),
     ],
 )
 def test_model_parameters_changed_after_finalize_are_checked_by_the_step(change, message):

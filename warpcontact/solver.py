@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ._validate import QUATERNION_TOLERANCE, check_time_step, checked_flag, is_real, is_whole
+from ._validate import QUATERNION_TOLERANCE, check_time_step, checked_flag, is_real, is_whole, real_array
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
@@ -425,6 +425,10 @@ class ImplicitSolver:
             problem = contact_setting_problem(name, value)
             if problem is not None:
                 raise ValueError(f"model.{name}: {problem}, got {value!r}")
+        gravity = real_array(model.gravity)
+        if gravity is None or gravity.shape != (3,) or not np.isfinite(gravity).all():
+            # A NaN was blamed on dt and the control's targets, 4 numbers on Warp's vector constructor.
+            raise ValueError(f"model.gravity: expected 3 finite numbers (m/s^2), got {model.gravity!r}")
         mass = model.body_mass.numpy()
         bad = np.flatnonzero(self._dynamic & ~(np.isfinite(mass) & (mass > 0.0)))
         if bad.size:
