@@ -1027,3 +1027,11 @@ def test_joint_order_is_topological_for_long_chains_added_leaf_first():
         builder.add_joint("revolute", child=bodies[i], parent=bodies[i - 1] if i else None, anchor=(0, 0, -0.1 * i), axis=(0, 1, 0), name=f"j{i}")
     art = builder.finalize().articulation
     assert [joint.name for joint in art.joints] == [f"j{i}" for i in range(links)]
+
+
+def test_the_ant_is_built_only_in_a_z_up_builder():
+    """In a Y-up builder the ant was built Z-up all the same, standing in its floor, and only
+    "bodies intersect or touch" was said."""
+    with pytest.raises(ValueError, match=r"add_ant builds the ant Z-up .*this builder's gravity is \[0.0, -9.81, 0.0\], not along -z"):
+        add_ant(wc.ModelBuilder(gravity=(0.0, -9.81, 0.0)))
+    add_ant(wc.ModelBuilder(gravity=(0.0, 0.0, 0.0)))  # no up at all: nothing to disagree with

@@ -105,6 +105,11 @@ def add_ant(builder, *, position=(0.0, 0.0), yaw: float = 0.0, ground_height: fl
     joint index) and ``actuated`` (the 12 leg coordinate names: per leg hip swing, hip lift,
     knee).
     """
+    gravity = np.asarray(builder.gravity, dtype=np.float64)
+    if gravity.any() and not (gravity[2] < 0.0 and np.allclose(gravity[:2], 0.0, atol=1e-9 * abs(gravity[2]))):
+        # Built Z-up in a Y-up builder, the ant stood in its floor, and only "bodies intersect"
+        # was said.
+        raise ValueError(f"add_ant builds the ant Z-up (its base moves in x, y, z and turns about z); this builder's gravity is {gravity.tolist()}, not along -z")
     links, joints = ant_description(position=position, yaw=yaw, ground_height=ground_height, spec=spec, name=name)
     index = {}
     for link in links:
