@@ -933,18 +933,14 @@ class ImplicitSolver:
             if step_length <= converged_length:
                 if hidden > converged_length:
                     raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden))
-                converged = True
-                if iterations == 1:
-                    # No step was taken: the start holds none of this step's forces. Dropping
-                    # a first step under the tolerance lost them all, every step: at dt 1e-6 a
-                    # thrown box felt no gravity, a sliding one no friction, a pendulum never
-                    # swung. Taken in full, unevaluated: its terms move by less than the
-                    # tolerance, as after any converged step.
-                    if art is None:
-                        q = retract(q, full)
-                    else:
-                        q, coords = art.retract(q, direction), coords + direction[art.coordinate_dof]
-                break
+                # A first step is taken however short: the start holds none of this step's
+                # forces, and dropping it lost them all, every step (at dt 1e-6 a thrown box
+                # felt no gravity, a sliding one no friction, a pendulum never swung). It goes
+                # through the line search like any step (advancement, joint limits, a finite
+                # value) and leaves the solution evaluated for the backward and the next step.
+                if iterations > 1:
+                    converged = True
+                    break
             decrement = -float(grad @ direction)
             # The contact model holds the term lists of q (or q_lists does, after a rejected
             # warm start): trials come after this.
