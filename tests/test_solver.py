@@ -405,6 +405,21 @@ def test_bodies_of_unusual_meshes_tunnelling_past_a_plate_are_refused(shape):
         wc.ImplicitSolver(model).step(first, model.state(requires_grad=False), None, 0.04)
 
 
+@pytest.mark.parametrize("offset", [0.2, 0.25])
+def test_a_cube_passing_beside_another_through_its_side_is_refused(offset):
+    """A 0.3 m cube at 30 m/s (dt 0.04) passing a resting one 0.2-0.25 m to the side: its
+    centre never enters the other, and with the sampled test narrowed to open meshes the step
+    was accepted, the cube beyond the target, which never moved."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.3, 0.3, 0.3), density=500.0, name="cube", pose=(-0.5, offset, 0.5, 0.0, 0.0, 0.0, 1.0))
+    b.add_box((0.3, 0.3, 0.3), density=500.0, name="target", pose=(0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    first = model.state(requires_grad=False)
+    wc.set_body_velocity(first, wp.array([[30.0, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(2, dtype=wp.vec3d), 0.04)
+    with pytest.raises(wc.SolverError, match=r"'cube' and 'target' pass through each other: .*their centres come 0.2\d* m apart at \d+% of it, inside both bodies"):
+        wc.ImplicitSolver(model).step(first, model.state(requires_grad=False), None, 0.04)
+
+
 def test_tumbling_boxes_and_balls_in_a_pile_are_not_refused_as_passing_through():
     """A step of a random pile (dt 0.02) was refused: "'s1' and 'b4' pass through each other
     ... intersect at 14% of it". The sampled straight motion clipped the tumbling box's
