@@ -229,6 +229,25 @@ def test_polygons_with_straight_corners_are_split_without_zero_area_triangles(co
     assert 0.5 * twice_area.sum() == pytest.approx(0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
 
 
+def test_straight_corners_far_from_the_origin_are_judged_against_rounding():
+    """Star-shaped polygons with edge midpoints, 1 mm wide, turned, 370 m from the origin:
+    rounding bends their straight corners by ~1e-11 of the polygon, above the 1e-12 that
+    counted as straight, and 147 of 1,000 got zero-area triangles."""
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        n = rng.integers(4, 12)
+        angles, radii = np.sort(rng.uniform(0.0, 2.0 * np.pi, n)), rng.uniform(0.3, 1.0, n)
+        star = np.stack([radii * np.cos(angles), radii * np.sin(angles), np.zeros(n)], axis=1)
+        with_midpoints = np.concatenate([[star[k], 0.5 * (star[k] + star[(k + 1) % n])] for k in range(n)])
+        turn, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        triangles = io._polygon_triangles(with_midpoints @ turn.T * 1e-3 + [100.0, 200.0, 300.0])
+        if triangles is None:
+            continue  # a star whose closing edge crosses the others
+        tri = with_midpoints[np.asarray(triangles)]
+        twice_area = np.abs(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])[:, 2])
+        assert twice_area.min() > 1e-9 * twice_area.sum()
+
+
 def test_a_cube_of_pentagons_loads_like_the_cube_of_quads(tmp_path):
     """Its bottom and front faces share a vertex in the middle of their common edge: it was
     refused for its mass from density (the fans' zero-area triangles wound the edge the same

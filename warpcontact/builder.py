@@ -185,6 +185,14 @@ def _closure_hint(mesh: trimesh.Trimesh) -> str:
 _FLAT_TRIANGLE = 1e-12
 
 
+def flat_twice_area(edge, coordinate):
+    """Twice the area below which a triangle of longest edge ``edge`` (m), among coordinates
+    up to ``coordinate`` (m) in magnitude, is flat: 1e-12 of its edge squared, or what rounding
+    its corners' coordinates makes of a straight corner (a 1 mm polygon 100 m from the
+    origin: 1e-11 of its edge squared). One rule for meshes and for the polygons of USD faces."""
+    return np.maximum(_FLAT_TRIANGLE * np.square(edge), 64.0 * np.finfo(np.float64).eps * np.asarray(coordinate) * edge)
+
+
 def _contact_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The mesh without its zero-area triangles and the vertices only they used, where any
     triangle has an area (a mesh that is all points and segments is kept as it is).
@@ -196,7 +204,7 @@ def _contact_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     corners = vertices[faces]
     edges = corners[:, [1, 2, 0]] - corners
     area2 = np.linalg.norm(np.cross(edges[:, 0], edges[:, 1]), axis=1)
-    flat = area2 <= _FLAT_TRIANGLE * np.max(np.sum(edges * edges, axis=2), axis=1)
+    flat = area2 <= flat_twice_area(np.sqrt(np.max(np.sum(edges * edges, axis=2), axis=1)), np.abs(vertices).max())
     if flat.all() or not flat.any():
         return vertices, faces
     used, kept = np.unique(faces[~flat], return_inverse=True)

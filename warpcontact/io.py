@@ -90,7 +90,7 @@ import trimesh
 
 from ._files import replace_file
 from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, checked_flag, is_positive_finite, is_real, real_array, shown
-from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact_setting_problem, coordinate_limits
+from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact_setting_problem, coordinate_limits, flat_twice_area
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
 from .leaf import LEAF_PRECISIONS
@@ -346,15 +346,14 @@ def _attr(prim, name, default=None):
     return default
 
 
-# A polygon corner that turns by less than this fraction of its sharpest turn is straight.
-_STRAIGHT_TURN = 1e-12
-
-
-def _flattened_polygons(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _flattened_polygons(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Polygons of n corners each ((m, n, 3), in order) in two coordinates of their planes:
-    their Newell normals (m, 3), the corners (m, n, 2) counter-clockwise about the normals,
-    and each corner's turn (m, n): the cross product of the edges into and out of corner
-    k + 1, positive at a convex corner."""
+    their Newell normals (m, 3), the corners (m, n, 2) counter-clockwise about the normals
+    and relative to corner 0, each corner's turn (m, n): the cross product of the edges into
+    and out of corner k + 1, positive at a convex corner, and the turn (m,) below which a
+    corner is straight (``flat_twice_area``)."""
+    straight = flat_twice_area(np.linalg.norm(np.roll(corners, -1, axis=1) - corners, axis=2).max(axis=1), np.abs(corners).max(axis=(1, 2)))
+    corners = corners - corners[:, :1]
     normal = np.sum(np.cross(corners, np.roll(corners, -1, axis=1)), axis=1)
     drop = np.argmax(np.abs(normal), axis=1)
     # The other two axes in cyclic order keep the polygon counter-clockwise about +normal[drop].
@@ -363,14 +362,13 @@ def _flattened_polygons(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     flat[np.take_along_axis(normal, drop[:, None], axis=1)[:, 0] < 0, :, 1] *= -1.0
     edges = np.roll(flat, -1, axis=1) - flat
     following = np.roll(edges, -1, axis=1)
-    return normal, flat, edges[..., 0] * following[..., 1] - edges[..., 1] * following[..., 0]
+    return normal, flat, edges[..., 0] * following[..., 1] - edges[..., 1] * following[..., 0], straight
 
 
-def _strictly_convex(normal: np.ndarray, turns: np.ndarray) -> np.ndarray:
+def _strictly_convex(normal: np.ndarray, turns: np.ndarray, straight: np.ndarray) -> np.ndarray:
     """Per polygon of ``_flattened_polygons``: convex with no straight corner, where a fan
     from corner 0 is exact and has no zero-area triangle."""
-    scale = np.abs(turns).max(axis=1, keepdims=True)
-    return (np.linalg.norm(normal, axis=1) > 0) & (turns > _STRAIGHT_TURN * scale).all(axis=1)
+    return (np.linalg.norm(normal, axis=1) > 0) & (turns > straight[:, None]).all(axis=1)
 
 
 def _polygon_triangles(corners: np.ndarray) -> list | None:
@@ -389,12 +387,12 @@ def _polygon_triangles(corners: np.ndarray) -> list | None:
     if 3 <= len(distinct) < n:
         inner = _polygon_triangles(corners[distinct])
         return None if inner is None else [tuple(int(distinct[k]) for k in t) for t in inner]
-    normal, flat, turns = (a[0] for a in _flattened_polygons(corners[None]))
+    normal, flat, turns, straight = (a[0] for a in _flattened_polygons(corners[None]))
     if not np.linalg.norm(normal) > 0:
         return fan  # degenerate (collinear): any split is as good
-    if _strictly_convex(normal[None], turns[None])[0]:
+    if _strictly_convex(normal[None], turns[None], straight[None])[0]:
         return fan
-    straight = _STRAIGHT_TURN * float(np.abs(turns).max())
+    straight = float(straight)
 
     def cross(o, a, b):
         return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
@@ -495,8 +493,8 @@ def _polygon_mesh_faces(points: np.ndarray, counts: np.ndarray, indices: np.ndar
     kept[[h for h in holes if 0 <= h < len(counts)]] = False
     quads = np.flatnonzero(kept & (counts == 4))
     quad_corners = indices[starts[quads, None] + np.arange(4)]
-    normal, _, turns = _flattened_polygons(points[quad_corners])
-    fanned = _strictly_convex(normal, turns)
+    normal, _, turns, straight = _flattened_polygons(points[quad_corners])
+    fanned = _strictly_convex(normal, turns, straight)
     triangles = [quad_corners[fanned][:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3)]
     owners = [np.repeat(quads[fanned], 2)]
     kept[quads[fanned]] = False
