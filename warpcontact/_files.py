@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["replace_file", "replace_json", "replace_text"]
+__all__ = ["json_ready", "replace_file", "replace_json", "replace_text"]
 
 
 def replace_file(path, write) -> None:
@@ -16,6 +16,9 @@ def replace_file(path, write) -> None:
     full disk, Ctrl-C) leaves the earlier file as it was: results rewritten in place were
     left truncated, and every finished row or model in them lost."""
     path = Path(path)
+    if not path.parent.is_dir():
+        # mkstemp named its temporary file, not the output.
+        raise FileNotFoundError(f"{path}: its folder does not exist")
     fd, temporary = tempfile.mkstemp(suffix=path.suffix, prefix=".tmp-", dir=path.parent)
     os.close(fd)
     os.unlink(temporary)  # some writers (Usd.Stage.CreateNew) refuse an existing file
@@ -36,18 +39,18 @@ def replace_json(path, payload) -> None:
     """``replace_text`` of ``payload`` as strict JSON, indented: numpy values as numbers and
     lists, and a NaN or infinity (a ratio to an infinite reference, a failed loss) as null;
     ``json.dumps`` wrote them as bare NaN and Infinity tokens, which JSON parsers refuse."""
-    replace_text(path, json.dumps(_strict(payload), indent=2, allow_nan=False) + "\n")
+    replace_text(path, json.dumps(json_ready(payload), indent=2, allow_nan=False) + "\n")
 
 
-def _strict(value):
+def json_ready(value):
     """``value`` with numpy arrays and scalars as Python lists and numbers, and every float
     that is not finite as None."""
     if isinstance(value, (np.ndarray, np.generic)):
         value = value.tolist()
     if isinstance(value, dict):
-        return {k: _strict(v) for k, v in value.items()}
+        return {k: json_ready(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_strict(v) for v in value]
+        return [json_ready(v) for v in value]
     if isinstance(value, float) and not np.isfinite(value):
         return None
     return value

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from ._files import replace_file, replace_json
+from ._files import json_ready, replace_file, replace_json
 from .contact import ContactModel
 from .hull import convex_hull_mesh
 from .kernels import leaf as leaf_kernels
@@ -96,14 +96,6 @@ def _plot_at_end(path: Path, plot, rows: list[dict]) -> None:
         path.unlink(missing_ok=True)
 
 
-def _json_default(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
-
-
 def _write_csv(path: Path, rows: list[dict]):
     """One line per row; columns are the union of the rows' keys in first-seen order."""
     columns = list(dict.fromkeys(key for row in rows for key in row))
@@ -113,7 +105,7 @@ def _write_csv(path: Path, rows: list[dict]):
             writer = csv.DictWriter(f, fieldnames=columns, restval="")
             writer.writeheader()
             for row in rows:
-                writer.writerow({k: ("" if v is None else json.dumps(v, default=_json_default) if isinstance(v, (list, tuple, dict)) else v) for k, v in row.items()})
+                writer.writerow({k: ("" if v is None else json.dumps(json_ready(v), allow_nan=False) if isinstance(v, (list, tuple, dict)) else v) for k, v in row.items()})
 
     replace_file(path, write)
 
@@ -374,7 +366,7 @@ def _plot_contact_benchmark(rows: list[dict], path: Path) -> bool:
         if ax.get_legend_handles_labels()[0]:  # a run saved before this scene's bsh rows
             ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    replace_file(path, lambda temporary: fig.savefig(temporary, dpi=120))
     plt.close(fig)
     return True
 
@@ -435,7 +427,7 @@ def _plot_scaling(rows: list[dict], path: Path) -> bool:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    replace_file(path, lambda temporary: fig.savefig(temporary, dpi=120))
     plt.close(fig)
     return True
 
@@ -872,7 +864,7 @@ def _plot_frame_benchmark(rows: list[dict], path: Path) -> bool:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    replace_file(path, lambda temporary: fig.savefig(temporary, dpi=120))
     plt.close(fig)
     return True
 
@@ -1074,6 +1066,6 @@ def _plot_accuracy(rows: list[dict], path: Path) -> bool:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    replace_file(path, lambda temporary: fig.savefig(temporary, dpi=120))
     plt.close(fig)
     return True

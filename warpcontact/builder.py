@@ -207,8 +207,13 @@ def _contact_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     flat = area2 <= flat_twice_area(np.sqrt(np.max(np.sum(edges * edges, axis=2), axis=1)), np.abs(vertices).max())
     if flat.all() or not flat.any():
         return vertices, faces
-    used, kept = np.unique(faces[~flat], return_inverse=True)
-    return vertices[used], kept.reshape(-1, 3)
+    return _used_vertices(vertices, faces[~flat])
+
+
+def _used_vertices(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh without the vertices no face uses, faces renumbered."""
+    used, renumbered = np.unique(faces, return_inverse=True)
+    return vertices[used], renumbered.reshape(-1, 3)
 
 
 def _real_vector(value, size: int) -> np.ndarray | None:
@@ -418,8 +423,7 @@ class ModelBuilder:
         vertices, faces = validated_mesh(vertices, faces, name)
         # Vertices no face uses are not part of the body: they moved the centre of mass of
         # the mass and inertia path, and the body radius that sizes the solver's tolerance.
-        used, faces = np.unique(faces, return_inverse=True)
-        vertices, faces = vertices[used], faces.reshape(-1, 3)
+        vertices, faces = _used_vertices(vertices, faces)
         tm = trimesh.Trimesh(vertices, faces, process=False)
         given = pose
         pose = _real_vector(pose, 7)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._files import replace_json
+from ._files import replace_file, replace_json
 from .contact import CENTRED_WEIGHTS
 from .leaf import LEAF_PRECISIONS
 from .tasks import IPC_TASK_STIFFNESS, MODELS
@@ -440,7 +440,7 @@ def _plot_convergence(histories: dict, path: Path, *, title: str) -> bool:
     if histories:
         ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    replace_file(path, lambda temporary: fig.savefig(temporary, dpi=120))
     plt.close(fig)
     return True
 

@@ -459,14 +459,9 @@ def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"{where}: point {bad} is not finite")
     if counts.sum() != len(indices) or (indices < 0).any() or (indices >= len(points)).any():
         raise ValueError(f"{where}: faceVertexIndices do not match faceVertexCounts and points")
-    holes = set(int(h) for h in (mesh.GetHoleIndicesAttr().Get() or []))
-    if (counts == 3).all():
-        # Triangles only, the common case, at once (a loop over 229k faces took 2.9 s).
-        kept = np.ones(len(counts), dtype=bool)
-        kept[[h for h in holes if 0 <= h < len(counts)]] = False
-        faces = indices.reshape(-1, 3)[kept]
-    else:
-        faces = _polygon_mesh_faces(points, counts, indices, holes, where)
+    kept = np.ones(len(counts), dtype=bool)
+    kept[[h for h in (int(h) for h in (mesh.GetHoleIndicesAttr().Get() or [])) if 0 <= h < len(counts)]] = False
+    faces = _polygon_mesh_faces(points, counts, indices, kept, where)
     if not len(faces):
         raise ValueError(f"{where}: every face is a hole (holeIndices)")
     faces = np.asarray(faces, dtype=np.int64)
@@ -480,25 +475,28 @@ def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
     return points, faces
 
 
-def _polygon_mesh_faces(points: np.ndarray, counts: np.ndarray, indices: np.ndarray, holes: set, where: str) -> np.ndarray:
-    """Triangles (nt, 3) of a mesh's polygons, face by face in order (holes skipped).
-    Strictly convex quads, the common polygon, are fanned at once (one at a time, a
-    90,000-quad ground took 25 s)."""
+def _polygon_mesh_faces(points: np.ndarray, counts: np.ndarray, indices: np.ndarray, kept: np.ndarray, where: str) -> np.ndarray:
+    """Triangles (nt, 3) of a mesh's polygons (those ``kept``: holes are not), face by face
+    in order. Triangles and strictly convex quads, the common polygons, are split at once
+    (one face at a time, 229k triangles took 2.9 s and a 90,000-quad ground 25 s)."""
     short = np.flatnonzero(counts < 3)
     if len(short):
         f = int(short[0])
         raise ValueError(f"{where}: face {f} has {counts[f]} vertices; cannot be triangulated")
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    kept = np.ones(len(counts), dtype=bool)
-    kept[[h for h in holes if 0 <= h < len(counts)]] = False
-    quads = np.flatnonzero(kept & (counts == 4))
+    left = kept.copy()
+    single = np.flatnonzero(left & (counts == 3))
+    triangles = [indices[starts[single, None] + np.arange(3)]]
+    owners = [single]
+    quads = np.flatnonzero(left & (counts == 4))
     quad_corners = indices[starts[quads, None] + np.arange(4)]
     normal, _, turns, straight = _flattened_polygons(points[quad_corners])
     fanned = _strictly_convex(normal, turns, straight)
-    triangles = [quad_corners[fanned][:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3)]
-    owners = [np.repeat(quads[fanned], 2)]
-    kept[quads[fanned]] = False
-    for f in np.flatnonzero(kept):
+    triangles.append(quad_corners[fanned][:, [0, 1, 2, 0, 2, 3]].reshape(-1, 3))
+    owners.append(np.repeat(quads[fanned], 2))
+    left[single] = False
+    left[quads[fanned]] = False
+    for f in np.flatnonzero(left):
         poly = indices[starts[f] : starts[f] + counts[f]]
         corners = _polygon_triangles(points[poly])
         if corners is None:
@@ -506,7 +504,7 @@ def _polygon_mesh_faces(points: np.ndarray, counts: np.ndarray, indices: np.ndar
         triangles.append(poly[np.asarray(corners)])
         owners.append(np.full(len(corners), f))
     order = np.argsort(np.concatenate(owners), kind="stable")
-    return np.concatenate(triangles).astype(np.int64)[order]
+    return np.concatenate(triangles).astype(np.int64).reshape(-1, 3)[order]
 
 
 def _shape_triangles(kind, prim, UsdGeom, source, desc=None) -> tuple[np.ndarray, np.ndarray]:
@@ -724,8 +722,17 @@ def _disabled_owner(prim, disabled: set, UsdPhysics) -> str:
 
 
 def _animated(prim, UsdGeom) -> bool:
-    """Whether a prim's world transform is animated (its own ops or an ancestor's)."""
-    return any(_varies(attr) for attr in _transform_attributes(prim, UsdGeom))
+    """Whether a prim's world transform is animated (its own ops or an ancestor's): one time
+    sample equal to the default, as exporters write a constant, is not motion."""
+    return any(_moves(attr) for attr in _transform_attributes(prim, UsdGeom))
+
+
+def _moves(attr) -> bool:
+    """Whether an attribute takes more than one value over time."""
+    if attr.ValueMightBeTimeVarying():
+        return True
+    samples = attr.GetTimeSamples()
+    return len(samples) == 1 and attr.Get(samples[0]) != attr.Get()
 
 
 def _polar_factor(linear: np.ndarray) -> np.ndarray:
