@@ -102,6 +102,12 @@ _DAMPING_LAST = 1e2
 # body's radius in one step cannot pass through each other within it; the pass-through check
 # (``ImplicitSolver._pass_through``) skips it, so resting and pushing contact cost nothing.
 _PASS_THROUGH_TRAVEL = 0.5
+# A Newton step left untaken moves the solution by its length, which over dt is an error of
+# length / dt^2 in the step's accelerations: no converged step is longer than this error
+# (m/s^2) allows. With the tolerance alone, a step under 1e-10 of a body's size was the whole
+# of a small dt's correction, and dropping it every step lost every force (at dt 1e-6 a
+# thrown box felt no gravity, a sliding one no friction, a pendulum never swung).
+_CONVERGED_ACCELERATION = 1e-6
 # 16 units of float64 roundoff, relative. A Newton step cannot resolve a position more finely
 # than its coordinates' rounding: steps below this times the largest dynamic coordinate count
 # as converged (a lone 1 cm box 50 km up took Newton steps of 0.2 ulp against a tolerance of
@@ -928,20 +934,14 @@ class ImplicitSolver:
                 direction = self._friction_exact_direction(q, grad, hess, direction, friction)
                 full, travel = self._step_travel(direction)
                 step_length = float(travel.max())
-            converged_length = max(tol, _ROUNDING * float(np.abs(q[dynamic, :3]).max(initial=0.0)))
+            converged_length = max(min(tol, _CONVERGED_ACCELERATION * dt * dt), _ROUNDING * float(np.abs(q[dynamic, :3]).max(initial=0.0)))
             # A step the saddle-free floor made short is no convergence (_saddle_free_direction).
             hidden = 0.0 if floored is None else float(self._step_travel(floored, None if art is None else jacobian)[1].max())
             if step_length <= converged_length:
                 if hidden > converged_length:
                     raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden))
-                # A first step is taken however short: the start holds none of this step's
-                # forces, and dropping it lost them all, every step (at dt 1e-6 a thrown box
-                # felt no gravity, a sliding one no friction, a pendulum never swung). It goes
-                # through the line search like any step (advancement, joint limits, a finite
-                # value) and leaves the solution evaluated for the backward and the next step.
-                if iterations > 1:
-                    converged = True
-                    break
+                converged = True
+                break
             decrement = -float(grad @ direction)
             # The contact model holds the term lists of q (or q_lists does, after a rejected
             # warm start): trials come after this.
