@@ -74,9 +74,9 @@ def test_forces_smaller_than_the_tolerance_a_step_still_act():
 
 
 def test_a_far_static_body_does_not_loosen_a_small_body_s_tolerance():
-    """The tolerance scaled with the largest body radius, static bodies included: a 1,000 km
+    """The tolerance scales with the largest body radius, static bodies included: a 1,000 km
     slab far below made a 1 cm box's tolerance 70 um, and its friction stopped acting (it slid
-    1.6 of its sizes at constant speed instead of 0.395)."""
+    1.6 of its sizes at constant speed instead of 0.395). The acceleration cap bounds it."""
     size, dt = 0.01, 0.002
 
     def slide(far_slab):

@@ -107,7 +107,7 @@ _PASS_THROUGH_TRAVEL = 0.5
 # (m/s^2) allows. With the tolerance alone, a step under 1e-10 of a body's size was the whole
 # of a small dt's correction, and dropping it every step lost every force (at dt 1e-6 a
 # thrown box felt no gravity, a sliding one no friction, a pendulum never swung).
-_CONVERGED_ACCELERATION = 1e-6
+_CONVERGED_ACCELERATION = 1e-5
 # 16 units of float64 roundoff, relative. A Newton step cannot resolve a position more finely
 # than its coordinates' rounding: steps below this times the largest dynamic coordinate count
 # as converged (a lone 1 cm box 50 km up took Newton steps of 0.2 ulp against a tolerance of
@@ -321,7 +321,8 @@ class ImplicitSolver:
     Args:
         model: the model.
         tolerance: converged when the Newton step moves no body point farther than
-            ``tolerance`` times the largest dynamic body's radius.
+            ``tolerance`` times the largest body radius, nor farther than 1e-5 m/s^2 x dt^2
+            (a step's acceleration error).
         max_iterations: Newton iteration cap; exceeding it raises ``SolverError``. Most steps
             take 2-10 iterations; a step in which a faceted body must roll or slide on a
             contact (an unstable equilibrium of the step objective) can take hundreds, each
@@ -368,13 +369,7 @@ class ImplicitSolver:
         self._dofs = np.flatnonzero(np.repeat(self._dynamic, 6))
         # Free bodies only: the reduced coordinates are the rigid coordinates (J = I).
         self._articulation = None if model.articulation.identity else model.articulation
-        radii = np.asarray(model.body_radius)
-        # The moving bodies' size sets the Newton tolerance: a static body's does not (a 1,000
-        # km slab far away made a 1 cm box's tolerance 70 um, and its friction was lost).
-        self._length_scale = float(radii[self._dynamic].max() if self._dynamic.any() else radii.max())
-        # Every body's coordinates round, a static one's too (a gap of a few of their ulps is
-        # touching).
-        self._rounding_scale = float(radii.max())
+        self._length_scale = float(model.body_radius.max())
         # Per body, what the pass-through check reads (``_crossing_geometry``), made when a
         # suspect pair first needs it: made for every body here, it was most of the solver's
         # construction (1.2 s of 1.3 s at 2,003 bodies, nearly all static and never suspect).
@@ -833,7 +828,7 @@ class ImplicitSolver:
             raise ValueError(f"state_in: bodies intersect or touch at the start of the step: {names}")
         # Gaps of a few units of roundoff: a box set exactly on a plate (z = half height + top,
         # 1.7e-17 m apart) took one Newton iteration a step and hardly moved, silently.
-        touching = np.flatnonzero(start.pair_separation <= _ROUNDING * self._rounding_scale)
+        touching = np.flatnonzero(start.pair_separation <= _ROUNDING * self._length_scale)
         # Unsolved pairs have their own error, below; ipc's separation is one global distance
         # for every pair (it named the first pair, not the touching one) and its barrier
         # refuses a zero distance itself.
