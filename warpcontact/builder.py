@@ -216,7 +216,7 @@ def _used_vertices(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     return vertices[used], renumbered.reshape(-1, 3)
 
 
-def _real_vector(value, size: int) -> np.ndarray | None:
+def finite_vector(value, size: int) -> np.ndarray | None:
     """``value`` as ``size`` finite float64 numbers (``real_array``), or None."""
     array = real_array(value)
     if array is None or array.shape != (size,) or not np.isfinite(array).all():
@@ -328,7 +328,7 @@ class ModelBuilder:
 
     def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, friction_smoothing: float = 1e-4, eps: float = 0.5, centred_weight: str = "paper", contact_mode: str = "bsh", leaf_precision: str = "float64", ipc_dhat: float = 1e-2, sdrs_dhat: float = 1e-2, articulation_contact: str = "nonadjacent"):
         given = gravity
-        gravity = _real_vector(gravity, 3)
+        gravity = finite_vector(gravity, 3)
         if gravity is None:
             raise ValueError(f"gravity: expected 3 finite numbers, got {given!r}")
         for name, value in (("contact_stiffness", contact_stiffness), ("friction", friction), ("friction_smoothing", friction_smoothing), ("eps", eps)):
@@ -426,7 +426,7 @@ class ModelBuilder:
         vertices, faces = _used_vertices(vertices, faces)
         tm = trimesh.Trimesh(vertices, faces, process=False)
         given = pose
-        pose = _real_vector(pose, 7)
+        pose = finite_vector(pose, 7)
         if pose is None:
             raise ValueError(f"body {name!r}: pose must be 7 finite numbers (px, py, pz, qx, qy, qz, qw), got {given!r}")
         check_coordinates(pose[:3], f"body {name!r}: pose position")

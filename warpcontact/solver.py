@@ -32,12 +32,12 @@ import numpy as np
 import trimesh
 import warp as wp
 
-from ._validate import QUATERNION_TOLERANCE, check_time_step, checked_flag, is_real, is_whole, real_array
+from ._validate import QUATERNION_TOLERANCE, check_time_step, checked_flag, is_real, is_whole
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
 from .articulation import connected_labels, joint_limit_energy
-from .builder import STEEP_BLEND_EPS, contact_setting_problem, steep_blend
+from .builder import STEEP_BLEND_EPS, contact_setting_problem, finite_vector, steep_blend
 from .contact import UNSOLVED_HINT, ContactModel, LaggedFriction
 from .rotation import normalized_poses, quat_from_matrix, quat_from_rotation_vector, quat_mul, quat_to_matrix, rigid_step_between, rigid_step_travel
 from .types import Control, Model, State
@@ -427,8 +427,7 @@ class ImplicitSolver:
             problem = contact_setting_problem(name, value)
             if problem is not None:
                 raise ValueError(f"model.{name}: {problem}, got {value!r}")
-        gravity = real_array(model.gravity)
-        if gravity is None or gravity.shape != (3,) or not np.isfinite(gravity).all():
+        if finite_vector(model.gravity, 3) is None:
             # A NaN was blamed on dt and the control's targets, 4 numbers on Warp's vector constructor.
             raise ValueError(f"model.gravity: expected 3 finite numbers (m/s^2), got {model.gravity!r}")
         mass = model.body_mass.numpy()
