@@ -459,8 +459,9 @@ def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"{where}: point {bad} is not finite")
     if counts.sum() != len(indices) or (indices < 0).any() or (indices >= len(points)).any():
         raise ValueError(f"{where}: faceVertexIndices do not match faceVertexCounts and points")
+    holes = np.asarray(mesh.GetHoleIndicesAttr().Get() or [], dtype=np.int64)
     kept = np.ones(len(counts), dtype=bool)
-    kept[[h for h in (int(h) for h in (mesh.GetHoleIndicesAttr().Get() or [])) if 0 <= h < len(counts)]] = False
+    kept[holes[(holes >= 0) & (holes < len(counts))]] = False
     faces = _polygon_mesh_faces(points, counts, indices, kept, where)
     if not len(faces):
         raise ValueError(f"{where}: every face is a hole (holeIndices)")
