@@ -516,7 +516,7 @@ def test_joint_arrays_of_the_wrong_kind_and_overflowing_targets_get_named_errors
     # A numpy array used to raise AttributeError: 'numpy.ndarray' object has no attribute 'numpy'.
     with pytest.raises(ValueError, match="control.joint_target: expected a float64 wp.array of 1 joint targets .* got ndarray"):
         solver.step(state, model.state(), wc.Control(control.body_target, joint_target=np.array([0.3])), 0.01)
-    with pytest.raises(ValueError, match="control.joint_target: expected a float64 wp.array of 1 joint targets .* got dtype int32"):
+    with pytest.raises(ValueError, match=r"control.joint_target: expected a float64 wp.array of 1 joint targets .* got int32 array of shape \(1,\)"):
         solver.step(state, model.state(), wc.Control(control.body_target, joint_target=wp.array([0], dtype=wp.int32)), 0.01)
     with pytest.raises(ValueError, match="state_in.joint_q: expected a float64 wp.array"):
         solver.step(wc.State(state.body_q, state.body_q_prev, np.array([0.05]), state.joint_q_prev), model.state(), None, 0.01)
@@ -1035,3 +1035,128 @@ def test_the_ant_is_built_only_in_a_z_up_builder():
     with pytest.raises(ValueError, match=r"add_ant builds the ant Z-up .*this builder's gravity is \[0.0, -9.81, 0.0\], not along -z"):
         add_ant(wc.ModelBuilder(gravity=(0.0, -9.81, 0.0)))
     add_ant(wc.ModelBuilder(gravity=(0.0, 0.0, 0.0)))  # no up at all: nothing to disagree with
+
+
+# --- gains and limits changed after finalize ----------------------------------------------------
+
+
+def _hanging_rod(kind, **joint_options):
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    rod = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, -0.5, 0, 0, 0, 1), name="rod")
+    axis = {"axis": (0, 1, 0)} if kind == "revolute" else {}
+    b.add_joint(kind, child=rod, anchor=(0, 0, 0), name="hinge", **axis, **joint_options)
+    return b.finalize()
+
+
+def _settled_angle(model, steps=200):
+    """The rod's angle from the start after ``steps`` of 0.01 s towards 0.5 rad about y."""
+    art, solver = model.articulation, wc.ImplicitSolver(model)
+    control = model.control(requires_grad=False)
+    if art.num_ball_joints:
+        control.ball_target.assign([[0.0, np.sin(0.25), 0.0, np.cos(0.25)]])
+    else:
+        control.joint_target.assign([0.5])
+    state = model.state(requires_grad=False)
+    for _ in range(steps):
+        following = model.state(requires_grad=False)
+        solver.step(state, following, control, 0.01)
+        state = following
+    turn = art.ball_rotations(state.body_q.numpy())[0] if art.num_ball_joints else None
+    return 2.0 * np.arctan2(np.linalg.norm(turn[:3]), turn[3]) if turn is not None else state.joint_q.numpy()[0]
+
+
+@pytest.mark.parametrize("kind", ["ball", "revolute"])
+def test_drives_set_after_finalize_act_as_if_built(kind):
+    """Gains set after finalize on a joint built without them were ignored for ball joints
+    (the rod stayed at 0 rad, frozen by a flag computed at finalize); they now drive it as
+    gains given to add_joint do, to the same digits."""
+    built = _settled_angle(_hanging_rod(kind, kp=20.0, kd=2.0))
+    model = _hanging_rod(kind)
+    gains = (model.articulation.ball_kp, model.articulation.ball_kd) if kind == "ball" else (model.articulation.kp, model.articulation.kd)
+    gains[0][:], gains[1][:] = 20.0, 2.0
+    assert abs(built - 0.5) < 1e-2
+    assert _settled_angle(model) == built
+
+
+def test_limits_set_after_finalize_hold():
+    """Limits set after finalize on a hinge built without any were not enforced: it crossed
+    0.2 rad (0.2091) before the next step refused its state."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    rod = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, -0.5, 0, 0, 0, 1), name="rod")
+    b.add_joint("revolute", child=rod, anchor=(0, 0, 0), axis=(0, 1, 0))
+    model = b.finalize()
+    art, solver = model.articulation, wc.ImplicitSolver(model)
+    art.lower[:], art.upper[:], art.limit_margin[:] = -0.2, 0.2, 0.02
+    state = model.state(requires_grad=False)
+    start = np.array([0.15])
+    poses = art.retract(model.initial_q, start)
+    state.body_q.assign(poses)
+    state.body_q_prev.assign(art.retract(poses, np.array([-0.03])))  # swinging towards +0.2 at 3 rad/s
+    state.joint_q.assign(start)
+    angles = []
+    for _ in range(50):
+        following = model.state(requires_grad=False)
+        solver.step(state, following, None, 0.01)
+        state = following
+        angles.append(state.joint_q.numpy()[0])
+    assert 0.19 < max(angles) < 0.2
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda m: m.articulation.kp.__setitem__(slice(None), -50.0), r"model.articulation.kp: 'hinge:0' has -50.0; gains must be finite and >= 0"),
+        (lambda m: m.articulation.kd.__setitem__(slice(None), np.nan), r"model.articulation.kd: 'hinge:0' has nan"),
+        (lambda m: setattr(m.articulation, "kp", np.array([1.0, 2.0])), r"model.articulation.kp: expected a float numpy array of shape \(1,\)"),
+        (lambda m: (m.articulation.lower.__setitem__(0, 0.3), m.articulation.upper.__setitem__(0, -0.3)), r"model.articulation.lower, upper: 'hinge:0' has limits \[0.3, -0.3\]"),
+        (lambda m: (m.articulation.lower.__setitem__(0, -0.3), m.articulation.limit_margin.__setitem__(0, 0.0)), r"model.articulation.limit_margin: 'hinge:0' has 0.0"),
+        (lambda m: m.body_kp_linear.assign([[-1.0, 0.0, 0.0]]), r"model.body_kp_linear: body 'rod' has \[-1.0, 0.0, 0.0\]; PD gains must be finite and >= 0"),
+        (lambda m: m.body_kd_angular.assign([np.inf]), r"model.body_kd_angular: body 'rod' has \[inf\]"),
+    ],
+)
+def test_gains_and_limits_changed_after_finalize_are_checked(change, message):
+    """A negative kp set after finalize put energy in (a hinge driven to 0.01 rad spun to
+    -31.5 rad in 1 s) and a negative body gain likewise; every step now checks the gains and
+    limits a user may change."""
+    model = _hanging_rod("revolute", kp=50.0, kd=1.0)
+    change(model)
+    with pytest.raises(ValueError, match=message):
+        wc.ImplicitSolver(model).step(model.state(), model.state(), model.control(), 0.01)
+
+
+def test_base_joint_free_rotation_takes_no_drive():
+    """A base joint's three rotations are one rotation vector without coordinates: a single kp,
+    kd or target was spread over the translations alone (none with only the rotations), the
+    rotation left undriven without a word."""
+    for dofs, option in ((("rx", "ry", "rz"), {"kp": 50.0}), (("rx", "ry", "rz"), {"target": 0.3}), (("x", "y", "z", "rx", "ry", "rz"), {"kd": 5.0})):
+        b, a, _ = two_boxes()
+        with pytest.raises(ValueError, match="joint 'free': a base joint's three free rotations have no coordinates"):
+            b.add_joint("base", child=a, dofs=dofs, name="free", **option)
+    b, a, _ = two_boxes()
+    b.add_joint("base", child=a, dofs=("x", "y", "z", "rx", "ry", "rz"), kp=[50.0, 50.0, 60.0], kd=0.0)
+    np.testing.assert_array_equal(b.finalize().articulation.kp, [50.0, 50.0, 60.0])
+
+
+def test_limit_margin_without_limits_is_refused():
+    b, a, _ = two_boxes()
+    with pytest.raises(ValueError, match="joint 'hinge': limit_margin applies to limits, and it has none"):
+        b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), limit_margin=0.05, name="hinge")
+
+
+def test_joint_targets_for_a_model_without_joint_coordinates_are_refused():
+    """Targets for coordinates the model does not have were ignored (a ball-only model)."""
+    model = _hanging_rod("ball")
+    control = model.control()
+    control.joint_target = wp.array([0.3, 0.4, 0.5], dtype=wp.float64)
+    with pytest.raises(ValueError, match=r"control.joint_target: this model has no joint coordinates; expected None or model.control\(\)'s empty array, got float64 array of shape \(3,\)"):
+        wc.ImplicitSolver(model).step(model.state(), model.state(), control, 0.01)
+    wc.ImplicitSolver(model).step(model.state(), model.state(), model.control(), 0.01)
+
+
+@pytest.mark.parametrize("position", [(0.0, 0.0, 5.0), 1.0, (np.nan, 0.0)])
+def test_ant_position_is_checked(position):
+    """A third coordinate was dropped (the ant stood on the ground all the same), a scalar
+    failed in indexing."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    with pytest.raises(ValueError, match=r"ant: position must be 2 finite numbers \(x, y; the feet stand at ground_height\)"):
+        add_ant(b, position=position)

@@ -237,7 +237,9 @@ class ArticulationModel:
             gains may drive; ``ball_joint_names``, ``ball_kp`` (N m/rad), ``ball_kd``
             (N m s/rad) are (num_ball_joints,), ``initial_ball_rotations`` (num_ball_joints,
             4) quaternions (``ball_rotations`` of the initial poses); ``has_ball_drives``
-            when any ball gain is non-zero.
+            when any ball gain is non-zero. The gains and limits may be changed after
+            ``finalize`` (in place or replaced, same shapes); each step checks them
+            (``parameter_problem``).
     """
 
     def __init__(self, joints: list[Joint], *, body_names, body_static, body_poses, body_radius):
@@ -315,7 +317,6 @@ class ArticulationModel:
         self.kp, self.kd = np.array(kp), np.array(kd)
         self.lower, self.upper = np.array(lower), np.array(upper)
         self.limit_margin, self.limit_stiffness = np.array(margin), np.array(stiffness)
-        self.has_limits = bool(np.isfinite(self.lower).any() or np.isfinite(self.upper).any())
         outside = np.flatnonzero((self.initial_coordinates <= self.lower) | (self.initial_coordinates >= self.upper))
         if outside.size:
             c = outside[0]
@@ -347,8 +348,46 @@ class ArticulationModel:
         self._ball_child_frame = np.array([joint.child_frame[3:] for _, joint in balls]).reshape(-1, 4)
         self.ball_kp = np.array([float(joint.kp[0]) if joint.kp is not None and len(joint.kp) else 0.0 for _, joint in balls])
         self.ball_kd = np.array([float(joint.kd[0]) if joint.kd is not None and len(joint.kd) else 0.0 for _, joint in balls])
-        self.has_ball_drives = bool(np.any(self.ball_kp > 0) or np.any(self.ball_kd > 0))
         self.initial_ball_rotations = self.ball_rotations(poses)
+
+    # The gains and limits are public arrays that a user may change after ``finalize``: these
+    # are read from them at every step (frozen at construction, gains or limits set later on a
+    # joint built without them were ignored: a ball drive never turned, a limit was crossed).
+    @property
+    def has_limits(self) -> bool:
+        """Whether any joint coordinate has a finite limit."""
+        return bool(np.isfinite(self.lower).any() or np.isfinite(self.upper).any())
+
+    @property
+    def has_ball_drives(self) -> bool:
+        """Whether any ball joint has a non-zero gain."""
+        return bool(np.any(self.ball_kp > 0) or np.any(self.ball_kd > 0))
+
+    def parameter_problem(self) -> str | None:
+        """What is wrong with the gains and limits as they are now (a user may change them
+        after ``finalize``), or None: shapes, gains finite and >= 0, lower < upper, limit
+        margins and stiffnesses positive and finite. A negative kp set later put energy in (a
+        driven hinge spun away) and no step said so."""
+        count, balls = self.num_coordinates, self.num_ball_joints
+        arrays = (("kp", self.kp, count), ("kd", self.kd, count), ("ball_kp", self.ball_kp, balls), ("ball_kd", self.ball_kd, balls),
+                  ("lower", self.lower, count), ("upper", self.upper, count), ("limit_margin", self.limit_margin, count), ("limit_stiffness", self.limit_stiffness, count))
+        for label, values, size in arrays:
+            if not isinstance(values, np.ndarray) or values.shape != (size,) or values.dtype.kind != "f":
+                return f"{label}: expected a float numpy array of shape ({size},), got {type(values).__name__} {np.shape(values)}"
+        for label, values, names in (("kp", self.kp, self.coordinate_names), ("kd", self.kd, self.coordinate_names), ("ball_kp", self.ball_kp, self.ball_joint_names), ("ball_kd", self.ball_kd, self.ball_joint_names)):
+            bad = np.flatnonzero(~(np.isfinite(values) & (values >= 0.0)))
+            if bad.size:
+                return f"{label}: {names[bad[0]]!r} has {float(values[bad[0]])!r}; gains must be finite and >= 0"
+        bad = np.flatnonzero(np.isnan(self.lower) | np.isnan(self.upper) | (self.lower >= self.upper))
+        if bad.size:
+            c = bad[0]
+            return f"lower, upper: {self.coordinate_names[c]!r} has limits [{float(self.lower[c])!r}, {float(self.upper[c])!r}]; expected lower < upper (+-inf: no limit)"
+        limited = np.isfinite(self.lower) | np.isfinite(self.upper)
+        for label, values in (("limit_margin", self.limit_margin), ("limit_stiffness", self.limit_stiffness)):
+            bad = np.flatnonzero(limited & ~(np.isfinite(values) & (values > 0.0)))
+            if bad.size:
+                return f"{label}: {self.coordinate_names[bad[0]]!r} has {float(values[bad[0]])!r}; a limited coordinate's must be positive and finite"
+        return None
 
     # --- construction ---------------------------------------------------------------------
 

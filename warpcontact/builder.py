@@ -503,7 +503,11 @@ class ModelBuilder:
                 parent's (world's) and the child's mesh frames, as UsdPhysics localPos/localRot;
                 ``axis`` is then in the joint frame. The initial poses must satisfy the joint.
             dofs: base joints: a subset of ("x", "y", "z", "rx", "ry", "rz") (world axes,
-                rotations about the child's centre of mass).
+                rotations about the child's centre of mass). A base joint's coordinates are
+                offsets from the child's initial pose (0 at the start), and so are its
+                ``limits`` and ``target``: a body at z = 1 with target 0.2 on "z" is driven to
+                z = 1.2. The three rotations together are one free rotation without
+                coordinates (no limits, gains or target; use the body's ``kp_angular``).
             limits: per coordinate (lower, upper) in rad or m, or None.
             kp, kd: PD gains per coordinate (scalar or one per coordinate), N m/rad, N m s/rad
                 (N/m, N s/m for translations); targets come from ``Control.joint_target``.
@@ -564,6 +568,15 @@ class ModelBuilder:
             canonical = tuple(d for d in BASE_DOFS if d in dofs)
             rotations = sum(d not in ("x", "y", "z") for d in dofs)
             owning = [d for d in dofs if d in ("x", "y", "z") or rotations < 3]
+            if rotations == 3:
+                # A single gain or target was spread over the translations alone (none with only
+                # the rotations): the free rotation went undriven, silently.
+                spread = [label for label, value in (("kp", kp), ("kd", kd), ("target", target)) if value is not None and np.ndim(value) == 0 and (label == "target" or value != 0)]
+                if spread or (target is not None and not owning):
+                    raise ValueError(
+                        f"{where}: a base joint's three free rotations have no coordinates (one rotation vector), so no drive or target; "
+                        f"give {', '.join(spread or ['target'])} one value per translation {tuple(d for d in BASE_DOFS[:3] if d in dofs)}, or drive the rotation with the body's kp_angular (add_body)"
+                    )
             order = [owning.index(d) for d in canonical if d in owning]
             dofs = canonical
             axes = np.zeros((0, 3))
@@ -611,9 +624,12 @@ class ModelBuilder:
             if not (is_real(cone_limit) and 0.0 < cone_limit < np.pi):
                 raise ValueError(f"{where}: cone_limit must be in (0, pi) rad, got {cone_limit!r}")
             probe.cone_limit = float(cone_limit)
-        if kind == "ball":
-            if cone_limit is None and limit_margin is not None:
+        if limit_margin is not None:
+            if kind == "ball" and cone_limit is None:
                 raise ValueError(f"{where}: limit_margin applies to a ball joint's cone_limit, and it has none")
+            if kind != "ball" and limits is None:  # accepted and ignored before
+                raise ValueError(f"{where}: limit_margin applies to limits, and it has none")
+        if kind == "ball":
             # One barrier, on the swing angle, where a cone limit is given.
             limit_count = 0 if cone_limit is None else 1
             span = np.full(limit_count, probe.cone_limit)

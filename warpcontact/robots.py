@@ -18,7 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._validate import is_real
 from .articulation import JOINT_AXES
+from .builder import finite_vector
 from .rotation import quat_from_rotation_vector, quat_rotate
 
 __all__ = ["AntSpec", "actuated_coordinates", "add_ant", "ant_description", "ant_standing_height"]
@@ -64,7 +66,13 @@ def ant_description(*, position=(0.0, 0.0), yaw: float = 0.0, ground_height: flo
     at these poses), axis (world), dofs, limits, kp, kd) in ``ModelBuilder.add_joint`` terms.
     """
     s = spec
-    origin = np.array([position[0], position[1], ground_height + ant_standing_height(s)])
+    where = finite_vector(position, 2)
+    if where is None:  # a 3-vector's z was dropped, a scalar failed in indexing
+        raise ValueError(f"{name}: position must be 2 finite numbers (x, y; the feet stand at ground_height), got {position!r}")
+    for label, value in (("yaw", yaw), ("ground_height", ground_height)):
+        if not (is_real(value) and np.isfinite(value)):
+            raise ValueError(f"{name}: {label} must be a finite number, got {value!r}")
+    origin = np.array([where[0], where[1], ground_height + ant_standing_height(s)])
     turn = quat_from_rotation_vector(np.array([0.0, 0.0, yaw]))
 
     def place(local_centre, heading=0.0):

@@ -170,11 +170,15 @@ def _segments_cross_triangles(start: np.ndarray, end: np.ndarray, triangles: np.
     return int(first[0]), float(t[first[0], first[1]])
 
 
+def _described(value) -> str:
+    """What a wrong argument is, for an error message: a wp.array's dtype and shape, else its type."""
+    return f"{value.dtype.__name__} array of shape {value.shape}" if isinstance(value, wp.array) else type(value).__name__
+
+
 def _check_pose_array(poses, count: int, label: str, expected: str) -> None:
     """ValueError naming ``label`` unless ``poses`` is a wp.array of ``count`` wp.transformd."""
     if not isinstance(poses, wp.array) or poses.shape != (count,) or poses.dtype != wp.transformd:
-        got = f"{poses.dtype.__name__} array of shape {poses.shape}" if isinstance(poses, wp.array) else type(poses).__name__
-        raise ValueError(f"{label}: expected a wp.array of {count} wp.transformd, {expected}, got {got}")
+        raise ValueError(f"{label}: expected a wp.array of {count} wp.transformd, {expected}, got {_described(poses)}")
 
 
 def _check_no_shared_arrays(state_in: State, state_out: State) -> None:
@@ -417,9 +421,10 @@ class ImplicitSolver:
 
     def _checked_model_parameters(self) -> tuple[float, float, np.ndarray]:
         """The contact stiffness mu, the friction coefficient and the body masses, after checking the model parameters a user may change (or
-        a gradient step may push) after ``finalize``: a zero mass sent a resting puck 16 m up
-        and a negative friction spun it, silently; the others failed as "no convergence" or
-        blamed dt. ValueError naming the parameter (and body)."""
+        a gradient step may push) after ``finalize``, the joints' gains and limits included: a
+        zero mass sent a resting puck 16 m up and a negative friction spun it, silently; the
+        others failed as "no convergence" or blamed dt. ValueError naming the parameter (and
+        body or coordinate)."""
         model = self.model
         mu = float(model.contact_stiffness.numpy()[0])
         friction = float(model.friction.numpy()[0])
@@ -434,6 +439,14 @@ class ImplicitSolver:
         bad = np.flatnonzero(self._dynamic & ~(np.isfinite(mass) & (mass > 0.0)))
         if bad.size:
             raise ValueError(f"model.body_mass: body {model.body_names[bad[0]]!r} has mass {float(mass[bad[0]])!r}; a dynamic body's mass must be positive and finite")
+        for name in ("body_kp_linear", "body_kd_linear", "body_kp_angular", "body_kd_angular"):
+            gains = getattr(model, name).numpy().reshape(model.num_bodies, -1)
+            bad = np.flatnonzero(self._dynamic & ~(np.isfinite(gains) & (gains >= 0.0)).all(axis=1))
+            if bad.size:  # a negative gain put energy in, silently
+                raise ValueError(f"model.{name}: body {model.body_names[bad[0]]!r} has {gains[bad[0]].tolist()}; PD gains must be finite and >= 0")
+        problem = self._articulation.parameter_problem() if self._articulation is not None else None
+        if problem is not None:
+            raise ValueError(f"model.articulation.{problem}")
         return mu, friction, mass
 
     def _friction_frame(self, mu: float, friction: float, dt: float) -> "LaggedFriction | None":
@@ -738,6 +751,10 @@ class ImplicitSolver:
         that the coordinates agree with the current ``poses`` (normalised state_in.body_q)."""
         count = self.model.num_joint_coordinates
         if count == 0:
+            supplied = None if control is None else control.joint_target
+            if supplied is not None and not (isinstance(supplied, wp.array) and supplied.shape == (0,)):
+                # Ignored before: targets for joints the model does not have.
+                raise ValueError(f"control.joint_target: this model has no joint coordinates; expected None or model.control()'s empty array, got {_described(supplied)}")
             return np.zeros(0), np.zeros(0)
         for label, arr in (("state_in.joint_q", state_in.joint_q), ("state_out.joint_q", state_out.joint_q), ("state_out.joint_q_prev", state_out.joint_q_prev)):
             # An int32 output stored the coordinates truncated, silently, and the next step
@@ -761,8 +778,7 @@ class ImplicitSolver:
             raise ValueError(f"state_in.joint_q: coordinate {art.coordinate_names[i]!r} = {coords[i]:.6g} is not strictly inside its limits ({art.lower[i]:.6g}, {art.upper[i]:.6g})")
         supplied = None if control is None else control.joint_target
         if supplied is not None and not (isinstance(supplied, wp.array) and supplied.dtype == wp.float64):
-            got = f"dtype {supplied.dtype.__name__}" if isinstance(supplied, wp.array) else type(supplied).__name__
-            raise ValueError(f"control.joint_target: expected a float64 wp.array of {count} joint targets (use model.control()), got {got}")
+            raise ValueError(f"control.joint_target: expected a float64 wp.array of {count} joint targets (use model.control()), got {_described(supplied)}")
         target = coords if supplied is None else supplied.numpy()
         if target.shape != (count,) or not np.isfinite(target).all():
             raise ValueError(f"control.joint_target: expected {count} finite joint targets")
@@ -777,8 +793,7 @@ class ImplicitSolver:
             return start, start
         count = art.num_ball_joints
         if not isinstance(supplied, wp.array) or supplied.dtype != wp.quatd or supplied.shape != (count,):
-            got = f"{supplied.dtype.__name__} array of shape {supplied.shape}" if isinstance(supplied, wp.array) else type(supplied).__name__
-            raise ValueError(f"control.ball_target: expected a wp.array of {count} wp.quatd (x, y, z, w), one per ball joint {art.ball_joint_names} (use model.control()), got {got}")
+            raise ValueError(f"control.ball_target: expected a wp.array of {count} wp.quatd (x, y, z, w), one per ball joint {art.ball_joint_names} (use model.control()), got {_described(supplied)}")
         target = supplied.numpy()
         if not np.isfinite(target).all():
             raise ValueError("control.ball_target: contains non-finite values")
@@ -814,9 +829,10 @@ class ImplicitSolver:
         if control is not None:
             _check_pose_array(control.body_target, len(q_now), "control.body_target", "one per body (use model.control())")
         q = normalized_poses(q_now)
+        # Before the joint arrays, which are checked against the limits.
+        mu, friction_coefficient, mass = self._checked_model_parameters()
         coords_now, joint_target = self._joint_arrays(state_in, state_out, control, q)
         ball_target, ball_start = self._ball_arrays(control, q_now)
-        mu, friction_coefficient, mass = self._checked_model_parameters()
         dynamic = self._dynamic
         art = self._articulation
 
