@@ -6,9 +6,11 @@ For every leaf pair (triangles A on body a, B on body b) listed at the step's st
                                              potential (net force on A), times the local
                                              support weight W
     n^  = n / |n|,   T = I - n^ n^^T          lagged contact normal of the separating plane
-    u   = T (x_a(X_A; q) - x_b(X_B; q) - (c_A^t - c_B^t))
-                                             tangential slip over the step of the two
-                                             triangles' centroids (body-fixed points X_A, X_B)
+    p   = (R_B c_A^t + R_A c_B^t) / (R_A + R_B) one point between the triangles' centroids
+                                             c^t, nearer the smaller one's (R: the
+                                             triangles' radii about their centroids)
+    u   = T (x_a(X_A; q) - x_b(X_B; q))      tangential slip over the step of the two
+                                             bodies' material points X_A, X_B at p at q^t
     D   = lambda N (sqrt(|u|^2 + e^2) - e),  e = v_eps dt
 
 The leaf potential is the contact model's (``pair_solve`` with its ``dhat``): for the
@@ -21,9 +23,14 @@ D is C-infinity in q (a smoothed Coulomb law: the friction force lambda N u / sq
 saturates at lambda N once slip speeds exceed v_eps). N and n^ depend on q^t; the adjoint
 kernel differentiates them exactly through the leaf plane's sensitivity dp*/dx.
 
+Both bodies' material points are at one place, so a rigid motion of the two together is no
+slip (with each triangle's own centroid, as until 2026-11-26, a plate and a box on it turning
+together at 2 rad/s felt full Coulomb friction against the turn and lost 41% of their angular
+momentum in 0.5 s).
+
 The adjoint contracts a pair's force with ell, the relative displacement of the two
-triangles' points under the step's adjoint multiplier (rigid coordinates of both bodies). With w = x_a - x_b -
-(c_A^t - c_B^t), u = T w, root = sqrt(|u|^2 + e^2), s = u / root and F2 = (I - s s^T) / root
+bodies' points under the step's adjoint multiplier (rigid coordinates of both bodies). With w = x_a - x_b,
+u = T w, root = sqrt(|u|^2 + e^2), s = u / root and F2 = (I - s s^T) / root
 (the derivative of s in u), the contraction C = ell . dD/dx_a = lambda N (ell . s) varies as
 
     dC = lambda [ (ell.s) dN + N ell . F2 (T dw + dT w) ],   dT w = -dn^ (n^.w) - n^ (dn^.w)
@@ -33,7 +40,9 @@ and since F2 and T commute (s is tangent) and n^ . dn^ = 0, with m = F2 T ell:
     dC = lambda [ (ell.s) dN - N ((ell.n^) s + (n^.w) m) . dn^ + N m . dw ]
 
 dN and dn^ go on through the plane's sensitivity dp*/dx (``leaf_plane_sensitivity``), dw
-through the rigid motion of the two points.
+through the rigid motion of the two points at q^t: with the step's rotations dR = R R^t^T,
+dw = -dR_A (dp_A^t + dtheta_A x r_A) + dR_B (dp_B^t + dtheta_B x r_B) + (dR_A - dR_B) dp
+(r: p from each body's centre; p follows the centroids, the radii being rigid invariants).
 
 No leaf pair is solved twice for its plane: the setup reads N and n^ off the optimal planes
 that the contact evaluation at q^t left (``leaf_term_kernel``), and keeps them; the adjoint
@@ -63,7 +72,7 @@ class FrictionFrame:
     plane: wp.array(dtype=wp.vec4d)  # the leaf's optimal plane (n, d) at q^t, world frame
     point_a: wp.array(dtype=wp.vec3d)  # X_A, body frame of a
     point_b: wp.array(dtype=wp.vec3d)  # X_B, body frame of b
-    offset: wp.array(dtype=wp.vec3d)  # c_A^t - c_B^t
+    offset: wp.array(dtype=wp.vec3d)  # x_a(X_A) - x_b(X_B) at q^t: 0 up to rounding
 
 
 @wp.func
@@ -75,6 +84,20 @@ def _centroid(t: wp.mat33d):
 def _leaf_radius(t: wp.mat33d):
     c = _centroid(t)
     return wp.max(wp.max(wp.length(t[0] - c), wp.length(t[1] - c)), wp.length(t[2] - c))
+
+
+@wp.func
+def _contact_weights(radius_a: wp.float64, radius_b: wp.float64):
+    """The weights of the two centroids in ``_contact_point``, each the other triangle's share."""
+    total = radius_a + radius_b
+    return radius_b / total, radius_a / total
+
+
+@wp.func
+def _contact_point(ca: wp.vec3d, cb: wp.vec3d, radius_a: wp.float64, radius_b: wp.float64):
+    """p = (R_B c_A + R_A c_B) / (R_A + R_B): between the centroids, nearer the smaller triangle's."""
+    weight_a, weight_b = _contact_weights(radius_a, radius_b)
+    return weight_a * ca + weight_b * cb
 
 
 @wp.func
@@ -107,13 +130,25 @@ def friction_setup_kernel(
     pair = seed_body_pair[item[3]]
     local_a = triangle_vertices[item[0]]
     local_b = triangle_vertices[item[1]]
-    ta = world_triangle(local_a, body_rotation[pair[0]], body_position[pair[0]])
-    tb = world_triangle(local_b, body_rotation[pair[1]], body_position[pair[1]])
-    frame.point_a[tid] = _centroid(local_a)
-    frame.point_b[tid] = _centroid(local_b)
+    rot_a = body_rotation[pair[0]]
+    rot_b = body_rotation[pair[1]]
+    pos_a = body_position[pair[0]]
+    pos_b = body_position[pair[1]]
+    ta = world_triangle(local_a, rot_a, pos_a)
+    tb = world_triangle(local_b, rot_b, pos_b)
     ca = _centroid(ta)
     cb = _centroid(tb)
-    frame.offset[tid] = ca - cb
+    radius_a = _leaf_radius(ta)
+    radius_b = _leaf_radius(tb)
+    # One material point of each body at the same place: a rigid motion of both moves them
+    # alike (no slip), and it sits near the smaller triangle (a ground triangle's centroid
+    # may be metres from a box's).
+    contact = _contact_point(ca, cb, radius_a, radius_b)
+    point_a = wp.transpose(rot_a) * (contact - pos_a)
+    point_b = wp.transpose(rot_b) * (contact - pos_b)
+    frame.point_a[tid] = point_a
+    frame.point_b[tid] = point_b
+    frame.offset[tid] = (rot_a * point_a + pos_a) - (rot_b * point_b + pos_b)  # 0 up to rounding, so u(q^t) = 0 exactly
     frame.normal_force[tid] = wp.float64(0.0)
     frame.normal[tid] = wp.vec3d()
     plane = frame.plane[tid]
@@ -128,7 +163,7 @@ def friction_setup_kernel(
             return
         _b, b1, _b2 = leaf_barrier(gap, dhat)
         q -= b1
-    weight, _ = _support_weight(ca, cb, _leaf_radius(ta) + _leaf_radius(tb), eps, dhat)
+    weight, _ = _support_weight(ca, cb, radius_a + radius_b, eps, dhat)
     frame.normal_force[tid] = mu * weight * norm * q
     frame.normal[tid] = n / norm
 
@@ -235,7 +270,7 @@ def friction_adjoint_kernel(
     adj_friction_out: wp.array(dtype=wp.float64),
     adj_mu_out: wp.array(dtype=wp.float64),
 ):
-    """lambda^T d(grad_q D)/dy for y = q^t (through N, n^ and the centroids), lambda_f and mu."""
+    """lambda^T d(grad_q D)/dy for y = q^t (through N, n^ and the shared point), lambda_f and mu."""
     tid = wp.tid()
     big_n = frame.normal_force[tid]
     lam_f = friction[0]
@@ -278,7 +313,35 @@ def friction_adjoint_kernel(
     cb = _centroid(tb)
     rho_vec = ca - cb
     rho_hat = rho_vec / wp.length(rho_vec)
-    weight, dweight = _support_weight(ca, cb, _leaf_radius(ta) + _leaf_radius(tb), eps, dhat)
+    radius_a = _leaf_radius(ta)
+    radius_b = _leaf_radius(tb)
+    weight, dweight = _support_weight(ca, cb, radius_a + radius_b, eps, dhat)
+    # The material points' offsets r_a = R_A X_A, r_b = R_B X_B move with q^t, as p's place in
+    # each body: d r_a = dR_A (dp - dp_A^t - dtheta_A x (p - p_A^t)), dR_A = R_A R_A^t^T the
+    # step's rotation (likewise b; p follows the centroids, the radii being rigid invariants).
+    # C = g . ell sees them in w (cotangent lambda N m on r_a, minus it on r_b) and in ell's
+    # lever arms (g . (l_a x d r_a) = (g x l_a) . d r_a, l_a: the multiplier's rotation).
+    slip_cot = (lam_f * big_n) * m
+    g = (lam_f * big_n) * s
+    cot_a = slip_cot
+    cot_b = -slip_cot
+    if body_dynamic[pair[0]] != 0:
+        cot_a += wp.cross(g, wp.vec3d(la[3], la[4], la[5]))
+    if body_dynamic[pair[1]] != 0:
+        cot_b -= wp.cross(g, wp.vec3d(lb[3], lb[4], lb[5]))
+    turned_a = wp.transpose(rotation_next[pair[0]] * wp.transpose(rot_a)) * cot_a
+    turned_b = wp.transpose(rotation_next[pair[1]] * wp.transpose(rot_b)) * cot_b
+    point_cot = turned_a + turned_b
+    contact = _contact_point(ca, cb, radius_a, radius_b)
+    if body_dynamic[pair[0]] != 0:
+        g_a = rigid_point_gradient(-turned_a, contact - pos_a)
+        for i in range(6):
+            wp.atomic_add(adj_now_out, pair[0], i, g_a[i])
+    if body_dynamic[pair[1]] != 0:
+        g_b = rigid_point_gradient(-turned_b, contact - pos_b)
+        for i in range(6):
+            wp.atomic_add(adj_now_out, pair[1], i, g_b[i])
+    weight_a, weight_b = _contact_weights(radius_a, radius_b)
     norm = wp.length(sol.n)
     nhat = sol.n / norm
     q = -(sol.slope_a[0] + sol.slope_a[1] + sol.slope_a[2])
@@ -305,8 +368,11 @@ def friction_adjoint_kernel(
         dnorm = wp.transpose(dn) * nhat
         dbig_n = mu * (dweight * norm * q * drho + weight * q * dnorm + weight * norm * dq)
         dnhat_t_v = wp.transpose((wp.identity(n=3, dtype=wp.float64) - wp.outer(nhat, nhat)) * dn / norm) * v_n
-        # w = ... - (c_A^t - c_B^t): each vertex moves its centroid by a third.
-        cot = coeff_n * dbig_n + dnhat_t_v - (sign * third * lam_f * big_n) * m
+        # Each vertex moves its centroid, and p with it, by a third of its centroid's weight.
+        share = weight_a
+        if j >= 3:
+            share = weight_b
+        cot = coeff_n * dbig_n + dnhat_t_v + (share * third) * point_cot
         side = 0
         x = ta[0]
         if j < 3:

@@ -996,6 +996,9 @@ class ImplicitSolver:
         if not converged:
             raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact))
 
+        # The friction adjoint needs the poses the friction terms saw: unit quaternions for the
+        # static bodies too, whose user-given values (of any norm) go back into state_out.
+        q_solved = q.copy()
         q[~dynamic] = q_now[~dynamic]
         passed = self._pass_through(q_start, q, dt)
         if passed is not None:
@@ -1014,7 +1017,7 @@ class ImplicitSolver:
             float(contact.pair_separation.min()) if len(contact.pair_separation) else np.inf,
             friction.pairs if friction is not None else 0,
         )
-        return self.last_step, lambda: self._backward_function(state_in, state_out, control, step_in, hess, jacobian, contact.grad, q, q_now, q_prev)
+        return self.last_step, lambda: self._backward_function(state_in, state_out, control, step_in, hess, jacobian, contact.grad, q, q_now, q_prev, (q_solved, q_start))
 
     def _warm_start(self, q, value, grad, hess, contact, coords, step_in):
         """Start Newton from the inertial prediction (``predict_kernel``: where each body would
@@ -1213,11 +1216,13 @@ class ImplicitSolver:
         states = {"state_in": state_in, "state_out": state_out}
         return [(f"{label}.{name}", getattr(states[label], name)) for label, name in names]
 
-    def _backward_function(self, state_in, state_out, control, step_in, hess, jacobian, contact_grad, q_next, q_now, q_prev):
+    def _backward_function(self, state_in, state_out, control, step_in, hess, jacobian, contact_grad, q_next, q_now, q_prev, friction_poses):
         """The step's backward and the arrays it touches, for ``tape.record_func``, and the
         values of its taped control arrays at this step ({id(array): values}, the backward's
         own snapshots where it keeps the raw values), which ``_check_taped_step`` compares
-        with a later step's."""
+        with a later step's. ``friction_poses``: the step's solution and start as the friction
+        terms saw them (unit quaternions; a start quaternion of norm 1.01 made the friction
+        adjoint's rotations 2% too large and every start-pose gradient 15% off)."""
         model = self.model
         dev = model.device
         n = model.num_bodies
@@ -1289,13 +1294,13 @@ class ImplicitSolver:
                 )
                 mu_adj = float(lam_full @ contact_grad.reshape(-1))
                 if friction is not None and friction.pairs:
-                    adj_q, adj_friction, adj_mu = model.contact.friction_adjoint(friction, q_next, q_now, lam_full.reshape(n, 6))
+                    adj_q, adj_friction, adj_mu = model.contact.friction_adjoint(friction, *friction_poses, lam_full.reshape(n, 6))
                     adj_now.assign(adj_now.numpy() + adj_q)
                     _accumulate(model.friction, adj_friction)
                     mu_adj += adj_mu
                 elif step_in.friction_rate is not None and step_in.friction_rate.pairs:
                     # At coefficient 0 the step has no friction: only its coefficient moves it.
-                    _, adj_friction, _ = model.contact.friction_adjoint(step_in.friction_rate, q_next, q_now, lam_full.reshape(n, 6))
+                    _, adj_friction, _ = model.contact.friction_adjoint(step_in.friction_rate, *friction_poses, lam_full.reshape(n, 6))
                     _accumulate(model.friction, adj_friction)
                 if balls:
                     target_adj, start_adj = art.ball_drive_adjoint(q_next, q_now, lam_reduced, step_in.ball_target, dt, target_is_start=ball_target_is_start, gains=ball_gains)
