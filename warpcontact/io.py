@@ -2264,10 +2264,14 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
 
     Meshes are authored once per body; each body has one time-sampled translate and orient
     per frame; timeCodesPerSecond and framesPerSecond are both set; target positions are drawn
-    as small green spheres.
+    as small green spheres under /World/targets (targets_1, ... where a body has that name).
     """
     Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
-    _check_prim_names(scene.bodies, "body", reserved=("targets",), Sdf=Sdf)
+    _check_prim_names(scene.bodies, "body", reserved=(), Sdf=Sdf)
+    # The target markers' group takes a name no body has: reserving "targets" refused a body
+    # so named only once a whole task run had finished (its resume failed the same way).
+    names = {b.name for b in scene.bodies}
+    markers = next(f"targets{suffix}" for suffix in ("", *(f"_{k}" for k in range(1, len(names) + 2))) if f"targets{suffix}" not in names)
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (len(scene.bodies), 7) or len(poses) == 0 or not np.isfinite(poses).all():
         raise ValueError(f"poses: expected finite (frames, {len(scene.bodies)}, 7) with at least one frame, got {poses.shape}")
@@ -2297,7 +2301,7 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
                 for frame in range(len(poses)):
                     _set_pose_ops(xform, Gf, UsdGeom, poses[frame, i], time=frame, ops=ops)
             if b.target_position is not None:
-                marker = UsdGeom.Sphere.Define(stage, f"/World/targets/{b.name}")
+                marker = UsdGeom.Sphere.Define(stage, f"/World/{markers}/{b.name}")
                 marker.CreateRadiusAttr(max(float(b.target_tolerance), 0.05))
                 marker.CreateDisplayColorAttr([Gf.Vec3f(0.1, 0.8, 0.2)])
                 marker.CreateDisplayOpacityAttr([0.4])
