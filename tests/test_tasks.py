@@ -906,6 +906,66 @@ def test_cli_run_keeps_its_progress_when_interrupted_and_resumes_it(tmp_path, ca
     assert "no checkpoint to resume" in capsys.readouterr().err
 
 
+def test_a_failed_results_write_leaves_the_earlier_results_whole(tmp_path, capsys, monkeypatch):
+    """metrics.json, convergence.png and trajectory.usda were replaced one by one: a failed
+    trajectory write left a new metrics.json beside the earlier run's trajectory. They are
+    replaced as one set now; the run stays resumable and its resume writes them."""
+    scene_path = tmp_path / "space.usda"
+    io.save_scene(space_billiards(), scene_path)
+    out = tmp_path / "out"
+    assert main(["run", str(scene_path), "--iters", "2", "--out", str(out)]) == 0
+    earlier = {name: (out / name).read_bytes() for name in ("metrics.json", "trajectory.usda")}
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(io, "export_trajectory", full_disk)
+    capsys.readouterr()
+    assert main(["run", str(scene_path), "--iters", "3", "--out", str(out), "--overwrite"]) == 1
+    assert "writing the results failed" in capsys.readouterr().err
+    assert {name: (out / name).read_bytes() for name in earlier} == earlier
+    assert sorted(p.name for p in out.iterdir()) == sorted([cli.CHECKPOINT_NAME, "convergence.png", *earlier])
+    monkeypatch.undo()
+    assert main(["run", str(scene_path), "--iters", "3", "--out", str(out), "--resume"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["iterations"] == 3
+    assert not (out / cli.CHECKPOINT_NAME).exists()
+
+
+def test_a_resumed_run_keeps_results_another_command_wrote_since_its_checkpoint(tmp_path, capsys, monkeypatch):
+    """--resume skipped the check for earlier results: a simulate's trajectory written into
+    the folder of an interrupted run was replaced by the resumed run's, without a word."""
+    from warpcontact import tasks
+
+    scene_path = tmp_path / "space.usda"
+    io.save_scene(space_billiards(), scene_path)
+    out = tmp_path / "out"
+    argv = ["run", str(scene_path), "--iters", "3", "--out", str(out)]
+    interrupt_call(monkeypatch, tasks.TaskProblem, "rollout", 2)
+    assert main(argv) == 130
+    monkeypatch.undo()
+    assert main(["simulate", str(scene_path), "--frames", "2", "--out", str(out)]) == 0
+    simulated = (out / "trajectory.usda").read_bytes()
+    capsys.readouterr()
+    assert main([*argv, "--resume"]) == 2
+    assert "trajectory.usda was written after the checkpoint of the run being resumed" in capsys.readouterr().err
+    assert (out / "trajectory.usda").read_bytes() == simulated
+    assert main([*argv, "--resume", "--overwrite"]) == 0
+
+
+def test_a_descent_without_a_feasible_update_says_so(tmp_path, capsys):
+    """An Adam update whose every halving failed to simulate ended the descent without a word
+    (a learning rate of 1e300: 1 of 4 iterations, exit 0, no reason given)."""
+    scene = space_billiards()
+    scene.task.learning_rate = 1e300
+    scene_path = tmp_path / "space.usda"
+    io.save_scene(scene, scene_path)
+    out = tmp_path / "out"
+    assert main(["run", str(scene_path), "--iters", "4", "--out", str(out)]) == 0
+    assert "note: 1 descent(s) stopped before their iterations were done (the first: iteration 1, no feasible Adam update" in capsys.readouterr().err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["iterations"] == 1 and metrics["stalled"][0]["iteration"] == 1
+
+
 def test_cli_run_reports_a_failed_simulation_without_a_traceback(tmp_path, capsys, monkeypatch):
     from warpcontact import tasks
     from warpcontact.solver import SolverError
@@ -1096,6 +1156,15 @@ def _rewritten(path, **changes):
         ("meta without a fingerprint", r"not a complete checkpoint \(missing fingerprint\)"),
         ("encryption flag", r"not a readable checkpoint \(strong encryption"),
         ("values reshaped", r"checkpoint array 'values' has shape \(7, 5\), expected \(2, 2\) for this problem"),
+        ("fingerprint a list", r"not a readable checkpoint \(its fingerprint is \[\], expected a JSON object\)"),
+        ("iteration 3.5", r"not a readable checkpoint \(its iteration is 3.5, expected a whole number >= 0\)"),
+        ("iteration -5", r"not a readable checkpoint \(its iteration is -5, expected a whole number >= 0\)"),
+        ("iteration 10**6", r"checkpoint iteration 1000000 is past this problem's 3"),
+        ("adam_t text", r"not a readable checkpoint \(its adam_t is 'x', expected a whole number >= 0\)"),
+        ("seconds text", r"not a readable checkpoint \(its seconds is 'x', expected a finite number >= 0\)"),
+        ("values NaN", r"not a readable checkpoint \(its array 'values' is not all finite numbers\)"),
+        ("history 2-D", r"not a readable checkpoint \(its loss history has shape \(2, 2\)"),
+        ("moment reshaped", r"checkpoint array 'adam_m' has shape \(3,\), expected \(2, 2\) for this problem"),
     ],
 )
 def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path, damage, message):
@@ -1125,11 +1194,22 @@ def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path, damage, messa
         elif damage == "meta without a fingerprint":
             del meta["fingerprint"]
             _rewritten(checkpoint, meta=meta)
-        else:
+        elif damage == "values reshaped":
             _rewritten(checkpoint, values=np.zeros((7, 5)))
+        elif damage == "values NaN":
+            _rewritten(checkpoint, values=np.full((2, 2), np.nan))
+        elif damage == "history 2-D":
+            _rewritten(checkpoint, history=np.zeros((2, 2)))
+        elif damage == "moment reshaped":
+            _rewritten(checkpoint, adam_m=np.zeros(3))
+        else:
+            key, value = {"fingerprint a list": ("fingerprint", []), "iteration 3.5": ("iteration", 3.5), "iteration -5": ("iteration", -5),
+                          "iteration 10**6": ("iteration", 10**6), "adam_t text": ("adam_t", "x"), "seconds text": ("seconds", "x")}[damage]
+            meta[key] = value
+            _rewritten(checkpoint, meta=meta)
     with pytest.raises(ValueError, match=f"checkpoint.npz: {message}"):
         TaskProblem(make_scene(), settings=settings).optimize(checkpoint=checkpoint, resume=True)
-    if damage != "values reshaped":  # a readable, complete file is described before it is resumed
+    if damage not in ("values reshaped", "moment reshaped", "iteration 10**6"):  # a readable, complete file is described before it is resumed
         with pytest.raises(ValueError, match=f"checkpoint.npz: {message}"):
             TaskProblem(make_scene(), settings=settings).optimize(checkpoint=checkpoint)
 

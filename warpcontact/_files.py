@@ -1,13 +1,15 @@
 """Output files written whole: a failed or interrupted write leaves the earlier file."""
 
+import contextlib
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["json_ready", "replace_file", "replace_json", "replace_text"]
+__all__ = ["json_ready", "replace_file", "replace_files", "replace_json", "replace_text"]
 
 
 def replace_file(path, write) -> None:
@@ -28,6 +30,26 @@ def replace_file(path, write) -> None:
     finally:
         if os.path.exists(temporary):
             os.unlink(temporary)
+
+
+@contextlib.contextmanager
+def replace_files(folder, names):
+    """Replace a command's results in ``folder`` as one set: yields a hidden folder inside it
+    to write the files ``names`` in; once the block finishes, each is renamed into ``folder``,
+    and an earlier file of a name the block did not write is removed. A block that fails or
+    is interrupted changes nothing in ``folder``: written one by one, a failed trajectory
+    left a new metrics.json beside an earlier run's trajectory.usda."""
+    folder = Path(folder)
+    staged = Path(tempfile.mkdtemp(prefix=".results-", dir=folder))
+    try:
+        yield staged
+        for name in names:
+            if (staged / name).exists():
+                os.replace(staged / name, folder / name)
+            else:
+                (folder / name).unlink(missing_ok=True)
+    finally:
+        shutil.rmtree(staged, ignore_errors=True)
 
 
 def replace_text(path, text: str) -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._files import replace_file, replace_json
+from ._files import replace_file, replace_files, replace_json
 from .contact import CENTRED_WEIGHTS
 from .leaf import LEAF_PRECISIONS
 from .tasks import IPC_TASK_STIFFNESS, MODELS
@@ -105,7 +105,6 @@ def _simulate(args) -> int:
             break
     seconds = time.perf_counter() - start
     q = np.array([s.body_q.numpy() for s in states])
-    io.export_trajectory(scene, io.model_to_scene_poses(scene, model, q), trajectory, overwrite=args.overwrite)
     targets = {
         b.name: {"target": b.target_position.tolist(), "final": q[-1, i, :3].tolist(), "distance": float(np.linalg.norm(q[-1, i, :3] - b.target_position))}
         for i, b in enumerate(scene.bodies)
@@ -122,7 +121,9 @@ def _simulate(args) -> int:
         "targets": targets,
         **({"stopped": stopped} if stopped else {}),
     }
-    replace_json(out / "summary.json", summary)
+    with replace_files(out, ("trajectory.usda", "summary.json")) as staged:
+        io.export_trajectory(scene, io.model_to_scene_poses(scene, model, q), staged / "trajectory.usda")
+        replace_json(staged / "summary.json", summary)
     newton = f", mean {np.mean(iterations):.1f} Newton iterations per frame" if iterations else ""
     print(f"wrote {trajectory} and {out / 'summary.json'} ({seconds:.1f} s{newton})")
     if stopped:
@@ -184,6 +185,21 @@ def _refuse_earlier_results(out: Path, names: tuple, overwrite: bool):
     for name in names:
         if (out / name).exists() and not overwrite:
             raise FileExistsError(f"{out / name} holds an earlier run's results")
+
+
+def _refuse_results_since_checkpoint(out: Path, names: tuple, overwrite: bool):
+    """FileExistsError when a result file in OUT is newer than the checkpoint of the run being
+    resumed, unless --overwrite: another command wrote it there since (a simulate's trajectory
+    was replaced by the resumed run's, without a word). Results older than the checkpoint are
+    those the run was allowed to replace when it started."""
+    checkpoint = out / CHECKPOINT_NAME
+    if overwrite or not checkpoint.is_file():
+        return
+    since = checkpoint.stat().st_mtime_ns
+    for name in names:
+        path = out / name
+        if path.exists() and path.stat().st_mtime_ns > since:
+            raise FileExistsError(f"{path} was written after the checkpoint of the run being resumed ({checkpoint}), by another command")
 
 
 def _refuse_input_among_outputs(args, out: Path):
@@ -302,9 +318,10 @@ def _run(args) -> int:
     # The checkpoint goes only once the results are written: an interrupted or failed
     # write is resumed (the finished descent replays its last state), not run again.
     try:
-        replace_json(out / "metrics.json", metrics)
-        plotted = _plot_convergence({args.model: result.loss_history}, out / "convergence.png", title=f"{t.name} ({args.model})")
-        io.export_trajectory(scene, io.model_to_scene_poses(scene, problem.model, result.trajectory), out / "trajectory.usda", overwrite=True)
+        with replace_files(out, ("metrics.json", "convergence.png", "trajectory.usda")) as staged:
+            replace_json(staged / "metrics.json", metrics)
+            plotted = _plot_convergence({args.model: result.loss_history}, staged / "convergence.png", title=f"{t.name} ({args.model})")
+            io.export_trajectory(scene, io.model_to_scene_poses(scene, problem.model, result.trajectory), staged / "trajectory.usda")
     except KeyboardInterrupt:
         print(f"\ninterrupted while writing the results: the run is kept in {checkpoint.path}; write them with the same command and --resume", file=sys.stderr)
         return 130
@@ -313,6 +330,11 @@ def _run(args) -> int:
         return 1
     checkpoint.remove()
     print(f"loss {_loss_text(result.initial_loss)} -> {result.final_loss:.6g}, success {result.success}, {result.seconds:.1f} s; wrote {out}/metrics.json, trajectory.usda, {_plot_name('convergence.png', plotted)}")
+    stalls = result.extra.get("stalled", [])
+    if stalls:
+        first = stalls[0]
+        where = f"window at frame {first['frame']}, " if "frame" in first else ""
+        print(f"note: {len(stalls)} descent(s) stopped before their iterations were done (the first: {where}iteration {first['iteration']}, {first['error']}); metrics.json lists them under stalled", file=sys.stderr)
     stopped = result.extra.get("stopped")
     if stopped:
         print(f"error: the run stopped at frame {stopped['frame']} of {settings.horizon}: the simulation failed: {stopped['error']}; its outputs hold the frames executed before it", file=sys.stderr)
@@ -801,7 +823,9 @@ def main(argv=None) -> int:
             out = _output_folder(args.out)
             _refuse_unwritable_names(out, args.outputs)
             _refuse_input_among_outputs(args, out)
-            if not getattr(args, "resume", False):
+            if getattr(args, "resume", False):
+                _refuse_results_since_checkpoint(out, args.outputs, args.overwrite)
+            else:
                 _refuse_earlier_results(out, args.outputs, args.overwrite)
         earlier = _earlier_files(args)
         return args.func(args)

@@ -242,7 +242,7 @@ def adam(betas, learning_rate):
     return update
 
 
-def _descend(rollout, values, settings, history, progress=None, total=None, first=None, resume=None, save=None):
+def _descend(rollout, values, settings, history, progress=None, total=None, first=None, resume=None, save=None, stalled=None):
     """Adam iterations on ``values`` (in place); returns (best loss, best values, its trajectory).
     ``rollout(values, gradient=...)`` returns (loss, gradient, trajectory); it is asked for no
     gradient (None) at the last iteration, which is only evaluated. ``first``:
@@ -252,7 +252,8 @@ def _descend(rollout, values, settings, history, progress=None, total=None, firs
 
     An update that makes the rollout infeasible (bodies intersecting at the start, or a step
     that fails) is halved back towards the last feasible values, up to FEASIBLE_HALVINGS
-    times, and the descent stops if none is feasible; the learning rate is kept, so one
+    times, and the descent stops if none is feasible (``stalled(iteration, error)``, if given,
+    is told: it ended silently before, a run with 1 of 400 iterations); the learning rate is kept, so one
     infeasible neighbourhood does not slow every later step. A zero loss stops the descent:
     every target is within its tolerance (success), and further Adam steps, carried by
     momentum alone, could only move the solution off it.
@@ -294,13 +295,22 @@ def _descend(rollout, values, settings, history, progress=None, total=None, firs
             try:
                 result = rollout(values, gradient=stepped_from(it + 1))
                 break
-            except (ValueError, SolverError):
+            except (ValueError, SolverError) as exc:
+                failure = exc
                 move *= 0.5
                 values[:] = feasible + move
         else:
             values[:] = feasible
+            if stalled is not None:
+                stalled(it + 1, f"no feasible Adam update: it and its halves down to 2^-{FEASIBLE_HALVINGS - 1} failed ({failure})")
             break
     return best
+
+
+def _stall_note(extra: dict, **where):
+    """A ``_descend`` ``stalled`` callback that notes where its descent stopped in
+    ``extra["stalled"]`` (metrics.json; ``where``: the receding window's frame)."""
+    return lambda iteration, error: extra.setdefault("stalled", []).append({**where, "iteration": iteration, "error": error})
 
 
 def _descent_state(iteration, values, adam_state, best, result) -> dict:
@@ -346,6 +356,42 @@ def _fingerprint_value(value):
 # What every checkpoint's meta holds, and what a receding run's adds (``optimize``'s saver).
 _CHECKPOINT_KEYS = ("version", "fingerprint", "history", "seconds", "receding", "extra", "iteration", "values", "adam_t", "best_loss", "best_values", "loss", "trajectory")
 _RECEDING_CHECKPOINT_KEYS = ("frame", "plan", "executed")
+
+
+def _damaged_checkpoint_entry(state: dict) -> str | None:
+    """What is wrong with a checkpoint's entries' types and values, or None (their shapes
+    against a problem: ``TaskProblem._check_saved_shapes``). An altered file gave tracebacks (a
+    list for the fingerprint, an iteration of 3.5) or ran on silently (NaN values stopped the
+    descent at iteration 41 of 400; an iteration of -5 ran extra ones)."""
+    def count(value):
+        return is_whole(value) and value >= 0
+
+    def loss(value):
+        return is_real(value) and not np.isnan(value)
+
+    rules = {
+        "fingerprint": (lambda v: isinstance(v, dict), "a JSON object"),
+        "extra": (lambda v: isinstance(v, dict), "a JSON object"),
+        "receding": (lambda v: isinstance(v, bool), "true or false"),
+        "iteration": (count, "a whole number >= 0"),
+        "adam_t": (count, "a whole number >= 0"),
+        "seconds": (lambda v: is_real(v) and 0.0 <= v < np.inf, "a finite number >= 0"),
+        "loss": (loss, "a number"),
+        "best_loss": (loss, "a number"),
+    }
+    if state["receding"] is True:
+        rules["frame"] = (count, "a whole number >= 0")
+    for key, (valid, expected) in rules.items():
+        if not valid(state[key]):
+            return f"its {key} is {state[key]!r}, expected {expected}"
+    for key in _CHECKPOINT_ARRAYS:
+        if key in state:
+            values = state[key]
+            if values.dtype.kind != "f" or np.isnan(values).any() or (key != "history" and np.isinf(values).any()):
+                return f"its array {key!r} is not all finite numbers"
+    if state["history"].ndim != 1:
+        return f"its loss history has shape {state['history'].shape}, expected one loss per iteration"
+    return None
 
 
 class TaskCheckpoint:
@@ -405,6 +451,9 @@ class TaskCheckpoint:
         missing = [k for k in _CHECKPOINT_KEYS + (_RECEDING_CHECKPOINT_KEYS if state.get("receding") else ()) if k not in state]
         if missing:
             raise ValueError(f"{self.path}: not a complete checkpoint (missing {', '.join(missing)})")
+        damaged = _damaged_checkpoint_entry(state)
+        if damaged:
+            raise ValueError(f"{self.path}: not a readable checkpoint ({damaged})")
         if fingerprint is not None:
             saved = state["fingerprint"]
             differ = sorted(k for k in set(saved) | set(fingerprint) if saved.get(k) != fingerprint.get(k))
@@ -792,7 +841,7 @@ class TaskProblem:
             if s.initial_samples and not saved:
                 values, extra["initial_samples"], first = self._best_sample(self.start, s.horizon)
             objective = objective_at(self.start, s.horizon, saved)
-            final, values, traj = _descend(objective, values, s, history, progress, first=first, resume=saved, save=saver(objective))
+            final, values, traj = _descend(objective, values, s, history, progress, first=first, resume=saved, save=saver(objective), stalled=_stall_note(extra))
             result = TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, values, traj, extra)
         else:
             result = self._receding(saved, history, extra, progress, objective_at, saver, start_time)
@@ -809,8 +858,8 @@ class TaskProblem:
         return saved
 
     def _check_saved_shapes(self, saved: dict, path) -> None:
-        """ValueError naming the checkpoint when its arrays do not fit this problem (its
-        fingerprint matched, so the file was altered)."""
+        """ValueError naming the checkpoint when its arrays or counts do not fit this problem
+        (its fingerprint matched, so the file was altered)."""
         s = self.settings
         receding = saved["receding"]
         rows = s.window if receding else (1 if self.kind == "initial_state" else s.horizon)
@@ -818,9 +867,16 @@ class TaskProblem:
         expected = {"values": shape, "best_values": shape}
         if receding:
             expected["plan"] = (s.horizon + s.window + s.receding_stride, len(self.dof_names))
+        # Adam's moments and the pending gradient: none yet (size 0), or one per value.
+        expected.update({name: shape for name in ("adam_m", "adam_v", "gradient") if saved[name].size})
+        if receding:
+            expected["executed"] = (max(len(saved["executed"]), 1), self.model.num_bodies, 7)
         for name, wanted in expected.items():
             if np.shape(saved[name]) != wanted:
                 raise ValueError(f"{path}: checkpoint array {name!r} has shape {np.shape(saved[name])}, expected {wanted} for this problem")
+        for name, value, end in (("iteration", saved["iteration"], s.iterations), ("frame", saved.get("frame", 0), s.horizon)):
+            if value >= end:
+                raise ValueError(f"{path}: checkpoint {name} {value} is past this problem's {end}")
 
     def _receding(self, saved, history, extra, progress, objective_at, saver, start_time) -> TaskResult:
         """Receding horizon: optimise a window, apply its first actions, shift (from the
@@ -841,7 +897,7 @@ class TaskProblem:
             objective = objective_at(current, window, resume)
             save = saver(objective, frame=t, plan=plan, executed=np.array(executed))
             try:
-                best = _descend(objective, values, s, history, progress, total=s.horizon, resume=resume, save=save)
+                best = _descend(objective, values, s, history, progress, total=s.horizon, resume=resume, save=save, stalled=_stall_note(extra, frame=t))
             except (ValueError, SolverError) as exc:
                 if not t:
                     raise  # the trivial guess itself cannot be simulated
