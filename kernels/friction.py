@@ -6,9 +6,9 @@ For every leaf pair (triangles A on body a, B on body b) listed at the step's st
                                              potential (net force on A), times the local
                                              support weight W
     n^  = n / |n|,   T = I - n^ n^^T          lagged contact normal of the separating plane
-    p   = (R_B c_A^t + R_A c_B^t) / (R_A + R_B) one point between the triangles' centroids
-                                             c^t, nearer the smaller one's (R: the
-                                             triangles' radii about their centroids)
+    p   = c_A^t or c_B^t                     one of the triangles' centroids at q^t: the
+                                             moving one's against a static body, else the
+                                             smaller triangle's (``_contact_weights``)
     u   = T (x_a(X_A; q) - x_b(X_B; q))      tangential slip over the step of the two
                                              bodies' material points X_A, X_B at p at q^t
     D   = lambda N (sqrt(|u|^2 + e^2) - e),  e = v_eps dt
@@ -42,7 +42,8 @@ and since F2 and T commute (s is tangent) and n^ . dn^ = 0, with m = F2 T ell:
 dN and dn^ go on through the plane's sensitivity dp*/dx (``leaf_plane_sensitivity``), dw
 through the rigid motion of the two points at q^t: with the step's rotations dR = R R^t^T,
 dw = -dR_A (dp_A^t + dtheta_A x r_A) + dR_B (dp_B^t + dtheta_B x r_B) + (dR_A - dR_B) dp
-(r: p from each body's centre; p follows the centroids, the radii being rigid invariants).
+(r: p from each body's centre; p follows its centroid, the choice being fixed at q^t), and
+through the lever arms of ell.
 
 No leaf pair is solved twice for its plane: the setup reads N and n^ off the optimal planes
 that the contact evaluation at q^t left (``leaf_term_kernel``), and keeps them; the adjoint
@@ -87,16 +88,21 @@ def _leaf_radius(t: wp.mat33d):
 
 
 @wp.func
-def _contact_weights(radius_a: wp.float64, radius_b: wp.float64):
-    """The weights of the two centroids in ``_contact_point``, each the other triangle's share."""
-    total = radius_a + radius_b
-    return radius_b / total, radius_a / total
+def _contact_weights(local_a: wp.mat33d, local_b: wp.mat33d, dynamic_a: wp.int32, dynamic_b: wp.int32):
+    """The weights of the two centroids in the shared point p: all on the moving triangle's
+    where the other body is static, else on the smaller triangle's (A's on a tie). A blend of
+    the two put a box's point on a two-triangle ground up to the box triangle's radius off
+    its centroid (a sliding box's yaw torque 8x larger). The radii are the body-frame
+    triangles', so a pair's choice never changes with the poses (from world triangles, two
+    equal balls' rounding flipped it, and the step with it)."""
+    if dynamic_b == 0 or (dynamic_a != 0 and _leaf_radius(local_a) <= _leaf_radius(local_b)):
+        return wp.float64(1.0), wp.float64(0.0)
+    return wp.float64(0.0), wp.float64(1.0)
 
 
 @wp.func
-def _contact_point(ca: wp.vec3d, cb: wp.vec3d, radius_a: wp.float64, radius_b: wp.float64):
-    """p = (R_B c_A + R_A c_B) / (R_A + R_B): between the centroids, nearer the smaller triangle's."""
-    weight_a, weight_b = _contact_weights(radius_a, radius_b)
+def _contact_point(ca: wp.vec3d, cb: wp.vec3d, weight_a: wp.float64, weight_b: wp.float64):
+    """p = w_A c_A + w_B c_B (``_contact_weights``)."""
     return weight_a * ca + weight_b * cb
 
 
@@ -116,6 +122,7 @@ def friction_setup_kernel(
     eps: wp.float64,
     dhat: wp.float64,
     mu: wp.float64,
+    body_dynamic: wp.array(dtype=wp.int32),
     # Data in:
     body_rotation: wp.array(dtype=wp.mat33d),
     body_position: wp.array(dtype=wp.vec3d),
@@ -141,9 +148,9 @@ def friction_setup_kernel(
     radius_a = _leaf_radius(ta)
     radius_b = _leaf_radius(tb)
     # One material point of each body at the same place: a rigid motion of both moves them
-    # alike (no slip), and it sits near the smaller triangle (a ground triangle's centroid
-    # may be metres from a box's).
-    contact = _contact_point(ca, cb, radius_a, radius_b)
+    # alike (no slip). A ground triangle's centroid may be metres from a box's.
+    weight_a, weight_b = _contact_weights(local_a, local_b, body_dynamic[pair[0]], body_dynamic[pair[1]])
+    contact = _contact_point(ca, cb, weight_a, weight_b)
     point_a = wp.transpose(rot_a) * (contact - pos_a)
     point_b = wp.transpose(rot_b) * (contact - pos_b)
     frame.point_a[tid] = point_a
@@ -318,7 +325,7 @@ def friction_adjoint_kernel(
     weight, dweight = _support_weight(ca, cb, radius_a + radius_b, eps, dhat)
     # The material points' offsets r_a = R_A X_A, r_b = R_B X_B move with q^t, as p's place in
     # each body: d r_a = dR_A (dp - dp_A^t - dtheta_A x (p - p_A^t)), dR_A = R_A R_A^t^T the
-    # step's rotation (likewise b; p follows the centroids, the radii being rigid invariants).
+    # step's rotation (likewise b; p follows the centroid it sits on).
     # C = g . ell sees them in w (cotangent lambda N m on r_a, minus it on r_b) and in ell's
     # lever arms (g . (l_a x d r_a) = (g x l_a) . d r_a, l_a: the multiplier's rotation).
     slip_cot = (lam_f * big_n) * m
@@ -332,7 +339,8 @@ def friction_adjoint_kernel(
     turned_a = wp.transpose(rotation_next[pair[0]] * wp.transpose(rot_a)) * cot_a
     turned_b = wp.transpose(rotation_next[pair[1]] * wp.transpose(rot_b)) * cot_b
     point_cot = turned_a + turned_b
-    contact = _contact_point(ca, cb, radius_a, radius_b)
+    weight_a, weight_b = _contact_weights(triangle_vertices[item[0]], triangle_vertices[item[1]], body_dynamic[pair[0]], body_dynamic[pair[1]])
+    contact = _contact_point(ca, cb, weight_a, weight_b)
     if body_dynamic[pair[0]] != 0:
         g_a = rigid_point_gradient(-turned_a, contact - pos_a)
         for i in range(6):
@@ -341,7 +349,6 @@ def friction_adjoint_kernel(
         g_b = rigid_point_gradient(-turned_b, contact - pos_b)
         for i in range(6):
             wp.atomic_add(adj_now_out, pair[1], i, g_b[i])
-    weight_a, weight_b = _contact_weights(radius_a, radius_b)
     norm = wp.length(sol.n)
     nhat = sol.n / norm
     q = -(sol.slope_a[0] + sol.slope_a[1] + sol.slope_a[2])

@@ -926,7 +926,7 @@ def test_a_failed_results_write_leaves_the_earlier_results_whole(tmp_path, capsy
     assert {name: (out / name).read_bytes() for name in earlier} == earlier
     assert sorted(p.name for p in out.iterdir()) == sorted([cli.CHECKPOINT_NAME, "convergence.png", *earlier])
     monkeypatch.undo()
-    assert main(["run", str(scene_path), "--iters", "3", "--out", str(out), "--resume"]) == 0
+    assert main(["run", str(scene_path), "--iters", "3", "--out", str(out), "--overwrite", "--resume"]) == 0
     assert json.loads((out / "metrics.json").read_text())["iterations"] == 3
     assert not (out / cli.CHECKPOINT_NAME).exists()
 
@@ -947,7 +947,7 @@ def test_a_resumed_run_keeps_results_another_command_wrote_since_its_checkpoint(
     simulated = (out / "trajectory.usda").read_bytes()
     capsys.readouterr()
     assert main([*argv, "--resume"]) == 2
-    assert "trajectory.usda was written after the checkpoint of the run being resumed" in capsys.readouterr().err
+    assert "trajectory.usda holds an earlier run's results (use --overwrite)" in capsys.readouterr().err
     assert (out / "trajectory.usda").read_bytes() == simulated
     assert main([*argv, "--resume", "--overwrite"]) == 0
 

@@ -37,8 +37,9 @@ def replace_files(folder, names):
     """Replace a command's results in ``folder`` as one set: yields a hidden folder inside it
     to write the files ``names`` in; once the block finishes, each is renamed into ``folder``,
     and an earlier file of a name the block did not write is removed. A block that fails or
-    is interrupted changes nothing in ``folder``: written one by one, a failed trajectory
-    left a new metrics.json beside an earlier run's trajectory.usda."""
+    is interrupted changes nothing in ``folder`` (only the renames that follow it, one short
+    loop, can be cut between two files): written one by one, a failed trajectory left a new
+    metrics.json beside an earlier run's trajectory.usda."""
     folder = Path(folder)
     staged = Path(tempfile.mkdtemp(prefix=".results-", dir=folder))
     try:

@@ -187,21 +187,6 @@ def _refuse_earlier_results(out: Path, names: tuple, overwrite: bool):
             raise FileExistsError(f"{out / name} holds an earlier run's results")
 
 
-def _refuse_results_since_checkpoint(out: Path, names: tuple, overwrite: bool):
-    """FileExistsError when a result file in OUT is newer than the checkpoint of the run being
-    resumed, unless --overwrite: another command wrote it there since (a simulate's trajectory
-    was replaced by the resumed run's, without a word). Results older than the checkpoint are
-    those the run was allowed to replace when it started."""
-    checkpoint = out / CHECKPOINT_NAME
-    if overwrite or not checkpoint.is_file():
-        return
-    since = checkpoint.stat().st_mtime_ns
-    for name in names:
-        path = out / name
-        if path.exists() and path.stat().st_mtime_ns > since:
-            raise FileExistsError(f"{path} was written after the checkpoint of the run being resumed ({checkpoint}), by another command")
-
-
 def _refuse_input_among_outputs(args, out: Path):
     """ValueError when the scene a command reads is one of the files it writes: a run on
     OUT/trajectory.usda called the scene an earlier run's results, and with --overwrite
@@ -818,15 +803,18 @@ def main(argv=None) -> int:
     earlier = {}
     try:
         if getattr(args, "out", None) is not None:
-            # Every command that writes checks its folder and earlier results before any work;
-            # a resumed run continues the one that was allowed to start there.
+            # Every command that writes checks its folder and earlier results before any work,
+            # a resumed run too (the same command with --resume: it skipped the check, and
+            # replaced a trajectory that a simulate had written there since), once it is
+            # known to have a checkpoint to resume.
             out = _output_folder(args.out)
             _refuse_unwritable_names(out, args.outputs)
             _refuse_input_among_outputs(args, out)
             if getattr(args, "resume", False):
-                _refuse_results_since_checkpoint(out, args.outputs, args.overwrite)
-            else:
-                _refuse_earlier_results(out, args.outputs, args.overwrite)
+                from .tasks import TaskCheckpoint
+
+                TaskCheckpoint(out / CHECKPOINT_NAME).load()
+            _refuse_earlier_results(out, args.outputs, args.overwrite)
         earlier = _earlier_files(args)
         return args.func(args)
     except KeyboardInterrupt:

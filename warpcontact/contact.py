@@ -955,7 +955,8 @@ class ContactModel:
     def friction_frame(self, mu: float, friction: wp.array, slip_smoothing: float) -> LaggedFriction:
         """Lagged friction data at the last evaluated configuration (a step's q^t): per leaf
         pair, the normal force mu W |n| sum_A -b'(g_k) of this mode's leaf potential, its
-        plane normal and the triangles' centroids (``kernels/friction.py``)."""
+        plane normal and the two bodies' material points at the pair's shared contact point
+        (``kernels/friction.py``)."""
         self._require_evaluation("friction_frame")
         with wp.ScopedDevice(self.device):
             frame = friction_kernels.FrictionFrame()
@@ -971,7 +972,7 @@ class ContactModel:
                 wp.launch(
                     friction_kernels.friction_setup_kernel,
                     dim=count,
-                    inputs=[self._triangle_vertices, self._eps, self._dhat, float(mu), self._rotation, self._position, self._seed_body_pair],
+                    inputs=[self._triangle_vertices, self._eps, self._dhat, float(mu), self._body_dynamic, self._rotation, self._position, self._seed_body_pair],
                     outputs=[frame],
                 )
         return LaggedFriction(pairs=count, mu=float(mu), friction=friction, slip_smoothing=float(slip_smoothing), data=frame)

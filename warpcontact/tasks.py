@@ -354,7 +354,7 @@ def _fingerprint_value(value):
 
 
 # What every checkpoint's meta holds, and what a receding run's adds (``optimize``'s saver).
-_CHECKPOINT_KEYS = ("version", "fingerprint", "history", "seconds", "receding", "extra", "iteration", "values", "adam_t", "best_loss", "best_values", "loss", "trajectory")
+_CHECKPOINT_KEYS = ("version", "fingerprint", "history", "seconds", "receding", "extra", "iteration", "values", "adam_m", "adam_v", "adam_t", "best_loss", "best_values", "best_trajectory", "loss", "gradient", "trajectory")
 _RECEDING_CHECKPOINT_KEYS = ("frame", "plan", "executed")
 
 
@@ -870,7 +870,7 @@ class TaskProblem:
         # Adam's moments and the pending gradient: none yet (size 0), or one per value.
         expected.update({name: shape for name in ("adam_m", "adam_v", "gradient") if saved[name].size})
         if receding:
-            expected["executed"] = (max(len(saved["executed"]), 1), self.model.num_bodies, 7)
+            expected["executed"] = (max(len(np.atleast_1d(saved["executed"])), 1), self.model.num_bodies, 7)
         for name, wanted in expected.items():
             if np.shape(saved[name]) != wanted:
                 raise ValueError(f"{path}: checkpoint array {name!r} has shape {np.shape(saved[name])}, expected {wanted} for this problem")
