@@ -145,8 +145,6 @@ def friction_setup_kernel(
     tb = world_triangle(local_b, rot_b, pos_b)
     ca = _centroid(ta)
     cb = _centroid(tb)
-    radius_a = _leaf_radius(ta)
-    radius_b = _leaf_radius(tb)
     # One material point of each body at the same place: a rigid motion of both moves them
     # alike (no slip). A ground triangle's centroid may be metres from a box's.
     weight_a, weight_b = _contact_weights(local_a, local_b, body_dynamic[pair[0]], body_dynamic[pair[1]])
@@ -170,7 +168,7 @@ def friction_setup_kernel(
             return
         _b, b1, _b2 = leaf_barrier(gap, dhat)
         q -= b1
-    weight, _ = _support_weight(ca, cb, radius_a + radius_b, eps, dhat)
+    weight, _ = _support_weight(ca, cb, _leaf_radius(ta) + _leaf_radius(tb), eps, dhat)
     frame.normal_force[tid] = mu * weight * norm * q
     frame.normal[tid] = n / norm
 
@@ -320,9 +318,7 @@ def friction_adjoint_kernel(
     cb = _centroid(tb)
     rho_vec = ca - cb
     rho_hat = rho_vec / wp.length(rho_vec)
-    radius_a = _leaf_radius(ta)
-    radius_b = _leaf_radius(tb)
-    weight, dweight = _support_weight(ca, cb, radius_a + radius_b, eps, dhat)
+    weight, dweight = _support_weight(ca, cb, _leaf_radius(ta) + _leaf_radius(tb), eps, dhat)
     # The material points' offsets r_a = R_A X_A, r_b = R_B X_B move with q^t, as p's place in
     # each body: d r_a = dR_A (dp - dp_A^t - dtheta_A x (p - p_A^t)), dR_A = R_A R_A^t^T the
     # step's rotation (likewise b; p follows the centroid it sits on).
