@@ -1048,19 +1048,26 @@ def _hanging_rod(kind, **joint_options):
     return b.finalize()
 
 
+def _stepped(model, state, steps, control=None):
+    """``state`` after ``steps`` of 0.01 s, and the first joint coordinate after each."""
+    solver, coordinates = wc.ImplicitSolver(model), []
+    for _ in range(steps):
+        following = model.state(requires_grad=False)
+        solver.step(state, following, control, 0.01)
+        state = following
+        coordinates.append(state.joint_q.numpy()[0] if model.num_joint_coordinates else np.nan)
+    return state, coordinates
+
+
 def _settled_angle(model, steps=200):
     """The rod's angle from the start after ``steps`` of 0.01 s towards 0.5 rad about y."""
-    art, solver = model.articulation, wc.ImplicitSolver(model)
+    art = model.articulation
     control = model.control(requires_grad=False)
     if art.num_ball_joints:
         control.ball_target.assign([[0.0, np.sin(0.25), 0.0, np.cos(0.25)]])
     else:
         control.joint_target.assign([0.5])
-    state = model.state(requires_grad=False)
-    for _ in range(steps):
-        following = model.state(requires_grad=False)
-        solver.step(state, following, control, 0.01)
-        state = following
+    state, _ = _stepped(model, model.state(requires_grad=False), steps, control)
     turn = art.ball_rotations(state.body_q.numpy())[0] if art.num_ball_joints else None
     return 2.0 * np.arctan2(np.linalg.norm(turn[:3]), turn[3]) if turn is not None else state.joint_q.numpy()[0]
 
@@ -1085,7 +1092,7 @@ def test_limits_set_after_finalize_hold():
     rod = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, -0.5, 0, 0, 0, 1), name="rod")
     b.add_joint("revolute", child=rod, anchor=(0, 0, 0), axis=(0, 1, 0))
     model = b.finalize()
-    art, solver = model.articulation, wc.ImplicitSolver(model)
+    art = model.articulation
     art.lower[:], art.upper[:], art.limit_margin[:] = -0.2, 0.2, 0.02
     state = model.state(requires_grad=False)
     start = np.array([0.15])
@@ -1093,12 +1100,7 @@ def test_limits_set_after_finalize_hold():
     state.body_q.assign(poses)
     state.body_q_prev.assign(art.retract(poses, np.array([-0.03])))  # swinging towards +0.2 at 3 rad/s
     state.joint_q.assign(start)
-    angles = []
-    for _ in range(50):
-        following = model.state(requires_grad=False)
-        solver.step(state, following, None, 0.01)
-        state = following
-        angles.append(state.joint_q.numpy()[0])
+    _, angles = _stepped(model, state, 50)
     assert 0.19 < max(angles) < 0.2
 
 
