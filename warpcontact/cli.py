@@ -805,16 +805,13 @@ def main(argv=None) -> int:
         if getattr(args, "out", None) is not None:
             # Every command that writes checks its folder and earlier results before any work,
             # a resumed run too (the same command with --resume: it skipped the check, and
-            # replaced a trajectory that a simulate had written there since), once it is
-            # known to have a checkpoint to resume.
+            # replaced a trajectory that a simulate had written there since); a resume with
+            # no checkpoint is told that by the command instead.
             out = _output_folder(args.out)
             _refuse_unwritable_names(out, args.outputs)
             _refuse_input_among_outputs(args, out)
-            if getattr(args, "resume", False):
-                from .tasks import TaskCheckpoint
-
-                TaskCheckpoint(out / CHECKPOINT_NAME).load()
-            _refuse_earlier_results(out, args.outputs, args.overwrite)
+            if not (getattr(args, "resume", False) and not (out / CHECKPOINT_NAME).exists()):
+                _refuse_earlier_results(out, args.outputs, args.overwrite)
         earlier = _earlier_files(args)
         return args.func(args)
     except KeyboardInterrupt:

@@ -2270,8 +2270,10 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
     _check_prim_names(scene.bodies, "body", reserved=(), Sdf=Sdf)
     # The target markers' group takes a name no body has: reserving "targets" refused a body
     # so named only once a whole task run had finished (its resume failed the same way).
-    names = {b.name for b in scene.bodies}
-    markers = next(f"targets{suffix}" for suffix in ("", *(f"_{k}" for k in range(1, len(names) + 2))) if f"targets{suffix}" not in names)
+    names, markers, suffix = {b.name for b in scene.bodies}, "targets", 0
+    while markers in names:
+        suffix += 1
+        markers = f"targets_{suffix}"
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (len(scene.bodies), 7) or len(poses) == 0 or not np.isfinite(poses).all():
         raise ValueError(f"poses: expected finite (frames, {len(scene.bodies)}, 7) with at least one frame, got {poses.shape}")
