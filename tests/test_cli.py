@@ -477,6 +477,28 @@ def test_simulate_interrupted_outside_the_step_keeps_its_frames(tmp_path, capsys
     assert Usd.Stage.Open(str(tmp_path / "trajectory.usda")).GetEndTimeCode() == 3
 
 
+def test_simulate_interrupted_while_writing_keeps_every_frame(tmp_path, capsys, monkeypatch):
+    """Ctrl-C after the last step, while the outputs were written, ended with "interrupted"
+    and no outputs at all: every simulated frame was lost."""
+    import signal
+
+    from warpcontact import io as wc_io
+
+    real = wc_io.model_to_scene_poses
+
+    def interrupted(*args, **kwargs):
+        signal.raise_signal(signal.SIGINT)  # a real Ctrl-C, not a raised exception
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(wc_io, "model_to_scene_poses", interrupted)
+    assert main(["simulate", "push", "--frames", "3", "--out", str(tmp_path)]) == 130
+    assert "interrupted while the outputs were written" in capsys.readouterr().err
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["frames"] == 3 and "stopped" not in summary
+    assert Usd.Stage.Open(str(tmp_path / "trajectory.usda")).GetEndTimeCode() == 3
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # given back
+
+
 def test_a_write_refused_by_the_system_is_an_error_line(tmp_path, capsys, monkeypatch):
     """A folder that passes the writability check can still refuse the write (sysfs as root,
     a full disk): the run ended in a traceback."""

@@ -1,9 +1,12 @@
 """Command-line entry point: ``warpcontact run | compare | list | simulate | demo | bench ...``."""
 
 import argparse
+import contextlib
 import json
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -104,6 +107,39 @@ def _simulate(args) -> int:
             stopped = {"frame": len(states) - 1, "error": "interrupted"}
             break
     seconds = time.perf_counter() - start
+    with _interrupts_held() as interrupted:
+        _write_simulation(scene, scene_path, model, states, iterations, stopped, dt, seconds, out)
+    newton = f", mean {np.mean(iterations):.1f} Newton iterations per frame" if iterations else ""
+    print(f"wrote {trajectory} and {out / 'summary.json'} ({seconds:.1f} s{newton})")
+    if stopped:
+        print(f"error: frame {stopped['frame']}: {stopped['error']}; the outputs hold the {stopped['frame']} frames before it", file=sys.stderr)
+        return 130 if stopped["error"] == "interrupted" else 1
+    if interrupted:
+        print("interrupted while the outputs were written: they were finished first and hold every frame", file=sys.stderr)
+        return 130
+    return 0
+
+
+@contextlib.contextmanager
+def _interrupts_held():
+    """Ctrl-C held back until the block ends, for writes of results already computed (an
+    interruption while ``simulate`` wrote its trajectory lost every simulated frame). Yields a
+    list that is not empty if one came."""
+    came = []
+    if threading.current_thread() is not threading.main_thread():
+        yield came  # only the main thread may set signal handlers (and only it gets SIGINT)
+        return
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: came.append(signum))
+    try:
+        yield came
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _write_simulation(scene, scene_path, model, states, iterations, stopped, dt, seconds, out):
+    """``simulate``'s trajectory.usda and summary.json, replaced as one set."""
+    from . import io
+
     q = np.array([s.body_q.numpy() for s in states])
     targets = {
         b.name: {"target": b.target_position.tolist(), "final": q[-1, i, :3].tolist(), "distance": float(np.linalg.norm(q[-1, i, :3] - b.target_position))}
@@ -124,12 +160,6 @@ def _simulate(args) -> int:
     with replace_files(out, ("trajectory.usda", "summary.json")) as staged:
         io.export_trajectory(scene, io.model_to_scene_poses(scene, model, q), staged / "trajectory.usda")
         replace_json(staged / "summary.json", summary)
-    newton = f", mean {np.mean(iterations):.1f} Newton iterations per frame" if iterations else ""
-    print(f"wrote {trajectory} and {out / 'summary.json'} ({seconds:.1f} s{newton})")
-    if stopped:
-        print(f"error: frame {stopped['frame']}: {stopped['error']}; the outputs hold the {stopped['frame']} frames before it", file=sys.stderr)
-        return 130 if stopped["error"] == "interrupted" else 1
-    return 0
 
 
 def _resolve_scene_path(name: str) -> Path:
