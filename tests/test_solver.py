@@ -1375,7 +1375,7 @@ def test_wrong_dtypes_velocities_and_overflowing_terms_get_named_errors():
     with pytest.raises(ValueError, match="control.body_target: expected a wp.array of 1 wp.transformd.*got transformf"):
         solver.step(state, model.state(), wc.Control(wp.array(model.initial_q, dtype=wp.transformf)), 0.01)
     # A NaN velocity was written into body_q_prev silently.
-    with pytest.raises(ValueError, match=r"body 0's velocities give a non-finite previous pose \(linear \[nan, 0.0, 0.0\]"):
+    with pytest.raises(ValueError, match=r"body 0: its velocities give a non-finite previous pose \(linear \[nan, 0.0, 0.0\]"):
         wc.set_body_velocity(state, wp.array([[np.nan, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(1, dtype=wp.vec3d), 0.01)
     # Non-finite per-body terms were blamed on the leaf searches of no pair.
     control = model.control()
@@ -1732,6 +1732,15 @@ def test_set_body_velocity_refuses_half_a_turn_a_step():
     with pytest.raises(ValueError, match=r"angular_velocity: body 0 turns 4 rad in one step of 0.04 s \(100 rad/s\).*reduce dt below 0.0314 s"):
         wc.set_body_velocity(state, wp.zeros(1, dtype=wp.vec3d), wp.array([[0.0, 0.0, 100.0]], dtype=wp.vec3d), 0.04)
     np.testing.assert_array_equal(state.body_q_prev.numpy(), before)
+    # Named as the rest of the package names bodies, where the caller gives the names (the
+    # State holds none; the CLI, the tasks and the benches give the model's).
+    with pytest.raises(ValueError, match=r"angular_velocity: body 'spinner' \(index 0\) turns 4 rad"):
+        wc.set_body_velocity(state, wp.zeros(1, dtype=wp.vec3d), wp.array([[0.0, 0.0, 100.0]], dtype=wp.vec3d), 0.04, body_names=["spinner"])
+    with pytest.raises(ValueError, match=r"linear_velocity, angular_velocity: body 'spinner' \(index 0\): its velocities give a non-finite"):
+        wc.set_body_velocity(state, wp.array([[np.inf, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(1, dtype=wp.vec3d), 0.04, body_names=["spinner"])
+    with pytest.raises(ValueError, match="body_names: expected 1 names, one per body, got 2"):
+        wc.set_body_velocity(state, wp.zeros(1, dtype=wp.vec3d), wp.zeros(1, dtype=wp.vec3d), 0.04, body_names=["a", "b"])
+    state = model.state()
     wc.set_body_velocity(state, wp.zeros(1, dtype=wp.vec3d), wp.array([[0.0, 0.0, 78.0]], dtype=wp.vec3d), 0.04)  # 3.12 rad
     nxt = model.state()
     wc.ImplicitSolver(model).step(state, nxt, None, 0.04)

@@ -621,7 +621,7 @@ def _simulate_frames(scene, setup: dict, *, mode: str, frames: int, warmup: int,
         control.body_target.assign(targets)
     lin, ang = scene.initial_velocities()
     start = model.state(requires_grad=True)
-    set_body_velocity(start, wp.array(lin, dtype=wp.vec3d, device=dev), wp.array(ang, dtype=wp.vec3d, device=dev), dt)
+    set_body_velocity(start, wp.array(lin, dtype=wp.vec3d, device=dev), wp.array(ang, dtype=wp.vec3d, device=dev), dt, body_names=model.body_names)
     samples = {"forward": [], "iterations": [], "contact": [], "backward": [], "leaf": []}
     poses, error, first = [], None, None
 

@@ -83,7 +83,7 @@ def _simulate(args) -> int:
     dt = scene.settings.time_step
     lin, ang = scene.initial_velocities()
     states = [model.state(requires_grad=False)]
-    set_body_velocity(states[0], wp.array(lin, dtype=wp.vec3d, device=model.device), wp.array(ang, dtype=wp.vec3d, device=model.device), dt)
+    set_body_velocity(states[0], wp.array(lin, dtype=wp.vec3d, device=model.device), wp.array(ang, dtype=wp.vec3d, device=model.device), dt, body_names=model.body_names)
     control = model.control(requires_grad=False)
     iterations = []
     stopped = None

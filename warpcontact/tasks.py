@@ -637,7 +637,7 @@ class TaskProblem:
             if not art.identity:
                 raise ValueError(f"{source}: task rollouts of articulated scenes start at rest; remove the bodies' authored velocities (physics:velocity, physics:angularVelocity)")
             state = self.model.state(requires_grad=False)
-            set_body_velocity(state, *(wp.array(v, dtype=wp.vec3d, device=device) for v in self._initial_velocity), self.dt)
+            set_body_velocity(state, *(wp.array(v, dtype=wp.vec3d, device=device) for v in self._initial_velocity), self.dt, body_names=self.model.body_names)
             self.start = (self.model.initial_q.copy(), state.body_q_prev.numpy().copy())
         else:
             self.start = (self.model.initial_q.copy(), self.model.initial_q.copy())
@@ -732,7 +732,7 @@ class TaskProblem:
                 velocity = wp.array(self._initial_velocity[0], dtype=wp.vec3d, device=device, requires_grad=True)
                 base_velocity = wp.vec3d(*map(float, self._initial_velocity[0][self.body]))
                 wp.launch(task_kernels.initial_state_kernel, dim=1, inputs=[self.body, base, base_velocity, self._dof_codes, values_arr], outputs=[states[0].body_q, velocity], device=device)
-                set_body_velocity(states[0], velocity, wp.array(self._initial_velocity[1], dtype=wp.vec3d, device=device, requires_grad=True), self.dt)
+                set_body_velocity(states[0], velocity, wp.array(self._initial_velocity[1], dtype=wp.vec3d, device=device, requires_grad=True), self.dt, body_names=self.model.body_names)
             for f in range(frames):
                 if self.kind == "pd_targets":
                     wp.launch(task_kernels.pd_target_kernel, dim=1, inputs=[self.body, base, self._dof_codes, values_arr, f], outputs=[controls[f].body_target], device=device)

@@ -143,14 +143,15 @@ class Model:
         )
 
 
-def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity: wp.array, dt: float):
+def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity: wp.array, dt: float, *, body_names=None):
     """Set ``state.body_q_prev`` so that the state moves with the given velocities.
 
     A State holds velocities only as its two poses one step apart, so they mean these
     velocities for steps of ``dt`` alone: stepped with another dt they scale by dt / that dt
     (1 m/s set for 0.04 s steps moves at 4 m/s in 0.01 s steps). To change dt mid-run, set
     the velocities again for the new dt. Two poses tell turns apart only below half a turn a
-    step, so |angular velocity| * dt must stay below pi (ValueError naming the body).
+    step, so |angular velocity| * dt must stay below pi (ValueError naming the body: by
+    ``body_names``, e.g. ``model.body_names``, where given, else by index).
 
     Args:
         linear_velocity: (nbodies,) vec3d centre-of-mass velocities (m/s).
@@ -170,6 +171,12 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
         if not isinstance(arr, wp.array) or arr.shape != (n,) or arr.dtype != wp.vec3d:
             raise ValueError(f"{label}: expected a wp.array of {n} vec3d")
     check_time_step(dt)
+    if body_names is not None and len(body_names) != n:
+        raise ValueError(f"body_names: expected {n} names, one per body, got {len(body_names)}")
+
+    def body(b):
+        return f"body {b}" if body_names is None else f"body {body_names[b]!r} (index {b})"
+
     # A turn of pi or more a step reads back as a shorter one the other way: 100 rad/s at
     # dt 0.04 s simulated as -57 rad/s.
     with np.errstate(invalid="ignore", over="ignore"):
@@ -179,7 +186,7 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
     if fast.size:
         b = fast[0]
         raise ValueError(
-            f"angular_velocity: body {b} turns {turn[b]:.4g} rad in one step of {dt:g} s ({turn[b] / dt:.4g} rad/s); a state's two "
+            f"angular_velocity: {body(b)} turns {turn[b]:.4g} rad in one step of {dt:g} s ({turn[b] / dt:.4g} rad/s); a state's two "
             f"poses can only represent turns below pi a step, so reduce dt below {np.pi / (turn[b] / dt):.3g} s"
         )
     wp.launch(
@@ -194,6 +201,6 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
     bad = np.flatnonzero(~np.isfinite(state.body_q_prev.numpy()).all(axis=1))
     if bad.size:
         raise ValueError(
-            f"linear_velocity, angular_velocity: body {bad[0]}'s velocities give a non-finite previous pose "
+            f"linear_velocity, angular_velocity: {body(bad[0])}: its velocities give a non-finite previous pose "
             f"(linear {linear_velocity.numpy()[bad[0]].tolist()} m/s, angular {angular_velocity.numpy()[bad[0]].tolist()} rad/s)"
         )
