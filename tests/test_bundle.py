@@ -23,6 +23,19 @@ def test_sigma_schedule_decays_from_ten_to_one_learning_rate():
         BundleSettings(seed=-1).check()  # was numpy's "expected non-negative integer"
     with pytest.raises(ValueError, match="sigma"):
         BundleSettings(final_sigma=-1.0).sigmas(3, 0.01)
+    # Bad sigmas were accepted until the descent began (after --init-samples' rollouts), a
+    # text sigma was numpy's TypeError, and a rising schedule ran though sigma decays.
+    for settings, message in (
+        (BundleSettings(initial_sigma=-1.0), r"initial_sigma: must be None \(scaled with the learning rate\) or a positive finite number, got -1.0"),
+        (BundleSettings(final_sigma=float("nan")), "final_sigma: must be None .* got nan"),
+        (BundleSettings(initial_sigma="0.5"), "initial_sigma: .* got '0.5'"),
+        (BundleSettings(initial_sigma=True), "initial_sigma: .* got True"),
+        (BundleSettings(initial_sigma=1e-3, final_sigma=10.0), r"final_sigma: must be at most initial_sigma \(sigma decays\), got 10.0 > 0.001"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            TaskProblem(space_billiards(), settings=TaskSettings(horizon=5, receding_horizon=0, iterations=2, learning_rate=0.3), model="gb", bundle=settings)
+    with pytest.raises(ValueError, match=r"sigma: the schedule must decay .* got 0.5 and 1.0"):
+        BundleSettings(initial_sigma=0.5).sigmas(3, 1.0)  # the final sigma, the learning rate, above it
 
 
 def test_bundle_averages_perturbed_gradients_reproducibly():
@@ -41,10 +54,13 @@ def test_infeasible_samples_are_dropped():
         return quadratic(values, gradient)
 
     x = np.array([[1.0]])
-    _, grad, _ = bundled_gradient(rollout, sigmas=np.array([1.0]), samples=64, rng=np.random.default_rng(0))(x)
+    tally = {}
+    _, grad, _ = bundled_gradient(rollout, sigmas=np.array([1.0]), samples=64, rng=np.random.default_rng(0), tally=tally)(x)
     w = np.random.default_rng(0).standard_normal((64, 1, 1))
     kept = (x + w)[(x + w)[:, 0, 0] <= 1.0]
     np.testing.assert_allclose(grad, np.mean(2.0 * kept, axis=0))
+    # The dropped samples bias the average, so they are counted (they went unrecorded).
+    assert tally == {"bundle_samples": 64, "bundle_samples_dropped": 64 - len(kept)} and 0 < len(kept) < 64
     nothing = bundled_gradient(rollout, sigmas=np.array([1e-9]), samples=4, rng=np.random.default_rng(0))
     assert np.all(nothing(np.array([[2.0]]))[1] == 0.0)
 
@@ -110,6 +126,7 @@ def test_each_model_runs_a_short_optimisation(model):
         assert result.loss_history[1] == result.loss_history[0]  # zero gradient from rest
     if model == "gb":
         assert result.extra["bundle"] == {"samples": 2, "initial_sigma": None, "final_sigma": None, "seed": 1}
+        assert result.extra["bundle_samples"] == 2 and result.extra["bundle_samples_dropped"] == 0  # one update's bundle
 
 
 def test_the_sigma_schedule_spans_a_window_s_adam_updates(monkeypatch):
@@ -120,8 +137,8 @@ def test_the_sigma_schedule_spans_a_window_s_adam_updates(monkeypatch):
     used = []
     real = tasks.bundled_gradient
 
-    def recording(rollout, *, sigmas, samples, rng):
-        estimate = real(rollout, sigmas=sigmas, samples=samples, rng=rng)
+    def recording(rollout, *, sigmas, samples, rng, tally):
+        estimate = real(rollout, sigmas=sigmas, samples=samples, rng=rng, tally=tally)
 
         def call(values, gradient=True):
             if gradient:

@@ -6,8 +6,9 @@ at Gaussian perturbations,
 
     g(x) = 1/N sum_i grad f(x + sigma_t w_i),   w_i ~ N(0, I),
 
-an unbiased estimate of the gradient of the smoothed loss E[f(x + sigma_t w)]. It feeds
-the same Adam as the exact gradient (``tasks._descend``); only the gradient changes.
+an unbiased estimate of the gradient of the smoothed loss E[f(x + sigma_t w)] while every
+sample's rollout is feasible. It feeds the same Adam as the exact gradient
+(``tasks._descend``); only the gradient changes.
 
 Choices (docs/architecture.md explains them):
 
@@ -19,7 +20,10 @@ Choices (docs/architecture.md explains them):
 - Samples come from one ``numpy.random.Generator`` seeded by ``BundleSettings.seed``, so a
   run is reproducible.
 - A sample whose rollout is infeasible (bodies intersecting at the start, or a failed step)
-  is dropped from the average; with no feasible sample the gradient is zero.
+  is dropped from the average; with no feasible sample the gradient is zero. The average
+  then leans away from where rollouts fail (a cue placed into the ball it should strike):
+  the drawn and dropped samples are counted (``tally``; a task run's ``extra`` and
+  metrics.json, ``bundle_samples`` and ``bundle_samples_dropped``).
 - The reported loss is f(x) itself (one extra rollout without gradient), so loss histories
   compare directly with exact-gradient runs.
 """
@@ -30,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._validate import is_whole
+from ._validate import is_real, is_whole
 from .solver import SolverError
 
 __all__ = ["BundleSettings", "bundled_gradient"]
@@ -47,10 +51,19 @@ class BundleSettings:
     seed: int = 0
 
     def check(self) -> None:
-        """Raises ValueError for a sample count below 1 or a seed below 0 (or not whole)."""
+        """Raises ValueError for a sample count below 1 or a seed below 0 (or not whole), a
+        sigma that is not None or a positive finite number, or a final sigma above the
+        initial one (the schedule decays). Checked when a task problem is made, before any
+        rollout."""
         for name, value, low in (("samples", self.samples, 1), ("seed", self.seed, 0)):
             if not is_whole(value) or value < low:
                 raise ValueError(f"{name}: must be a whole number >= {low}, got {value!r}")
+        for name in ("initial_sigma", "final_sigma"):
+            value = getattr(self, name)
+            if value is not None and not (is_real(value) and np.isfinite(value) and value > 0):
+                raise ValueError(f"{name}: must be None (scaled with the learning rate) or a positive finite number, got {value!r}")
+        if self.initial_sigma is not None and self.final_sigma is not None and self.final_sigma > self.initial_sigma:
+            raise ValueError(f"final_sigma: must be at most initial_sigma (sigma decays), got {self.final_sigma!r} > {self.initial_sigma!r}")
 
     def sigmas(self, iterations: int, learning_rate: float) -> np.ndarray:
         """(iterations,) geometric sigma schedule of one optimisation window's ``iterations``
@@ -58,12 +71,12 @@ class BundleSettings:
         self.check()
         first = 10.0 * learning_rate if self.initial_sigma is None else self.initial_sigma
         last = learning_rate if self.final_sigma is None else self.final_sigma
-        if not (np.isfinite(first) and np.isfinite(last) and first > 0 and last > 0):
-            raise ValueError(f"sigma: initial and final sigma must be positive, got {first} and {last}")
+        if not (np.isfinite(first) and np.isfinite(last) and 0 < last <= first):
+            raise ValueError(f"sigma: the schedule must decay from a positive initial sigma to a positive final one, got {first!r} and {last!r} (learning rate {learning_rate!r})")
         return np.geomspace(first, last, max(iterations, 1))
 
 
-def bundled_gradient(rollout, *, sigmas: np.ndarray, samples: int, rng: np.random.Generator):
+def bundled_gradient(rollout, *, sigmas: np.ndarray, samples: int, rng: np.random.Generator, tally: dict | None = None):
     """Wrap ``rollout(values, gradient=True) -> (loss, grad, trajectory)`` so that its k-th
     feasible call asking for a gradient (one per Adam update) returns the bundled gradient
     with sigma = sigmas[k] (the last sigma once the schedule is used up), and the loss and
@@ -72,7 +85,8 @@ def bundled_gradient(rollout, *, sigmas: np.ndarray, samples: int, rng: np.rando
     returns no gradient. A call whose rollout at ``values`` fails (an update the descent then
     halves back) takes no place in the schedule: it used to, so each one skipped a sigma. The
     count of bundles drawn so far is the attribute ``calls`` (a checkpoint saves and
-    restores it)."""
+    restores it). ``tally``, if given, counts the samples drawn (``bundle_samples``) and
+    those dropped as infeasible (``bundle_samples_dropped``)."""
 
     def estimate(values, gradient=True):
         sigma = float(sigmas[min(estimate.calls, len(sigmas) - 1)])
@@ -89,6 +103,9 @@ def bundled_gradient(rollout, *, sigmas: np.ndarray, samples: int, rng: np.rando
                 continue
             total += grad
             feasible += 1
+        if tally is not None:
+            tally["bundle_samples"] = tally.get("bundle_samples", 0) + samples
+            tally["bundle_samples_dropped"] = tally.get("bundle_samples_dropped", 0) + samples - feasible
         return loss, total / max(feasible, 1), trajectory
 
     estimate.calls = 0

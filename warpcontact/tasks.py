@@ -764,8 +764,9 @@ class TaskProblem:
 
     # --- optimisation ---------------------------------------------------------------------
 
-    def _objective(self, start: tuple, frames: int, rng):
-        """values -> (loss, gradient or its bundled estimate, trajectory) of one window."""
+    def _objective(self, start: tuple, frames: int, rng, tally: dict | None = None):
+        """values -> (loss, gradient or its bundled estimate, trajectory) of one window;
+        gb counts its samples into ``tally``."""
 
         def exact(values, gradient=True):
             return self.rollout(values, start, frames, gradient=gradient)
@@ -775,7 +776,7 @@ class TaskProblem:
         # N iterations make N - 1 Adam updates (the last iterate is only evaluated): the
         # schedule spans the updates, so the final sigma drives the last one.
         sigmas = self.bundle.sigmas(self.settings.iterations - 1, self.settings.learning_rate)
-        return bundled_gradient(exact, sigmas=sigmas, samples=self.bundle.samples, rng=rng)
+        return bundled_gradient(exact, sigmas=sigmas, samples=self.bundle.samples, rng=rng, tally=tally)
 
     def optimize(self, *, progress=None, checkpoint=None, resume: bool = False, keep_checkpoint: bool = False) -> TaskResult:
         """Gradient descent from the trivial guess (zero offsets); see the module docstring.
@@ -830,7 +831,7 @@ class TaskProblem:
 
         def objective_at(start, frames, resumed):
             """The window's objective; a resumed window's gb bundles continue their count."""
-            objective = self._objective(start, frames, rng)
+            objective = self._objective(start, frames, rng, extra)
             if resumed is not None and hasattr(objective, "calls"):
                 objective.calls = resumed["bundle_calls"]
             return objective
