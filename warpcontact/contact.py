@@ -300,6 +300,11 @@ class ContactModel:
             chunks off).
     """
 
+    # Where this model's conservative advancement holds Newton steps back, it holds a
+    # friction-exact direction back about as much as the plain one, so the implicit step skips
+    # building it (``solver._FRICTION_MODEL_MIN_ALPHA``).
+    crawl_skips_friction_model = True
+
     def __init__(
         self,
         meshes,

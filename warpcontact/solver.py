@@ -90,10 +90,11 @@ def _taped_control_arrays(control: Control | None) -> list[tuple[str, wp.array]]
 _FRICTION_MODEL_TOLERANCE = 1e-2
 _FRICTION_MODEL_ITERATIONS = 10
 _FRICTION_MODEL_HALVINGS = 20
-# Nor is it built where conservative advancement admits less than this fraction of the plain
-# Newton step: only that fraction is taken, so the model's exact friction over the whole step
-# changes little of it, at one friction evaluation per trial (a pushing rod turning against
-# its box, held to 2% a step for 40-60 iterations, spent 80% of its time there).
+# Nor is it built while conservative advancement holds the steps below this fraction (the
+# last Newton step's bound; contact models with ``crawl_skips_friction_model``): only that
+# fraction of a step is taken, so the model's exact friction over the whole step changes
+# little of it, at one friction evaluation per trial (a pushing rod turning against its box,
+# held to 2-5% a step for 15-60 iterations a frame, spent 80% of its time there).
 _FRICTION_MODEL_MIN_ALPHA = 0.3
 
 # A Newton direction that conservative advancement cuts below this fraction is blocked by a
@@ -340,7 +341,9 @@ class ImplicitSolver:
             cluster pair's sphere separation) that one line-search step may close.
         exact_friction_steps: with friction on free bodies, take Newton directions that
             minimise a model of L with the friction term exact (``_friction_exact_direction``)
-            while a step is longer than the slip smoothing length. On by default, on a CPU
+            while a step is longer than the slip smoothing length, except while conservative
+            advancement holds the steps below 30% of their length (the contact model's
+            ``crawl_skips_friction_model``; there only that part is taken). On by default, on a CPU
             and on a GPU alike: it takes fewer Newton iterations on every measured scene, and
             over whole runs of frames the friction evaluations it adds cost less than the
             iterations they save (on a GPU's impact frames alone, about as much;
@@ -938,6 +941,7 @@ class ImplicitSolver:
         step_length = np.inf
         # Trial evaluations whose leaf searches failed: a failing step names them.
         unsolved = _UnsolvedTrials()
+        last_alpha = None  # the last Newton step's advancement bound
         for iterations in range(1, self.max_iterations + 1):
             direction, floored = self._saddle_free_direction(hess, grad)
             full, travel = self._step_travel(direction, None if art is None else jacobian)
@@ -945,15 +949,11 @@ class ImplicitSolver:
             # Over slips much shorter than the smoothing length the friction term's quadratic
             # model holds, and plain Newton converges quadratically.
             friction = step_in.friction
-            # The plain direction's advancement bound, kept when the friction model is not built.
-            plain_alpha = None
-            if self.exact_friction_steps and art is None and friction is not None and friction.pairs and step_length > friction.slip_smoothing:
-                plain_alpha = model.contact.advancement_limit(full, fraction=self.advancement_fraction, frame=q_lists)
-                if plain_alpha >= _FRICTION_MODEL_MIN_ALPHA:
-                    direction = self._friction_exact_direction(q, grad, hess, direction, friction)
-                    full, travel = self._step_travel(direction)
-                    step_length = float(travel.max())
-                    plain_alpha = None
+            crawling = model.contact.crawl_skips_friction_model and last_alpha is not None and last_alpha < _FRICTION_MODEL_MIN_ALPHA
+            if self.exact_friction_steps and art is None and friction is not None and friction.pairs and step_length > friction.slip_smoothing and not crawling:
+                direction = self._friction_exact_direction(q, grad, hess, direction, friction)
+                full, travel = self._step_travel(direction)
+                step_length = float(travel.max())
             converged_length = max(min(tol, _CONVERGED_ACCELERATION * dt * dt), _ROUNDING * float(np.abs(q[dynamic, :3]).max(initial=0.0)))
             # A step the saddle-free floor made short is no convergence (_saddle_free_direction).
             hidden = 0.0 if floored is None else float(self._step_travel(floored, None if art is None else jacobian)[1].max())
@@ -967,15 +967,13 @@ class ImplicitSolver:
             # warm start): trials come after this.
             frame = model.contact.advancement_frame() if art is not None else q_lists
             q_lists = None
-            if plain_alpha is None:
-                alpha = min(model.contact.advancement_limit(full, fraction=self.advancement_fraction, frame=frame), self._limit_step(q, coords, direction))
-            else:
-                alpha = plain_alpha  # rigid bodies only: no joint limits
+            alpha = min(model.contact.advancement_limit(full, fraction=self.advancement_fraction, frame=frame), self._limit_step(q, coords, direction))
             if art is None and alpha < _BLOCKED_ALPHA:
                 direction, alpha = self._unblocked_direction(grad, hess, direction, alpha, frame)
                 full, travel = self._step_travel(direction)
                 step_length = float(travel.max())
                 decrement = -float(grad @ direction)
+            last_alpha = alpha
             # L's rounding scales with its terms, not with L, which is ~0 in free flight under
             # a locally supported contact model (ipc, sdrs): short steps are taken in full.
             quadratic_regime = (decrement <= 1e-10 * max(abs(value), 1e-300) or step_length <= rounding_step) and alpha == 1.0
