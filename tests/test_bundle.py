@@ -36,6 +36,39 @@ def test_sigma_schedule_decays_from_ten_to_one_learning_rate():
             TaskProblem(space_billiards(), settings=TaskSettings(horizon=5, receding_horizon=0, iterations=2, learning_rate=0.3), model="gb", bundle=settings)
     with pytest.raises(ValueError, match=r"sigma: the schedule must decay .* got 0.5 and 1.0"):
         BundleSettings(initial_sigma=0.5).sigmas(3, 1.0)  # the final sigma, the learning rate, above it
+    # The same when the task problem is made (it rose, refused only once the descent began).
+    with pytest.raises(ValueError, match=r"sigma: the schedule must decay .* got 0.01 and 0.3"):
+        TaskProblem(space_billiards(), settings=TaskSettings(horizon=5, receding_horizon=0, iterations=2, learning_rate=0.3), model="gb", bundle=BundleSettings(initial_sigma=0.01))
+
+
+def test_a_checkpoint_without_sample_counts_says_they_start_at_the_resume(tmp_path):
+    """A gb checkpoint written before the counts existed resumed with them from zero, as if
+    the samples before it had never been drawn."""
+    import json
+
+    def problem():
+        settings = TaskSettings(horizon=5, receding_horizon=0, iterations=5, learning_rate=0.3)
+        return TaskProblem(space_billiards(), settings=settings, model="gb", bundle=BundleSettings(samples=2, seed=1))
+
+    def stop(done, total, loss):
+        if done >= 3:
+            raise KeyboardInterrupt
+
+    checkpoint = tmp_path / "run.npz"
+    with pytest.raises(KeyboardInterrupt):
+        problem().optimize(checkpoint=checkpoint, progress=stop)
+    saved = dict(np.load(checkpoint))
+    meta = json.loads(str(saved["meta"]))
+    assert meta["extra"]["bundle_samples"] > 0
+    resumed = problem().optimize(checkpoint=checkpoint, resume=True)
+    assert resumed.extra["bundle_samples"] == 8 and "bundle_samples_counted_since_resume" not in resumed.extra  # as uninterrupted
+    with pytest.raises(KeyboardInterrupt):
+        problem().optimize(checkpoint=checkpoint, progress=stop)
+    for key in ("bundle_samples", "bundle_samples_dropped"):
+        del meta["extra"][key]
+    np.savez(checkpoint, **{**saved, "meta": np.array(json.dumps(meta))})
+    older = problem().optimize(checkpoint=checkpoint, resume=True)
+    assert older.extra["bundle_samples_counted_since_resume"] is True and older.extra["bundle_samples"] < 8
 
 
 def test_bundle_averages_perturbed_gradients_reproducibly():

@@ -497,6 +497,14 @@ def test_simulate_interrupted_while_writing_keeps_every_frame(tmp_path, capsys, 
     assert summary["frames"] == 3 and "stopped" not in summary
     assert Usd.Stage.Open(str(tmp_path / "trajectory.usda")).GetEndTimeCode() == 3
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # given back
+    # A process that ignores SIGINT (a job started with & by a script) still ignores it: it
+    # ended with "interrupted" and exit status 130.
+    ignored = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        assert main(["simulate", "push", "--frames", "1", "--out", str(tmp_path / "ignored")]) == 0
+    finally:
+        signal.signal(signal.SIGINT, ignored)
+    assert "interrupted" not in capsys.readouterr().err
 
 
 def test_a_write_refused_by_the_system_is_an_error_line(tmp_path, capsys, monkeypatch):

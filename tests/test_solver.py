@@ -1739,8 +1739,11 @@ def test_set_body_velocity_refuses_half_a_turn_a_step():
         wc.set_body_velocity(state, wp.zeros(1, dtype=wp.vec3d), wp.array([[0.0, 0.0, 100.0]], dtype=wp.vec3d), 0.04, body_names=["spinner"])
     with pytest.raises(ValueError, match=r"linear_velocity, angular_velocity: body 'spinner' \(index 0\): its velocities give a non-finite"):
         wc.set_body_velocity(state, wp.array([[np.inf, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(1, dtype=wp.vec3d), 0.04, body_names=["spinner"])
-    with pytest.raises(ValueError, match="body_names: expected 1 names, one per body, got 2"):
-        wc.set_body_velocity(state, wp.zeros(1, dtype=wp.vec3d), wp.zeros(1, dtype=wp.vec3d), 0.04, body_names=["a", "b"])
+    for names in (["a", "b"], "a", 5, [5]):  # a text was taken as one name per character, 5 was a TypeError
+        with pytest.raises(ValueError, match=r"body_names: expected 1 names \(str\), one per body \(model.body_names\), got"):
+            wc.set_body_velocity(state, wp.zeros(1, dtype=wp.vec3d), wp.zeros(1, dtype=wp.vec3d), 0.04, body_names=names)
+    with pytest.raises(ValueError, match=r"body 'spinner' \(index 0\) turns"):  # not np.str_('spinner')
+        wc.set_body_velocity(state, wp.zeros(1, dtype=wp.vec3d), wp.array([[0.0, 0.0, 100.0]], dtype=wp.vec3d), 0.04, body_names=np.array(["spinner"]))
     state = model.state()
     wc.set_body_velocity(state, wp.zeros(1, dtype=wp.vec3d), wp.array([[0.0, 0.0, 78.0]], dtype=wp.vec3d), 0.04)  # 3.12 rad
     nxt = model.state()

@@ -53,8 +53,8 @@ class BundleSettings:
     def check(self) -> None:
         """Raises ValueError for a sample count below 1 or a seed below 0 (or not whole), a
         sigma that is not None or a positive finite number, or a final sigma above the
-        initial one (the schedule decays). Checked when a task problem is made, before any
-        rollout."""
+        initial one (the schedule decays). A task problem checks its whole schedule
+        (``sigmas``, with its learning rate) when it is made, before any rollout."""
         for name, value, low in (("samples", self.samples, 1), ("seed", self.seed, 0)):
             if not is_whole(value) or value < low:
                 raise ValueError(f"{name}: must be a whole number >= {low}, got {value!r}")

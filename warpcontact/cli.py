@@ -126,8 +126,10 @@ def _interrupts_held():
     interruption while ``simulate`` wrote its trajectory lost every simulated frame). Yields a
     list that is not empty if one came."""
     came = []
-    if threading.current_thread() is not threading.main_thread():
-        yield came  # only the main thread may set signal handlers (and only it gets SIGINT)
+    # Only the main thread may set handlers (and only it gets SIGINT); a SIGINT the process
+    # ignores (a job started with & by a script) or handles its own way stays so.
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield came
         return
     previous = signal.signal(signal.SIGINT, lambda signum, frame: came.append(signum))
     try:

@@ -617,12 +617,15 @@ class TaskProblem:
         self.scene = scene
         self.model_name = model
         self.bundle = (bundle or BundleSettings()) if model == "gb" else None
-        if self.bundle is not None:
-            self.bundle.check()
         self.kind = task.control
         if settings is not None:
             settings.check()
         self.settings = settings or TaskSettings.from_task(scene)
+        if self.bundle is not None:
+            # The schedule itself, with the learning rate that sets its defaults: a sigma given
+            # below the default final one (the learning rate) rose, refused only once the
+            # descent began.
+            self.bundle.sigmas(self.settings.iterations - 1, self.settings.learning_rate)
         self.model = scene.build_model(device=device)
         self.solver = ImplicitSolver(self.model)
         self.dt = scene.settings.time_step
@@ -814,6 +817,9 @@ class TaskProblem:
         if saved and rng is not None:
             rng.bit_generator.state = saved["rng"]
         extra = saved["extra"] if saved else ({"bundle": dataclasses.asdict(self.bundle)} if self.bundle else {})
+        if saved and self.bundle is not None and "bundle_samples" not in extra:
+            # A checkpoint from before the sample counts: they start at this resume.
+            extra["bundle_samples_counted_since_resume"] = True
         receding = self.kind == "pd_targets" and s.window < s.horizon
 
         def saver(objective, **outer):

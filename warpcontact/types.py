@@ -157,6 +157,8 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
         linear_velocity: (nbodies,) vec3d centre-of-mass velocities (m/s).
         angular_velocity: (nbodies,) vec3d angular velocities about world axes (rad/s).
         dt: the time step the state will be advanced with (s).
+        body_names: the bodies' names for the errors (``model.body_names``); None names
+            them by index.
 
     Recorded on an active ``wp.Tape``, so gradients reach the velocity arrays.
     """
@@ -171,11 +173,11 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
         if not isinstance(arr, wp.array) or arr.shape != (n,) or arr.dtype != wp.vec3d:
             raise ValueError(f"{label}: expected a wp.array of {n} vec3d")
     check_time_step(dt)
-    if body_names is not None and len(body_names) != n:
-        raise ValueError(f"body_names: expected {n} names, one per body, got {len(body_names)}")
+    if body_names is not None and (isinstance(body_names, str) or not isinstance(body_names, (list, tuple, np.ndarray)) or len(body_names) != n or not all(isinstance(name, str) for name in body_names)):
+        raise ValueError(f"body_names: expected {n} names (str), one per body (model.body_names), got {body_names!r}")
 
     def body(b):
-        return f"body {b}" if body_names is None else f"body {body_names[b]!r} (index {b})"
+        return f"body {b}" if body_names is None else f"body {str(body_names[b])!r} (index {b})"
 
     # A turn of pi or more a step reads back as a shorter one the other way: 100 rad/s at
     # dt 0.04 s simulated as -57 rad/s.
