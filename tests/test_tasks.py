@@ -988,10 +988,10 @@ def _failing_from_window(problem, window):
 
     objective, windows = problem._objective, []
 
-    def failing(start, frames, rng):
+    def failing(start, frames, rng, tally=None):
         windows.append(start)
         if len(windows) < window:
-            return objective(start, frames, rng)
+            return objective(start, frames, rng, tally)
 
         def fail(values, gradient=True):
             raise SolverError("implicit step: no convergence after 500 Newton iterations")
