@@ -51,10 +51,10 @@ class BundleSettings:
     seed: int = 0
 
     def check(self) -> None:
-        """Raises ValueError for a sample count below 1 or a seed below 0 (or not whole), a
-        sigma that is not None or a positive finite number, or a final sigma above the
-        initial one (the schedule decays). A task problem checks its whole schedule
-        (``sigmas``, with its learning rate) when it is made, before any rollout."""
+        """Raises ValueError for a sample count below 1 or a seed below 0 (or not whole), or
+        a sigma that is not None or a positive finite number. That the schedule decays needs
+        the learning rate (``sigmas``); a task problem checks it when it is made, before any
+        rollout."""
         for name, value, low in (("samples", self.samples, 1), ("seed", self.seed, 0)):
             if not is_whole(value) or value < low:
                 raise ValueError(f"{name}: must be a whole number >= {low}, got {value!r}")
@@ -62,8 +62,6 @@ class BundleSettings:
             value = getattr(self, name)
             if value is not None and not (is_real(value) and np.isfinite(value) and value > 0):
                 raise ValueError(f"{name}: must be None (scaled with the learning rate) or a positive finite number, got {value!r}")
-        if self.initial_sigma is not None and self.final_sigma is not None and self.final_sigma > self.initial_sigma:
-            raise ValueError(f"final_sigma: must be at most initial_sigma (sigma decays), got {self.final_sigma!r} > {self.initial_sigma!r}")
 
     def sigmas(self, iterations: int, learning_rate: float) -> np.ndarray:
         """(iterations,) geometric sigma schedule of one optimisation window's ``iterations``
