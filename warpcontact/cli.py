@@ -107,8 +107,28 @@ def _simulate(args) -> int:
             stopped = {"frame": len(states) - 1, "error": "interrupted"}
             break
     seconds = time.perf_counter() - start
+    # Held from the first read back: an interruption anywhere in the write lost every frame.
     with _interrupts_held() as interrupted:
-        _write_simulation(scene, scene_path, model, states, iterations, stopped, dt, seconds, out)
+        q = np.array([s.body_q.numpy() for s in states])
+        targets = {
+            b.name: {"target": b.target_position.tolist(), "final": q[-1, i, :3].tolist(), "distance": float(np.linalg.norm(q[-1, i, :3] - b.target_position))}
+            for i, b in enumerate(scene.bodies)
+            if b.target_position is not None
+        }
+        summary = {
+            "scene": str(scene_path),
+            "device": str(model.device),
+            "frames": len(states) - 1,
+            "time_step": dt,
+            "seconds": seconds,
+            "newton_iterations_mean": float(np.mean(iterations)) if iterations else None,
+            "newton_iterations_max": int(np.max(iterations)) if iterations else None,
+            "targets": targets,
+            **({"stopped": stopped} if stopped else {}),
+        }
+        with replace_files(out, ("trajectory.usda", "summary.json")) as staged:
+            io.export_trajectory(scene, io.model_to_scene_poses(scene, model, q), staged / "trajectory.usda")
+            replace_json(staged / "summary.json", summary)
     newton = f", mean {np.mean(iterations):.1f} Newton iterations per frame" if iterations else ""
     print(f"wrote {trajectory} and {out / 'summary.json'} ({seconds:.1f} s{newton})")
     if stopped:
@@ -136,32 +156,6 @@ def _interrupts_held():
         yield came
     finally:
         signal.signal(signal.SIGINT, previous)
-
-
-def _write_simulation(scene, scene_path, model, states, iterations, stopped, dt, seconds, out):
-    """``simulate``'s trajectory.usda and summary.json, replaced as one set."""
-    from . import io
-
-    q = np.array([s.body_q.numpy() for s in states])
-    targets = {
-        b.name: {"target": b.target_position.tolist(), "final": q[-1, i, :3].tolist(), "distance": float(np.linalg.norm(q[-1, i, :3] - b.target_position))}
-        for i, b in enumerate(scene.bodies)
-        if b.target_position is not None
-    }
-    summary = {
-        "scene": str(scene_path),
-        "device": str(model.device),
-        "frames": len(states) - 1,
-        "time_step": dt,
-        "seconds": seconds,
-        "newton_iterations_mean": float(np.mean(iterations)) if iterations else None,
-        "newton_iterations_max": int(np.max(iterations)) if iterations else None,
-        "targets": targets,
-        **({"stopped": stopped} if stopped else {}),
-    }
-    with replace_files(out, ("trajectory.usda", "summary.json")) as staged:
-        io.export_trajectory(scene, io.model_to_scene_poses(scene, model, q), staged / "trajectory.usda")
-        replace_json(staged / "summary.json", summary)
 
 
 def _resolve_scene_path(name: str) -> Path:
@@ -842,7 +836,7 @@ def main(argv=None) -> int:
             out = _output_folder(args.out)
             _refuse_unwritable_names(out, args.outputs)
             _refuse_input_among_outputs(args, out)
-            if not (getattr(args, "resume", False) and not (out / CHECKPOINT_NAME).exists()):
+            if not getattr(args, "resume", False) or (out / CHECKPOINT_NAME).exists():
                 _refuse_earlier_results(out, args.outputs, args.overwrite)
         earlier = _earlier_files(args)
         return args.func(args)
