@@ -6,7 +6,8 @@ the 9 edge-edge pairs plus the 6 vertex-face projections cover every case. Degen
 (zero-area) triangles skip the face projections; their hull is the union of their edges,
 which the edge-edge pairs already cover. Where the closest points' direction, rounded at a
 gap far below the triangles' size, does not separate them, the separating-axis candidates
-(2 face normals, 9 edge cross products) give an exact one.
+(2 face normals, 9 edge cross products, 6 in-plane edge normals for coplanar pairs) give
+an exact one.
 """
 
 import warp as wp
@@ -117,23 +118,34 @@ def _projection_range(t: wp.mat33d, u: wp.vec3d):
 
 @wp.func
 def triangle_separating_axis(ta: wp.mat33d, tb: wp.mat33d):
-    """The unit axis among the pair's face normals and edge cross products (either sign)
-    along which A lies beyond B with the widest gap, and the gap's midpoint along it; found
-    is False when no candidate separates the triangles strictly."""
+    """The unit axis among the pair's face normals, edge cross products and in-plane edge
+    normals (either sign) along which A lies beyond B with the widest gap, and the gap's
+    midpoint along it; found is False when no candidate separates the triangles strictly.
+
+    The in-plane edge normals (a face normal crossed with one of its edges) separate
+    coplanar triangles, which every other candidate meets edge on: without them two
+    coplanar triangles 1e-8 of their size apart were taken as touching.
+    """
     best = wp.vec3d()
     best_gap = wp.float64(0.0)
     best_mid = wp.float64(0.0)
     found = bool(False)
-    for c in range(11):
+    normal_a = wp.cross(ta[1] - ta[0], ta[2] - ta[0])
+    normal_b = wp.cross(tb[1] - tb[0], tb[2] - tb[0])
+    for c in range(17):
         u = wp.vec3d()
         if c == 0:
-            u = wp.cross(ta[1] - ta[0], ta[2] - ta[0])
+            u = normal_a
         elif c == 1:
-            u = wp.cross(tb[1] - tb[0], tb[2] - tb[0])
-        else:
+            u = normal_b
+        elif c < 11:
             i = (c - 2) // 3
             j = (c - 2) % 3
             u = wp.cross(ta[(i + 1) % 3] - ta[i], tb[(j + 1) % 3] - tb[j])
+        elif c < 14:
+            u = wp.cross(normal_a, ta[(c - 10) % 3] - ta[c - 11])
+        else:
+            u = wp.cross(normal_b, tb[(c - 13) % 3] - tb[c - 14])
         length = wp.length(u)
         if length > wp.float64(0.0):
             u = u / length
