@@ -39,6 +39,7 @@ SDRS barrier (``dhat`` > 0).
 
 import warp as wp
 
+from .geometry import triangle_closest_points, triangle_separating_axis
 from .blend import centered_potential, shell_blend
 from .leaf import LEAF_CONTACT, LEAF_OK, LeafSolution, leaf_mixed_block, leaf_vertex_barrier, leaf_vertex_gradient, pair_solve
 from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, upper_entry, vec6d, world_triangle
@@ -544,6 +545,7 @@ def top_level_kernel(
 
 _ADVANCEMENT_HALVINGS = wp.constant(60)
 _ADVANCEMENT_BISECTIONS = wp.constant(30)
+_ADVANCEMENT_RESTARTS = wp.constant(3)
 # Candidate corners of a triangle clipped to a box: 3 vertices + 3 edges x 4 sides + 4 box edges.
 corners19 = wp.types.matrix(shape=(19, 3), dtype=wp.float64)
 
@@ -745,11 +747,13 @@ def _clipped_advancement(
     w: wp.vec3d,
     margin: wp.float64,
     fraction: wp.float64,
+    floor: wp.float64,
 ):
     """``_axis_advancement`` along ``normal`` (A on its positive side; u, w across it) in the
     world or in A's frame, with each triangle cut to the other's extents widened by ``margin``,
     the most a point can move against the other triangle in that frame: the largest alpha in
-    [0, 1] (to within 1e-9 of it) whose ``_closing_reach`` stays within ``fraction`` of the gap."""
+    [0, 1] (to within 1e-9 of it) whose ``_closing_reach`` stays within ``fraction`` of the gap
+    and leaves at least ``floor`` of it."""
     zero = wp.float64(0.0)
     one = wp.float64(1.0)
     corners_a, count_a = _clipped_corners(ta, normal, u, w, _lateral_box(tb, u, w, margin))
@@ -759,9 +763,9 @@ def _clipped_advancement(
     # Each front's height now (its reach at alpha = 0); the gap is what separates them.
     lead_a = _front_reach(corners_a, count_a, pos_a, -normal, step_a, zero)
     lead_b = _front_reach(corners_b, count_b, pos_b, normal, step_b, zero)
-    if not (-lead_a - lead_b > zero):
+    if not (-lead_a - lead_b > floor):
         return zero
-    room = fraction * (-lead_a - lead_b) + lead_a + lead_b
+    room = wp.min(fraction * (-lead_a - lead_b) + lead_a + lead_b, -floor)
     # The reach is convex in alpha, so the admissible alphas are an interval.
     if _closing_reach(in_frame_of_a, corners_a, count_a, pos_a, step_a, corners_b, count_b, pos_b, step_b, normal, lead_a, one) <= room:
         return one
@@ -800,10 +804,11 @@ def _axis_advancement(
     step_b: vec6d,
     axis: wp.vec3d,
     fraction: wp.float64,
+    floor: wp.float64,
 ):
     """Largest alpha in [0, 1] (to within 1e-9 of it) for which the parts of the triangles that can
-    meet along the step keep a gap along ``axis``, closing at most ``fraction`` of it; 0 if
-    those parts' extents along it overlap now.
+    meet along the step keep a gap along ``axis``, closing at most ``fraction`` of it and
+    leaving at least ``floor``; 0 if those parts' extents along it are not ``floor`` apart now.
 
     While that gap stays positive no point of one triangle meets a point of the other. Two
     points can only meet if they start within their relative travel of each other across
@@ -842,13 +847,105 @@ def _axis_advancement(
     w = wp.cross(normal, u)
     reach_a = _path_reach(ta, pos_a, step_a)
     reach_b = _path_reach(tb, pos_b, step_b)
-    alpha = _clipped_advancement(False, ta, tb, pos_a, pos_b, step_a, step_b, normal, u, w, reach_a + reach_b, fraction)
+    alpha = _clipped_advancement(False, ta, tb, pos_a, pos_b, step_a, step_b, normal, u, w, reach_a + reach_b, fraction, floor)
     # The same axis fixed in either body: in the frame of the one that turns more, the other's
     # points move least. There a triangle's points also carry the frame body's motion reversed.
     if alpha < one:
-        alpha = wp.max(alpha, _clipped_advancement(True, ta, tb, pos_a, pos_b, step_a, step_b, normal, u, w, reach_b + _path_reach(tb, pos_a, step_a), fraction))
+        alpha = wp.max(alpha, _clipped_advancement(True, ta, tb, pos_a, pos_b, step_a, step_b, normal, u, w, reach_b + _path_reach(tb, pos_a, step_a), fraction, floor))
     if alpha < one:
-        alpha = wp.max(alpha, _clipped_advancement(True, tb, ta, pos_b, pos_a, step_b, step_a, -normal, u, w, reach_a + _path_reach(ta, pos_b, step_b), fraction))
+        alpha = wp.max(alpha, _clipped_advancement(True, tb, ta, pos_b, pos_a, step_b, step_a, -normal, u, w, reach_a + _path_reach(ta, pos_b, step_b), fraction, floor))
+    return alpha
+
+
+@wp.func
+def _best_axis_advancement(
+    ta: wp.mat33d,
+    tb: wp.mat33d,
+    pos_a: wp.vec3d,
+    pos_b: wp.vec3d,
+    step_a: vec6d,
+    step_b: vec6d,
+    first_axis: wp.vec3d,
+    fraction: wp.float64,
+    floor: wp.float64,
+):
+    """``_axis_advancement`` along the best of ``first_axis`` and the two face normals."""
+    one = wp.float64(1.0)
+    alpha = _axis_advancement(ta, tb, pos_a, pos_b, step_a, step_b, first_axis, fraction, floor)
+    if alpha < one:
+        alpha = wp.max(alpha, _axis_advancement(ta, tb, pos_a, pos_b, step_a, step_b, wp.cross(ta[1] - ta[0], ta[2] - ta[0]), fraction, floor))
+    if alpha < one:
+        alpha = wp.max(alpha, _axis_advancement(ta, tb, pos_a, pos_b, step_a, step_b, wp.cross(tb[1] - tb[0], tb[2] - tb[0]), fraction, floor))
+    return alpha
+
+
+@wp.func
+def _moved_triangle(tri: wp.mat33d, pos: wp.vec3d, step: vec6d, alpha: wp.float64):
+    """The triangle of a body centred at ``pos`` after alpha of its rigid step."""
+    k, spin = _spin_axis(step)
+    turn = wp.identity(3, dtype=wp.float64)
+    if spin > wp.float64(0.0):
+        turn = wp.quat_to_matrix(wp.quat_from_axis_angle(k, alpha * spin))
+    shift = alpha * wp.vec3d(step[0], step[1], step[2])
+    moved = wp.mat33d()
+    for v in range(3):
+        moved[v] = pos + shift + turn * (tri[v] - pos)
+    return moved
+
+
+@wp.func
+def _leaf_advancement(
+    ta: wp.mat33d,
+    tb: wp.mat33d,
+    pos_a: wp.vec3d,
+    pos_b: wp.vec3d,
+    step_a: vec6d,
+    step_b: vec6d,
+    plane_normal: wp.vec3d,
+    fraction: wp.float64,
+):
+    """Largest alpha (to within 1e-9 of it) that keeps two triangles apart along the step.
+
+    Any axis along which the pair stays apart certifies the path. The potential's plane sits
+    between the triangles' orientations, so a face resting on another face (a body on the
+    ground) nearly meets it at its raised end; the face normals let it tilt much further.
+    Where they hold the step back, the bound restarts from where it stopped, as conservative
+    advancement does: the rest of the path from alpha has the same form (each body's
+    remaining (1 - alpha) step from its pose there), and the triangles' gap along a fresh axis
+    there (the widest separating one, or a face normal) is measured, not bounded. A bound
+    loose for a contact that opens along the step (an edge turning and sliding over another)
+    then admits what the true motion does, while the triangles stay at least 1 - ``fraction``
+    of their distance now apart: a pair that really closes stops where it did.
+    """
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    alpha = _best_axis_advancement(ta, tb, pos_a, pos_b, step_a, step_b, plane_normal, fraction, zero)
+    if alpha == zero or alpha == one:
+        return alpha
+    closest_a, closest_b = triangle_closest_points(ta, tb)
+    floor = (one - fraction) * wp.length(closest_a - closest_b)
+    for _restart in range(_ADVANCEMENT_RESTARTS):
+        moved_a = _moved_triangle(ta, pos_a, step_a, alpha)
+        moved_b = _moved_triangle(tb, pos_b, step_b, alpha)
+        axis, middle, separated = triangle_separating_axis(moved_a, moved_b)
+        if not separated:
+            return alpha
+        more = _best_axis_advancement(
+            moved_a,
+            moved_b,
+            pos_a + alpha * wp.vec3d(step_a[0], step_a[1], step_a[2]),
+            pos_b + alpha * wp.vec3d(step_b[0], step_b[1], step_b[2]),
+            (one - alpha) * step_a,
+            (one - alpha) * step_b,
+            axis,
+            fraction,
+            floor,
+        )
+        if more == zero:
+            return alpha
+        alpha = alpha + more * (one - alpha)
+        if more == one:
+            return one
     return alpha
 
 
@@ -896,7 +993,8 @@ def advancement_kernel(
     Leaf terms: the two triangles (or the parts of them that can meet along the step) may close
     at most ``fraction`` of their gap along a fixed axis, so a plane normal to it keeps
     separating them along the whole path; the axis is the best of the potential's plane normal
-    and the two triangles' face normals.
+    and the two triangles' face normals, and where that holds the step back the bound restarts
+    from where it stopped (``_leaf_advancement``).
     Body pairs whose travel is far inside their closest term's separation (``_pair_keeps_clear``)
     are skipped: none of their terms can cut the step.
     """
@@ -933,14 +1031,7 @@ def advancement_kernel(
     pos_b = body_position[pair[1]]
     step_a = body_step[pair[0]]
     step_b = body_step[pair[1]]
-    # Any axis along which the pair stays apart certifies the path. The potential's plane sits
-    # between the triangles' orientations, so a face resting on another face (a body on the
-    # ground) nearly meets it at its raised end; the face normals let it tilt much further.
-    alpha = _axis_advancement(ta, tb, pos_a, pos_b, step_a, step_b, wp.vec3d(plane[0], plane[1], plane[2]), fraction)
-    if alpha < one:
-        alpha = wp.max(alpha, _axis_advancement(ta, tb, pos_a, pos_b, step_a, step_b, wp.cross(ta[1] - ta[0], ta[2] - ta[0]), fraction))
-    if alpha < one:
-        alpha = wp.max(alpha, _axis_advancement(ta, tb, pos_a, pos_b, step_a, step_b, wp.cross(tb[1] - tb[0], tb[2] - tb[0]), fraction))
+    alpha = _leaf_advancement(ta, tb, pos_a, pos_b, step_a, step_b, wp.vec3d(plane[0], plane[1], plane[2]), fraction)
     if alpha < one:
         wp.atomic_min(alpha_out, 0, alpha)
 
