@@ -1914,7 +1914,10 @@ def test_overwrite_must_be_a_flag(tmp_path):
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        (lambda s: setattr(s.settings, "time_step", -1.0), r"scene settings: warpcontact:timeStep must be positive, got -1.0"),
+        (lambda s: setattr(s.settings, "time_step", -1.0), r"scene settings: warpcontact:timeStep must be a positive finite number of seconds, got -1.0"),
+        # Found by a probe: 1e200 s crashed the step (dt^2 overflowed), 1e-320 s lost the frames.
+        (lambda s: setattr(s.settings, "time_step", 1e200), r"warpcontact:timeStep must lie in \[1e-150, 1e\+150\] s \(its square and inverse must be representable\), got 1e\+200"),
+        (lambda s: setattr(s.settings, "time_step", 1e-320), r"warpcontact:timeStep must lie in \[1e-150, 1e\+150\] s"),
         (lambda s: setattr(s.settings, "contact_mode", "xyz"), r"scene settings: warpcontact:contactMode must be one of"),
         (lambda s: setattr(s.settings, "friction", float("nan")), r"scene settings: warpcontact:friction must be >= 0 and finite, got nan"),
         (lambda s: s.bodies[1].vertices.__setitem__((0, 0), np.nan), r"body 'cue': its mesh vertices are not all finite"),

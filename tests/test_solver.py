@@ -467,6 +467,10 @@ def test_a_body_set_exactly_on_a_support_is_refused_naming_both():
         # Blamed on dt and the control's targets, and on Warp's vector constructor.
         (lambda m: setattr(m, "gravity", np.array([0.0, 0.0, np.nan])), r"model.gravity: expected 3 finite numbers \(m/s\^2\), got array\(\[ 0.,  0., nan\]\)"),
         (lambda m: setattr(m, "gravity", np.array([0.0, 0.0, -9.81, 1.0])), r"model.gravity: expected 3 finite numbers"),
+        # Found by a probe: blamed on dt ("rotation per step too large") for a box at rest.
+        (lambda m: m.body_unit_second_moment.assign(np.array([np.eye(3), np.eye(3) * np.nan])), r"model.body_unit_second_moment: body 'box' has \[\[nan, nan, nan\]"),
+        (lambda m: m.body_unit_second_moment.assign(np.array([np.eye(3), -0.01 * np.eye(3)])), r"body 'box' has .*; a dynamic body's must be finite, symmetric and positive definite"),
+        (lambda m: m.body_unit_second_moment.assign(np.array([np.eye(3), [[0.01, 0.005, 0.0], [0.0, 0.01, 0.0], [0.0, 0.0, 0.01]]])), r"model.body_unit_second_moment: body 'box'"),
     ],
 )
 def test_model_parameters_changed_after_finalize_are_checked_by_the_step(change, message):
@@ -1097,6 +1101,9 @@ def test_bad_input_raises_before_writing_state():
     for dt in (0.0, -0.01, float("nan"), "0.01", True):
         with pytest.raises(ValueError, match="dt: must be a positive finite number of seconds"):
             solver.step(s0, s1, None, dt)
+    for dt in (1e200, 1e-320):  # 1e200 overflowed dt^2 in the step: OverflowError
+        with pytest.raises(ValueError, match=r"dt: must lie in \[1e-150, 1e\+150\] s"):
+            solver.step(s0, s1, None, dt)
     with pytest.raises(ValueError, match="different State"):
         solver.step(s0, s0, None, 0.01)
     s0 = model.state()
@@ -1123,6 +1130,16 @@ def test_bad_input_raises_before_writing_state():
     s0.body_q.assign(q)
     with pytest.raises(ValueError, match=r"state_in.body_q: body 'right' \(index 1\) has a zero rotation quaternion"):
         solver.step(s0, s1, None, 0.01)
+    np.testing.assert_array_equal(s1.body_q.numpy(), before)
+    # Any norm the kernels can square is normalised; beyond it a previous rotation of norm
+    # 1e160 was read as another rotation and the step ran on (found by a probe).
+    for name, scale in (("body_q", 1e160), ("body_q_prev", 1e160), ("body_q_prev", 1e-160)):
+        state = model.state()
+        poses = state.body_q.numpy() if name == "body_q" else state.body_q_prev.numpy()
+        poses[0, 3:] = np.array([0.1, 0.2, 0.0, 0.97]) * scale
+        getattr(state, name).assign(poses)
+        with pytest.raises(ValueError, match=rf"state_in.{name}: body 'left' \(index 0\) has a rotation quaternion of norm 9.95e[+-]1[56]\d; expected a norm in \[1e-150, 1e\+150\]"):
+            solver.step(state, s1, None, 0.01)
     np.testing.assert_array_equal(s1.body_q.numpy(), before)
 
 

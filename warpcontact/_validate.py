@@ -2,6 +2,8 @@
 
 import numpy as np
 
+from .rotation import quat_norm
+
 __all__ = [
     "MAX_BARRIER_SUPPORT",
     "MAX_COORDINATE",
@@ -13,6 +15,7 @@ __all__ = [
     "check_coordinates",
     "check_count",
     "check_time_step",
+    "time_step_problem",
     "checked_flag",
     "is_positive_finite",
     "is_real",
@@ -61,10 +64,26 @@ def is_positive_finite(value) -> bool:
     return is_real(value) and bool(np.isfinite(value)) and value > 0
 
 
-def check_time_step(dt) -> None:
-    """ValueError naming dt unless it is a positive finite number of seconds."""
+# A step's inertia divides by dt^2 and its frames' rate is 1 / dt: beyond this range they
+# overflow (dt = 1e200 s crashed the step; 1e-320 s wrote no trajectory at an infinite rate).
+TIME_STEP_RANGE = (1e-150, 1e150)
+
+
+def time_step_problem(dt) -> str | None:
+    """Why ``dt`` is not a time step (s), or None."""
+    low, high = TIME_STEP_RANGE
     if not is_positive_finite(dt):
-        raise ValueError(f"dt: must be a positive finite number of seconds, got {dt!r}")
+        return "must be a positive finite number of seconds"
+    if not low <= dt <= high:
+        return f"must lie in [{low:g}, {high:g}] s (its square and inverse must be representable)"
+    return None
+
+
+def check_time_step(dt) -> None:
+    """ValueError naming dt unless it is a time step (``time_step_problem``)."""
+    problem = time_step_problem(dt)
+    if problem is not None:
+        raise ValueError(f"dt: {problem}, got {dt!r}")
 
 
 def check_barrier_support(dhat, name: str = "dhat") -> None:
@@ -162,7 +181,7 @@ def validated_poses(poses, names, *, normalize: bool = True) -> np.ndarray:
     check_coordinates(poses, "poses")
     if poses.shape[0] != len(names):
         raise ValueError(f"poses: expected {len(names)} rows (one per body), got {poses.shape[0]}")
-    norms = np.linalg.norm(poses[:, 3:], axis=1)
+    norms = quat_norm(poses[:, 3:])
     bad = np.flatnonzero(np.abs(norms - 1.0) > QUATERNION_TOLERANCE)
     if bad.size:
         i = int(bad[0])

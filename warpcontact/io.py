@@ -89,7 +89,7 @@ import numpy as np
 import trimesh
 
 from ._files import replace_file
-from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, checked_flag, is_positive_finite, is_real, real_array, shown
+from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, checked_flag, is_positive_finite, is_real, real_array, shown, time_step_problem
 from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact_setting_problem, coordinate_limits, flat_twice_area
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
@@ -1892,8 +1892,9 @@ def _check_settings(settings: SimulationSettings, where: str):
     """ValueError naming the warpcontact: attribute of the first setting a scene file may not
     hold: the one rule for loading and for saving (``save_scene`` wrote files that
     ``load_scene`` then refused)."""
-    if settings.time_step <= 0 or not np.isfinite(settings.time_step):
-        raise ValueError(f"{where}: warpcontact:timeStep must be positive, got {settings.time_step}")
+    problem = time_step_problem(settings.time_step)
+    if problem is not None:
+        raise ValueError(f"{where}: warpcontact:timeStep {problem}, got {settings.time_step}")
     for attr_name in ("contactStiffness", "eps", "friction", "frictionSmoothing"):
         field_name = _SETTING_ATTRIBUTES[attr_name][0]
         value = getattr(settings, field_name)

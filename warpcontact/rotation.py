@@ -19,6 +19,7 @@ __all__ = [
     "axial",
     "pose_mul",
     "pose_inverse",
+    "quat_norm",
     "normalized_poses",
     "rigid_step_between",
     "rigid_step_travel",
@@ -128,10 +129,16 @@ def pose_mul(a, b) -> np.ndarray:
     return np.concatenate([a[..., :3] + quat_rotate(a[..., 3:], b[..., :3]), quat_mul(a[..., 3:], b[..., 3:])], axis=-1)
 
 
+def quat_norm(q) -> np.ndarray:
+    """Euclidean norm over the last axis, without the overflow or underflow of its squares
+    (np.linalg.norm gave inf at 1e160 and 0 at 1e-170)."""
+    return np.hypot.reduce(np.asarray(q, dtype=np.float64), axis=-1)
+
+
 def normalized_poses(poses) -> np.ndarray:
     """A copy of (n, 7) poses (p, q) with unit quaternions."""
     out = np.array(poses, dtype=np.float64)
-    out[:, 3:] /= np.linalg.norm(out[:, 3:], axis=1, keepdims=True)
+    out[:, 3:] /= quat_norm(out[:, 3:])[:, None]
     return out
 
 

@@ -39,7 +39,7 @@ from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
 from .articulation import connected_labels, joint_limit_energy
 from .builder import STEEP_BLEND_EPS, contact_setting_problem, finite_vector, steep_blend
 from .contact import UNSOLVED_HINT, ContactModel, LaggedFriction
-from .rotation import normalized_poses, quat_from_matrix, quat_from_rotation_vector, quat_mul, quat_to_matrix, rigid_step_between, rigid_step_travel
+from .rotation import normalized_poses, quat_from_matrix, quat_norm, quat_from_rotation_vector, quat_mul, quat_to_matrix, rigid_step_between, rigid_step_travel
 from .types import Control, Model, State
 
 __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
@@ -185,6 +185,24 @@ def _check_pose_array(poses, count: int, label: str, expected: str) -> None:
     """ValueError naming ``label`` unless ``poses`` is a wp.array of ``count`` wp.transformd."""
     if not isinstance(poses, wp.array) or poses.shape != (count,) or poses.dtype != wp.transformd:
         raise ValueError(f"{label}: expected a wp.array of {count} wp.transformd, {expected}, got {_described(poses)}")
+
+
+# Quaternions are normalised in the kernels from their squares, which overflow beyond ~1e154
+# and underflow below ~1e-154: a previous rotation given at 1e160 was read as another one.
+_QUATERNION_NORM_RANGE = (1e-150, 1e150)
+
+
+def _check_quaternion_norms(quaternions: np.ndarray, checked: np.ndarray, label: str, names, *, whose: str = "body") -> None:
+    """ValueError naming the body (``whose`` it is) unless each ``checked`` row's (x, y, z, w)
+    norm lies in ``_QUATERNION_NORM_RANGE`` (the step normalises them; zero is no rotation)."""
+    norms = quat_norm(quaternions)
+    low, high = _QUATERNION_NORM_RANGE
+    bad = np.flatnonzero(checked & ~((norms >= low) & (norms <= high)))
+    if bad.size:
+        b = int(bad[0])
+        if norms[b] == 0.0:
+            raise ValueError(f"{label}: {whose} {names[b]!r} (index {b}) has a zero rotation quaternion")
+        raise ValueError(f"{label}: {whose} {names[b]!r} (index {b}) has a rotation quaternion of norm {norms[b]:.3g}; expected a norm in [{low:g}, {high:g}] (it is normalised)")
 
 
 def _check_no_shared_arrays(state_in: State, state_out: State) -> None:
@@ -376,8 +394,9 @@ class ImplicitSolver:
         n = model.num_bodies
         self._dynamic = ~model.static
         # Per body, tr of its second moment per unit mass (m^2): the size of the rotational
-        # inertia term, which L computes as a difference of such terms (``_solve``).
-        self._unit_second_moment_trace = np.trace(model.body_unit_second_moment.numpy(), axis1=1, axis2=2)
+        # inertia term, which L computes as a difference of such terms (``_solve``); read with
+        # the other parameters at every step (``_checked_model_parameters``).
+        self._unit_second_moment_trace = None
         self._dofs = np.flatnonzero(np.repeat(self._dynamic, 6))
         # Free bodies only: the reduced coordinates are the rigid coordinates (J = I).
         self._articulation = None if model.articulation.identity else model.articulation
@@ -447,6 +466,17 @@ class ImplicitSolver:
         bad = np.flatnonzero(self._dynamic & ~(np.isfinite(mass) & (mass > 0.0)))
         if bad.size:
             raise ValueError(f"model.body_mass: body {model.body_names[bad[0]]!r} has mass {float(mass[bad[0]])!r}; a dynamic body's mass must be positive and finite")
+        # Changed after finalize to NaN, zero or negative, it was blamed on dt ("rotation per
+        # step too large") for a body at rest, and the tolerance kept the old one's size.
+        moment = model.body_unit_second_moment.numpy()
+        with np.errstate(invalid="ignore"):
+            symmetric = np.isfinite(moment).all(axis=(1, 2)) & (np.abs(moment - moment.transpose(0, 2, 1)) <= 1e-9 * np.abs(moment).max(axis=(1, 2))[:, None, None]).all(axis=(1, 2))
+        positive = np.zeros(len(moment), dtype=bool)
+        positive[symmetric] = np.linalg.eigvalsh(moment[symmetric]).min(axis=1) > 0.0
+        bad = np.flatnonzero(self._dynamic & ~positive)
+        if bad.size:
+            raise ValueError(f"model.body_unit_second_moment: body {model.body_names[bad[0]]!r} has {moment[bad[0]].tolist()}; a dynamic body's must be finite, symmetric and positive definite (m^2)")
+        self._unit_second_moment_trace = np.trace(moment, axis1=1, axis2=2)
         for name in ("body_kp_linear", "body_kd_linear", "body_kp_angular", "body_kd_angular"):
             gains = getattr(model, name).numpy().reshape(model.num_bodies, -1)
             bad = np.flatnonzero(self._dynamic & ~(np.isfinite(gains) & (gains >= 0.0)).all(axis=1))
@@ -831,9 +861,7 @@ class ImplicitSolver:
         for label, arr in (("state_in.body_q", q_now), ("state_in.body_q_prev", q_prev)):
             if not np.isfinite(arr).all():
                 raise ValueError(f"{label}: contains non-finite values")
-            unrotated = np.flatnonzero(np.linalg.norm(arr[:, 3:], axis=1) == 0.0)
-            if unrotated.size:
-                raise ValueError(f"{label}: body {model.body_names[unrotated[0]]!r} (index {unrotated[0]}) has a zero rotation quaternion")
+            _check_quaternion_norms(arr[:, 3:], np.ones(len(arr), dtype=bool), label, model.body_names)
         if control is not None:
             _check_pose_array(control.body_target, len(q_now), "control.body_target", "one per body (use model.control())")
         q = normalized_poses(q_now)
@@ -906,9 +934,7 @@ class ImplicitSolver:
                 bad = np.flatnonzero((~np.isfinite(targets) & used).any(axis=1) & self._dynamic)
                 if bad.size:
                     raise ValueError(f"control.body_target: the target of body {self.model.body_names[bad[0]]!r} (index {bad[0]}) is not finite")
-                unrotated = np.flatnonzero((np.linalg.norm(targets[:, 3:], axis=1) == 0.0) & (kp_angular != 0.0) & self._dynamic)
-                if unrotated.size:
-                    raise ValueError(f"control.body_target: the target of body {self.model.body_names[unrotated[0]]!r} (index {unrotated[0]}) has a zero rotation quaternion")
+                _check_quaternion_norms(targets[:, 3:], (kp_angular != 0.0) & self._dynamic, "control.body_target", self.model.body_names, whose="the target of body")
             # Joint coordinates outside their limits were refused with the state (_joint_arrays).
             if art is not None and art.num_coordinates:
                 with np.errstate(over="ignore"):
