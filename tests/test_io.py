@@ -378,6 +378,61 @@ _METRE_STAGE = """#usda 1.0
 """
 
 
+_TYPED_STAGE = _METRE_STAGE + """
+def Xform "World"
+{
+    def PhysicsScene "physicsScene"
+    {
+        vector3f physics:gravityDirection = (0, 0, -1)
+        GRAVITY_TYPE physics:gravityMagnitude = 2
+    }
+    def Xform "box" (prepend apiSchemas = ["PhysicsRigidBodyAPI"])
+    {
+        double3 xformOp:translate = (0, 0, 1)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+        def Cube "shape" (prepend apiSchemas = ["PhysicsCollisionAPI"])
+        {
+            SIZE_TYPE size = 0.5
+        }
+    }
+}
+"""
+
+
+@pytest.mark.parametrize(
+    "size_type, gravity_type, match",
+    [
+        ("float", "float", r"prim /World/box/shape: size is written as float but its schema declares double; USD would ignore the value"),
+        ("double", "double", r"prim /World/physicsScene: physics:gravityMagnitude is written as double but its schema declares float"),
+    ],
+    ids=["cube-size", "gravity"],
+)
+def test_values_of_another_type_than_their_schema_are_refused(tmp_path, size_type, gravity_type, match):
+    """Found by a probe: USD's readers ignore a value written with another type than its schema
+    declares and use the default, silently: a cube's ``float size = 0.5`` loaded as a 2 m cube,
+    ``double physics:gravityMagnitude = 2`` as 9.81, an ant knee's double limits and drive
+    gain were dropped. Role names do not count (the shipped scenes' points load)."""
+    (tmp_path / "scene.usda").write_text(_TYPED_STAGE.replace("SIZE_TYPE", size_type).replace("GRAVITY_TYPE", gravity_type))
+    with pytest.raises(ValueError, match=match):
+        io.load_scene(tmp_path / "scene.usda")
+    (tmp_path / "fixed.usda").write_text(_TYPED_STAGE.replace("SIZE_TYPE", "double").replace("GRAVITY_TYPE", "float"))
+    scene = io.load_scene(tmp_path / "fixed.usda")
+    np.testing.assert_allclose(scene.gravity, [0.0, 0.0, -2.0])
+    np.testing.assert_allclose(np.ptp(scene.body("box").vertices, axis=0), 0.5)
+
+
+@pytest.mark.parametrize("physics_scene", [True, False], ids=["scene", "no-scene"])
+def test_an_up_axis_other_than_y_or_z_is_refused(tmp_path, physics_scene):
+    """Found by a probe: upAxis "X" loaded with gravity along -X beside a PhysicsScene and
+    along -Y without one, and its trajectory was labelled Z-up."""
+    text = _TYPED_STAGE.replace("SIZE_TYPE", "double").replace("GRAVITY_TYPE", "float").replace('upAxis = "Z"', 'upAxis = "X"')
+    if not physics_scene:
+        text = text.replace('def PhysicsScene "physicsScene"', 'def Xform "notAScene"').replace("vector3f physics:gravityDirection = (0, 0, -1)", "").replace("float physics:gravityMagnitude = 2", "")
+    (tmp_path / "x_up.usda").write_text(text)
+    with pytest.raises(ValueError, match=r"x_up.usda: upAxis must be \"Y\" or \"Z\", got 'X'"):
+        io.load_scene(tmp_path / "x_up.usda")
+
+
 def test_checks_reach_inside_instances_and_spline_animation(tmp_path):
     # Checks that walked stage.Traverse() skipped instance proxies: a warpcontact: typo inside
     # an instanceable asset loaded (its gain 0); a spline-animated transform without a default

@@ -873,7 +873,12 @@ def load_scene(path) -> Scene:
         raise ValueError(f"{source}: kilogramsPerUnit must be positive and finite, got {kilograms}")
     units = _Units(meters, kilograms)
     up = UsdGeom.GetStageUpAxis(stage)
+    if up not in (UsdGeom.Tokens.y, UsdGeom.Tokens.z):
+        # UsdGeom knows only these two; another one gave gravity along -X or -Y depending on
+        # whether the stage had a PhysicsScene, and a trajectory labelled Z-up.
+        raise ValueError(f"{source}: upAxis must be \"Y\" or \"Z\", got {str(up)!r}")
     _warn_foreign_layer_units(stage, {"metersPerUnit": meters, "kilogramsPerUnit": kilograms, "upAxis": up}, source)
+    _refuse_mistyped_schema_attributes(stage, Usd, source)
     parsed = _load_physics(stage, UsdPhysics)
     descs = {str(k): list(zip(v[0], v[1])) for k, v in parsed.items()}
     _refuse_collision_filters(stage, UsdPhysics, Usd, source)
@@ -1559,6 +1564,27 @@ def _all_prims(stage, Usd):
     """Every active, defined prim of the stage, those inside instances included (the UsdPhysics
     parser reads bodies there, and a plain traversal skipped their filters, typos and damping)."""
     return stage.Traverse(Usd.TraverseInstanceProxies())
+
+
+def _refuse_mistyped_schema_attributes(stage, Usd, source: str) -> None:
+    """ValueError naming the prim and attribute when a value is written with another type than
+    its schema declares (a Cube's ``float size``, ``double physics:gravityMagnitude``): USD's
+    readers, UsdPhysics' parser among them, then ignore it silently and use the schema's
+    default (a 0.5 m cube loaded as a 2 m one, a joint's limits and drive gains dropped). Role
+    names do not count (``float3`` for ``point3f`` reads as the same value)."""
+    for prim in _all_prims(stage, Usd):
+        definition = prim.GetPrimDefinition()
+        for attr in prim.GetAuthoredAttributes():
+            declared = definition.GetAttributeDefinition(attr.GetName())
+            if not declared:
+                continue  # not a schema attribute: read, and checked, by this module if at all
+            expected = declared.GetTypeName()
+            for spec in attr.GetPropertyStack(Usd.TimeCode.Default()):
+                if spec.typeName.type != expected.type:
+                    raise ValueError(
+                        f"{source}: prim {prim.GetPath()}: {attr.GetName()} is written as {spec.typeName} but its schema declares {expected}; "
+                        f"USD would ignore the value and use the default (write it as {expected})"
+                    )
 
 
 def _warn_unmodelled(stage, collider_materials: dict, UsdPhysics, Usd, source: str) -> None:
