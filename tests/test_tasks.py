@@ -1165,6 +1165,8 @@ def _rewritten(path, **changes):
         ("values NaN", r"not a readable checkpoint \(its array 'values' is not all finite numbers\)"),
         ("history 2-D", r"not a readable checkpoint \(its loss history has shape \(2, 2\)"),
         ("moment reshaped", r"checkpoint array 'adam_m' has shape \(3,\), expected \(2, 2\) for this problem"),
+        ("rng text", r"not a readable checkpoint \(its rng is 'x', expected null or a PCG64 generator state\)"),
+        ("bundle_calls -3", r"not a readable checkpoint \(its bundle_calls is -3, expected a whole number >= 0\)"),
     ],
 )
 def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path, damage, message):
@@ -1204,7 +1206,8 @@ def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path, damage, messa
             _rewritten(checkpoint, adam_m=np.zeros(3))
         else:
             key, value = {"fingerprint a list": ("fingerprint", []), "iteration 3.5": ("iteration", 3.5), "iteration -5": ("iteration", -5),
-                          "iteration 10**6": ("iteration", 10**6), "adam_t text": ("adam_t", "x"), "seconds text": ("seconds", "x")}[damage]
+                          "iteration 10**6": ("iteration", 10**6), "adam_t text": ("adam_t", "x"), "seconds text": ("seconds", "x"),
+                          "rng text": ("rng", "x"), "bundle_calls -3": ("bundle_calls", -3)}[damage]
             meta[key] = value
             _rewritten(checkpoint, meta=meta)
     with pytest.raises(ValueError, match=f"checkpoint.npz: {message}"):
@@ -1212,6 +1215,25 @@ def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path, damage, messa
     if damage not in ("values reshaped", "moment reshaped", "iteration 10**6"):  # a readable, complete file is described before it is resumed
         with pytest.raises(ValueError, match=f"checkpoint.npz: {message}"):
             TaskProblem(make_scene(), settings=settings).optimize(checkpoint=checkpoint)
+
+
+@pytest.mark.parametrize("rng", [None, {"bit_generator": "PCG64"}], ids=["null", "partial"])
+def test_a_gb_checkpoint_without_its_generator_state_is_refused(tmp_path, rng):
+    """Found by a probe: a gb checkpoint whose generator state was altered ended in a
+    traceback (TypeError: state must be a dict, or a KeyError) on --resume."""
+    from warpcontact.bundle import BundleSettings
+
+    make_scene, settings, model = _CHECKPOINTED_RUNS["bundles"]
+    checkpoint = tmp_path / "checkpoint.npz"
+    _interrupt(TaskProblem(make_scene(), settings=settings, model=model, bundle=BundleSettings(samples=2, seed=3)), 4, checkpoint)
+    with np.load(checkpoint) as data:
+        meta = json.loads(str(data["meta"]))
+    assert isinstance(meta["rng"], dict)
+    meta["rng"] = rng
+    _rewritten(checkpoint, meta=meta)
+    message = r"its rng is None, and the gb bundle needs its generator's state" if rng is None else r"its rng is \{'bit_generator': 'PCG64'\}, expected null or a PCG64"
+    with pytest.raises(ValueError, match=rf"checkpoint.npz: not a readable checkpoint \({message}"):
+        TaskProblem(make_scene(), settings=settings, model=model, bundle=BundleSettings(samples=2, seed=3)).optimize(checkpoint=checkpoint, resume=True)
 
 
 def test_a_checkpoint_of_another_sampling_box_is_refused(tmp_path):

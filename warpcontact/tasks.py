@@ -354,7 +354,7 @@ def _fingerprint_value(value):
 
 
 # What every checkpoint's meta holds, and what a receding run's adds (``optimize``'s saver).
-_CHECKPOINT_KEYS = ("version", "fingerprint", "history", "seconds", "receding", "extra", "iteration", "values", "adam_m", "adam_v", "adam_t", "best_loss", "best_values", "best_trajectory", "loss", "gradient", "trajectory")
+_CHECKPOINT_KEYS = ("version", "fingerprint", "history", "seconds", "receding", "extra", "iteration", "values", "adam_m", "adam_v", "adam_t", "best_loss", "best_values", "best_trajectory", "loss", "gradient", "trajectory", "rng", "bundle_calls")
 _RECEDING_CHECKPOINT_KEYS = ("frame", "plan", "executed")
 
 
@@ -362,12 +362,22 @@ def _damaged_checkpoint_entry(state: dict) -> str | None:
     """What is wrong with a checkpoint's entries' types and values, or None (their shapes
     against a problem: ``TaskProblem._check_saved_shapes``). An altered file gave tracebacks (a
     list for the fingerprint, an iteration of 3.5) or ran on silently (NaN values stopped the
-    descent at iteration 41 of 400; an iteration of -5 ran extra ones)."""
+    descent at iteration 41 of 400; an iteration of -5 ran extra ones, and a gb run's altered
+    generator state or bundle count a traceback or a silently shifted count)."""
     def count(value):
         return is_whole(value) and value >= 0
 
     def loss(value):
         return is_real(value) and not np.isnan(value)
+
+    def generator_state(value):
+        if value is None:
+            return True
+        try:  # the bundle's generator takes it, or says why not
+            np.random.default_rng().bit_generator.state = value
+        except (TypeError, ValueError, KeyError, OverflowError):
+            return False
+        return True
 
     rules = {
         "fingerprint": (lambda v: isinstance(v, dict), "a JSON object"),
@@ -378,6 +388,8 @@ def _damaged_checkpoint_entry(state: dict) -> str | None:
         "seconds": (lambda v: is_real(v) and 0.0 <= v < np.inf, "a finite number >= 0"),
         "loss": (loss, "a number"),
         "best_loss": (loss, "a number"),
+        "bundle_calls": (count, "a whole number >= 0"),
+        "rng": (generator_state, "null or a PCG64 generator state"),
     }
     if state["receding"] is True:
         rules["frame"] = (count, "a whole number >= 0")
@@ -815,6 +827,8 @@ class TaskProblem:
         history = [float(loss) for loss in saved["history"]] if saved else []
         rng = np.random.default_rng(self.bundle.seed) if self.bundle else None
         if saved and rng is not None:
+            if saved["rng"] is None:
+                raise ValueError(f"{store.path}: not a readable checkpoint (its rng is None, and the gb bundle needs its generator's state)")
             rng.bit_generator.state = saved["rng"]
         extra = saved["extra"] if saved else ({"bundle": dataclasses.asdict(self.bundle)} if self.bundle else {})
         if saved and self.bundle is not None and "bundle_samples" not in extra:
