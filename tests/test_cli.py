@@ -388,6 +388,22 @@ def test_bad_device_is_a_clear_error(tmp_path, capsys):
     assert "device" in capsys.readouterr().err
 
 
+def test_a_refused_command_leaves_no_output_folder_it_created(tmp_path, capsys):
+    """Found by a probe: run, simulate, compare and demo created --out (and its parents)
+    before refusing a bad device or scene, leaving empty folders; a scene path that is a
+    symlink loop ended in a traceback (RuntimeError: Symlink loop)."""
+    (tmp_path / "loop.usda").symlink_to("loop.usda")
+    (tmp_path / "kept").mkdir()
+    for argv, message in (
+        (["run", "push", "--device", "bogus", "--out", str(tmp_path / "new" / "run")], "device: 'bogus' is not available"),
+        (["simulate", str(tmp_path / "loop.usda"), "--out", str(tmp_path / "new" / "sim")], "loop.usda: file not found"),
+        (["simulate", str(tmp_path / "loop.usda"), "--out", str(tmp_path / "kept")], "loop.usda: file not found"),
+    ):
+        assert main(argv) == 2
+        assert message in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept", "loop.usda"]  # an existing folder stays
+
+
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
 
 

@@ -221,8 +221,14 @@ def _refuse_input_among_outputs(args, out: Path):
     # An output is replaced as a file (os.replace): a link there is replaced, not followed.
     outputs = {out.resolve() / name: name for name in args.outputs}
     for given in inputs:
-        if given is not None and Path(given).resolve() in outputs:
-            raise ValueError(f"{given}: the input scene is this command's output {outputs[Path(given).resolve()]} in {out}, which it would replace; choose another --out")
+        if given is None:
+            continue
+        try:
+            resolved = Path(given).resolve()
+        except (OSError, RuntimeError):
+            continue  # a symlink loop: no output's path, and reading it says what is wrong (a traceback here)
+        if resolved in outputs:
+            raise ValueError(f"{given}: the input scene is this command's output {outputs[resolved]} in {out}, which it would replace; choose another --out")
 
 
 def _refuse_unwritable_names(out: Path, names: tuple):
@@ -824,9 +830,29 @@ def _earlier_files(args) -> dict:
     return {path: _signature(path) for path in paths if path.is_file()}
 
 
+def _missing_folders(path: Path) -> list:
+    """The folders of ``path`` that do not exist yet, deepest first."""
+    missing = []
+    while not path.exists() and path != path.parent:
+        missing.append(path)
+        path = path.parent
+    return missing
+
+
+def _remove_empty(folders: list) -> None:
+    """Remove the folders a command created, deepest first, while they are empty: a command
+    refused for a mistyped device or scene left an empty --out folder behind."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     earlier = {}
+    created = _missing_folders(Path(args.out)) if getattr(args, "out", None) is not None else []
     try:
         if getattr(args, "out", None) is not None:
             # Every command that writes checks its folder and earlier results before any work,
@@ -859,9 +885,11 @@ def main(argv=None) -> int:
     except OSError as exc:
         # A folder that passed the writability check can still refuse the write (sysfs, a
         # full disk, a read-only mount): a traceback before.
+        _remove_empty(created)
         print(f"error: {exc}", file=sys.stderr)
         return 1
     except ValueError as exc:
+        _remove_empty(created)
         print(f"error: {exc}", file=sys.stderr)
         return 2
 
