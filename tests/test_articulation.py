@@ -1017,6 +1017,61 @@ def test_links_of_one_chain_folding_fast_are_not_refused_as_passing_through():
     assert model.contact.evaluate(out.body_q.numpy()).ok and out.joint_q.numpy()[2] > 0.1
 
 
+def test_a_hinged_link_swinging_through_a_ball_in_one_step_is_refused():
+    """Found by a probe: a paddle hinged at one end (kp 1e6, target 3 rad, dt 0.01) turned
+    3 rad in one step through a ball lying on its arc at 1 rad, and the step succeeded: the
+    Newton iterates carried the ball around and back, and the pass-through check followed
+    the paddle's centre straight, across the arc's chord, which misses the ball. Followed
+    along the joint, the ball's centre crosses the paddle ~1 rad in."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e-6)
+    paddle = b.add_box((1.0, 0.05, 0.05), mass=1.0, pose=(0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), name="paddle")
+    b.add_joint("revolute", child=paddle, anchor=(0.0, 0.0, 0.0), axis=(0.0, 0.0, 1.0), kp=1e6, name="hinge")
+    b.add_sphere(0.1, density=100.0, pose=(0.9 * np.cos(1.0), 0.9 * np.sin(1.0), 0.0, 0.0, 0.0, 0.0, 1.0), name="ball")
+    model = b.finalize()
+    control = model.control(requires_grad=False)
+    control.joint_target.assign([3.0])
+    with pytest.raises(wc.SolverError, match=r"'paddle' and 'ball' pass through each other: moving along their joints to this step's solution, 'ball''s centre of mass crosses 'paddle''s surface at 3\d% of it"):
+        wc.ImplicitSolver(model).step(model.state(requires_grad=False), model.state(requires_grad=False), control, 0.01)
+    control.joint_target.assign([0.5])  # short of the ball: a step like any other
+    out = model.state(requires_grad=False)
+    wc.ImplicitSolver(model).step(model.state(requires_grad=False), out, control, 0.01)
+    assert 0.1 < out.joint_q.numpy()[0] < 0.6
+
+
+def test_step_between_is_what_retract_takes_from_one_configuration_to_another():
+    """The joint-space step between two states of the ant (a base joint, hinged legs), a
+    free box and a ball joint, which ``retract`` turns back into the second state's poses to
+    rounding."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-6)
+    add_ant(b)
+    ground = ground_rectangle(6.0, 6.0)
+    b.add_body((ground.vertices, ground.faces), static=True, name="ground")
+    b.add_box((0.2, 0.2, 0.2), density=300.0, pose=(-2.0, 0.0, 0.5, 0.0, 0.0, 0.0, 1.0), name="free")
+    top = b.add_box((0.1, 0.1, 0.4), density=300.0, pose=(2.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), name="top")
+    swing = b.add_box((0.1, 0.1, 0.4), density=300.0, pose=(2.0, 0.0, 0.55, 0.0, 0.0, 0.0, 1.0), name="swing")
+    b.add_joint("revolute", child=top, anchor=(2.0, 0.0, 1.2), axis=(0.0, 1.0, 0.0), name="hang")
+    b.add_joint("ball", child=swing, parent=top, anchor=(2.0, 0.0, 0.78), name="ball")
+    model = b.finalize()
+    art = model.articulation
+    rng = np.random.default_rng(3)
+    start = model.state(requires_grad=False)
+    velocity = np.zeros((model.num_bodies, 3))
+    spin = rng.normal(size=(model.num_bodies, 3))
+    wc.set_body_velocity(start, wp.array(velocity, dtype=wp.vec3d), wp.array(spin, dtype=wp.vec3d), 0.04, body_names=model.body_names)
+    states = [start]
+    solver = wc.ImplicitSolver(model)
+    for _ in range(3):
+        states.append(model.state(requires_grad=False))
+        solver.step(states[-2], states[-1], None, 0.04)
+    for before, after in zip(states[:-1], states[1:]):
+        q_from, q_to = before.body_q.numpy(), after.body_q.numpy()
+        step = art.step_between(q_from, q_to, before.joint_q.numpy(), after.joint_q.numpy())
+        assert np.abs(step).max() > 1e-3
+        back = art.retract(q_from, step)
+        np.testing.assert_allclose(back[:, :3], q_to[:, :3], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", back[:, 3:], q_to[:, 3:])), 1.0, rtol=0, atol=1e-12)
+
+
 def test_joint_order_is_topological_for_long_chains_added_leaf_first():
     """Joints are ordered parent first whatever order they were added in; the recursive
     walk overflowed Python's stack on a chain of ~1,000 joints added leaf first."""

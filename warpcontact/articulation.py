@@ -333,6 +333,7 @@ class ArticulationModel:
             self.body_dofs.append(np.concatenate(path[::-1]) if path else np.zeros(0, dtype=np.int64))
         # Dynamic bodies are those with DOFs; rows of J for static bodies stay zero.
         self.dynamic_bodies = np.flatnonzero([len(d) > 0 for d in self.body_dofs])
+        self._body_turning_dofs = [dofs[self.dof_kind[dofs] != PRISMATIC] for dofs in self.body_dofs]
         # Pairs of distinct DOFs of one body's chain that belong to the same ball joint: a
         # boolean mask per body took time and memory cubic in a chain's length (45 MB at
         # 512 links).
@@ -742,6 +743,13 @@ class ArticulationModel:
             C[np.ix_(dofs, dofs)] += block
         return J, C
 
+    def turn_bounds(self, step: np.ndarray) -> np.ndarray:
+        """(nbodies,) upper bounds on the angle (rad) each body turns through along the product
+        of exponentials of the DOF increments ``step`` (m,): the sum of its ancestors'
+        rotational increments' magnitudes (a rotation vector's components bound its norm)."""
+        magnitude = np.abs(step)
+        return np.array([magnitude[dofs].sum() for dofs in self._body_turning_dofs])
+
     def retract(self, poses: np.ndarray, step: np.ndarray) -> np.ndarray:
         """Poses moved by the DOF increments ``step`` (m,) (the product of exponentials)."""
         axes, points = self.twists(poses)
@@ -779,6 +787,34 @@ class ArticulationModel:
             q = quat_mul(gq, poses[b, 3:])
             out[b, 3:] = q / np.linalg.norm(q)
         return out
+
+    def step_between(self, poses_from: np.ndarray, poses_to: np.ndarray, coords_from: np.ndarray, coords_to: np.ndarray) -> np.ndarray:
+        """The DOF increments (m,) that ``retract`` takes from ``poses_from`` to ``poses_to``:
+        the coordinates' differences, and for free and ball joints the rotation vector and
+        translation of each joint's own motion (its child's motion after its parent's), so
+        that ``retract(poses_from, f * step)`` follows the joints from one to the other."""
+        step = np.zeros(self.num_dofs)
+        coordinate = self.dof_coordinate >= 0
+        step[coordinate] = coords_to[self.dof_coordinate[coordinate]] - coords_from[self.dof_coordinate[coordinate]]
+        axes, points = self.twists(poses_from)
+        turn = quat_mul(poses_to[:, 3:], quat_conjugate(poses_from[:, 3:]))
+        shift = poses_to[:, :3] - quat_rotate(turn, poses_from[:, :3])
+        for j, joint in enumerate(self.joints):
+            dofs = self.joint_dofs[j]
+            group = dofs[self.dof_kind[dofs] == ROTATION]
+            if not len(group):
+                continue
+            b, p = joint.child, joint.parent
+            own_turn, own_shift = turn[b], shift[b]
+            if p >= 0:  # E = G_p^-1 G_b
+                back = quat_conjugate(turn[p])
+                own_turn, own_shift = quat_mul(back, turn[b]), quat_rotate(back, shift[b] - shift[p])
+            step[group] = axes[group] @ rotation_vector_from_quat(own_turn)
+            sliding = dofs[(self.dof_kind[dofs] == PRISMATIC) & ~coordinate[dofs]]
+            if len(sliding):  # a free joint: translation, then the turn about the centre
+                centre = points[group[0]]
+                step[sliding] = axes[sliding] @ (own_shift - (centre - quat_rotate(own_turn, centre)))
+        return step
 
     def anchor_gaps(self, poses: np.ndarray) -> np.ndarray:
         """Distance (m) between each body joint's anchors in the parent and child (0 for roots)."""

@@ -126,6 +126,9 @@ _PRESSED_SEPARATION = 1e-7
 # Chords per step of a body centre's straight-motion path relative to another body, tested
 # for crossing that body's surface (``ImplicitSolver._centre_crossing``).
 _PASS_THROUGH_CHORDS = 16
+# Along the joints, the centres' paths are followed by a chord per this much turn (rad) of the
+# body turning most, up to _PASS_THROUGH_CHORDS.
+_PASS_THROUGH_CHORD_TURN = 0.2
 
 
 def _contains_origin(vertices: np.ndarray, faces: np.ndarray) -> bool:
@@ -1037,7 +1040,7 @@ class ImplicitSolver:
         # static bodies too, whose user-given values (of any norm) go back into state_out.
         q_solved = q.copy()
         q[~dynamic] = q_now[~dynamic]
-        passed = self._pass_through(q_start, q, dt)
+        passed = self._pass_through(q_start, q, dt, None if art is None else art.step_between(q_start, q_solved, coords_now, coords))
         if passed is not None:
             raise SolverError(passed)
         state_out.body_q.assign(q)
@@ -1086,7 +1089,7 @@ class ImplicitSolver:
             return trial, t_value, t_grad, t_hess, t_contact, None
         return q, value, grad, hess, contact, q_lists
 
-    def _pass_through(self, q_from: np.ndarray, q_to: np.ndarray, dt: float) -> str | None:
+    def _pass_through(self, q_from: np.ndarray, q_to: np.ndarray, dt: float, joint_step: np.ndarray | None = None) -> str | None:
         """Why the step from ``q_from`` to its solution ``q_to`` moved one body through
         another, or None.
 
@@ -1106,33 +1109,58 @@ class ImplicitSolver:
         if not len(pairs):
             return None
         a, b = pairs[:, 0], pairs[:, 1]
-        start = q_from[b, :3] - q_from[a, :3]
-        closing = (q_to[b, :3] - q_to[a, :3]) - start
-        length2 = np.einsum("ij,ij->i", closing, closing)
+        if joint_step is None:
+            step = rigid_step_between(q_from, q_to)
+            chords = 1
+
+            def path(s):
+                return np.stack([retract(q_from, f * step) for f in s])
+
+        else:
+            # Articulated bodies move along their joints (a hinged paddle's centre on an arc
+            # about the hinge), not straight: followed straight, a paddle turning 3 rad in a
+            # step swept around a ball lying on its arc, and nothing was refused.
+            art = self._articulation
+            chords = int(np.clip(np.ceil(art.turn_bounds(joint_step).max(initial=0.0) / _PASS_THROUGH_CHORD_TURN), 1, _PASS_THROUGH_CHORDS))
+
+            def path(s):
+                return np.stack([art.retract(q_from, f * joint_step) for f in s])
+
+        centres = path(np.linspace(0.0, 1.0, chords + 1))[:, :, :3] if chords > 1 else np.stack([q_from[:, :3], q_to[:, :3]])
+        relative = centres[:, b] - centres[:, a]  # (chords + 1, pairs, 3)
+        # Each chord of the centres' relative path, and where it comes closest to zero.
+        start, closing = relative[:-1], relative[1:] - relative[:-1]
+        length2 = np.einsum("kij,kij->ki", closing, closing)
+        travel = np.sqrt(length2).sum(axis=0)
         radius = self.model.body_radius
-        moving = length2 > (_PASS_THROUGH_TRAVEL * np.minimum(radius[a], radius[b])) ** 2
-        fraction = -np.einsum("ij,ij->i", start, closing) / np.where(moving, length2, 1.0)
+        moving = travel > _PASS_THROUGH_TRAVEL * np.minimum(radius[a], radius[b])
+        chord_fraction = -np.einsum("kij,kij->ki", start, closing) / np.where(length2 > 0.0, length2, 1.0)
+        chord_distance = np.linalg.norm(start + np.clip(chord_fraction, 0.0, 1.0)[..., None] * closing, axis=2)
+        nearest = chord_distance.argmin(axis=0)
+        pair = np.arange(len(a))
+        fraction = (nearest + np.clip(chord_fraction[nearest, pair], 0.0, 1.0)) / chords if chords > 1 else chord_fraction[0]
         clipped = np.clip(fraction, 0.0, 1.0)
-        meet = np.linalg.norm(start + clipped[:, None] * closing, axis=1) < radius[a] + radius[b]
+        closest_distance = chord_distance[nearest, pair]
+        meet = closest_distance < radius[a] + radius[b]
         # Two links of one articulation are not followed: a 3-link chain folding at 10 m/s was
         # refused though its joint path is contact-free (its straight path cuts 30-90%).
         suspect = np.flatnonzero(moving & meet & (self._joint_tree[a] != self._joint_tree[b]))
         if not suspect.size:
             return None
         names = self.model.body_names
-        step = rigid_step_between(q_from, q_to)
+
+        how_moving = "moving straight" if joint_step is None else "moving along their joints"
 
         def refusal(i: int, how: str) -> str:
-            travel = np.sqrt(length2[i])
             return (
-                f"bodies {names[a[i]]!r} and {names[b[i]]!r} pass through each other: moving straight to this step's solution, {how} "
-                f"(relative speed {travel / dt:.3g} m/s, {travel:.3g} m in dt={dt} s, "
+                f"bodies {names[a[i]]!r} and {names[b[i]]!r} pass through each other: {how_moving} to this step's solution, {how} "
+                f"(relative speed {travel[i] / dt:.3g} m/s, {travel[i]:.3g} m in dt={dt} s, "
                 f"radii {radius[a[i]]:.3g} and {radius[b[i]]:.3g} m); the time step is too large for this impact, reduce dt"
             )
 
         for i in suspect:
             for mover, other in ((a[i], b[i]), (b[i], a[i])):
-                where = self._centre_crossing(mover, other, q_from, step) if self._crossing_geometry(mover)[0] else None
+                where = self._centre_crossing(mover, other, path) if self._crossing_geometry(mover)[0] else None
                 if where is not None:
                     return refusal(i, f"{names[mover]!r}'s centre of mass crosses {names[other]!r}'s surface at {where:.0%} of it")
         # Two bodies whose centres come closer than the sum of their inner balls' radii overlap
@@ -1141,7 +1169,6 @@ class ImplicitSolver:
         # balls (a ring's or an open mesh's centre is no material point): its turning is not
         # the bodies' and clips a tumbling corner (random piles of boxes and balls at dt 0.02
         # were refused in 4 of 8 seeds, though sub-steps showed nothing passing).
-        closest_distance = np.linalg.norm(start + clipped[:, None] * closing, axis=1)
         inner = {body: self._crossing_geometry(body)[3] for body in np.unique(np.concatenate([a[suspect], b[suspect]]))}
         for i in suspect:
             if closest_distance[i] < inner[a[i]] + inner[b[i]]:
@@ -1150,7 +1177,7 @@ class ImplicitSolver:
         suspect = suspect[~followed]
         closest = suspect[(fraction[suspect] > 0.0) & (fraction[suspect] < 1.0)]
         for s in np.unique(np.round(fraction[closest], 3)):
-            hits = self.model.contact.evaluate(retract(q_from, s * step)).contact_pairs
+            hits = self.model.contact.evaluate(path([s])[0]).contact_pairs
             for i in closest:
                 if (names[a[i]], names[b[i]]) in hits:
                     return refusal(i, f"they intersect at {s:.0%} of it")
@@ -1172,8 +1199,9 @@ class ImplicitSolver:
             self._crossing_geometries[body] = geometry
         return geometry
 
-    def _centre_crossing(self, mover: int, other: int, q_from: np.ndarray, step: np.ndarray) -> float | None:
-        """The fraction of the straight motion (p + s dp, exp(s [dtheta]x) R) at which body
+    def _centre_crossing(self, mover: int, other: int, path) -> float | None:
+        """The fraction of the step's motion (``path``: fractions (k,) -> poses (k, nbodies, 7);
+        straight, p + s dp, exp(s [dtheta]x) R, or along the joints) at which body
         ``mover``'s centre of mass crosses body ``other``'s surface, or None. The centre's
         path in ``other``'s frame is followed by ``_PASS_THROUGH_CHORDS`` chords.
 
@@ -1183,7 +1211,7 @@ class ImplicitSolver:
         dips: a centre reaches another body's surface only by passing into it.
         """
         s = np.linspace(0.0, 1.0, _PASS_THROUGH_CHORDS + 1)
-        poses = np.stack([retract(q_from[[mover, other]], f * step[[mover, other]]) for f in s])
+        poses = path(s)[:, [mover, other]]
         rotation = quat_to_matrix(poses[:, 1, 3:])
         centre = np.einsum("kji,kj->ki", rotation, poses[:, 0, :3] - poses[:, 1, :3])
         # Only triangles whose boxes meet the path's: a ball over a 49,152-face ground tested
