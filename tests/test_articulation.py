@@ -493,7 +493,7 @@ def test_start_state_gradient_along_a_consistent_perturbation_matches_finite_dif
     tape = wp.Tape()
     states = rollout(angles, tape)
     shoulder = np.array([s.joint_q.numpy()[0] for s in states])
-    assert np.all(shoulder > art.upper[0] - art.limit_margin[0]) and np.all(shoulder < art.upper[0])
+    assert np.all(shoulder > art.upper[0] - art.limit_margins()[0]) and np.all(shoulder < art.upper[0])
     adjoint = np.zeros((2, 7))
     adjoint[:, :3] = weights
     states[-1].body_q.grad.assign(adjoint)
@@ -1198,6 +1198,52 @@ def test_limit_margin_without_limits_is_refused():
     b, a, _ = two_boxes()
     with pytest.raises(ValueError, match="joint 'hinge': limit_margin applies to limits, and it has none"):
         b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), limit_margin=0.05, name="hinge")
+    # Found by a probe: a stiffness where nothing is limited was taken and ignored.
+    with pytest.raises(ValueError, match="joint 'hinge': limit_stiffness applies to limits, and it has none"):
+        b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), limit_stiffness=50.0, name="hinge")
+    with pytest.raises(ValueError, match="joint 'ball': limit_stiffness applies to a ball joint's cone_limit, and it has none"):
+        b.add_joint("ball", child=a, anchor=(0, 0, 1.2), limit_stiffness=50.0, name="ball")
+
+
+def _hanging_hinge(limits=None):
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    rod = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0.0, 0.0, -0.5, 0.0, 0.0, 0.0, 1.0), name="rod")
+    b.add_joint("revolute", child=rod, anchor=(0.0, 0.0, 0.0), axis=(0.0, 1.0, 0.0), kd=0.5, limits=limits, name="hinge")
+    return b.finalize()
+
+
+def test_limits_set_after_finalize_get_the_default_margin_of_their_range():
+    """Found by a probe: limits (-0.05, 0.15) set after finalize on a hinge built without any
+    kept the unlimited coordinate's margin, 0.1 rad, not a tenth of the range as given to
+    add_joint: the barrier reached the hanging rod's rest angle and held it at 0.0127 rad
+    instead of 0. The default margin now follows the range at each step."""
+    built, later = _hanging_hinge([(-0.05, 0.15)]), _hanging_hinge()
+    later.articulation.lower[:], later.articulation.upper[:] = -0.05, 0.15
+    np.testing.assert_array_equal(built.articulation.limit_margins(), [0.1 * 0.2])
+    np.testing.assert_array_equal(later.articulation.limit_margins(), built.articulation.limit_margins())
+    rests = []
+    for model in (built, later):
+        solver, state = wc.ImplicitSolver(model), model.state(requires_grad=False)
+        state.joint_q.assign([0.001])
+        state.body_q.assign(model.articulation.retract(state.body_q.numpy(), np.array([0.001])))
+        for _ in range(40):
+            following = model.state(requires_grad=False)
+            solver.step(state, following, None, 0.01)
+            state = following
+        rests.append(state.joint_q.numpy()[0])
+    assert rests[0] == rests[1]  # 0.0193 rad, still swinging after 0.4 s (before: 0.0193 and 0.0278)
+
+
+def test_a_limit_margin_over_half_the_range_is_refused():
+    """Found by a probe: a margin of 0.5 on a 0.2 rad range was taken, and the barrier then
+    acted across the whole range (the hanging rod rested at 0.047 rad instead of 0)."""
+    b, a, _ = two_boxes()
+    with pytest.raises(ValueError, match=r"joint 'hinge': limit_margin 0.5 exceeds half the range 0.2\d* of coordinate 0"):
+        b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), limits=[(-0.05, 0.15)], limit_margin=0.5, name="hinge")
+    model = _hanging_hinge([(-0.05, 0.15)])
+    model.articulation.limit_margin[:] = 0.15
+    with pytest.raises(ValueError, match=r"model.articulation.limit_margin: 'hinge:0' has 0.15, more than half its range \[-0.05, 0.15\]"):
+        wc.ImplicitSolver(model).step(model.state(), model.state(), None, 0.01)
 
 
 def test_joint_targets_for_a_model_without_joint_coordinates_are_refused():

@@ -82,7 +82,7 @@ class Joint:
     child's centre of mass) and ignore frames and axes. Ball joints may carry one axis (the
     joint frame's, default X) and a ``cone_limit`` on the angle between that axis in the
     parent and in the child (a swing limit; twist is free). Per coordinate: ``lower``/``upper``
-    limits (rad or m, +-inf for none), ``limit_margin`` (the barrier's support, rad or m),
+    limits (rad or m, +-inf for none), ``limit_margin`` (the barrier's support, rad or m; NaN: a tenth of the range),
     ``limit_stiffness`` (J) and PD gains ``kp`` (N m/rad or N/m) and ``kd`` (N m s/rad or
     N s/m). Ball joints have no coordinates but one ``kp`` and one ``kd`` (N m/rad,
     N m s/rad) that drive their relative rotation (see ``ArticulationModel.ball_drive_terms``).
@@ -385,10 +385,21 @@ class ArticulationModel:
             return f"lower, upper: {self.coordinate_names[c]!r} has limits [{float(self.lower[c])!r}, {float(self.upper[c])!r}]; expected lower < upper (+-inf: no limit)"
         limited = np.isfinite(self.lower) | np.isfinite(self.upper)
         for label, values in (("limit_margin", self.limit_margin), ("limit_stiffness", self.limit_stiffness)):
-            bad = np.flatnonzero(limited & ~(np.isfinite(values) & (values > 0.0)))
+            given = ~np.isnan(values) if label == "limit_margin" else True  # NaN: the default margin
+            bad = np.flatnonzero(limited & given & ~(np.isfinite(values) & (values > 0.0)))
             if bad.size:
-                return f"{label}: {self.coordinate_names[bad[0]]!r} has {float(values[bad[0]])!r}; a limited coordinate's must be positive and finite"
+                return f"{label}: {self.coordinate_names[bad[0]]!r} has {float(values[bad[0]])!r}; a limited coordinate's must be positive and finite (a margin NaN: the default)"
+        with np.errstate(invalid="ignore"):
+            wide = np.flatnonzero(self.limit_margin > 0.5 * (self.upper - self.lower))
+        if wide.size:
+            c = wide[0]
+            return f"limit_margin: {self.coordinate_names[c]!r} has {float(self.limit_margin[c])!r}, more than half its range [{float(self.lower[c])!r}, {float(self.upper[c])!r}]: the barrier would act across all of it"
         return None
+
+    def limit_margins(self) -> np.ndarray:
+        """(num_coordinates,) the limit barriers' margins as the step uses them: ``limit_margin``,
+        where NaN (the default) a tenth of the current range, at most 0.1 rad or m."""
+        return np.where(np.isnan(self.limit_margin), np.minimum(0.1 * (self.upper - self.lower), 0.1), self.limit_margin)
 
     # --- construction ---------------------------------------------------------------------
 

@@ -484,7 +484,7 @@ class ModelBuilder:
         kp=0.0,
         kd=0.0,
         limit_margin=None,
-        limit_stiffness=1.0,
+        limit_stiffness=None,
         cone_limit: float | None = None,
         target=None,
         name: str | None = None,
@@ -515,8 +515,10 @@ class ModelBuilder:
                 kp (1 - cos theta*) + kd/dt (1 - cos theta^t) (theta: angle to the target,
                 and to the rotation at the step's start); targets come from
                 ``Control.ball_target``.
-            limit_margin: support of the limit barrier (default: a tenth of the range, or of a
-                ball joint's cone_limit, at most 0.1); limit_stiffness: its scale (J).
+            limit_margin: support of the limit barrier, at most half the range (default: a
+                tenth of the range as it is at each step, so also of limits set after
+                ``finalize``, or of a ball joint's cone_limit, at most 0.1; stored as NaN);
+                limit_stiffness: its scale (J, default 1).
             cone_limit: ball joints: the largest swing (rad, in (0, pi)) between ``axis`` (in
                 the joint frame, default X) fixed in the parent and fixed in the child.
             target: per coordinate, the PD target (rad or m) of ``Model.control()``'s
@@ -624,11 +626,14 @@ class ModelBuilder:
             if not (is_real(cone_limit) and 0.0 < cone_limit < np.pi):
                 raise ValueError(f"{where}: cone_limit must be in (0, pi) rad, got {cone_limit!r}")
             probe.cone_limit = float(cone_limit)
-        if limit_margin is not None:
+        for label, value in (("limit_margin", limit_margin), ("limit_stiffness", limit_stiffness)):
+            if value is None:
+                continue
             if kind == "ball" and cone_limit is None:
-                raise ValueError(f"{where}: limit_margin applies to a ball joint's cone_limit, and it has none")
+                raise ValueError(f"{where}: {label} applies to a ball joint's cone_limit, and it has none")
             if kind != "ball" and limits is None:  # accepted and ignored before
-                raise ValueError(f"{where}: limit_margin applies to limits, and it has none")
+                raise ValueError(f"{where}: {label} applies to limits, and it has none")
+        limit_stiffness = 1.0 if limit_stiffness is None else limit_stiffness
         if kind == "ball":
             # One barrier, on the swing angle, where a cone limit is given.
             limit_count = 0 if cone_limit is None else 1
@@ -636,7 +641,12 @@ class ModelBuilder:
         else:
             limit_count = count
             span = np.where(np.isfinite(upper - lower), upper - lower, np.inf)
-        margin = np.minimum(0.1 * span, 0.1) if limit_margin is None else limit_margin
+        if limit_margin is None:
+            # Coordinates' from their range at each step (ArticulationModel.limit_margins): a
+            # limit set after finalize kept the 0.1 of an unlimited coordinate.
+            margin = np.minimum(0.1 * span, 0.1) if kind == "ball" else np.ones(limit_count)
+        else:
+            margin = limit_margin
         if kind == "ball" and (np.size(kp) != 1 or np.size(kd) != 1):
             raise ValueError(f"{where}: a ball joint takes one kp and one kd (they drive its whole relative rotation), got kp={kp!r}, kd={kd!r}")
         # A ball joint's single gain pair drives its relative rotation (no coordinates).
@@ -647,6 +657,13 @@ class ModelBuilder:
             if not np.isfinite(arr).all() or (arr < 0).any() or (label.startswith("limit") and (arr <= 0).any()):
                 raise ValueError(f"{where}: {label} must be finite and {'positive' if label.startswith('limit') else '>= 0'}, got {value!r}")
             gains[label] = arr
+        if kind != "ball":
+            if limit_margin is None:
+                gains["limit_margin"] = np.full(limit_count, np.nan)
+            else:
+                wide = np.flatnonzero(gains["limit_margin"] > 0.5 * span)
+                if wide.size:  # the barrier acted across the whole range
+                    raise ValueError(f"{where}: limit_margin {float(gains['limit_margin'][wide[0]])!r} exceeds half the range {float(span[wide[0]])!r} of coordinate {int(wide[0])}")
         if target is not None:
             if kind == "ball":
                 raise ValueError(f"{where}: ball joints have no coordinates to target (their targets are Control.ball_target rotations)")

@@ -577,7 +577,7 @@ class ImplicitSolver:
         grad = art.kp * error + art.kd / dt * velocity
         hess = art.kp + art.kd / dt
         if art.has_limits:
-            l_value, l_grad, l_hess = joint_limit_energy(coords, art.lower, art.upper, art.limit_margin, art.limit_stiffness)
+            l_value, l_grad, l_hess = joint_limit_energy(coords, art.lower, art.upper, art.limit_margins(), art.limit_stiffness)
             value += float(l_value.sum())
             grad = grad + l_grad
             hess = hess + l_hess
