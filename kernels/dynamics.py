@@ -85,7 +85,14 @@ def exp_so3(w: wp.vec3d):
 
 @wp.func
 def _pose_rotation(q: wp.transformd):
-    return wp.quat_to_matrix(wp.normalize(wp.transform_get_rotation(q)))
+    """The rotation of a pose whose quaternion may have any norm whose square is a float64;
+    beyond that NaN, so that the step fails and names it (normalised, a PD target of norm
+    1e160 became the identity rotation, silently)."""
+    r = wp.transform_get_rotation(q)
+    norm = wp.length(r)
+    if not (norm > wp.float64(1.0e-150) and norm < wp.float64(1.0e150)):
+        return wp.mat33d(wp.float64(wp.nan))
+    return wp.quat_to_matrix(wp.normalize(r))
 
 
 @wp.func

@@ -1523,6 +1523,12 @@ def test_a_zero_rotation_pd_target_is_refused():
     control.body_target.assign(wp.array([[0.1, 0.0, 0.0, 0.0, 0.0, 2.0 * np.sin(0.3), 2.0 * np.cos(0.3)]], dtype=wp.transformd))
     wc.ImplicitSolver(model).step(model.state(requires_grad=False), state_out, control, 0.04)  # any other norm normalises
     assert state_out.body_q.numpy()[0, 5] > 0.0  # turning towards the target
+    # Beyond the norms whose squares are float64s a target was read as the identity rotation,
+    # silently (found reviewing the check of the state's quaternions).
+    for scale in (1e160, 1e-170):
+        control.body_target.assign(wp.array([[0.1, 0.0, 0.0, 0.0, 0.0, scale * np.sin(0.3), scale * np.cos(0.3)]], dtype=wp.transformd))
+        with pytest.raises(ValueError, match=r"control.body_target: the target of body 'driven' \(index 0\) has a rotation quaternion of norm \S+; expected a norm in \[1e-150, 1e\+150\]"):
+            wc.ImplicitSolver(model).step(model.state(requires_grad=False), state_out, control, 0.04)
 
 
 def test_builder_names_its_contact_modes_ipc_included():
