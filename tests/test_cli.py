@@ -404,6 +404,23 @@ def test_a_refused_command_leaves_no_output_folder_it_created(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["kept", "loop.usda"]  # an existing folder stays
 
 
+def test_an_output_folder_that_cannot_be_looked_at_is_an_error_not_a_traceback(tmp_path, monkeypatch, capsys):
+    """Looking for the folders a command would create raised PermissionError outside the
+    command's error handling (an --out inside a folder the user may not read; found by a
+    review)."""
+    locked = tmp_path / "locked"
+    real_exists = Path.exists
+
+    def exists(path, *args, **kwargs):
+        if locked in (path, *path.parents) and path != locked:
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_exists(path, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "exists", exists)
+    assert main(["bench", "leaf", "--pairs", "4", "--out", str(locked / "x")]) in (1, 2)
+    assert "Permission denied" in capsys.readouterr().err
+
+
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
 
 

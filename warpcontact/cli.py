@@ -831,9 +831,15 @@ def _earlier_files(args) -> dict:
 
 
 def _missing_folders(path: Path) -> list:
-    """The folders of ``path`` that do not exist yet, deepest first."""
+    """The folders of ``path`` that do not exist yet, deepest first (none past one that
+    cannot be looked at: creating the folder then says why)."""
     missing = []
-    while not path.exists() and path != path.parent:
+    while path != path.parent:
+        try:
+            if path.exists():
+                break
+        except OSError:
+            return []
         missing.append(path)
         path = path.parent
     return missing
