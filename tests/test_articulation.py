@@ -1215,8 +1215,9 @@ def _hanging_hinge(limits=None):
 def test_limits_set_after_finalize_get_the_default_margin_of_their_range():
     """Found by a probe: limits (-0.05, 0.15) set after finalize on a hinge built without any
     kept the unlimited coordinate's margin, 0.1 rad, not a tenth of the range as given to
-    add_joint: the barrier reached the hanging rod's rest angle and held it at 0.0127 rad
-    instead of 0. The default margin now follows the range at each step."""
+    add_joint: the same rod, hanging from the same limits, swung differently (after 300 steps
+    it rested at 0.0127 rad instead of 0). The default margin now follows the range at each
+    step."""
     built, later = _hanging_hinge([(-0.05, 0.15)]), _hanging_hinge()
     later.articulation.lower[:], later.articulation.upper[:] = -0.05, 0.15
     np.testing.assert_array_equal(built.articulation.limit_margins(), [0.1 * 0.2])
@@ -1236,10 +1237,13 @@ def test_limits_set_after_finalize_get_the_default_margin_of_their_range():
 
 def test_a_limit_margin_over_half_the_range_is_refused():
     """Found by a probe: a margin of 0.5 on a 0.2 rad range was taken, and the barrier then
-    acted across the whole range (the hanging rod rested at 0.047 rad instead of 0)."""
+    acted across the whole range (the hanging rod rested at 0.047 rad instead of 0); a cone's
+    margin past its limit acts at zero swing (found by a review)."""
     b, a, _ = two_boxes()
-    with pytest.raises(ValueError, match=r"joint 'hinge': limit_margin 0.5 exceeds half the range 0.2\d* of coordinate 0"):
+    with pytest.raises(ValueError, match=r"joint 'hinge': limit_margin 0.5 exceeds half the range of coordinate 0, 0.1"):
         b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), limits=[(-0.05, 0.15)], limit_margin=0.5, name="hinge")
+    with pytest.raises(ValueError, match=r"joint 'cone': limit_margin 0.5 exceeds the cone limit, 0.3"):
+        b.add_joint("ball", child=a, anchor=(0, 0, 1.2), cone_limit=0.3, limit_margin=0.5, name="cone")
     model = _hanging_hinge([(-0.05, 0.15)])
     model.articulation.limit_margin[:] = 0.15
     with pytest.raises(ValueError, match=r"model.articulation.limit_margin: 'hinge:0' has 0.15, more than half its range \[-0.05, 0.15\]"):

@@ -56,6 +56,7 @@ __all__ = [
     "ArticulationModel",
     "Joint",
     "frame_in_body",
+    "default_limit_margins",
     "joint_limit_energy",
 ]
 
@@ -117,6 +118,11 @@ class Joint:
             rotations = len(self.base_dofs) - translations
             return translations + (rotations if rotations < 3 else 0)
         return 0
+
+
+def default_limit_margins(span: np.ndarray) -> np.ndarray:
+    """A limit barrier's default margin: a tenth of the range (or cone limit), at most 0.1."""
+    return np.minimum(0.1 * span, 0.1)
 
 
 def joint_limit_energy(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, margin: np.ndarray, stiffness: np.ndarray):
@@ -333,7 +339,10 @@ class ArticulationModel:
             self.body_dofs.append(np.concatenate(path[::-1]) if path else np.zeros(0, dtype=np.int64))
         # Dynamic bodies are those with DOFs; rows of J for static bodies stay zero.
         self.dynamic_bodies = np.flatnonzero([len(d) > 0 for d in self.body_dofs])
-        self._body_turning_dofs = [dofs[self.dof_kind[dofs] != PRISMATIC] for dofs in self.body_dofs]
+        # Each body's ancestor DOFs that swing its centre of mass: every rotation but its own
+        # free joint's, which turns it about that centre.
+        own_turn = [self.joint_dofs[self.body_joint[b]] if self.body_joint[b] >= 0 and self.joints[self.body_joint[b]].kind == "free" else np.zeros(0, dtype=np.int64) for b in range(n)]
+        self._body_swinging_dofs = [dofs[(self.dof_kind[dofs] != PRISMATIC) & ~np.isin(dofs, own)] for dofs, own in zip(self.body_dofs, own_turn)]
         # Pairs of distinct DOFs of one body's chain that belong to the same ball joint: a
         # boolean mask per body took time and memory cubic in a chain's length (45 MB at
         # 512 links).
@@ -388,7 +397,8 @@ class ArticulationModel:
             given = ~np.isnan(values) if label == "limit_margin" else True  # NaN: the default margin
             bad = np.flatnonzero(limited & given & ~(np.isfinite(values) & (values > 0.0)))
             if bad.size:
-                return f"{label}: {self.coordinate_names[bad[0]]!r} has {float(values[bad[0]])!r}; a limited coordinate's must be positive and finite (a margin NaN: the default)"
+                default = " (or NaN: the default)" if label == "limit_margin" else ""
+                return f"{label}: {self.coordinate_names[bad[0]]!r} has {float(values[bad[0]])!r}; a limited coordinate's must be positive and finite{default}"
         with np.errstate(invalid="ignore"):
             wide = np.flatnonzero(self.limit_margin > 0.5 * (self.upper - self.lower))
         if wide.size:
@@ -399,7 +409,7 @@ class ArticulationModel:
     def limit_margins(self) -> np.ndarray:
         """(num_coordinates,) the limit barriers' margins as the step uses them: ``limit_margin``,
         where NaN (the default) a tenth of the current range, at most 0.1 rad or m."""
-        return np.where(np.isnan(self.limit_margin), np.minimum(0.1 * (self.upper - self.lower), 0.1), self.limit_margin)
+        return np.where(np.isnan(self.limit_margin), default_limit_margins(self.upper - self.lower), self.limit_margin)
 
     # --- construction ---------------------------------------------------------------------
 
@@ -754,12 +764,13 @@ class ArticulationModel:
             C[np.ix_(dofs, dofs)] += block
         return J, C
 
-    def turn_bounds(self, step: np.ndarray) -> np.ndarray:
-        """(nbodies,) upper bounds on the angle (rad) each body turns through along the product
-        of exponentials of the DOF increments ``step`` (m,): the sum of its ancestors'
-        rotational increments' magnitudes (a rotation vector's components bound its norm)."""
+    def swing_bounds(self, step: np.ndarray) -> np.ndarray:
+        """(nbodies,) upper bounds on the angle (rad) through which each body's centre of mass
+        swings about other points along the product of exponentials of the DOF increments
+        ``step`` (m,): the sum of its ancestors' rotational increments' magnitudes (a rotation
+        vector's components bound its norm), its own free joint's turn left out."""
         magnitude = np.abs(step)
-        return np.array([magnitude[dofs].sum() for dofs in self._body_turning_dofs])
+        return np.array([magnitude[dofs].sum() for dofs in self._body_swinging_dofs])
 
     def retract(self, poses: np.ndarray, step: np.ndarray) -> np.ndarray:
         """Poses moved by the DOF increments ``step`` (m,) (the product of exponentials)."""

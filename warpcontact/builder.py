@@ -10,7 +10,7 @@ import warp as wp
 
 from ._runtime import resolve_device
 from ._validate import QUATERNION_TOLERANCE, check_barrier_support, check_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array, shown
-from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, connected_labels, frame_in_body
+from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, connected_labels, default_limit_margins, frame_in_body
 from .contact import CENTRED_WEIGHTS, CONTACT_MODES, ContactModel
 from .leaf import float32_search
 from .rotation import pose_mul, quat_rotate
@@ -641,29 +641,28 @@ class ModelBuilder:
         else:
             limit_count = count
             span = np.where(np.isfinite(upper - lower), upper - lower, np.inf)
-        if limit_margin is None:
-            # Coordinates' from their range at each step (ArticulationModel.limit_margins): a
-            # limit set after finalize kept the 0.1 of an unlimited coordinate.
-            margin = np.minimum(0.1 * span, 0.1) if kind == "ball" else np.ones(limit_count)
-        else:
-            margin = limit_margin
         if kind == "ball" and (np.size(kp) != 1 or np.size(kd) != 1):
             raise ValueError(f"{where}: a ball joint takes one kp and one kd (they drive its whole relative rotation), got kp={kp!r}, kd={kd!r}")
         # A ball joint's single gain pair drives its relative rotation (no coordinates).
         gain_count = 1 if kind == "ball" else count
         gains = {}
-        for label, value, size in (("kp", kp, gain_count), ("kd", kd, gain_count), ("limit_stiffness", limit_stiffness, limit_count), ("limit_margin", margin, limit_count)):
+        given = (("limit_margin", limit_margin, limit_count),) if limit_margin is not None else ()
+        for label, value, size in (("kp", kp, gain_count), ("kd", kd, gain_count), ("limit_stiffness", limit_stiffness, limit_count), *given):
             arr = _per_coordinate(value, size, label, where)
             if not np.isfinite(arr).all() or (arr < 0).any() or (label.startswith("limit") and (arr <= 0).any()):
                 raise ValueError(f"{where}: {label} must be finite and {'positive' if label.startswith('limit') else '>= 0'}, got {value!r}")
             gains[label] = arr
-        if kind != "ball":
-            if limit_margin is None:
-                gains["limit_margin"] = np.full(limit_count, np.nan)
-            else:
-                wide = np.flatnonzero(gains["limit_margin"] > 0.5 * span)
-                if wide.size:  # the barrier acted across the whole range
-                    raise ValueError(f"{where}: limit_margin {float(gains['limit_margin'][wide[0]])!r} exceeds half the range {float(span[wide[0]])!r} of coordinate {int(wide[0])}")
+        if limit_margin is None:
+            # A coordinate's default follows its range at each step (limits set after
+            # finalize kept an unlimited coordinate's 0.1); a cone's limit is fixed.
+            gains["limit_margin"] = default_limit_margins(span) if kind == "ball" else np.full(limit_count, np.nan)
+        else:
+            # Wider, the barrier acted across the whole range (or at zero swing).
+            room = span if kind == "ball" else 0.5 * span
+            wide = np.flatnonzero(gains["limit_margin"] > room)
+            if wide.size:
+                what = "the cone limit" if kind == "ball" else f"half the range of coordinate {int(wide[0])}"
+                raise ValueError(f"{where}: limit_margin {float(gains['limit_margin'][wide[0]])!r} exceeds {what}, {float(room[wide[0]])!r}")
         if target is not None:
             if kind == "ball":
                 raise ValueError(f"{where}: ball joints have no coordinates to target (their targets are Control.ball_target rotations)")

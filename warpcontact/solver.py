@@ -126,8 +126,8 @@ _PRESSED_SEPARATION = 1e-7
 # Chords per step of a body centre's straight-motion path relative to another body, tested
 # for crossing that body's surface (``ImplicitSolver._centre_crossing``).
 _PASS_THROUGH_CHORDS = 16
-# Along the joints, the centres' paths are followed by a chord per this much turn (rad) of the
-# body turning most, up to _PASS_THROUGH_CHORDS.
+# Along the joints, the centres' paths are followed by a chord per this much swing (rad) of the
+# body whose centre swings most, up to _PASS_THROUGH_CHORDS.
 _PASS_THROUGH_CHORD_TURN = 0.2
 
 
@@ -1101,30 +1101,41 @@ class ImplicitSolver:
         interpolating them, then show one body passing through the other. A body pair is
         suspect when its centres move by at least ``_PASS_THROUGH_TRAVEL`` of the smaller
         body's radius relative to each other and their bounding spheres meet in the step.
-        Its step is refused when, along the straight motion from ``q_from`` to ``q_to``,
-        either body's centre of mass crosses the other's surface (``_centre_crossing``), or
-        when the contact model finds the pair intersecting where the centres come closest.
+        Its step is refused when, along the step's motion from ``q_from`` to ``q_to`` (straight,
+        or with ``joint_step``, the articulation's DOF increments from one to the other, along
+        the joints), either body's centre of mass crosses the other's surface
+        (``_centre_crossing``), or when the contact model finds the pair intersecting where
+        the centres come closest.
         """
         pairs = self.model.contact.body_pairs
         if not len(pairs):
             return None
         a, b = pairs[:, 0], pairs[:, 1]
         if joint_step is None:
-            step = rigid_step_between(q_from, q_to)
-            chords = 1
+            chords, step = 1, rigid_step_between(q_from, q_to)
 
-            def path(s):
-                return np.stack([retract(q_from, f * step) for f in s])
+            def move(f):
+                return retract(q_from, f * step)
 
         else:
             # Articulated bodies move along their joints (a hinged paddle's centre on an arc
             # about the hinge), not straight: followed straight, a paddle turning 3 rad in a
             # step swept around a ball lying on its arc, and nothing was refused.
             art = self._articulation
-            chords = int(np.clip(np.ceil(art.turn_bounds(joint_step).max(initial=0.0) / _PASS_THROUGH_CHORD_TURN), 1, _PASS_THROUGH_CHORDS))
+            chords = int(np.clip(np.ceil(art.swing_bounds(joint_step).max(initial=0.0) / _PASS_THROUGH_CHORD_TURN), 1, _PASS_THROUGH_CHORDS))
 
-            def path(s):
-                return np.stack([art.retract(q_from, f * joint_step) for f in s])
+            def move(f):
+                return art.retract(q_from, f * joint_step)
+
+        sampled = {}
+
+        def path(s):
+            """Poses (len(s), nbodies, 7) at fractions ``s`` of the step's motion, each computed
+            once: every suspect pair's crossing test walks the same fractions."""
+            for f in s:
+                if f not in sampled:
+                    sampled[f] = move(f)
+            return np.stack([sampled[f] for f in s])
 
         centres = path(np.linspace(0.0, 1.0, chords + 1))[:, :, :3] if chords > 1 else np.stack([q_from[:, :3], q_to[:, :3]])
         relative = centres[:, b] - centres[:, a]  # (chords + 1, pairs, 3)
