@@ -914,8 +914,9 @@ def _leaf_advancement(
     remaining (1 - alpha) step from its pose there), and the triangles' gap along a fresh axis
     there (the widest separating one, or a face normal) is measured, not bounded. A bound
     loose for a contact that opens along the step (an edge turning and sliding over another)
-    then admits what the true motion does, while the triangles stay at least 1 - ``fraction``
-    of their distance now apart: a pair that really closes stops where it did.
+    then admits what the true motion does, while the parts of the triangles that can meet
+    keep a gap of at least 1 - ``fraction`` of the pair's distance now along each restart's
+    axis (the rest cannot meet at all): a pair that really closes stops about where it did.
     """
     zero = wp.float64(0.0)
     one = wp.float64(1.0)

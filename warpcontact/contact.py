@@ -881,8 +881,10 @@ class ContactModel:
 
         Uses the term lists and separating planes of the last ``evaluate`` (call it at the
         configuration the step starts from). No triangle pair may close more than ``fraction``
-        of its distance to its separating plane, no far cluster pair more than ``fraction`` of
-        its sphere separation, so no contact can be skipped between line-search samples.
+        of its gap along a fixed axis (restarted where that holds the step back, never below
+        1 - ``fraction`` of its distance; docs/architecture.md, "No penetration, no
+        tunnelling"), no far cluster pair more than ``fraction`` of its sphere separation, so
+        no contact can be skipped between line-search samples.
 
         Args:
             step: (nbodies, 6) rigid-coordinate step (dp, dtheta); zero rows for static bodies.

@@ -373,8 +373,8 @@ def _damaged_checkpoint_entry(state: dict) -> str | None:
     def generator_state(value):
         if value is None:
             return True
-        try:  # the bundle's generator takes it, or says why not
-            np.random.default_rng().bit_generator.state = value
+        try:  # the bundle's kind of generator takes it, or says why not
+            np.random.PCG64(0).state = value
         except (TypeError, ValueError, KeyError, OverflowError):
             return False
         return True
