@@ -1072,6 +1072,38 @@ def test_step_between_is_what_retract_takes_from_one_configuration_to_another():
         np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", back[:, 3:], q_to[:, 3:])), 1.0, rtol=0, atol=1e-12)
 
 
+def test_a_base_joint_state_that_disagrees_with_its_poses_is_refused():
+    """Found by a probe: a box on an ("x", "z") base moved 0.5 m up in body_q with its
+    coordinates left at 0 stayed up there, outside its z limits, and a y shift or a tilt
+    the joint cannot make was taken; a hinge's were refused. A base's coordinates are its
+    centre's offsets along world axes and its turns about them."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    box = b.add_box((0.2, 0.2, 0.2), mass=1.0, pose=(0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), name="box")
+    b.add_joint("base", child=box, dofs=("x", "z", "rz"), limits=[(-0.1, 0.1), (-0.1, 0.1), (-1.0, 1.0)], name="slide")
+    model = b.finalize()
+    solver = wc.ImplicitSolver(model)
+    turned = [0.0, 0.0, np.sin(0.2), np.cos(0.2)]  # 0.4 rad about z
+    for change, coordinates, message in (
+        ((2, 1.5), [0.0, 0.0, 0.0], r"joint 'slide' \(world -> box\): state_in.joint_q gives z 0 but state_in.body_q moves its centre of mass 0.5 m along z"),
+        ((1, 0.3), [0.0, 0.0, 0.0], r"joint 'slide' \(world -> box\): it has no y but state_in.body_q moves its centre of mass 0.3 m along y"),
+        ((3, [np.sin(0.25), 0.0, 0.0, np.cos(0.25)]), [0.0, 0.0, 0.0], r"state_in.joint_q gives turns rz 0 but state_in.body_q turns it 0.5 rad"),
+        ((3, turned), [0.0, 0.0, 0.4], None),  # the same turn in both: a state like any other
+    ):
+        state = model.state(requires_grad=False)
+        q = state.body_q.numpy().copy()
+        index, value = change
+        q[0, index if index < 3 else slice(3, 7)] = value
+        state.body_q.assign(q)
+        state.body_q_prev.assign(q)
+        state.joint_q.assign(coordinates)
+        state.joint_q_prev.assign(coordinates)
+        if message is None:
+            solver.step(state, model.state(requires_grad=False), None, 0.01)
+        else:
+            with pytest.raises(ValueError, match=message):
+                solver.step(state, model.state(requires_grad=False), None, 0.01)
+
+
 def test_joint_order_is_topological_for_long_chains_added_leaf_first():
     """Joints are ordered parent first whatever order they were added in; the recursive
     walk overflowed Python's stack on a chain of ~1,000 joints added leaf first."""

@@ -256,6 +256,7 @@ class ArticulationModel:
         # Rows of J for the non-static bodies, whose blocks the contact Hessians hold.
         self._hessian_rows = np.flatnonzero(np.repeat(~static, 6))
         poses = np.asarray(body_poses, dtype=np.float64)
+        self._initial_poses = poses.copy()
         parent_joint = {}
         for j, joint in enumerate(joints):
             assert joint.child not in parent_joint, "ModelBuilder.add_joint admits one parent joint per body"
@@ -481,9 +482,13 @@ class ArticulationModel:
     def state_problem(self, poses: np.ndarray, coordinates: np.ndarray) -> str | None:
         """Why body ``poses`` (nbodies, 7) and joint ``coordinates`` (num_coordinates,) are not
         one configuration, or None: a joint the poses violate, or a revolute, prismatic or
-        universal coordinate that disagrees with them (angles modulo 2 pi). Base coordinates
-        are not recoverable from poses and are not compared."""
+        universal coordinate that disagrees with them (angles modulo 2 pi), or a base joint to
+        the world whose poses and coordinates disagree (``_base_problem``)."""
         for j, joint in enumerate(self.joints):
+            if joint.kind == "base" and joint.parent < 0:
+                problem = self._base_problem(j, joint, poses, coordinates)
+                if problem is not None:
+                    return problem
             if joint.kind in ("free", "base"):
                 continue
             try:
@@ -500,6 +505,34 @@ class ArticulationModel:
                 agree = _rotation_gap(_joint_rotation(joint, given), _joint_rotation(joint, values)) <= _ANGLE_TOLERANCE
             if not agree:
                 return f"joint {joint.name!r} ({self._link_names(joint)}): state_in.joint_q gives it {np.array2string(given, precision=6)} but state_in.body_q puts it at {np.array2string(values, precision=6)}"
+        return None
+
+    def _base_problem(self, j: int, joint: Joint, poses: np.ndarray, coordinates: np.ndarray) -> str | None:
+        """Why a base joint to the world and ``poses`` disagree, or None. Its coordinates are
+        the child's centre-of-mass offsets along world axes from its initial pose, and its
+        turns about world axes through that centre (the second about an axis turning with the
+        first); an axis it does not list stays as it was. A box on an ("x", "z") base set
+        0.5 m up with its coordinates at 0 stayed there, outside its z limits, silently. Three
+        turns are a rotation vector with no coordinates: only the translations are compared."""
+        b = joint.child
+        owned = self.dof_coordinate[self.joint_dofs[j]]
+        given = dict(zip(joint.base_dofs, coordinates[owned[owned >= 0]], strict=False))
+        offset = poses[b, :3] - self._initial_poses[b, :3]
+        where = f"joint {joint.name!r} ({self._link_names(joint)})"
+        for k, axis in enumerate(("x", "y", "z")):
+            expected = given.get(axis, 0.0)
+            if abs(offset[k] - expected) > self._anchor_tolerance[j]:
+                said = f"state_in.joint_q gives {axis} {expected:.6g}" if axis in given else f"it has no {axis}"
+                return f"{where}: {said} but state_in.body_q moves its centre of mass {offset[k]:.6g} m along {axis} from the initial pose"
+        turns = [d for d in joint.base_dofs if d in ("rx", "ry", "rz")]
+        if len(turns) == 3:
+            return None
+        expected = self._initial_poses[b, 3:]
+        for d in reversed(turns):  # R = Rot1 Rot2 R0
+            expected = quat_mul(_rotation_about(np.eye(3)["rx ry rz".split().index(d)], given[d]), expected)
+        if _rotation_gap(poses[b, 3:], expected) > _ANGLE_TOLERANCE:
+            listed = f"turns {', '.join(f'{d} {given[d]:.6g}' for d in turns)}" if turns else "no turns"
+            return f"{where}: state_in.joint_q gives {listed} but state_in.body_q turns it {_rotation_gap(poses[b, 3:], self._initial_poses[b, 3:]):.6g} rad from its initial rotation otherwise"
         return None
 
     def _cone(self, j: int, joint: Joint, poses: np.ndarray) -> dict:
