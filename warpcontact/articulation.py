@@ -63,6 +63,8 @@ __all__ = [
 PRISMATIC, REVOLUTE, ROTATION = 0, 1, 2
 JOINT_KINDS = ("revolute", "prismatic", "universal", "ball", "base")
 BASE_DOFS = ("x", "y", "z", "rx", "ry", "rz")
+# The world axis of each base DOF: translations along it, turns about it.
+_BASE_AXES = dict(zip(BASE_DOFS, np.vstack([np.eye(3), np.eye(3)]), strict=True))
 # Axes (= coordinates) of the joint kinds with a fixed count; a ball joint has none, or one
 # for a swing limit's axis, and no coordinates; a base joint has its listed dofs.
 JOINT_AXES = {"revolute": 1, "prismatic": 1, "universal": 2}
@@ -529,7 +531,7 @@ class ArticulationModel:
             return None
         expected = self._initial_poses[b, 3:]
         for d in reversed(turns):  # R = Rot1 Rot2 R0
-            expected = quat_mul(_rotation_about(np.eye(3)["rx ry rz".split().index(d)], given[d]), expected)
+            expected = quat_mul(_rotation_about(_BASE_AXES[d], given[d]), expected)
         if _rotation_gap(poses[b, 3:], expected) > _ANGLE_TOLERANCE:
             listed = f"turns {', '.join(f'{d} {given[d]:.6g}' for d in turns)}" if turns else "no turns"
             return f"{where}: state_in.joint_q gives {listed} but state_in.body_q turns it {_rotation_gap(poses[b, 3:], self._initial_poses[b, 3:]):.6g} rad from its initial rotation otherwise"
@@ -732,9 +734,8 @@ class ArticulationModel:
         if joint.kind == "ball":
             return [(ROTATION, -1, e, anchor, joint.child) for e in np.eye(3)]
         # base / free: world translations, then rotations about the child's centre of mass
-        axes = dict(zip(BASE_DOFS, np.vstack([np.eye(3), np.eye(3)]), strict=True))
-        out = [(PRISMATIC, -1, axes[d], np.zeros(3), -1) for d in joint.base_dofs if d in ("x", "y", "z")]
-        rotations = [axes[d] for d in joint.base_dofs if d in ("rx", "ry", "rz")]
+        out = [(PRISMATIC, -1, _BASE_AXES[d], np.zeros(3), -1) for d in joint.base_dofs if d in ("x", "y", "z")]
+        rotations = [_BASE_AXES[d] for d in joint.base_dofs if d in ("rx", "ry", "rz")]
         if len(rotations) == 3:
             out += [(ROTATION, -1, e, np.zeros(3), joint.child) for e in rotations]
         elif rotations:
