@@ -471,6 +471,14 @@ def test_a_body_set_exactly_on_a_support_is_refused_naming_both():
         (lambda m: m.body_unit_second_moment.assign(np.array([np.eye(3), np.eye(3) * np.nan])), r"model.body_unit_second_moment: body 'box' has \[\[nan, nan, nan\]"),
         (lambda m: m.body_unit_second_moment.assign(np.array([np.eye(3), -0.01 * np.eye(3)])), r"body 'box' has .*; a dynamic body's must be finite, symmetric and positive definite"),
         (lambda m: m.body_unit_second_moment.assign(np.array([np.eye(3), [[0.01, 0.005, 0.0], [0.0, 0.01, 0.0], [0.0, 0.0, 0.01]]])), r"model.body_unit_second_moment: body 'box'"),
+        # Found by a probe: a resting box made static in the array was flung 0.5 m up in 3 steps.
+        (lambda m: m.body_dynamic.assign(np.array([0, 0], dtype=np.int32)), r"model.body_dynamic: body 'box' has 0 where the model was built dynamic \(1\); .* build it again"),
+        (lambda m: m.body_dynamic.assign(np.array([1, 1], dtype=np.int32)), r"model.body_dynamic: body 'plate' has 1 where the model was built static \(0\)"),
+        # Found by a probe: a NaN step ("step: non-finite value"), numpy's LinAlgError, an
+        # internal argument of the advancement bound named.
+        (lambda m: setattr(m, "friction_smoothing", 1e-200), r"model.friction_smoothing: must lie in \[1e-150, 1e\+150\] m/s"),
+        (lambda m: m.contact_stiffness.assign(np.array([1e300])), r"model.contact_stiffness: must lie in \[1e-150, 1e\+150\] \("),
+        (lambda m: setattr(m, "gravity", np.array([0.0, 0.0, -1e300])), r"model.gravity: must be at most 1e\+150 m/s\^2 in magnitude"),
     ],
 )
 def test_model_parameters_changed_after_finalize_are_checked_by_the_step(change, message):
@@ -480,6 +488,33 @@ def test_model_parameters_changed_after_finalize_are_checked_by_the_step(change,
     change(model)
     with pytest.raises(ValueError, match=message):
         wc.ImplicitSolver(model).step(first, model.state(requires_grad=False), None, 0.04)
+
+
+def test_scales_at_the_edges_of_float64_are_named_and_a_float32_dt_is_taken():
+    """Found by a probe: gravity 1e300 m/s^2 and contact stiffness 1e300 were taken by the
+    builder and failed deep inside the step; gravity whose free fall over dt leaves the
+    coordinates' range named the advancement bound's internal argument "step"; an np.float32
+    dt warned of an overflow (an error under -W error) and made float32 products."""
+    for settings, message in (
+        (dict(gravity=(0.0, 0.0, -1e300)), r"gravity: must be at most 1e\+150 m/s\^2 in magnitude on each axis"),
+        (dict(contact_stiffness=1e300), r"contact_stiffness: must lie in \[1e-150, 1e\+150\] \(its square"),
+        (dict(friction_smoothing=1e-200), r"friction_smoothing: must lie in \[1e-150, 1e\+150\] m/s"),
+        (dict(friction=1e200), r"friction: must lie in \[1e-150, 1e\+150\]"),
+        (dict(eps=1e-160), r"eps: must lie in \[1e-150, 1e\+150\]"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            wc.ModelBuilder(**settings)
+    model, first = _box_thrown_at_a_plate((0.0, 0.0, 0.0), start=(0.0, 0.0, 0.2 + 1e-4))
+    model.gravity = np.array([0.0, 0.0, -1e150])
+    with pytest.raises(ValueError, match=r"model.gravity and dt: gravity \[0.0, 0.0, -1e\+150\] m/s\^2 falls 1e\+152 m in dt=10.0 s, beyond"):
+        wc.ImplicitSolver(model).step(first, model.state(requires_grad=False), None, 10.0)
+    model, first = _box_thrown_at_a_plate((0.0, 0.0, 0.0), start=(0.0, 0.0, 0.2 + 1e-4))
+    given_float32, given_float64 = model.state(requires_grad=False), model.state(requires_grad=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        wc.ImplicitSolver(model).step(first, given_float32, None, np.float32(0.04))
+    wc.ImplicitSolver(model).step(first, given_float64, None, float(np.float32(0.04)))
+    np.testing.assert_array_equal(given_float32.body_q.numpy(), given_float64.body_q.numpy())
 
 
 @pytest.mark.parametrize("case", ["box off an edge", "rolling ball"])
@@ -1220,7 +1255,7 @@ def test_a_box_pressed_between_walls_beyond_float64s_reach_is_an_error_not_a_fre
 def test_api_objects_of_the_wrong_kind_are_named():
     """Each was an AttributeError naming no argument, or (gravity as text or bools) read as numbers."""
     for make, match in (
-        (lambda: wc.ModelBuilder(gravity=("0", "0", "-9.81")), r"gravity: expected 3 finite numbers, got \('0', '0', '-9.81'\)"),
+        (lambda: wc.ModelBuilder(gravity=("0", "0", "-9.81")), r"gravity: expected 3 finite numbers \(m/s\^2\), got \('0', '0', '-9.81'\)"),
         (lambda: wc.ModelBuilder(gravity=(True, False, True)), "gravity: expected 3 finite numbers"),
         (lambda: wc.ModelBuilder(gravity=(0.0, 0.0, True)), "gravity: expected 3 finite numbers"),  # numpy read (0.0, 0.0, 1.0)
         (lambda: wc.ModelBuilder().add_box((1.0, 1.0, True), density=1.0), "box extents must be 3 positive finite numbers"),

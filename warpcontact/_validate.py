@@ -10,6 +10,7 @@ __all__ = [
     "MAX_COUNT",
     "MIN_EXTENT",
     "QUATERNION_TOLERANCE",
+    "SCALE_RANGE",
     "as_float64_array",
     "check_barrier_support",
     "check_coordinates",
@@ -22,6 +23,7 @@ __all__ = [
     "is_whole",
     "real_array",
     "real_dtype",
+    "scale_problem",
     "shown",
     "validated_poses",
 ]
@@ -64,19 +66,29 @@ def is_positive_finite(value) -> bool:
     return is_real(value) and bool(np.isfinite(value)) and value > 0
 
 
-# A step's inertia divides by dt^2 and its frames' rate is 1 / dt: beyond this range they
-# overflow (dt = 1e200 s crashed the step; 1e-320 s wrote no trajectory at an infinite rate).
-TIME_STEP_RANGE = (1e-150, 1e150)
+# Magnitudes of the positive scales a step multiplies, divides and squares (dt, quaternion
+# norms, the contact settings, gravity): the square and inverse of anything in this range, and
+# the product of two such, are finite normal float64 numbers. Beyond it a step overflowed or
+# underflowed silently or deep inside (dt = 1e200 s crashed the step and 1e-320 s wrote no
+# trajectory at an infinite rate; friction_smoothing 1e-200 m/s gave a NaN step, contact
+# stiffness 1e300 numpy's "Eigenvalues did not converge").
+SCALE_RANGE = (1e-150, 1e150)
+
+
+def scale_problem(value, unit: str) -> str | None:
+    """Why ``value``, a positive scale in ``unit``, lies outside SCALE_RANGE, or None (it is
+    checked positive and finite elsewhere)."""
+    low, high = SCALE_RANGE
+    if not low <= float(value) <= high:  # float: np.float32 against 1e150 warned of an overflow
+        return f"must lie in [{low:g}, {high:g}]{' ' + unit if unit else ''} (its square and inverse must be representable)"
+    return None
 
 
 def time_step_problem(dt) -> str | None:
     """Why ``dt`` is not a time step (s), or None."""
-    low, high = TIME_STEP_RANGE
     if not is_positive_finite(dt):
         return "must be a positive finite number of seconds"
-    if not low <= dt <= high:
-        return f"must lie in [{low:g}, {high:g}] s (its square and inverse must be representable)"
-    return None
+    return scale_problem(dt, "s")
 
 
 def check_time_step(dt) -> None:
@@ -114,7 +126,7 @@ def check_count(value, name: str) -> None:
 
 def check_coordinates(arr: np.ndarray, name: str) -> None:
     """ValueError naming ``name`` and the entry if any entry of ``arr`` exceeds MAX_COORDINATE in magnitude."""
-    big = np.abs(arr) > MAX_COORDINATE
+    big = np.abs(np.asarray(arr, dtype=np.float64)) > MAX_COORDINATE  # float32 against 1e150 warned
     if big.any():
         first = np.argwhere(big)[0]
         raise ValueError(

@@ -9,7 +9,7 @@ import trimesh
 import warp as wp
 
 from ._runtime import resolve_device
-from ._validate import QUATERNION_TOLERANCE, check_barrier_support, check_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array, shown
+from ._validate import QUATERNION_TOLERANCE, SCALE_RANGE, check_barrier_support, check_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array, scale_problem, shown
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, connected_labels, default_limit_margins, frame_in_body
 from .contact import CENTRED_WEIGHTS, CONTACT_MODES, ContactModel
 from .leaf import float32_search
@@ -67,8 +67,24 @@ def contact_setting_problem(name: str, value: float) -> str | None:
     if not is_real(value):
         return f"must be a number, not {type(value).__name__}"
     if name == "friction":
-        return None if np.isfinite(value) and value >= 0 else "must be >= 0 and finite"
-    return None if is_positive_finite(value) else "must be positive and finite"
+        if not (np.isfinite(value) and value >= 0):
+            return "must be >= 0 and finite"
+        return None if value == 0 else scale_problem(value, "")
+    return scale_problem(value, _SETTING_UNITS[name]) if is_positive_finite(value) else "must be positive and finite"
+
+
+_SETTING_UNITS = {"contact_stiffness": "", "friction_smoothing": "m/s", "eps": ""}
+
+
+def gravity_problem(value) -> str | None:
+    """Why ``value`` is not a gravitational acceleration (m/s^2), or None: 3 finite numbers,
+    none beyond SCALE_RANGE's bound (1e300 made the step's free fall overflow)."""
+    gravity = finite_vector(value, 3)
+    if gravity is None:
+        return "expected 3 finite numbers (m/s^2)"
+    if np.abs(gravity).max() > SCALE_RANGE[1]:
+        return f"must be at most {SCALE_RANGE[1]:g} m/s^2 in magnitude on each axis"
+    return None
 _IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 
 
@@ -327,10 +343,10 @@ class ModelBuilder:
     """
 
     def __init__(self, *, gravity=(0.0, 0.0, -9.81), contact_stiffness: float = 1e-6, friction: float = 0.0, friction_smoothing: float = 1e-4, eps: float = 0.5, centred_weight: str = "paper", contact_mode: str = "bsh", leaf_precision: str = "float64", ipc_dhat: float = 1e-2, sdrs_dhat: float = 1e-2, articulation_contact: str = "nonadjacent"):
-        given = gravity
+        problem = gravity_problem(gravity)
+        if problem is not None:
+            raise ValueError(f"gravity: {problem}, got {gravity!r}")
         gravity = finite_vector(gravity, 3)
-        if gravity is None:
-            raise ValueError(f"gravity: expected 3 finite numbers, got {given!r}")
         for name, value in (("contact_stiffness", contact_stiffness), ("friction", friction), ("friction_smoothing", friction_smoothing), ("eps", eps)):
             problem = contact_setting_problem(name, value)
             if problem:

@@ -32,12 +32,12 @@ import numpy as np
 import trimesh
 import warp as wp
 
-from ._validate import QUATERNION_TOLERANCE, check_time_step, checked_flag, is_real, is_whole
+from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, SCALE_RANGE, check_time_step, checked_flag, is_real, is_whole
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
 from .articulation import connected_labels, joint_limit_energy
-from .builder import STEEP_BLEND_EPS, contact_setting_problem, finite_vector, steep_blend
+from .builder import STEEP_BLEND_EPS, contact_setting_problem, gravity_problem, steep_blend
 from .contact import UNSOLVED_HINT, ContactModel, LaggedFriction
 from .rotation import normalized_poses, quat_from_matrix, quat_norm, quat_from_rotation_vector, quat_mul, quat_to_matrix, rigid_step_between, rigid_step_travel
 from .types import Control, Model, State
@@ -190,16 +190,13 @@ def _check_pose_array(poses, count: int, label: str, expected: str) -> None:
         raise ValueError(f"{label}: expected a wp.array of {count} wp.transformd, {expected}, got {_described(poses)}")
 
 
-# Quaternions are normalised in the kernels from their squares, which overflow beyond ~1e154
-# and underflow below ~1e-154: a previous rotation given at 1e160 was read as another one.
-_QUATERNION_NORM_RANGE = (1e-150, 1e150)
-
-
 def _check_quaternion_norms(quaternions: np.ndarray, checked: np.ndarray, label: str, names, *, whose: str = "body") -> None:
     """ValueError naming the body (``whose`` it is) unless each ``checked`` row's (x, y, z, w)
-    norm lies in ``_QUATERNION_NORM_RANGE`` (the step normalises them; zero is no rotation)."""
+    norm lies in SCALE_RANGE (the step normalises them; zero is no rotation): the kernels
+    normalise from their squares, and a previous rotation given at 1e160 was read as another
+    one."""
     norms = quat_norm(quaternions)
-    low, high = _QUATERNION_NORM_RANGE
+    low, high = SCALE_RANGE
     bad = np.flatnonzero(checked & ~((norms >= low) & (norms <= high)))
     if bad.size:
         b = int(bad[0])
@@ -395,7 +392,8 @@ class ImplicitSolver:
         self.exact_friction_steps = checked_flag(exact_friction_steps, "exact_friction_steps")
         self.last_step: StepInfo | None = None
         n = model.num_bodies
-        self._dynamic = ~model.static
+        # The contact model's flags, made by finalize: the model's body_dynamic is a writable array.
+        self._dynamic = ~model.contact.static
         # Per body, tr of its second moment per unit mass (m^2): the size of the rotational
         # inertia term, which L computes as a difference of such terms (``_solve``); read with
         # the other parameters at every step (``_checked_model_parameters``).
@@ -462,9 +460,21 @@ class ImplicitSolver:
             problem = contact_setting_problem(name, value)
             if problem is not None:
                 raise ValueError(f"model.{name}: {problem}, got {value!r}")
-        if finite_vector(model.gravity, 3) is None:
+        problem = gravity_problem(model.gravity)
+        if problem is not None:
             # A NaN was blamed on dt and the control's targets, 4 numbers on Warp's vector constructor.
-            raise ValueError(f"model.gravity: expected 3 finite numbers (m/s^2), got {model.gravity!r}")
+            raise ValueError(f"model.gravity: {problem}, got {model.gravity!r}")
+        # Which bodies are static is fixed by finalize (the contact model's lists and this
+        # solver's coordinates follow it); changed in the array, a resting box made static
+        # was flung up 0.5 m in 3 steps.
+        dynamic = model.body_dynamic.numpy()
+        bad = np.flatnonzero((dynamic != 0) != self._dynamic)
+        if bad.size:
+            b = int(bad[0])
+            raise ValueError(
+                f"model.body_dynamic: body {model.body_names[b]!r} has {int(dynamic[b])} where the model was built "
+                f"{'dynamic (1)' if self._dynamic[b] else 'static (0)'}; which bodies are static is fixed when the model is built: build it again"
+            )
         mass = model.body_mass.numpy()
         bad = np.flatnonzero(self._dynamic & ~(np.isfinite(mass) & (mass > 0.0)))
         if bad.size:
@@ -846,6 +856,7 @@ class ImplicitSolver:
 
     def _solve(self, state_in: State, state_out: State, control: Control | None, dt: float, *, taped: bool = False):
         check_time_step(dt)
+        dt = float(dt)  # an np.float32 dt made float32 of every product with it
         model = self.model
         for label, given in (("state_in", state_in), ("state_out", state_out)):
             if not isinstance(given, State):
@@ -870,6 +881,11 @@ class ImplicitSolver:
         q = normalized_poses(q_now)
         # Before the joint arrays, which are checked against the limits.
         mu, friction_coefficient, mass = self._checked_model_parameters()
+        fall = float(np.abs(model.gravity).max()) * dt * dt
+        if fall > MAX_COORDINATE:
+            # The step's free fall g dt^2 then overflowed the kernels' coordinates: the error
+            # named an internal argument of the advancement bound.
+            raise ValueError(f"model.gravity and dt: gravity {model.gravity.tolist()} m/s^2 falls {fall:.3g} m in dt={dt} s, beyond the +-{MAX_COORDINATE:g} m of a body's coordinates; reduce dt or gravity")
         coords_now, joint_target = self._joint_arrays(state_in, state_out, control, q)
         ball_target, ball_start = self._ball_arrays(control, q_now)
         dynamic = self._dynamic
