@@ -148,7 +148,7 @@ def _closed_outward(mesh: trimesh.Trimesh) -> bool:
         return bool(mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0)
 
 
-def _winding_numbers(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def winding_numbers(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Generalised winding numbers of ``points`` (n, 3) about closed ``triangles`` (m, 3, 3):
     about 1 inside an outward-oriented surface, 0 outside (solid angles, Van Oosterom and
     Strackee)."""
@@ -178,7 +178,7 @@ def _inside_out_piece(mesh: trimesh.Trimesh) -> bool:
     for piece in np.flatnonzero(volumes < -1e-9 * np.bincount(labels, weights=np.abs(signed))):
         inside = labels == piece
         probe = triangles[inside][0].mean(axis=0, keepdims=True)
-        if _winding_numbers(probe, triangles[~inside])[0] < 0.5:
+        if winding_numbers(probe, triangles[~inside])[0] < 0.5:
             return True
     return False
 

@@ -27,6 +27,7 @@ second moments), which would otherwise stay zero.
 
 import dataclasses
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import trimesh
@@ -37,7 +38,7 @@ from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
 from .articulation import connected_labels, joint_limit_energy
-from .builder import STEEP_BLEND_EPS, contact_setting_problem, gravity_problem, steep_blend
+from .builder import STEEP_BLEND_EPS, contact_setting_problem, gravity_problem, steep_blend, winding_numbers
 from .contact import UNSOLVED_HINT, ContactModel, LaggedFriction
 from .rotation import normalized_poses, quat_from_matrix, quat_norm, quat_from_rotation_vector, quat_mul, quat_to_matrix, rigid_step_between, rigid_step_travel
 from .types import Control, Model, State
@@ -131,11 +132,9 @@ _PASS_THROUGH_CHORDS = 16
 _PASS_THROUGH_CHORD_TURN = 0.2
 
 
-def _contains_origin(vertices: np.ndarray, faces: np.ndarray) -> bool:
-    """Whether a mesh's frame origin (a body's centre of mass) lies inside it: with coincident
-    vertices merged, the mesh is closed (every edge is used as often in each direction) and
-    its winding number, the triangles' solid angles over 4 pi, is a non-zero integer (2 inside
-    two overlapping boxes). An open mesh has no inside: a tray without a lid winds 5/6 about
+def _is_closed(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether a mesh is closed once coincident vertices are merged: every edge is used as
+    often in each direction. An open mesh has no inside: a tray without a lid winds 5/6 about
     its centre, which lies in the air above its floor."""
     points, index = np.unique(np.asarray(vertices, dtype=np.float64), axis=0, return_inverse=True)
     faces = index.reshape(-1)[np.asarray(faces)]
@@ -143,14 +142,13 @@ def _contains_origin(vertices: np.ndarray, faces: np.ndarray) -> bool:
     # Each directed edge as one integer key, compared as sorted multisets (vectorised: a
     # Counter of tuples took 1 s for an 81,920-face ball at every solver's construction).
     count = len(points)
-    if not np.array_equal(np.sort(edges[:, 0] * count + edges[:, 1]), np.sort(edges[:, 1] * count + edges[:, 0])):
-        return False
-    tri = points[faces]
-    x, y, z = tri[:, 0], tri[:, 1], tri[:, 2]
-    lx, ly, lz = (np.linalg.norm(v, axis=1) for v in (x, y, z))
-    numerator = np.einsum("ij,ij->i", x, np.cross(y, z))
-    denominator = lx * ly * lz + np.einsum("ij,ij->i", x, y) * lz + np.einsum("ij,ij->i", y, z) * lx + np.einsum("ij,ij->i", z, x) * ly
-    winding = np.sum(2.0 * np.arctan2(numerator, denominator)) / (4.0 * np.pi)
+    return bool(np.array_equal(np.sort(edges[:, 0] * count + edges[:, 1]), np.sort(edges[:, 1] * count + edges[:, 0])))
+
+
+def _encloses(triangles: np.ndarray, point: np.ndarray) -> bool:
+    """Whether a closed mesh's ``triangles`` (T, 3, 3) wind about ``point`` (3,): a non-zero
+    integer winding number (2 inside two overlapping boxes)."""
+    winding = winding_numbers(point[None], triangles)[0]
     return bool(round(winding) != 0 and abs(winding - round(winding)) < 1e-3)
 
 
@@ -229,6 +227,17 @@ def _check_no_shared_arrays(state_in: State, state_out: State) -> None:
                     f"state_out.{out_name}: shares memory with {label}.{name}; a step writes state_out while it reads "
                     "state_in, so give state_out arrays of its own (model.state()); two States may alternate as input and output"
                 )
+
+
+class _CrossingGeometry(NamedTuple):
+    """What the pass-through check reads of a body, in its frame (``ImplicitSolver._crossing_geometry``)."""
+
+    closed: bool  # its mesh has an inside (``_is_closed``)
+    centre_inside: bool  # its centre of mass is a material point (a ring's or an open ground's is not)
+    triangles: np.ndarray  # (T, 3, 3)
+    low: np.ndarray  # (T, 3) the triangles' bounding boxes
+    high: np.ndarray
+    inner_radius: float  # of the ball about its centre inside it (0 for a centre outside)
 
 
 class _UnsolvedTrials:
@@ -1185,9 +1194,13 @@ class ImplicitSolver:
                 f"radii {radius[a[i]]:.3g} and {radius[b[i]]:.3g} m); the time step is too large for this impact, reduce dt"
             )
 
+        # A body inside a closed one (a ball in a closed box) moves in the container's hollow,
+        # not through its material: only its own centre leaving the container passes through.
+        # Taken as solid, a ball falling in a closed box was refused at its second step.
+        containers = {i: self._container(a[i], b[i], q_from) for i in suspect}
         for i in suspect:
-            for mover, other in ((a[i], b[i]), (b[i], a[i])):
-                where = self._centre_crossing(mover, other, path) if self._crossing_geometry(mover)[0] else None
+            for mover, other in ((a[i], b[i]), (b[i], a[i])) if containers[i] is None else (containers[i],):
+                where = self._centre_crossing(mover, other, path) if self._crossing_geometry(mover).centre_inside else None
                 if where is not None:
                     return refusal(i, f"{names[mover]!r}'s centre of mass crosses {names[other]!r}'s surface at {where:.0%} of it")
         # Two bodies whose centres come closer than the sum of their inner balls' radii overlap
@@ -1196,11 +1209,14 @@ class ImplicitSolver:
         # balls (a ring's or an open mesh's centre is no material point): its turning is not
         # the bodies' and clips a tumbling corner (random piles of boxes and balls at dt 0.02
         # were refused in 4 of 8 seeds, though sub-steps showed nothing passing).
-        inner = {body: self._crossing_geometry(body)[3] for body in np.unique(np.concatenate([a[suspect], b[suspect]]))}
+        inner = {body: self._crossing_geometry(body).inner_radius for body in np.unique(np.concatenate([a[suspect], b[suspect]]))}
         for i in suspect:
-            if closest_distance[i] < inner[a[i]] + inner[b[i]]:
+            if containers[i] is None and closest_distance[i] < inner[a[i]] + inner[b[i]]:
                 return refusal(i, f"their centres come {closest_distance[i]:.3g} m apart at {clipped[i]:.0%} of it, inside both bodies (the balls about their centres inside them have radii {inner[a[i]]:.3g} and {inner[b[i]]:.3g} m)")
-        followed = np.array([self._crossing_geometry(a[i])[0] and self._crossing_geometry(b[i])[0] for i in suspect], dtype=bool)
+        followed = np.array(
+            [self._crossing_geometry(containers[i][0]).centre_inside if containers[i] is not None else self._crossing_geometry(a[i]).centre_inside and self._crossing_geometry(b[i]).centre_inside for i in suspect],
+            dtype=bool,
+        )
         suspect = suspect[~followed]
         closest = suspect[(fraction[suspect] > 0.0) & (fraction[suspect] < 1.0)]
         for s in np.unique(np.round(fraction[closest], 3)):
@@ -1210,21 +1226,30 @@ class ImplicitSolver:
                     return refusal(i, f"they intersect at {s:.0%} of it")
         return None
 
-    def _crossing_geometry(self, body: int) -> tuple:
-        """(whether the body's centre of mass lies inside its own closed mesh, its triangles
-        (T, 3, 3) in its frame, their bounding boxes (low, high), and the radius of the ball
-        about its centre inside it: the centre's distance to its surface, or 0 for a centre
-        outside). The pass-through check follows only centres inside (a ring's or an open
-        ground's centre is not material)."""
+    def _crossing_geometry(self, body: int) -> "_CrossingGeometry":
+        """What the pass-through check reads of a body (``_CrossingGeometry``), made once."""
         geometry = self._crossing_geometries.get(body)
         if geometry is None:
             vertices, faces = self.model.body_meshes[body]
             triangles = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
-            inside = _contains_origin(vertices, faces)
-            inner = float(np.linalg.norm(trimesh.triangles.closest_point(triangles, np.zeros((len(triangles), 3))), axis=1).min()) if inside else 0.0
-            geometry = (inside, triangles, (triangles.min(axis=1), triangles.max(axis=1)), inner)
+            closed = _is_closed(vertices, faces)
+            centre_inside = closed and _encloses(triangles, np.zeros(3))
+            inner = float(np.linalg.norm(trimesh.triangles.closest_point(triangles, np.zeros((len(triangles), 3))), axis=1).min()) if centre_inside else 0.0
+            geometry = _CrossingGeometry(closed, centre_inside, triangles, triangles.min(axis=1), triangles.max(axis=1), inner)
             self._crossing_geometries[body] = geometry
         return geometry
+
+    def _container(self, a: int, b: int, q: np.ndarray) -> tuple[int, int] | None:
+        """(inner, container) when one of bodies ``a``, ``b`` lies inside the other's closed
+        mesh at poses ``q`` (a ball in a closed box), else None. The step's start is free of
+        intersections, so one vertex of the smaller body decides."""
+        radius = self.model.body_radius
+        inner, outer = (a, b) if radius[a] <= radius[b] else (b, a)
+        if np.linalg.norm(q[inner, :3] - q[outer, :3]) + radius[inner] > radius[outer] or not self._crossing_geometry(outer).closed:
+            return None
+        vertex = quat_to_matrix(q[inner, 3:]) @ self._crossing_geometry(inner).triangles[0, 0] + q[inner, :3]
+        local = quat_to_matrix(q[outer, 3:]).T @ (vertex - q[outer, :3])
+        return (inner, outer) if _encloses(self._crossing_geometry(outer).triangles, local) else None
 
     def _centre_crossing(self, mover: int, other: int, path) -> float | None:
         """The fraction of the step's motion (``path``: fractions (k,) -> poses (k, nbodies, 7);
@@ -1243,7 +1268,8 @@ class ImplicitSolver:
         centre = np.einsum("kji,kj->ki", rotation, poses[:, 0, :3] - poses[:, 1, :3])
         # Only triangles whose boxes meet the path's: a ball over a 49,152-face ground tested
         # every face, half its step time.
-        _, triangles, (low, high), _ = self._crossing_geometry(other)
+        geometry = self._crossing_geometry(other)
+        triangles, low, high = geometry.triangles, geometry.low, geometry.high
         near = np.flatnonzero(np.all((low <= centre.max(axis=0)) & (high >= centre.min(axis=0)), axis=1))
         if not near.size:
             return None
