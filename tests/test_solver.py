@@ -1348,6 +1348,34 @@ def test_an_inside_out_piece_is_refused_and_a_cavity_is_not():
         assert wc.ModelBuilder().add_body(mesh, density=1000.0) == 0
 
 
+def test_overlapping_closed_pieces_are_refused_where_their_volume_counts():
+    """Found by a probe: two 1 m boxes overlapping by 0.25 m^3, joined by concatenating their
+    meshes, read 2,000 kg at 1,000 kg/m^3 (the union holds 1,750), the inertia and centre of
+    mass off with it, silently. Pieces that only touch, an island in a cavity, and the same
+    overlap with its mass properties given are taken."""
+    def boxes(*offsets, size=1.0):
+        return trimesh.util.concatenate([trimesh.creation.box((size, size, size)).apply_translation(offset) for offset in offsets])
+
+    overlapping = {
+        "corner": boxes((0.0, 0.0, 0.0), (0.5, 0.5, 0.0)),
+        "cross": trimesh.util.concatenate([trimesh.creation.box((3.0, 1.0, 1.0)), trimesh.creation.box((1.0, 3.0, 1.0))]),  # no vertex inside the other
+        "nested": trimesh.util.concatenate([trimesh.creation.box((2.0, 2.0, 2.0)), trimesh.creation.box((1.0, 1.0, 1.0))]),
+        "sliver": boxes((0.0, 0.0, 0.0), (1.0 - 1e-4, 0.3, 0.0)),
+    }
+    for name, mesh in overlapping.items():
+        for given in (dict(density=1000.0), dict(mass=1.0), dict(mass=1.0, inertia=np.eye(3))):
+            with pytest.raises(ValueError, match=rf"body '{name}': closed pieces of its mesh overlap, so their shared volume would count twice .* give mass, inertia and center_of_mass"):
+                wc.ModelBuilder().add_body(mesh, name=name, **given)
+        wc.ModelBuilder().add_body(mesh, name=name, mass=1.0, inertia=np.eye(3), center_of_mass=(0.0, 0.0, 0.0))
+    b = wc.ModelBuilder()
+    b.add_body(boxes((0.0, 0.0, 0.0), (1.0, 0.3, 0.2)), density=1000.0, name="touching", pose=(0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 1.0))
+    cavity = trimesh.creation.box((1.0, 1.0, 1.0))
+    cavity.invert()
+    island = trimesh.util.concatenate([trimesh.creation.box((2.0, 2.0, 2.0)), cavity, trimesh.creation.box((0.4, 0.4, 0.4))])
+    b.add_body(island, density=1000.0, name="island", pose=(5.0, 0.0, 2.0, 0.0, 0.0, 0.0, 1.0))
+    np.testing.assert_allclose(b.finalize().body_mass.numpy(), [2000.0, 8000.0 - 1000.0 + 64.0])
+
+
 def test_zero_area_triangles_do_not_push_a_body():
     """A box whose mesh also holds a zero-area triangle (a vertex named twice, or a vertex in
     the middle of a bottom edge and the sliver closing it) was pushed sideways with ~600 N
@@ -1602,9 +1630,14 @@ def test_builder_rejects_open_mesh_with_density():
 
 
 def test_builder_names_an_inside_out_mesh_for_density_and_for_a_mass_without_inertia():
+    """A whole mesh wound inside out, and a face naming a vertex twice, were refused without a
+    cause (a probe), where other unclosed meshes got one."""
     inside_out = (_BOX.vertices, _BOX.faces[:, ::-1])
-    with pytest.raises(ValueError, match="'inverted': mass from density needs a closed, consistently outward-oriented mesh"):
+    with pytest.raises(ValueError, match=r"'inverted': mass from density needs a closed, consistently outward-oriented mesh \(it is wound inside out, its faces' normals pointing inwards: invert its faces"):
         wc.ModelBuilder().add_body(inside_out, density=1.0, name="inverted")
+    repeated = (_BOX.vertices, np.vstack([_BOX.faces, [[3, 5, 3]]]))
+    with pytest.raises(ValueError, match=r"'spur': mass from density needs .* \(face 12 names vertex 3 twice, which closes nothing: remove such faces\)"):
+        wc.ModelBuilder().add_body(repeated, density=1.0, name="spur")
     with pytest.raises(ValueError, match="'inverted': inertia is needed for a mesh that is not closed and consistently outward-oriented"):
         wc.ModelBuilder().add_body(inside_out, mass=1.0, name="inverted")
 

@@ -159,27 +159,79 @@ def winding_numbers(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.arctan2(det, den).sum(axis=1) / (2.0 * np.pi)
 
 
-def _inside_out_piece(mesh: trimesh.Trimesh) -> bool:
-    """Whether a closed piece of the mesh (faces connected through edges) encloses a negative
-    volume without lying inside the material of the other pieces, as a cavity's inward wall
-    does (their winding number there at least 1): a separate inside-out box beside a body's
-    box had its volume subtracted (8,125 kg read as 7,875 kg, the centre of mass on the wrong
-    side). Each piece's volume is taken about its own centre, so that rounding far from the
-    mesh's origin cannot flip a small piece's sign; a piece of no volume (a double-sided
-    sheet) is no inside-out piece."""
+def _pieces(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(label per face, 0 .. pieces - 1, of the closed pieces, faces connected through edges;
+    each piece's signed volume; each piece's sum of |volume| terms, its volume's rounding
+    scale). Each piece's volume is taken about its own centre, so that rounding far from the
+    mesh's origin cannot flip a small piece's sign."""
     triangles = mesh.triangles
-    # Labels 0 .. pieces - 1 (trimesh's labelling needs scipy, which this package does not).
+    # trimesh's labelling needs scipy, which this package does not.
     labels = np.unique(connected_labels(len(triangles), mesh.face_adjacency), return_inverse=True)[1].reshape(-1)
     counts = np.bincount(labels)
     centre = np.stack([np.bincount(labels, weights=triangles[:, :, k].mean(axis=1)) for k in range(3)], axis=1) / counts[:, None]
     local = triangles - centre[labels][:, None, :]
     signed = np.einsum("fi,fi->f", local[:, 0], np.cross(local[:, 1], local[:, 2])) / 6.0
-    volumes = np.bincount(labels, weights=signed)
-    for piece in np.flatnonzero(volumes < -1e-9 * np.bincount(labels, weights=np.abs(signed))):
+    return labels, np.bincount(labels, weights=signed), np.bincount(labels, weights=np.abs(signed))
+
+
+def _inside_out_piece(mesh: trimesh.Trimesh) -> bool:
+    """Whether a closed piece of the mesh (``_pieces``) encloses a negative volume without
+    lying inside the material of the other pieces, as a cavity's inward wall does (their
+    winding number there at least 1): a separate inside-out box beside a body's box had its
+    volume subtracted (8,125 kg read as 7,875 kg, the centre of mass on the wrong side); a
+    piece of no volume (a double-sided sheet) is no inside-out piece."""
+    triangles = mesh.triangles
+    labels, volumes, scale = _pieces(mesh)
+    for piece in np.flatnonzero(volumes < -1e-9 * scale):
         inside = labels == piece
         probe = triangles[inside][0].mean(axis=0, keepdims=True)
         if winding_numbers(probe, triangles[~inside])[0] < 0.5:
             return True
+    return False
+
+
+# How far inside its piece an overlap probe lies below a face, per unit of the piece's size.
+_PROBE_INSET = 1e-6
+# Most (probe, triangle) pairs one winding-number batch holds (memory).
+_WINDING_BATCH = 2_000_000
+
+
+def _overlapping_pieces(mesh: trimesh.Trimesh) -> bool:
+    """Whether the material of an outward closed piece (``_pieces``) lies inside another
+    piece's, where the mesh's volume counts it twice: two boxes joined by concatenating their
+    meshes (1 + 1 m^3 overlapping by 0.25 read as 2,000 kg at 1,000 kg/m^3 instead of 1,750).
+    Probes just inside each of the piece's triangles, off their centres and their corners,
+    are wound about by the other pieces (a cavity's inward wall cancels the body around it,
+    so an island in a cavity is no overlap); only pieces whose bounding boxes overlap are
+    probed."""
+    labels, volumes, scale = _pieces(mesh)
+    if len(volumes) < 2:
+        return False
+    triangles = mesh.triangles
+    order = np.argsort(labels, kind="stable")
+    starts = np.searchsorted(labels[order], np.arange(len(volumes)))
+    low = np.minimum.reduceat(triangles.min(axis=1)[order], starts)
+    high = np.maximum.reduceat(triangles.max(axis=1)[order], starts)
+    normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    lengths = np.linalg.norm(normals, axis=1)
+    for piece in np.flatnonzero(volumes > 1e-9 * scale):
+        others = np.flatnonzero(np.all((low <= high[piece]) & (high >= low[piece]), axis=1) & (np.arange(len(volumes)) != piece))
+        if not others.size:
+            continue
+        own = (labels == piece) & (lengths > 0.0)
+        # Three probes per triangle, each towards a corner of it, so that a face lying in
+        # another piece's face plane (aligned boxes) still has probes off that plane's edges.
+        corners = triangles[own]
+        centres = corners.mean(axis=1, keepdims=True)
+        probes = (0.5 * (corners + centres)).reshape(-1, 3)
+        inward = np.repeat(-normals[own] / lengths[own, None], 3, axis=0)
+        probes = probes + _PROBE_INSET * float(np.max(high[piece] - low[piece])) * inward
+        probes = probes[np.any(np.all((probes[:, None] >= low[others]) & (probes[:, None] <= high[others]), axis=2), axis=1)]
+        near = triangles[np.isin(labels, others)]
+        batch = max(1, _WINDING_BATCH // len(near))
+        for first in range(0, len(probes), batch):
+            if (winding_numbers(probes[first:first + batch], near) >= 0.5).any():
+                return True
     return False
 
 
@@ -189,6 +241,13 @@ def _closure_hint(mesh: trimesh.Trimesh) -> str:
     exporters write), which close once coincident vertices are merged."""
     if _closed_outward(mesh):
         return " (a separate closed piece of it is wound inside out: invert that piece's faces)"
+    repeated = np.flatnonzero((mesh.faces[:, 0] == mesh.faces[:, 1]) | (mesh.faces[:, 1] == mesh.faces[:, 2]) | (mesh.faces[:, 2] == mesh.faces[:, 0]))
+    if repeated.size:
+        a, b, _ = mesh.faces[repeated[0]]
+        return f" (face {int(repeated[0])} names vertex {int(a if a in mesh.faces[repeated[0], 1:] else b)} twice, which closes nothing: remove such faces)"
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if mesh.is_watertight and mesh.is_winding_consistent and mesh.volume < 0:
+            return " (it is wound inside out, its faces' normals pointing inwards: invert its faces, e.g. trimesh's invert())"
     merged = mesh.copy()
     merged.merge_vertices()
     if len(merged.vertices) < len(mesh.vertices) and _encloses_volume(merged):
@@ -254,6 +313,11 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
         raise ValueError(f"{where}: {label} must be positive and finite, got {value!r}")
     if density is not None and not closed:
         raise ValueError(f"{where}: mass from density needs a closed, consistently outward-oriented mesh{_closure_hint(mesh)}; give mass and inertia instead")
+    if closed and (density is not None or inertia is None or center_of_mass is None) and _overlapping_pieces(mesh):
+        raise ValueError(
+            f"{where}: closed pieces of its mesh overlap, so their shared volume would count twice in its mass properties; "
+            "join them into one surface (a boolean union) or give mass, inertia and center_of_mass"
+        )
     if inertia is None and not closed:
         raise ValueError(f"{where}: inertia is needed for a mesh that is not closed and consistently outward-oriented (no volume to take it from){_closure_hint(mesh)}")
     props = mesh.mass_properties if closed else None
