@@ -144,7 +144,8 @@ def _encloses_volume(mesh: trimesh.Trimesh) -> bool:
 
 def _closed_outward(mesh: trimesh.Trimesh) -> bool:
     """Closed, consistently wound and of positive total volume (each piece aside)."""
-    with np.errstate(invalid="ignore", divide="ignore"):
+    # The volume of a mesh too large or small for float64 over- or underflows: _mass_properties names it.
+    with np.errstate(all="ignore"):
         return bool(mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0)
 
 
@@ -320,7 +321,8 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
         )
     if inertia is None and not closed:
         raise ValueError(f"{where}: inertia is needed for a mesh that is not closed and consistently outward-oriented (no volume to take it from){_closure_hint(mesh)}")
-    props = mesh.mass_properties if closed else None
+    with np.errstate(all="ignore"):  # the inertia check below names a body too large or small for them
+        props = mesh.mass_properties if closed else None
     body_mass = float(props["volume"]) * float(density) if density is not None else float(mass)
     if center_of_mass is not None:
         com = real_array(center_of_mass)
@@ -333,7 +335,8 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
             com = np.asarray(mesh.centroid, dtype=np.float64)
         if not np.isfinite(com).all():  # no area either: the points themselves
             com = mesh.vertices.mean(axis=0)
-    if inertia is None:
+    computed = inertia is None
+    if computed:
         scale = float(density) if density is not None else body_mass / float(props["mass"])
         inertia = np.asarray(props["inertia"], dtype=np.float64) * scale
     given = inertia
@@ -351,6 +354,9 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
         or np.abs(inertia - inertia.T).max() > 1e-6 * np.abs(inertia).max()
         or np.linalg.eigvalsh(0.5 * (inertia + inertia.T)).min() <= 0
     ):
+        if computed:  # it was blamed on an inertia the caller never gave
+            extent = float(np.ptp(mesh.vertices, axis=0).max())
+            raise ValueError(f"{where}: the inertia of its mesh ({extent:.3g} m across) at mass {body_mass:.3g} kg is not a finite positive definite float64 matrix (it grows as the fifth power of the size); give mass and inertia, or rescale the scene")
         raise ValueError(f"{where}: inertia must be a finite, symmetric positive definite 3x3 matrix (kg m^2)")
     if np.linalg.eigvalsh(second_moment).min() < -1e-12 * np.trace(inertia):
         raise ValueError(f"{where}: inertia violates the triangle inequality (not physical)")
