@@ -176,12 +176,14 @@ def test_bench_frame_rows_do_not_depend_on_the_order_of_models(tmp_path, capsys)
     assert [r["model"] for r in rows] == ["bsh", "brute"] and rows[1]["contact_seconds"] > 0
     assert (tmp_path / "frame.png").is_file()
     capsys.readouterr()
-    assert main([*args, "--models", "brute", "--overwrite"]) == 0
+    # Nothing measured: the results say why, and the exit status says so (it was 0, a probe).
+    assert main([*args, "--models", "brute", "--overwrite"]) == 1
     (row,) = json.loads((tmp_path / "frame.json").read_text())["rows"]
     assert row["error"] == "skipped: 24 dynamic triangles above --brute-max-triangles 0, and no bsh frames to evaluate at (bsh not in --models, or its frames failed)"
     assert not (tmp_path / "frame.png").exists()
-    out = capsys.readouterr().out
-    assert "skipped: 24 dynamic triangles" in out and "not frame.png (no rows to plot)" in out
+    captured = capsys.readouterr()
+    assert "skipped: 24 dynamic triangles" in captured.out and "not frame.png (no rows to plot)" in captured.out
+    assert "error: no frame was measured: skipped: 24 dynamic triangles" in captured.err
 
 
 def test_bench_frame_reads_every_scene_before_timing_any(tmp_path, capsys):
@@ -364,23 +366,45 @@ def test_bench_accuracy_writes_results_and_plot(tmp_path):
     [
         (["demo", "--gaps", "-1"], "--gaps: must be a positive finite number, got -1"),
         (["demo", "--gaps", "x"], "--gaps: must be a positive finite number, got 'x'"),
-        (["bench", "leaf", "--pairs", "0"], "--pairs: must be a whole number >= 1, got 0"),
-        (["simulate", "push", "--frames", "2.5"], "--frames: must be a whole number >= 1, got '2.5'"),
-        (["run", "push", "--model", "gb", "--seed", "-1"], "--seed: must be a whole number >= 0, got -1"),
+        (["bench", "leaf", "--pairs", "0"], "--pairs: must be a whole number from 1 to 10,000,000, got 0"),
+        (["simulate", "push", "--frames", "2.5"], "--frames: must be a whole number from 1 to 1,000,000, got '2.5'"),
+        (["run", "push", "--model", "gb", "--seed", "-1"], "--seed: must be a whole number from 0 to 2,147,483,647, got -1"),
         (["bench", "contact", "--eps", "nan"], "--eps: must be a positive finite number, got nan"),
-        (["bench", "frame", "--frames", "0"], "--frames: must be a whole number >= 1, got 0"),
+        (["bench", "frame", "--frames", "0"], "--frames: must be a whole number from 1 to 1,000,000, got 0"),
         # Accepted before: a negative warm-up, a negative or NaN IPC support.
-        (["bench", "frame", "--warmup", "-1"], "--warmup: must be a whole number >= 0, got -1"),
-        (["bench", "frame", "--brute-max-triangles", "-5"], "--brute-max-triangles: must be a whole number >= 0, got -5"),
+        (["bench", "frame", "--warmup", "-1"], "--warmup: must be a whole number from 0 to 2,147,483,647, got -1"),
+        (["bench", "frame", "--brute-max-triangles", "-5"], "--brute-max-triangles: must be a whole number from 0 to 2,147,483,647, got -5"),
         (["bench", "contact", "--ipc-dhat", "-0.01"], "--ipc-dhat: must be a finite number >= 0, got -0.01"),
         (["bench", "contact", "--ipc-dhat", "nan"], "--ipc-dhat: must be a finite number >= 0, got nan"),
         (["bench", "accuracy", "--eps", "-1"], "--eps: must be a positive finite number, got -1"),
+        # Found by a probe: numpy's MemoryError traceback (6.55 TiB), 12 GB and growing, frames
+        # kept until the process was killed; a tolerance refused after the other rows were
+        # written (naming "tolerance"); --points 3 refused as "num_points".
+        (["bench", "leaf", "--pairs", "100000000000"], "--pairs: must be a whole number from 1 to 10,000,000, got 100000000000"),
+        (["bench", "accuracy", "--points", "100000000"], "--points: must be a whole number from 4 to 100,000, got 100000000"),
+        (["bench", "scaling", "--points", "18", "3"], "--points: must be a whole number from 4 to 100,000, got 3"),
+        (["simulate", "push", "--frames", "99999999999"], "--frames: must be a whole number from 1 to 1,000,000, got 99999999999"),
+        (["bench", "accuracy", "--tolerances", "1e-6", "1e300"], "--tolerances: must be a number in (0, 1), got 1e300"),
+        (["bench", "accuracy", "--reference-tolerance", "1"], "--reference-tolerance: must be a number in (0, 1), got 1"),
+        (["run", "push", "--out", ""], '--out: must name a folder ("." for the current one), got an empty name'),
     ],
 )
 def test_bad_arguments_exit_with_usage_error(argv, message, capsys):
     with pytest.raises(SystemExit) as exc:
         main(argv)
     assert exc.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_gaps_that_float64_positions_cannot_hold_are_refused_before_any_row(tmp_path, capsys):
+    """Found by a probe: bench contact at --gaps 1e-17 placed the balls touching and wrote
+    rows labelled 1e-17 (value ratio NaN, force errors as if all were well), and 1e300 failed
+    only after the other gaps' rows were written; demo called 1e-300 unsolved pairs."""
+    for gaps, message in ((["0.01", "1e-17"], "error: gaps: 1e-17 m rounds to 0 m beside 1 m of body, below what float64 positions resolve"), (["0.01", "1e300"], "error: gaps: the rack's centres at 1e+300 m: ")):
+        assert main(["bench", "contact", "--gaps", *gaps, "--eps", "0.5", "--repeats", "1", "--ipc-dhat", "0", "--out", str(tmp_path / "c")]) == 2
+        assert message in capsys.readouterr().err
+        assert not (tmp_path / "c" / "contact.json").exists()
+    assert main(["demo", "--gaps", "1.0", "1e-300", "--out", str(tmp_path / "d")]) == 2
+    assert "error: --gaps: 1e-300 m rounds to 0 m beside 1 m of body" in capsys.readouterr().err
 
 
 def test_bad_device_is_a_clear_error(tmp_path, capsys):
@@ -501,13 +525,27 @@ def test_simulate_interrupted_by_hand_writes_the_frames_it_simulated(tmp_path, c
 
 
 def test_simulate_interrupted_outside_the_step_keeps_its_frames(tmp_path, capsys, monkeypatch):
-    """Only the step was guarded: Ctrl-C while the next state was allocated lost every frame."""
-    from warpcontact.types import Model
+    """Only the step was guarded: Ctrl-C while the next state was allocated lost every frame.
+    Here it comes after the fourth step returned, when its diagnostics are read: that frame
+    was simulated and is kept."""
+    from warpcontact.solver import ImplicitSolver
 
-    interrupt_call(monkeypatch, Model, "state", 5)  # the start state, then frames 0-2's
+    real_step, calls = ImplicitSolver.step, []
+
+    class InterruptedInfo:
+        @property
+        def iterations(self):
+            raise KeyboardInterrupt
+
+    def step(self, *args, **kwargs):
+        info = real_step(self, *args, **kwargs)
+        calls.append(1)
+        return InterruptedInfo() if len(calls) == 4 else info
+
+    monkeypatch.setattr(ImplicitSolver, "step", step)
     assert main(["simulate", "push", "--frames", "6", "--out", str(tmp_path)]) == 130
-    assert json.loads((tmp_path / "summary.json").read_text())["stopped"] == {"frame": 3, "error": "interrupted"}
-    assert Usd.Stage.Open(str(tmp_path / "trajectory.usda")).GetEndTimeCode() == 3
+    assert json.loads((tmp_path / "summary.json").read_text())["stopped"] == {"frame": 4, "error": "interrupted"}
+    assert Usd.Stage.Open(str(tmp_path / "trajectory.usda")).GetEndTimeCode() == 4
 
 
 def test_simulate_interrupted_while_writing_keeps_every_frame(tmp_path, capsys, monkeypatch):

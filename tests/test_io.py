@@ -1980,6 +1980,9 @@ def test_overwrite_must_be_a_flag(tmp_path):
         (lambda s: setattr(s.bodies[0], "target_position", np.zeros(3)), r"static body 'ground' has a target, which only a dynamic body takes"),
         (lambda s: setattr(s.settings, "frames", True), r"warpcontact:frames: expected a number, got True"),
         (lambda s: setattr(s.settings, "frames", 2.5), r"warpcontact:frames: expected a whole number, got 2.5"),
+        # Found by a probe: simulate held every frame of 1e11 until it was killed.
+        (lambda s: setattr(s.settings, "frames", 10**9), r"scene settings: warpcontact:frames must be a whole number from 1 to 1,000,000, got 1000000000"),
+        (lambda s: setattr(s.settings, "frames", 0), r"scene settings: warpcontact:frames must be a whole number from 1 to 1,000,000, got 0"),
         (lambda s: setattr(s.task, "horizon", 2**62), r"warpcontact:task:horizon: expected a whole number a 32-bit int holds, got 4611686018427387904"),
     ],
 )

@@ -904,6 +904,12 @@ def test_cli_run_keeps_its_progress_when_interrupted_and_resumes_it(tmp_path, ca
     assert metrics["loss_history"] == full["loss_history"] and not (out / cli.CHECKPOINT_NAME).exists()
     assert main([*argv, "--out", str(out), "--resume"]) == 2
     assert "no checkpoint to resume" in capsys.readouterr().err
+    # A file of the user's by that name: kept, and the way out named (a probe).
+    (out / cli.CHECKPOINT_NAME).write_bytes(b"my own data")
+    assert main([*argv, "--out", str(out), "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert "checkpoint.npz: not a readable checkpoint (" in err and err.rstrip().endswith("): remove or rename it, or choose another --out")
+    assert (out / cli.CHECKPOINT_NAME).read_bytes() == b"my own data"
 
 
 def test_a_failed_results_write_leaves_the_earlier_results_whole(tmp_path, capsys, monkeypatch):
@@ -1167,6 +1173,9 @@ def _rewritten(path, **changes):
         ("moment reshaped", r"checkpoint array 'adam_m' has shape \(3,\), expected \(2, 2\) for this problem"),
         ("rng text", r"not a readable checkpoint \(its rng is 'x', expected null or a PCG64 generator state\)"),
         ("bundle_calls -3", r"not a readable checkpoint \(its bundle_calls is -3, expected a whole number >= 0\)"),
+        # Found by a probe: metrics.json then said success, and 7 iterations of a 3-iteration run.
+        ("extra with results", r"not a readable checkpoint \(its extra is \{'success': True, 'final_loss': 0.0\}, expected a JSON object of at most bundle, "),
+        ("history too long", r"not a readable checkpoint \(its loss history holds 50 losses at iteration \d of the window at frame \d\)"),
     ],
 )
 def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path, damage, message):
@@ -1204,6 +1213,11 @@ def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path, damage, messa
             _rewritten(checkpoint, history=np.zeros((2, 2)))
         elif damage == "moment reshaped":
             _rewritten(checkpoint, adam_m=np.zeros(3))
+        elif damage == "history too long":
+            _rewritten(checkpoint, history=np.ones(50))
+        elif damage == "extra with results":
+            meta["extra"] = {"success": True, "final_loss": 0.0}
+            _rewritten(checkpoint, meta=meta)
         else:
             key, value = {"fingerprint a list": ("fingerprint", []), "iteration 3.5": ("iteration", 3.5), "iteration -5": ("iteration", -5),
                           "iteration 10**6": ("iteration", 10**6), "adam_t text": ("adam_t", "x"), "seconds text": ("seconds", "x"),
@@ -1212,7 +1226,7 @@ def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path, damage, messa
             _rewritten(checkpoint, meta=meta)
     with pytest.raises(ValueError, match=f"checkpoint.npz: {message}"):
         TaskProblem(make_scene(), settings=settings).optimize(checkpoint=checkpoint, resume=True)
-    if damage not in ("values reshaped", "moment reshaped", "iteration 10**6"):  # a readable, complete file is described before it is resumed
+    if damage not in ("values reshaped", "moment reshaped", "iteration 10**6", "history too long"):  # a readable, complete file is described before it is resumed
         with pytest.raises(ValueError, match=f"checkpoint.npz: {message}"):
             TaskProblem(make_scene(), settings=settings).optimize(checkpoint=checkpoint)
 

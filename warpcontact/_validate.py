@@ -8,6 +8,7 @@ __all__ = [
     "MAX_BARRIER_SUPPORT",
     "MAX_COORDINATE",
     "MAX_COUNT",
+    "MAX_FRAMES",
     "MIN_EXTENT",
     "QUATERNION_TOLERANCE",
     "SCALE_RANGE",
@@ -16,6 +17,7 @@ __all__ = [
     "check_coordinates",
     "check_count",
     "check_time_step",
+    "gap_problem",
     "time_step_problem",
     "checked_flag",
     "is_positive_finite",
@@ -27,6 +29,13 @@ __all__ = [
     "shown",
     "validated_poses",
 ]
+
+# The most frames a task may plan or a simulation run: plans and trajectories are held
+# whole, and a horizon of 1e9 frames ended in a numpy MemoryError (44.7 GiB) instead of
+# naming the attribute; simulate --frames 1e11 grew until it was killed. A million frames is
+# 11 hours at the paper's 0.04 s and ~3 hours of stepping per rollout at 10 ms a frame; the
+# paper's longest task plans 700.
+MAX_FRAMES = 1_000_000
 
 # Largest barrier support (m) of the locally supported baselines: their barriers overflow
 # float64 far beyond it (IPC's from ~1e76 m, SDRS's from ~1e103 m: inf with no named error).
@@ -133,6 +142,17 @@ def check_coordinates(arr: np.ndarray, name: str) -> None:
             f"{name}: {arr[tuple(first)]:g} at index {tuple(int(i) for i in first)} is beyond the +-{MAX_COORDINATE:g} m "
             "that float64 distances between such points can represent"
         )
+
+
+def gap_problem(gap: float, extent: float) -> str | None:
+    """Why surfaces ``gap`` (m) apart, placed beside ``extent`` (m) of body along the same
+    coordinate, are not ``gap`` apart in float64 positions, or None: below ~1e-16 of the extent
+    the gap rounds to another (1e-17 m beside a 1.7 m pair of balls placed them touching,
+    and a benchmark wrote rows for a gap it never had)."""
+    realised = (extent + gap) - extent
+    if abs(realised - gap) > 0.01 * gap:
+        return f"{gap:g} m rounds to {realised:g} m beside {extent:.3g} m of body, below what float64 positions resolve"
+    return None
 
 
 def real_array(value) -> np.ndarray | None:

@@ -16,6 +16,7 @@ from .contact import ContactModel
 from .hull import convex_hull_mesh
 from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
+from ._validate import check_coordinates, gap_problem
 from .leaf import DEFAULT_MAX_ITERATIONS, LEAF_PRECISIONS, float32_search
 from .rotation import quat_rotate
 
@@ -222,6 +223,9 @@ def contact_benchmark_scenes(*, subdivisions: int, gaps) -> list[dict]:
     reach = float(ball[0][:, 0].max())  # the balls' extent along x, their line of centres
     scenes = []
     for gap in gaps:
+        problem = gap_problem(gap, 2.0 * reach)
+        if problem is not None:
+            raise ValueError(f"gaps: {problem}")
         two = _identity_poses([[0.0, 0.0, 0.0], [2.0 * reach + gap, 0.0, 0.0]])
         # Turned about the line of centres, which keeps the facing features on it: the pair's
         # symmetry is broken and the surfaces stay ``gap`` apart (a turn about z had moved
@@ -229,6 +233,8 @@ def contact_benchmark_scenes(*, subdivisions: int, gaps) -> list[dict]:
         two[1, 3:] = [np.sin(0.35), 0.0, 0.0, np.cos(0.35)]
         scenes.append({"scene": "two_icospheres", "gap": gap, "meshes": [ball, ball], "poses": two})
         scenes.append({"scene": "rack16", "gap": gap, "meshes": [ball] * 16, "poses": _identity_poses(rack_positions(radius=0.5, gap=gap))})
+        # Before any row is timed or written: a gap of 1e300 m failed after the others' rows.
+        check_coordinates(scenes[-1]["poses"][:, :3], f"gaps: the rack's centres at {gap:g} m")
     return scenes
 
 

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ._files import replace_file, replace_files, replace_json
+from ._validate import MAX_COUNT, MAX_FRAMES, gap_problem
 from .contact import CENTRED_WEIGHTS
 from .leaf import LEAF_PRECISIONS
 from .tasks import IPC_TASK_STIFFNESS, MODELS
@@ -36,6 +37,10 @@ def _demo(args) -> int:
     rows = []
     print(f"Brute-force leaf potential between two icospheres ({nt} triangles each, {nt * nt} pairs), device {args.device}")
     print(f"{'gap [m]':>10} {'P':>16} {'net force on A [N/mu]':>24} {'Newton it (mean)':>17} {'seconds':>8}")
+    for gap in args.gaps:
+        problem = gap_problem(gap, V[:, 2].max() - V[:, 2].min())
+        if problem is not None:  # it was reported as triangle pairs that did not solve
+            raise ValueError(f"--gaps: {problem}")
     for gap in args.gaps:
         # Sphere B sits below A: A's lowest point is `gap` above B's highest point.
         shift = V[:, 2].max() - V[:, 2].min() + gap
@@ -82,8 +87,10 @@ def _simulate(args) -> int:
     solver = ImplicitSolver(model)
     dt = scene.settings.time_step
     lin, ang = scene.initial_velocities()
-    states = [model.state(requires_grad=False)]
-    set_body_velocity(states[0], wp.array(lin, dtype=wp.vec3d, device=model.device), wp.array(ang, dtype=wp.vec3d, device=model.device), dt, body_names=model.body_names)
+    # Two states in turn and the poses on the host: a state kept per frame grew by ~2 MB/s.
+    state, following = model.state(requires_grad=False), model.state(requires_grad=False)
+    set_body_velocity(state, wp.array(lin, dtype=wp.vec3d, device=model.device), wp.array(ang, dtype=wp.vec3d, device=model.device), dt, body_names=model.body_names)
+    poses = [state.body_q.numpy().copy()]
     control = model.control(requires_grad=False)
     iterations = []
     stopped = None
@@ -91,9 +98,9 @@ def _simulate(args) -> int:
     print(f"{scene_path}: {model.num_bodies} bodies, {frames} frames of {dt} s on {model.device}")
     for frame in range(frames):
         try:
-            nxt = model.state(requires_grad=False)
-            info = solver.step(states[-1], nxt, control, dt)
-            states.append(nxt)
+            info = solver.step(state, following, control, dt)
+            poses.append(following.body_q.numpy().copy())
+            state, following = following, state
             iterations.append(info.iterations)
             if (frame + 1) % max(1, frames // 10) == 0 or frame + 1 == frames:
                 print(f"  frame {frame + 1:4d}/{frames}  Newton iterations {info.iterations:3d}  min separation {info.min_separation:.2e} m")
@@ -104,12 +111,12 @@ def _simulate(args) -> int:
         except KeyboardInterrupt:
             # A long run stopped by hand keeps what it simulated, wherever in the frame the
             # interruption came (outside the step it lost every frame).
-            stopped = {"frame": len(states) - 1, "error": "interrupted"}
+            stopped = {"frame": len(poses) - 1, "error": "interrupted"}
             break
     seconds = time.perf_counter() - start
     # Held from the first read back: an interruption anywhere in the write lost every frame.
     with _interrupts_held() as interrupted:
-        q = np.array([s.body_q.numpy() for s in states])
+        q = np.array(poses)
         targets = {
             b.name: {"target": b.target_position.tolist(), "final": q[-1, i, :3].tolist(), "distance": float(np.linalg.norm(q[-1, i, :3] - b.target_position))}
             for i, b in enumerate(scene.bodies)
@@ -118,7 +125,7 @@ def _simulate(args) -> int:
         summary = {
             "scene": str(scene_path),
             "device": str(model.device),
-            "frames": len(states) - 1,
+            "frames": len(poses) - 1,
             "time_step": dt,
             "seconds": seconds,
             "newton_iterations_mean": float(np.mean(iterations)) if iterations else None,
@@ -264,13 +271,13 @@ def _loss_text(loss) -> str:
 
 def _result_metrics(result) -> dict:
     return {
+        **result.extra,  # first: the run's own results are never written over
         "loss_history": result.loss_history,
         "initial_loss": result.initial_loss,
         "final_loss": result.final_loss,
         "success": result.success,
         "seconds": result.seconds,
         "iterations": result.iterations,
-        **result.extra,
     }
 
 
@@ -301,7 +308,11 @@ def _run(args) -> int:
     out = Path(args.out)
     checkpoint = TaskCheckpoint(out / CHECKPOINT_NAME)
     if checkpoint.exists() and not args.resume:
-        raise ValueError(f"{checkpoint.path} holds an unfinished run ({checkpoint.describe()}): continue it with --resume, or remove the file to start over")
+        try:
+            saved = checkpoint.describe()
+        except ValueError as exc:  # a file of the user's, which no option replaces
+            raise ValueError(f"{exc}: remove or rename it, or choose another --out") from None
+        raise ValueError(f"{checkpoint.path} holds an unfinished run ({saved}): continue it with --resume, or remove the file to start over")
     problem = _task_problem(scene, settings, args.model, args)
     if args.resume:
         problem.resumable(checkpoint.path)  # refused before the header says it resumes
@@ -572,7 +583,7 @@ def _bench_frame(args) -> int:
             flush=True,
         )
 
-    run_frame_benchmark(
+    rows = run_frame_benchmark(
         scenes=args.scenes,
         models=args.models,
         frames=args.frames,
@@ -591,6 +602,9 @@ def _bench_frame(args) -> int:
         progress=show,
     )
     print(f"wrote {Path(args.out) / 'frame.json'}, frame.csv, {_bench_plot_name(args, 'frame.png')}")
+    if all(r["error"] is not None for r in rows):  # it exited 0 with nothing measured
+        print(f"error: no frame was measured: {rows[0]['error'] if rows else 'no scenes'}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -626,16 +640,16 @@ def _bench_accuracy(args) -> int:
     return 0
 
 
-def _whole_number(low: int):
-    """An argparse type: a whole number >= ``low``."""
+def _whole_number(low: int, high: int = MAX_COUNT):
+    """An argparse type: a whole number from ``low`` to ``high``."""
 
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"must be a whole number >= {low}, got {text!r}") from None
-        if value < low:
-            raise argparse.ArgumentTypeError(f"must be a whole number >= {low}, got {value}")
+            raise argparse.ArgumentTypeError(f"must be a whole number from {low} to {high:,}, got {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must be a whole number from {low} to {high:,}, got {value}")
         return value
 
     return parse
@@ -643,6 +657,12 @@ def _whole_number(low: int):
 
 _positive_int = _whole_number(1)
 _non_negative_int = _whole_number(0)
+# Bounds of what a benchmark or a simulation is asked to hold in memory: --pairs 1e11 failed
+# with numpy's MemoryError traceback (6.55 TiB), --points 1e8 grew past 12 GB, and simulate
+# kept 1e11 frames' poses (a task's horizon has the same bound).
+_frame_count = _whole_number(1, MAX_FRAMES)
+_pair_count = _whole_number(1, 10_000_000)
+_points_per_ball = _whole_number(4, 100_000)
 
 
 def _finite_number(*, zero: bool):
@@ -659,6 +679,18 @@ def _finite_number(*, zero: bool):
         return value
 
     return parse
+
+
+def _fraction(text: str) -> float:
+    """An argparse type: a number in (0, 1), as solver tolerances are (a tolerance of 1e300
+    was refused only after the other rows of ``bench accuracy`` had been written)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number in (0, 1), got {text!r}") from None
+    if not 0 < value < 1:
+        raise argparse.ArgumentTypeError(f"must be a number in (0, 1), got {text}")
+    return value
 
 
 _positive_float = _finite_number(zero=False)
@@ -699,10 +731,17 @@ def _add_task_arguments(parser):
     )
 
 
+def _folder_name(text: str) -> str:
+    """An argparse type: a folder's name, not empty (--out "" wrote into the current folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("must name a folder (\".\" for the current one), got an empty name")
+    return text
+
+
 def _writes(parser, default_out: str, *outputs: str):
     """--out (default ``default_out``) and --overwrite of a command that writes ``outputs``
     there; ``main`` refuses to replace them unless told."""
-    parser.add_argument("--out", default=default_out)
+    parser.add_argument("--out", type=_folder_name, default=default_out)
     parser.add_argument("--overwrite", action="store_true", help=f"replace an earlier run's {', '.join(outputs)} in OUT")
     parser.set_defaults(outputs=outputs)
 
@@ -741,7 +780,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     simulate = sub.add_parser("simulate", help="simulate a USD scene and export its trajectory")
     simulate.add_argument("scene", help="a shipped scene's name (warpcontact list) or a .usda scene")
-    simulate.add_argument("--frames", type=_positive_int, default=None, help="default: the scene's warpcontact:frames")
+    simulate.add_argument("--frames", type=_frame_count, default=None, help="default: the scene's warpcontact:frames")
     simulate.add_argument("--device", default="cpu")
     _writes(simulate, "outputs/simulate", "trajectory.usda", "summary.json")
     simulate.set_defaults(func=_simulate)
@@ -749,7 +788,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="benchmarks writing JSON results")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     leaf = bench_sub.add_parser("leaf", help="leaf solves per second and Newton iterations")
-    leaf.add_argument("--pairs", type=_positive_int, default=100_000)
+    leaf.add_argument("--pairs", type=_pair_count, default=100_000)
     leaf.add_argument("--repeats", type=_positive_int, default=5)
     leaf.add_argument("--precisions", nargs="+", choices=LEAF_PRECISIONS, default=list(LEAF_PRECISIONS), help="plane search precisions; rows after the first give errors against it")
     leaf.add_argument("--device", default="cpu")
@@ -766,7 +805,7 @@ def build_parser() -> argparse.ArgumentParser:
     _writes(contact, "outputs/bench", "contact.json", "contact.csv", "contact.png")
     contact.set_defaults(func=_bench_contact, saves_rows=True)
     scaling = bench_sub.add_parser("scaling", help="contact cost against triangle count (16-ball rack)")
-    scaling.add_argument("--points", type=_positive_int, nargs="+", default=[18, 42, 82, 196], help="points per ball (2N-4 faces)")
+    scaling.add_argument("--points", type=_points_per_ball, nargs="+", default=[18, 42, 82, 196], help="points per ball (2N-4 faces)")
     scaling.add_argument("--eps", type=_positive_float, default=0.5)
     scaling.add_argument("--brute-max-triangles", type=_non_negative_int, default=2560)
     scaling.add_argument("--repeats", type=_positive_int, default=3)
@@ -781,7 +820,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="scene names, peer_billiards_T (T in 512 1472 3008 4544 6208), .usda or pickled-Scene .pkl paths",
     )
     frame.add_argument("--models", nargs="+", choices=["bsh", "brute", "ipc"], default=["bsh", "brute", "ipc"])
-    frame.add_argument("--frames", type=_positive_int, default=3, help="timed frames (medians over them)")
+    frame.add_argument("--frames", type=_frame_count, default=3, help="timed frames (medians over them)")
     frame.add_argument("--warmup", type=_non_negative_int, default=1, help="untimed frames first, from the same start")
     frame.add_argument("--eps", type=_positive_float, default=None, help="BSH blend margin (default: each scene's)")
     frame.add_argument("--gap", type=_positive_float, default=0.02, help="striker's start distance from the struck body (m)")
@@ -797,13 +836,13 @@ def build_parser() -> argparse.ArgumentParser:
     frame.set_defaults(func=_bench_frame, saves_rows=True)
     accuracy = bench_sub.add_parser("accuracy", help="time against error (eps, solver tolerance) on a small billiards case")
     accuracy.add_argument("--eps", type=_positive_float, nargs="+", default=[0.25, 0.5, 1.0, 2.0, 4.0])
-    accuracy.add_argument("--tolerances", type=_positive_float, nargs="+", default=[1e-4, 1e-6, 1e-8], help="Newton tolerances swept at --tolerance-eps")
+    accuracy.add_argument("--tolerances", type=_fraction, nargs="+", default=[1e-4, 1e-6, 1e-8], help="Newton tolerances swept at --tolerance-eps")
     accuracy.add_argument("--tolerance-eps", type=_positive_float, default=0.5, help="eps of the tolerance and precision sweeps")
     accuracy.add_argument("--precisions", nargs="+", choices=LEAF_PRECISIONS, default=list(LEAF_PRECISIONS), help="leaf plane search precisions swept at --tolerance-eps")
-    accuracy.add_argument("--reference-tolerance", type=_positive_float, default=1e-12, help="Newton tolerance of the brute-force reference run")
-    accuracy.add_argument("--frames", type=_positive_int, default=3)
+    accuracy.add_argument("--reference-tolerance", type=_fraction, default=1e-12, help="Newton tolerance of the brute-force reference run")
+    accuracy.add_argument("--frames", type=_frame_count, default=3)
     accuracy.add_argument("--balls", type=_positive_int, default=3, help="rack balls besides the cue")
-    accuracy.add_argument("--points", type=_positive_int, default=18, help="points per ball (2N-4 faces)")
+    accuracy.add_argument("--points", type=_points_per_ball, default=18, help="points per ball (2N-4 faces)")
     accuracy.add_argument("--gap", type=_positive_float, default=0.02)
     accuracy.add_argument("--speed", type=_positive_float, default=1.0)
     accuracy.add_argument("--device", default="cpu")

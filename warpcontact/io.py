@@ -89,7 +89,7 @@ import numpy as np
 import trimesh
 
 from ._files import replace_file
-from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, checked_flag, is_positive_finite, is_real, real_array, shown, time_step_problem
+from ._validate import MAX_COORDINATE, MAX_FRAMES, QUATERNION_TOLERANCE, checked_flag, is_positive_finite, is_real, real_array, shown, time_step_problem
 from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact_setting_problem, coordinate_limits, flat_twice_area
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
@@ -1927,8 +1927,8 @@ def _check_settings(settings: SimulationSettings, where: str):
         problem = contact_setting_problem(field_name, value)
         if problem:
             raise ValueError(f"{where}: warpcontact:{attr_name} {problem}, got {shown(value)}")
-    if settings.frames < 1:
-        raise ValueError(f"{where}: warpcontact:frames must be >= 1, got {settings.frames}")
+    if not 1 <= settings.frames <= MAX_FRAMES:  # simulate held every frame: 1e11 grew until killed
+        raise ValueError(f"{where}: warpcontact:frames must be a whole number from 1 to {MAX_FRAMES:,}, got {settings.frames}")
     if settings.contact_mode not in MODEL_CONTACT_MODES:
         raise ValueError(f"{where}: warpcontact:contactMode must be one of {MODEL_CONTACT_MODES}, got {settings.contact_mode!r}")
     if settings.centred_weight not in CENTRED_WEIGHTS:

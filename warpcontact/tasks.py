@@ -48,7 +48,7 @@ import numpy as np
 import warp as wp
 
 from ._files import replace_file
-from ._validate import is_positive_finite, is_real, is_whole
+from ._validate import MAX_FRAMES, is_positive_finite, is_real, is_whole
 from .bundle import BundleSettings, bundled_gradient
 from .io import target_problem
 from .kernels import task as task_kernels
@@ -173,7 +173,7 @@ class TaskSettings:
         window = self.window if is_whole(self.horizon) and is_whole(self.receding_horizon) else None
         betas = tuple(self.betas) if isinstance(self.betas, (tuple, list, np.ndarray)) else ()
         for name, rule, ok in (
-            ("horizon", f"a whole number from 1 to {MAX_HORIZON:,}", is_whole(self.horizon) and 1 <= self.horizon <= MAX_HORIZON),
+            ("horizon", f"a whole number from 1 to {MAX_FRAMES:,}", is_whole(self.horizon) and 1 <= self.horizon <= MAX_FRAMES),
             ("receding_horizon", "a whole number >= 0", is_whole(self.receding_horizon) and self.receding_horizon >= 0),
             ("receding_stride", f"a whole number >= 1 and at most the window ({window})", is_whole(self.receding_stride) and window is not None and 1 <= self.receding_stride <= window),
             ("iterations", f"a whole number from 1 to {MAX_ITERATIONS:,}", is_whole(self.iterations) and 1 <= self.iterations <= MAX_ITERATIONS),
@@ -199,11 +199,6 @@ class TaskResult:
     extra: dict = field(default_factory=dict)
 
 
-# The most frames a task may plan: its plan and trajectory are allocated up front, and a
-# horizon of 1e9 frames ended in a numpy MemoryError (44.7 GiB) instead of naming the
-# attribute. A million frames is 11 hours at the paper's 0.04 s and ~3 hours of stepping
-# per rollout at 10 ms a frame; the paper's longest task plans 700.
-MAX_HORIZON = 1_000_000
 # Far more than any run can finish (a rollout each); gb's sigma schedule holds one number per
 # iteration, and 1e12 of them died in a 7.3 TiB MemoryError.
 MAX_ITERATIONS = 10_000_000
@@ -356,6 +351,10 @@ def _fingerprint_value(value):
 # What every checkpoint's meta holds, and what a receding run's adds (``optimize``'s saver).
 _CHECKPOINT_KEYS = ("version", "fingerprint", "history", "seconds", "receding", "extra", "iteration", "values", "adam_m", "adam_v", "adam_t", "best_loss", "best_values", "best_trajectory", "loss", "gradient", "trajectory", "rng", "bundle_calls")
 _RECEDING_CHECKPOINT_KEYS = ("frame", "plan", "executed")
+# What a run notes in ``extra`` while it runs (the rest, "stopped" and "initial_loss_error",
+# once it ends): an altered checkpoint's other keys, "success" or "final_loss", were written
+# over the computed ones in metrics.json.
+_CHECKPOINT_EXTRA_KEYS = ("bundle", "bundle_samples", "bundle_samples_dropped", "bundle_samples_counted_since_resume", "stalled", "initial_samples")
 
 
 def _damaged_checkpoint_entry(state: dict) -> str | None:
@@ -381,7 +380,7 @@ def _damaged_checkpoint_entry(state: dict) -> str | None:
 
     rules = {
         "fingerprint": (lambda v: isinstance(v, dict), "a JSON object"),
-        "extra": (lambda v: isinstance(v, dict), "a JSON object"),
+        "extra": (lambda v: isinstance(v, dict) and set(v) <= set(_CHECKPOINT_EXTRA_KEYS), f"a JSON object of at most {', '.join(_CHECKPOINT_EXTRA_KEYS)}"),
         "receding": (lambda v: isinstance(v, bool), "true or false"),
         "iteration": (count, "a whole number >= 0"),
         "adam_t": (count, "a whole number >= 0"),
@@ -898,6 +897,15 @@ class TaskProblem:
         for name, value, end in (("iteration", saved["iteration"], s.iterations), ("frame", saved.get("frame", 0), s.horizon)):
             if value >= end:
                 raise ValueError(f"{path}: checkpoint {name} {value} is past this problem's {end}")
+        # One loss per iteration run: this window's, after the earlier windows' (each stops at
+        # loss 0, so at most ``iterations`` of them). Five losses saved at iteration 1 were
+        # taken, and metrics.json reported 7 iterations of a 3-iteration run and a made-up
+        # initial loss.
+        losses, iteration = len(saved["history"]), saved["iteration"]
+        earlier = -(-saved["frame"] // s.receding_stride) * s.iterations if receding else 0
+        if not iteration <= losses <= iteration + earlier:
+            window = f" of the window at frame {saved['frame']}" if receding else ""
+            raise ValueError(f"{path}: not a readable checkpoint (its loss history holds {losses} losses at iteration {iteration}{window})")
 
     def _receding(self, saved, history, extra, progress, objective_at, saver, start_time) -> TaskResult:
         """Receding horizon: optimise a window, apply its first actions, shift (from the
