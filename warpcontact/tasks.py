@@ -176,6 +176,8 @@ class TaskSettings:
             ("horizon", f"a whole number from 1 to {MAX_FRAMES:,}", is_whole(self.horizon) and 1 <= self.horizon <= MAX_FRAMES),
             ("receding_horizon", "a whole number >= 0", is_whole(self.receding_horizon) and self.receding_horizon >= 0),
             ("receding_stride", f"a whole number >= 1 and at most the window ({window})", is_whole(self.receding_stride) and window is not None and 1 <= self.receding_stride <= window),
+            # One window plans the whole horizon at once: a stride there did nothing, silently.
+            ("receding_stride", "1 when one window covers the horizon", window is None or window < self.horizon or self.receding_stride == 1),
             ("iterations", f"a whole number from 1 to {MAX_ITERATIONS:,}", is_whole(self.iterations) and 1 <= self.iterations <= MAX_ITERATIONS),
             ("learning_rate", "positive and finite", is_positive_finite(self.learning_rate)),
             ("betas", "two numbers in [0, 1)", len(betas) == 2 and all(unit_interval(b) for b in betas)),
@@ -561,6 +563,8 @@ def _check_control_dofs(body, control: str, source: str):
     """Every decision variable of ``body`` must move something: known, not repeated (``yaw``
     is ``rz``), and for PD targets a position or rotation the body's PD gains drive."""
     where = f"{source}: prim {body.path}: warpcontact:control:dofs"
+    if isinstance(body.control_dofs, str):  # "xy" ran as ("x", "y"), "yaw" as unknown "y", "a", "w"
+        raise ValueError(f"{where}: expected a sequence of dof names, got the string {body.control_dofs!r}")
     dofs = tuple(body.control_dofs)
     unknown = [d for d in dofs if d not in task_kernels.DOF_CODES]
     if unknown:
@@ -713,6 +717,9 @@ class TaskProblem:
 
         ``values``: pd_targets, one row per frame of the control dofs' offsets (at least
         ``frames`` rows); initial_state, one row; joint_sine, ``initial_values``' shape.
+        An initial_state control sets the start's velocities itself: every body's is the
+        scene's (the controlled body's plus the control's offsets), so ``q_prev`` is not read,
+        and the controlled body's pose in ``q`` must be the scene's (the control offsets it).
         Returns (loss, d loss / d values or None, trajectory (frames + 1, nbodies, 7)).
         ``timings``, if given, receives ``backward_seconds``: the tape's backward and the
         gradient's read back (benchmarks).
@@ -733,9 +740,17 @@ class TaskProblem:
         if not fits:
             wanted = f"at least {rows}" if self.kind == "pd_targets" else str(rows)
             raise ValueError(f"values: {self.kind} control over {frames} frames needs {wanted} rows of {columns} values ({', '.join(self.dof_names)}), got shape {values.shape}")
+        bad = np.argwhere(~np.isfinite(values))
+        if bad.size:  # an initial state's NaN was blamed on the scene's finite velocities
+            row, column = (int(i) for i in bad[0])
+            raise ValueError(f"values: row {row}, dof {self.dof_names[column]!r} is {float(values[row, column])!r}; decision variables must be finite")
         values_arr = wp.array(values, dtype=wp.float64, device=device, requires_grad=True)
         # The solver writes every output state's poses; only the start needs filling.
         states = [self._state(*start)] + [self.model.state() for _ in range(frames)]
+        if self.kind == "initial_state" and not np.array_equal(np.asarray(start[0], dtype=np.float64)[self.body], self.base_pose):
+            # The control places its body at the scene's pose plus its offsets: another pose
+            # given for it was replaced without a word.
+            raise ValueError(f"start: an initial_state control places body {self.model.body_names[self.body]!r} itself (the scene's pose plus the control's offsets); start's pose for it must be the scene's, {self.base_pose.tolist()}")
         controls = [self.model.control() for _ in range(frames)] if self.kind != "initial_state" else [None] * frames
         loss = wp.zeros(1, dtype=wp.float64, device=device, requires_grad=True)
         tape = wp.Tape()
