@@ -147,7 +147,7 @@ def check_coordinates(arr: np.ndarray, name: str) -> None:
 def gap_problem(gap: float, extent: float) -> str | None:
     """Why surfaces ``gap`` (m) apart, placed beside ``extent`` (m) of body along the same
     coordinate, are not ``gap`` apart in float64 positions, or None: below ~1e-16 of the extent
-    the gap rounds to another (1e-17 m beside a 1.7 m pair of balls placed them touching,
+    the gap rounds to another (1e-17 m beside a pair of 1 m balls placed them touching,
     and a benchmark wrote rows for a gap it never had)."""
     realised = (extent + gap) - extent
     if abs(realised - gap) > 0.01 * gap:

@@ -56,8 +56,13 @@ def steep_blend(eps: float, contact_mode: str) -> bool:
     """Whether ``eps`` makes the blend of contact mode ``contact_mode`` steep (brute force's
     friction weight blends over the same margin; sdrs and ipc have no blend)."""
     return eps < STEEP_BLEND_EPS and contact_mode in ("bsh", "brute")
+
+
 # The contact models a ModelBuilder makes: ContactModel's modes and the IPC baseline.
 MODEL_CONTACT_MODES = (*CONTACT_MODES, "ipc")
+
+
+_SETTING_UNITS = {"contact_stiffness": "", "friction_smoothing": "m/s", "eps": ""}
 
 
 def contact_setting_problem(name: str, value: float) -> str | None:
@@ -73,9 +78,6 @@ def contact_setting_problem(name: str, value: float) -> str | None:
     return scale_problem(value, _SETTING_UNITS[name]) if is_positive_finite(value) else "must be positive and finite"
 
 
-_SETTING_UNITS = {"contact_stiffness": "", "friction_smoothing": "m/s", "eps": ""}
-
-
 def gravity_problem(value) -> str | None:
     """Why ``value`` is not a gravitational acceleration (m/s^2), or None: 3 finite numbers,
     none beyond SCALE_RANGE's bound (1e300 made the step's free fall overflow)."""
@@ -85,6 +87,8 @@ def gravity_problem(value) -> str | None:
     if np.abs(gravity).max() > SCALE_RANGE[1]:
         return f"must be at most {SCALE_RANGE[1]:g} m/s^2 in magnitude on each axis"
     return None
+
+
 _IDENTITY_POSE = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 
 
@@ -238,8 +242,9 @@ def _overlapping_pieces(mesh: trimesh.Trimesh) -> bool:
 
 def _closure_hint(mesh: trimesh.Trimesh) -> str:
     """Why a mesh that does not enclose a volume may not: a closed piece wound inside out
-    (``_inside_out_piece``), or faces that share no vertices (a triangle soup, as many
-    exporters write), which close once coincident vertices are merged."""
+    (``_inside_out_piece``), a face naming a vertex twice, the whole mesh wound inside out,
+    or faces that share no vertices (a triangle soup, as many exporters write), which close
+    once coincident vertices are merged."""
     if _closed_outward(mesh):
         return " (a separate closed piece of it is wound inside out: invert that piece's faces)"
     repeated = np.flatnonzero((mesh.faces[:, 0] == mesh.faces[:, 1]) | (mesh.faces[:, 1] == mesh.faces[:, 2]) | (mesh.faces[:, 2] == mesh.faces[:, 0]))
