@@ -177,6 +177,23 @@ def test_trajectory_export_authors_its_first_frame_as_the_default_and_keeps_the_
     assert io.load_scene(tmp_path / "saved.usda").up_axis == "Y"
 
 
+def test_non_unit_quaternions_are_refused_by_save_and_normalised_by_export(tmp_path):
+    """Found by a probe: USD's orient op draws a quaternion as given. A body posed at
+    (0, 0, 1, 1), 90 degrees about z at norm 1.41 (which the builder refuses), was saved and
+    loaded as the identity, and a static body's pose written at that norm was exported so."""
+    scene = io.load_scene(write_physics_scene(tmp_path / "a.usda"))
+    turned = scene.body("box")
+    turned.pose = np.array([*turned.pose[:3], 0.0, 0.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match=r"saved.usda: body 'box': its pose quaternion has norm 1.41421356, expected 1"):
+        io.save_scene(scene, tmp_path / "saved.usda")
+    assert not (tmp_path / "saved.usda").exists()
+    poses = np.repeat(np.stack([b.pose for b in scene.bodies])[None], 2, axis=0)
+    io.export_trajectory(scene, poses, tmp_path / "traj.usda")
+    stage = Usd.Stage.Open(str(tmp_path / "traj.usda"))
+    drawn = UsdGeom.Xformable(stage.GetPrimAtPath("/World/box")).GetOrderedXformOps()[1].Get(1)
+    np.testing.assert_allclose([*drawn.GetImaginary(), drawn.GetReal()], [0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)], atol=1e-12)
+
+
 def test_concave_polygons_are_ear_clipped_and_self_intersecting_ones_refused(tmp_path):
     # A fan over an L-shaped face covered its notch: a box over the notch came to rest on it.
     stage = _hanging_box_stage(tmp_path / "l.usda")
@@ -1261,6 +1278,34 @@ def test_a_joint_on_a_mirrored_body_is_refused(tmp_path):
     hinge.CreateLocalPos0Attr(Gf.Vec3f(0.4, 0.2, 3.5))
     hinge.CreateLocalPos1Attr(Gf.Vec3f(0.3, 0.2, 0.5))
     _load_refused(stage, path, r"prim /World/hinge: body1 /World/box is mirrored \(a negative scale in its transform\)")
+
+
+def test_a_mirrored_body_s_authored_inertia_is_reflected_with_its_geometry(tmp_path):
+    """Found by a probe: under a scale of (-1, 1, 1) the collider and centerOfMass came
+    through the mirror, and the authored inertia (principal axes turned 34 degrees about
+    (1, 1, 1)) was only turned: its principal axes 31-56 degrees off, a free spin at 3 rad/s
+    66 degrees off after 20 frames."""
+    axis, half = np.ones(3) / np.sqrt(3.0), 0.3
+
+    def world_inertia(scale):
+        path = write_physics_scene(tmp_path / f"inertia{scale[0]:+.0f}.usda", drop_height=2.0)
+        stage = Usd.Stage.Open(str(path))
+        UsdGeom.Xformable(stage.GetPrimAtPath("/World/box")).AddScaleOp().Set(Gf.Vec3f(*scale))
+        mass = UsdPhysics.MassAPI.Apply(stage.GetPrimAtPath("/World/box"))
+        mass.CreateMassAttr(1.0)
+        mass.CreateCenterOfMassAttr(Gf.Vec3f(0.1, 0.05, 0.0))
+        mass.CreateDiagonalInertiaAttr(Gf.Vec3f(0.15, 0.2, 0.3))
+        mass.CreatePrincipalAxesAttr(Gf.Quatf(float(np.cos(half)), Gf.Vec3f(*(np.sin(half) * axis).tolist())))
+        stage.GetRootLayer().Save()
+        box = io.load_scene(path).body("box")
+        turn = quat_matrix(box.pose[3:])
+        return turn @ box.inertia @ turn.T, turn @ box.center_of_mass  # in world axes
+
+    plain, plain_offset = world_inertia((1.0, 1.0, 1.0))
+    mirrored, mirrored_offset = world_inertia((-1.0, 1.0, 1.0))
+    mirror = np.diag([-1.0, 1.0, 1.0])
+    np.testing.assert_allclose(mirrored_offset, mirror @ plain_offset, atol=1e-7)
+    np.testing.assert_allclose(mirrored, mirror @ plain @ mirror, atol=1e-7)
 
 
 def test_velocities_under_a_mirroring_parent(tmp_path):
