@@ -1198,6 +1198,29 @@ def test_an_animated_kinematic_body_or_static_collider_is_refused(tmp_path):
     _load_refused(stage, path, r"prim /World/ground: a static collider moved by time-sampled transforms is not supported")
 
 
+def test_an_animated_collider_shape_or_place_on_its_body_is_refused(tmp_path):
+    """Found by a probe: a collider's animated size, points or transform on its body loaded
+    at the default value without a word, while an animated static collider was refused. A
+    dynamic body's own animated transform (a recorded trajectory) still loads at its default."""
+    path = write_physics_scene(tmp_path / "animated.usda")
+    stage = Usd.Stage.Open(str(path))
+    body = UsdGeom.Xformable(stage.GetPrimAtPath("/World/box"))
+    body.GetOrderedXformOps()[0].Set(Gf.Vec3d(2.0, 0.0, 3.0), 10.0)
+    stage.GetRootLayer().Save()
+    io.load_scene(path)
+    shape = UsdGeom.Cube(stage.GetPrimAtPath("/World/box/shape"))
+    shape.GetSizeAttr().Set(0.8, 10.0)
+    _load_refused(stage, path, r"prim /World/box/shape: size is animated, but a collider's shape and its place on its body are read once, at the default time")
+    shape.GetSizeAttr().ClearAtTime(10.0)
+    UsdGeom.Xformable(shape).AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 0.0))
+    UsdGeom.Xformable(shape).GetOrderedXformOps()[0].Set(Gf.Vec3d(0.3, 0.0, 0.0), 10.0)
+    _load_refused(stage, path, r"prim /World/box/shape: xformOp:translate is animated, but a collider's shape")
+    ground = UsdGeom.Mesh(stage.GetPrimAtPath("/World/ground"))
+    UsdGeom.Xformable(shape).GetOrderedXformOps()[0].GetAttr().Clear()
+    ground.GetPointsAttr().Set(ground.GetPointsAttr().Get() * 2.0, 10.0)
+    _load_refused(stage, path, r"prim /World/ground: points is animated")
+
+
 def _mesh_box_collider(stage, path, *, left_handed=False, extra_hole=False):
     """A closed 0.5 m Mesh box collider: counter-clockwise (outward) triangles, or clockwise
     ones authored as leftHanded; ``extra_hole`` adds a 1 m flap face listed in holeIndices."""

@@ -1002,6 +1002,16 @@ def load_scene(path) -> Scene:
                     f"{source}: prim {prim_path}: a static collider moved by time-sampled transforms is not supported (it would be "
                     "held at its default pose); remove the animation, or make it a rigid body"
                 )
+            # Its shape, and where it sits on its body, are read once, at the default time:
+            # animated, they were held at their default values without a word.
+            body_attributes = set(_transform_attributes(stage.GetPrimAtPath(owner), UsdGeom)) if owner else set()
+            animated = [attr for attr in prim.GetAttributes() if attr.GetName() in _READ_GEOMETRY and _moves(attr)]
+            animated += [attr for attr in _transform_attributes(prim, UsdGeom) if owner and attr not in body_attributes and _moves(attr)]
+            if animated:
+                raise ValueError(
+                    f"{source}: prim {prim_path}: {animated[0].GetName()} is animated, but a collider's shape and its place on its body "
+                    "are read once, at the default time (they would be held there); remove the animation"
+                )
             collider_materials[str(prim_path)] = _bound_physics_materials(stage, prim, desc)
             if kind == "PlaneShape":
                 if owner:
