@@ -1,8 +1,9 @@
 """Task kernels, differentiated by Warp's autodiff: control parameterisations and the loss.
 
 Degree-of-freedom codes of a controlled body: 0 x, 1 y, 2 z (translations, m),
-3 rx, 4 ry, 5 rz (rotation vector about world axes, rad), 6 yaw (= rz), 7 vx, 8 vy,
-9 vz (initial velocity, m/s).
+3 rx, 4 ry, 5 rz (rotation vector about world axes, rad), 6 yaw (= rz, about a Z-up stage's
+vertical; the tasks give a Y-up stage's yaw the code of ry), 7 vx, 8 vy, 9 vz (initial
+velocity, m/s).
 """
 
 import warp as wp

@@ -803,6 +803,25 @@ def test_a_static_target_or_controlled_body_is_refused(index, label):
         TaskProblem(scene)
 
 
+def test_yaw_turns_about_the_stage_up_axis():
+    """Found by a probe: yaw turned about world z on a Y-up stage too, a horizontal axis there."""
+    from warpcontact.scenes import build_scene
+    from warpcontact.rotation import quat_mul, quat_rotate
+
+    turn = np.array([-np.sin(np.pi / 4), 0.0, 0.0, np.cos(np.pi / 4)])  # z -> y
+    for up, code in (("Z", task_kernels.DOF_CODES["yaw"]), ("Y", task_kernels.DOF_CODES["ry"])):
+        scene = build_scene("push")
+        if up == "Y":
+            scene.up_axis, scene.gravity = "Y", quat_rotate(turn, scene.gravity)
+            for body in scene.bodies:
+                body.pose = np.array([*quat_rotate(turn, body.pose[:3]), *quat_mul(turn, body.pose[3:])])
+        scene.body("rod").control_dofs = ("x", "yaw")
+        assert TaskProblem(scene)._dof_codes.numpy().tolist() == [0, code]
+        scene.body("rod").control_dofs = ("yaw", "ry" if up == "Y" else "rz")
+        with pytest.raises(ValueError, match=r"control the same coordinate more than once"):
+            TaskProblem(scene)
+
+
 def test_rollout_refuses_values_of_the_wrong_shape():
     """Fewer rows than frames were read out of bounds by the control kernel: the process
     aborted ("corrupted double-linked list")."""

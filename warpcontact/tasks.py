@@ -536,7 +536,7 @@ def validate_task(scene) -> tuple:
     if task.control != "joint_sine" and len(controlled) != 1:
         raise ValueError(f"{source}: expected exactly one body with warpcontact:control:dofs, found {len(controlled)}")
     if controlled and task.control != "joint_sine":
-        _check_control_dofs(scene.bodies[controlled[0]], task.control, source)
+        _check_control_dofs(scene.bodies[controlled[0]], task.control, source, scene.up_axis)
     targets = [i for i, b in enumerate(scene.bodies) if b.target_position is not None]
     if not targets:
         raise ValueError(f"{source}: no target bodies (warpcontact:target:position)")
@@ -559,9 +559,17 @@ _VELOCITY_DOFS = ("vx", "vy", "vz")
 _ROTATION_DOFS = ("rx", "ry", "rz", "yaw")
 
 
-def _check_control_dofs(body, control: str, source: str):
+def _dof_code(dof: str, up_axis: str) -> int:
+    """The kernels' code of a control dof (``kernels.task.DOF_CODES``): ``yaw`` turns about
+    the stage's up axis, which is y on a Y-up stage (it turned about z there, a horizontal
+    axis)."""
+    return task_kernels.DOF_CODES["ry" if dof == "yaw" and up_axis == "Y" else dof]
+
+
+def _check_control_dofs(body, control: str, source: str, up_axis: str = "Z"):
     """Every decision variable of ``body`` must move something: known, not repeated (``yaw``
-    is ``rz``), and for PD targets a position or rotation the body's PD gains drive."""
+    is the rotation about the up axis, ``rz`` or on a Y-up stage ``ry``), and for PD targets
+    a position or rotation the body's PD gains drive."""
     where = f"{source}: prim {body.path}: warpcontact:control:dofs"
     if isinstance(body.control_dofs, str):  # "xy" ran as ("x", "y"), "yaw" as unknown "y", "a", "w"
         raise ValueError(f"{where}: expected a sequence of dof names, got the string {body.control_dofs!r}")
@@ -569,7 +577,7 @@ def _check_control_dofs(body, control: str, source: str):
     unknown = [d for d in dofs if d not in task_kernels.DOF_CODES]
     if unknown:
         raise ValueError(f"{where}: unknown control dofs {unknown} (known: {', '.join(task_kernels.DOF_CODES)})")
-    axes = ["rz" if d == "yaw" else d for d in dofs]
+    axes = [("ry" if up_axis == "Y" else "rz") if d == "yaw" else d for d in dofs]
     repeated = sorted({d for d, a in zip(dofs, axes) if axes.count(a) > 1})
     if repeated:
         raise ValueError(f"{where}: {repeated} control the same coordinate more than once")
@@ -676,7 +684,7 @@ class TaskProblem:
             body = scene.bodies[self.body]
             self.dof_names = tuple(body.control_dofs)
             self.base_pose = self.model.initial_q[self.body].copy()
-            self._dof_codes = wp.array([task_kernels.DOF_CODES[d] for d in self.dof_names], dtype=wp.int32, device=device)
+            self._dof_codes = wp.array([_dof_code(d, scene.up_axis) for d in self.dof_names], dtype=wp.int32, device=device)
         if self.settings.initial_samples:
             self._sample_box = sample_box(scene, self.settings.initial_samples)
         self._target_body = wp.array(targets, dtype=wp.int32, device=device)
