@@ -176,8 +176,6 @@ class TaskSettings:
             ("horizon", f"a whole number from 1 to {MAX_FRAMES:,}", is_whole(self.horizon) and 1 <= self.horizon <= MAX_FRAMES),
             ("receding_horizon", "a whole number >= 0", is_whole(self.receding_horizon) and self.receding_horizon >= 0),
             ("receding_stride", f"a whole number >= 1 and at most the window ({window})", is_whole(self.receding_stride) and window is not None and 1 <= self.receding_stride <= window),
-            # One window plans the whole horizon at once: a stride there did nothing, silently.
-            ("receding_stride", "1 when one window covers the horizon", window is None or window < self.horizon or self.receding_stride == 1),
             ("iterations", f"a whole number from 1 to {MAX_ITERATIONS:,}", is_whole(self.iterations) and 1 <= self.iterations <= MAX_ITERATIONS),
             ("learning_rate", "positive and finite", is_positive_finite(self.learning_rate)),
             ("betas", "two numbers in [0, 1)", len(betas) == 2 and all(unit_interval(b) for b in betas)),
