@@ -1,9 +1,9 @@
 """Task kernels, differentiated by Warp's autodiff: control parameterisations and the loss.
 
 Degree-of-freedom codes of a controlled body: 0 x, 1 y, 2 z (translations, m),
-3 rx, 4 ry, 5 rz (rotation vector about world axes, rad), 6 yaw (= rz, about a Z-up stage's
-vertical; the tasks give a Y-up stage's yaw the code of ry), 7 vx, 8 vy, 9 vz (initial
-velocity, m/s).
+3 rx, 4 ry, 5 rz (rotation vector about world axes, rad), 6 vx, 7 vy, 8 vz (initial
+velocity, m/s). A task's ``yaw`` is the rotation about the stage's up axis, rz or ry
+(``warpcontact.tasks``).
 """
 
 import warp as wp
@@ -12,7 +12,7 @@ from .state import quat_from_rotation_vector
 
 __all__ = ["DOF_CODES", "initial_state_kernel", "joint_sine_target_kernel", "pd_target_kernel", "target_loss_kernel"]
 
-DOF_CODES = {"x": 0, "y": 1, "z": 2, "rx": 3, "ry": 4, "rz": 5, "yaw": 6, "vx": 7, "vy": 8, "vz": 9}
+DOF_CODES = {"x": 0, "y": 1, "z": 2, "rx": 3, "ry": 4, "rz": 5, "vx": 6, "vy": 7, "vz": 8}
 
 
 @wp.func
@@ -28,10 +28,8 @@ def _offsets(values: wp.array2d(dtype=wp.float64), row: int, dof_codes: wp.array
             dp[code] = dp[code] + v
         elif code < 6:
             rv[code - 3] = rv[code - 3] + v
-        elif code == 6:
-            rv[2] = rv[2] + v
         else:
-            dv[code - 7] = dv[code - 7] + v
+            dv[code - 6] = dv[code - 6] + v
     return dp, rv, dv
 
 

@@ -56,7 +56,7 @@ def test_target_loss_is_a_relu_of_squared_distance():
 def test_pd_targets_apply_translation_and_yaw_offsets():
     base = wp.transformd(wp.vec3d(1.0, 2.0, 0.3), wp.quatd(0.0, 0.0, 0.0, 1.0))
     values = wp.array([[0.5, -0.2, 0.0, np.pi / 2]], dtype=wp.float64)
-    codes = wp.array([task_kernels.DOF_CODES[d] for d in ("x", "y", "z", "yaw")], dtype=wp.int32)
+    codes = wp.array([task_kernels.DOF_CODES[d] for d in ("x", "y", "z", "rz")], dtype=wp.int32)  # a Z-up stage's yaw
     out = wp.zeros(3, dtype=wp.transformd)
     wp.launch(task_kernels.pd_target_kernel, dim=1, inputs=[2, base, codes, values, 0], outputs=[out])
     pose = out.numpy()[2]
@@ -807,7 +807,7 @@ def test_yaw_turns_about_the_stage_up_axis():
     from warpcontact.rotation import quat_mul, quat_rotate
 
     turn = np.array([-np.sin(np.pi / 4), 0.0, 0.0, np.cos(np.pi / 4)])  # z -> y
-    for up, code in (("Z", task_kernels.DOF_CODES["yaw"]), ("Y", task_kernels.DOF_CODES["ry"])):
+    for up, code in (("Z", task_kernels.DOF_CODES["rz"]), ("Y", task_kernels.DOF_CODES["ry"])):
         scene = build_scene("push")
         if up == "Y":
             scene.up_axis, scene.gravity = "Y", quat_rotate(turn, scene.gravity)

@@ -557,11 +557,14 @@ _VELOCITY_DOFS = ("vx", "vy", "vz")
 _ROTATION_DOFS = ("rx", "ry", "rz", "yaw")
 
 
-def _dof_code(dof: str, up_axis: str) -> int:
-    """The kernels' code of a control dof (``kernels.task.DOF_CODES``): ``yaw`` turns about
-    the stage's up axis, which is y on a Y-up stage (it turned about z there, a horizontal
-    axis)."""
-    return task_kernels.DOF_CODES["ry" if dof == "yaw" and up_axis == "Y" else dof]
+# The control dofs a body may name: the kernels' coordinates and ``yaw``.
+_CONTROL_DOFS = (*task_kernels.DOF_CODES, "yaw")
+
+
+def _coordinate(dof: str, up_axis: str) -> str:
+    """The coordinate a control dof moves: ``yaw`` turns about the stage's up axis, rz, or ry
+    on a Y-up stage (it turned about z there, a horizontal axis)."""
+    return ("ry" if up_axis == "Y" else "rz") if dof == "yaw" else dof
 
 
 def _check_control_dofs(body, control: str, source: str, up_axis: str = "Z"):
@@ -572,10 +575,10 @@ def _check_control_dofs(body, control: str, source: str, up_axis: str = "Z"):
     if isinstance(body.control_dofs, str):  # "xy" ran as ("x", "y"), "yaw" as unknown "y", "a", "w"
         raise ValueError(f"{where}: expected a sequence of dof names, got the string {body.control_dofs!r}")
     dofs = tuple(body.control_dofs)
-    unknown = [d for d in dofs if d not in task_kernels.DOF_CODES]
+    unknown = [d for d in dofs if d not in _CONTROL_DOFS]
     if unknown:
-        raise ValueError(f"{where}: unknown control dofs {unknown} (known: {', '.join(task_kernels.DOF_CODES)})")
-    axes = [("ry" if up_axis == "Y" else "rz") if d == "yaw" else d for d in dofs]
+        raise ValueError(f"{where}: unknown control dofs {unknown} (known: {', '.join(_CONTROL_DOFS)})")
+    axes = [_coordinate(d, up_axis) for d in dofs]
     repeated = sorted({d for d, a in zip(dofs, axes) if axes.count(a) > 1})
     if repeated:
         raise ValueError(f"{where}: {repeated} control the same coordinate more than once")
@@ -682,7 +685,7 @@ class TaskProblem:
             body = scene.bodies[self.body]
             self.dof_names = tuple(body.control_dofs)
             self.base_pose = self.model.initial_q[self.body].copy()
-            self._dof_codes = wp.array([_dof_code(d, scene.up_axis) for d in self.dof_names], dtype=wp.int32, device=device)
+            self._dof_codes = wp.array([task_kernels.DOF_CODES[_coordinate(d, scene.up_axis)] for d in self.dof_names], dtype=wp.int32, device=device)
         if self.settings.initial_samples:
             self._sample_box = sample_box(scene, self.settings.initial_samples)
         self._target_body = wp.array(targets, dtype=wp.int32, device=device)
