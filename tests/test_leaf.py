@@ -45,6 +45,21 @@ def test_tiny_and_huge_triangles_match_finite_differences(size):
     assert hess_err < 1e-5
 
 
+def test_triangles_too_small_for_float64_contact_geometry_are_refused():
+    """Found by a probe: a vertex 0.1 of their size above a face read as CONTACT (+inf) once
+    the triangles were 1e-82 m across (fourth powers of length underflowed); at 1e-79 m they
+    were reported unsolved. Now both are refused by size, and a pair collapsed to one point
+    stays valid."""
+    from warpcontact import triangle_pair_potential
+
+    for scale in (1e-79, 1e-82, 1e-120):
+        A, B = vertex_face(0.1)
+        with pytest.raises(ValueError, match=r"A and B: pair 1 spans \S+ m, below the 1e-75 m that float64 contact geometry resolves"):
+            triangle_pair_potential(np.stack([A, A * scale]), np.stack([B, B * scale]))
+    A, B = vertex_face(0.1)
+    assert triangle_pair_potential((A * 1e-70)[None], (B * 1e-70)[None]).status[0] != 1  # not read as touching
+
+
 def test_sliver_matches_finite_differences():
     A = np.array([[0.0, 0.0, 0.1], [1.0, 0.0, 0.1], [0.5, 1e-3, 0.1]])
     B = np.array([[0.2, -0.5, 0.0], [0.4, 0.5, 0.0], [0.3, 0.0, -0.7]])

@@ -257,8 +257,10 @@ NAN_VERTICES[2, 1] = np.nan
         (GOOD_VERTICES, np.ones((2, 3), dtype=bool), "faces must be real numbers"),
         (None, GOOD_FACES, "vertices must be real numbers"),
         ([[0.0, 0.0, 0.0], [1.0, 0.0]], GOOD_FACES, "vertices cannot be read"),
-        # Squared distances underflowed: every leaf sphere of a 1e-170 m ball had radius 0.
-        (GOOD_VERTICES * 1e-160, GOOD_FACES, "m, below the 1e-150 m that float64 squared distances resolve"),
+        # Squared distances underflowed: every leaf sphere of a 1e-170 m ball had radius 0;
+        # below ~1e-77 m the leaf search's fourth powers did (disjoint triangles touched).
+        (GOOD_VERTICES * 1e-160, GOOD_FACES, "m, below the 1e-75 m that float64 contact geometry resolves"),
+        (GOOD_VERTICES * 1e-82, GOOD_FACES, "m, below the 1e-75 m that float64 contact geometry resolves"),
     ],
 )
 def test_bad_input_names_mesh_and_problem(vertices, faces, message):

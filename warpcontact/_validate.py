@@ -17,6 +17,7 @@ __all__ = [
     "check_coordinates",
     "check_count",
     "check_time_step",
+    "extent_problem",
     "gap_problem",
     "time_step_problem",
     "checked_flag",
@@ -46,10 +47,12 @@ MAX_BARRIER_SUPPORT = 1e6
 # and a leaf solve NaN).
 MAX_COORDINATE = 1e150
 
-# Smallest extent (m) of a body that is not collapsed to one point: squared distances
-# underflow below ~1e-154 m, where its bounding spheres read radius 0 and missed its
-# triangles (a 1e-170 m ball's every leaf sphere).
-MIN_EXTENT = 1e-150
+# Smallest extent (m) of a body, or of a pair of triangles, that is not collapsed to one
+# point: the leaf search's fourth powers of length underflow below ~1e-77 m, where disjoint
+# triangles 1e-82 m across read as touching (a vertex 0.1 of their size above a face: CONTACT,
+# +inf, in the triangle solve and in a body's contact pairs), and squared distances below
+# ~1e-154 m, where bounding spheres read radius 0 and missed their triangles.
+MIN_EXTENT = 1e-75
 
 # Largest deviation from unit norm of a quaternion given as a rotation (poses, frames,
 # targets); within it the quaternion is normalised, beyond it refused.
@@ -142,6 +145,15 @@ def check_coordinates(arr: np.ndarray, name: str) -> None:
             f"{name}: {arr[tuple(first)]:g} at index {tuple(int(i) for i in first)} is beyond the +-{MAX_COORDINATE:g} m "
             "that float64 distances between such points can represent"
         )
+
+
+def extent_problem(points: np.ndarray) -> str | None:
+    """Why points (n, 3) span too little for float64 geometry, or None: a span below
+    MIN_EXTENT (collapsed to one point is valid)."""
+    extent = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
+    if 0.0 < extent < MIN_EXTENT:
+        return f"spans {extent:g} m, below the {MIN_EXTENT:g} m that float64 contact geometry resolves (collapsed to one point is valid)"
+    return None
 
 
 def gap_problem(gap: float, extent: float) -> str | None:

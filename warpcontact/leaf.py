@@ -8,7 +8,7 @@ import warp as wp
 from .kernels import blend as blend_kernels
 from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
-from ._validate import as_float64_array, check_barrier_support, check_coordinates, check_count, checked_flag
+from ._validate import MIN_EXTENT, as_float64_array, check_barrier_support, check_coordinates, check_count, checked_flag, extent_problem
 
 __all__ = [
     "LEAF_PRECISIONS",
@@ -103,6 +103,11 @@ def triangle_pair_potential(
     check_coordinates(b, "B")
     if a.shape[0] != b.shape[0]:
         raise ValueError(f"A and B: pair counts differ ({a.shape[0]} vs {b.shape[0]})")
+    if len(a):
+        extents = np.ptp(np.concatenate([a, b], axis=1), axis=1).max(axis=1)
+        small = np.flatnonzero((extents > 0.0) & (extents < MIN_EXTENT))
+        if small.size:  # such disjoint triangles read as touching
+            raise ValueError(f"A and B: pair {small[0]} {extent_problem(np.concatenate([a[small[0]], b[small[0]]]))}")
     check_count(max_iterations, "max_iterations")
     derivatives = checked_flag(derivatives, "derivatives")
     if dhat is not None:

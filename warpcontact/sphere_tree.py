@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._validate import MIN_EXTENT, check_coordinates, real_dtype
+from ._validate import check_coordinates, extent_problem, real_dtype
 
 __all__ = ["SphereTree", "build_sphere_tree", "validated_mesh"]
 
@@ -240,9 +240,9 @@ def validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
         bad = int(np.flatnonzero(~finite_vertex)[0])
         raise ValueError(f"mesh {name!r}: vertex {bad} is not finite: {positions[bad].tolist()}")
     check_coordinates(positions, f"mesh {name!r}: vertices")
-    extent = float(np.ptp(positions, axis=0).max()) if len(positions) else 0.0
-    if 0.0 < extent < MIN_EXTENT:
-        raise ValueError(f"mesh {name!r}: spans {extent:g} m, below the {MIN_EXTENT:g} m that float64 squared distances resolve (a mesh collapsed to one point is valid)")
+    problem = extent_problem(positions)
+    if problem is not None:
+        raise ValueError(f"mesh {name!r}: {problem}")
 
     raw_faces = _mesh_array(faces, name, "faces")
     if raw_faces.ndim != 2 or raw_faces.shape[1] != 3:
