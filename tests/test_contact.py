@@ -599,6 +599,25 @@ def test_bad_model_input_raises_clear_errors():
     for fraction in (0.0, 2.0, "0.5"):
         with pytest.raises(ValueError, match="fraction: must be a number in \\(0, 1\\)"):
             model.advancement_limit(np.zeros((2, 6)), fraction=fraction)
+    # Found by a probe: the builder's range did not hold for a model made directly; friction's
+    # arguments gave NaN friction, a negative energy or a Warp launch error; a static body's
+    # non-zero step row halved the bound.
+    for eps in (1e-300, 1.7e308):
+        with pytest.raises(ValueError, match=r"eps: must lie in \[1e-150, 1e\+150\]"):
+            wc.ContactModel([icosphere(0), box()], eps=eps)
+    friction = wp.array([0.5], dtype=wp.float64)
+    for arguments, match in (
+        ((float("nan"), friction, 1e-3), "mu: must be a positive finite number, got nan"),
+        ((-1.0, friction, 1e-3), "mu: must be a positive finite number, got -1.0"),
+        ((1e-6, friction, float("nan")), "slip_smoothing: must be a positive finite number, got nan"),
+        ((1e-6, 0.5, 1e-3), r"friction: expected a wp.array of one float64 \(the model's friction\), got 0.5"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            model.friction_frame(*arguments)
+    pinned = wc.ContactModel([icosphere(0), box()], static=[True, False], names=["ball", "crate"])
+    pinned.evaluate(identity_poses([[0, 0, 0], [3.0, 0, 0]]))
+    with pytest.raises(ValueError, match=r"step: static body 'ball' \(row 0\) has a non-zero row \[1.0, 0.0, 0.0, 0.0, 0.0, 0.0\]; static bodies do not move"):
+        pinned.advancement_limit(np.array([[1.0, 0, 0, 0, 0, 0], [0.0, 0, 0, 0, 0, 0]]))
     with pytest.raises(ValueError, match="r: expected real numbers"):
         wc.centered_potential([1 + 2j])
 

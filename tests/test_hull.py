@@ -53,6 +53,11 @@ def test_points_inside_are_left_out_or_refused_in_convex_position():
         (np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0], [3.0, 0.0, 0.0]]), r"span no volume \(all on one line\)"),
         (np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0], [2.0, 3.0, 0.0]]), r"span no volume \(all in one plane\)"),
         (np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, np.nan]]), r"not all finite"),
+        # Found by a probe: numpy's own errors naming nothing, bools read as 0/1, imaginary parts dropped.
+        ([["0", "0", "0"], ["1", "0", "0"], ["0", "1", "0"], ["0", "0", "1"]], r"points: expected \(N, 3\) real numbers, not text, bools, complex numbers or ragged lists; got a list"),
+        ([[0.0, 0.0, 0.0], [1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], r"not text, bools, complex numbers or ragged lists"),
+        (np.eye(4, 3, dtype=bool), r"not text, bools, complex numbers or ragged lists; got a ndarray"),
+        (np.eye(4, 3) * (1 + 1j), r"not text, bools, complex numbers or ragged lists"),
     ],
 )
 def test_degenerate_points_are_refused(points, match):

@@ -33,7 +33,7 @@ from .kernels import reduction as reduction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels import traversal as traversal_kernels
 from ._runtime import HostReadback, LaunchCache, host_buffer, resolve_device, run_concurrently
-from ._validate import QUATERNION_TOLERANCE, as_float64_array, check_barrier_support, check_coordinates, check_count, checked_flag, is_positive_finite, is_real, is_whole, validated_poses
+from ._validate import QUATERNION_TOLERANCE, as_float64_array, check_barrier_support, check_coordinates, check_count, checked_flag, is_positive_finite, is_real, is_whole, scale_problem, validated_poses
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus, float32_search
 from .rotation import rigid_step_travel
 from .sphere_tree import SphereTree, build_sphere_tree
@@ -249,6 +249,19 @@ def _excluded_pair_keys(exclude_pairs, n: int) -> np.ndarray:
     return np.minimum(array[:, 0], array[:, 1]).astype(np.int64) * n + np.maximum(array[:, 0], array[:, 1])
 
 
+def check_friction_arguments(mu, friction, slip_smoothing) -> None:
+    """ValueError naming the argument unless ``mu`` (the contact stiffness) and
+    ``slip_smoothing`` (m/s) are positive scales and ``friction`` is the model's one-value
+    float64 array (``friction_frame``: NaN gave NaN friction, mu = -1 a negative energy,
+    a float a Warp error from inside a kernel launch)."""
+    for label, value, unit in (("mu", mu, ""), ("slip_smoothing", slip_smoothing, "m/s")):
+        problem = scale_problem(value, unit) if is_positive_finite(value) else "must be a positive finite number"
+        if problem is not None:
+            raise ValueError(f"{label}: {problem}, got {value!r}")
+    if not (isinstance(friction, wp.array) and friction.dtype == wp.float64 and friction.shape == (1,)):
+        raise ValueError(f"friction: expected a wp.array of one float64 (the model's friction), got {friction!r}")
+
+
 class ContactModel:
     """Contact potential between rigid bodies given as triangle meshes in their body frames.
 
@@ -329,6 +342,9 @@ class ContactModel:
             raise ValueError(f"centred_weight: {centred_weight!r} is not one of {CENTRED_WEIGHTS}")
         if not is_positive_finite(eps):
             raise ValueError(f"eps: must be a positive finite number, got {eps!r}")
+        problem = scale_problem(eps, "")
+        if problem is not None:  # the builder's range, for a ContactModel made directly
+            raise ValueError(f"eps: {problem}, got {eps!r}")
         check_barrier_support(dhat)
         for label, count in (("max_leaf_iterations", max_leaf_iterations), ("top_replicas", top_replicas), ("term_chunks", term_chunks)):
             if count is not None or label == "max_leaf_iterations":
@@ -894,6 +910,9 @@ class ContactModel:
         check_coordinates(step, "step")
         if step.shape[0] != self.num_bodies:
             raise ValueError(f"step: expected {self.num_bodies} rows, got {step.shape[0]}")
+        moved = np.flatnonzero(self.static & (step != 0.0).any(axis=1))
+        if moved.size:  # it was taken, and halved a bound no static body can cut
+            raise ValueError(f"step: static body {self.names[moved[0]]!r} (row {moved[0]}) has a non-zero row {step[moved[0]].tolist()}; static bodies do not move in a step")
         if not (is_real(fraction) and 0 < fraction < 1):
             raise ValueError(f"fraction: must be a number in (0, 1), got {fraction!r}")
         if frame is None:
@@ -964,6 +983,7 @@ class ContactModel:
         pair, the normal force mu W |n| sum_A -b'(g_k) of this mode's leaf potential, its
         plane normal and the two bodies' material points at the pair's shared contact point
         (``kernels/friction.py``)."""
+        check_friction_arguments(mu, friction, slip_smoothing)
         self._require_evaluation("friction_frame")
         with wp.ScopedDevice(self.device):
             frame = friction_kernels.FrictionFrame()

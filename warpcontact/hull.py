@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._validate import real_array
+
 __all__ = ["convex_hull", "convex_hull_mesh"]
 
 # A point closer than this fraction of the points' extent to a face's plane, on its outer
@@ -47,7 +49,10 @@ def convex_hull(points, *, all_on_hull: bool = False) -> np.ndarray:
     (collinear or coplanar) or almost none (thinner than 1e-8 of their extent), or a hull
     that fails its check.
     """
-    points = np.asarray(points, dtype=np.float64)
+    given = points
+    points = real_array(points)
+    if points is None:  # text or ragged lists failed inside numpy, bools read as 0/1, complex numbers lost their imaginary parts
+        raise ValueError(f"points: expected (N, 3) real numbers, not text, bools, complex numbers or ragged lists; got a {type(given).__name__} of such")
     if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4:
         raise ValueError(f"points: expected (N, 3) with N >= 4, got shape {points.shape}")
     if not np.isfinite(points).all():
@@ -124,8 +129,8 @@ def _face_planes(points: np.ndarray, faces: np.ndarray, tolerance: float) -> tup
 
 def convex_hull_mesh(points) -> tuple[np.ndarray, np.ndarray]:
     """The convex hull of ``points`` as a mesh of the points it uses: (vertices, faces)."""
-    points = np.asarray(points, dtype=np.float64)
     used, faces = np.unique(convex_hull(points), return_inverse=True)
+    points = real_array(points)
     return points[used], faces.reshape(-1, 3)
 
 

@@ -35,7 +35,7 @@ import numpy as np
 from dataclasses import dataclass
 
 from .articulation import connected_labels
-from .contact import ContactEvaluation, LaggedFriction, contact_body_pairs, hessian_slots
+from .contact import ContactEvaluation, LaggedFriction, check_friction_arguments, contact_body_pairs, hessian_slots
 from .rotation import quat_from_rotation_vector, quat_to_matrix, skew
 from ._validate import as_float64_array, check_barrier_support, check_coordinates, checked_flag, validated_poses
 
@@ -208,6 +208,7 @@ class IpcContactModel:
     def friction_frame(self, mu: float, friction, slip_smoothing: float) -> LaggedFriction:
         """IPC's lagged friction at the last evaluated configuration (a step's q^t): ipctk's
         tangential collisions of the collisions active there (module docstring)."""
+        check_friction_arguments(mu, friction, slip_smoothing)
         ipctk = self._ipctk
         normal_potential = ipctk.BarrierPotential(self.dhat, float(mu))
         collisions = ipctk.TangentialCollisions()
