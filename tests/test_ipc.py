@@ -135,3 +135,20 @@ def test_a_scene_of_static_bodies_alone_steps(mode):
     np.testing.assert_array_equal(states[1].body_q.numpy(), states[0].body_q.numpy())
     tape.backward(grads={states[1].body_q: wp.array([[1.0, 0, 0, 0, 0, 0, 0]] * 2, dtype=wp.transformd)})
     np.testing.assert_array_equal(states[0].body_q.grad.numpy()[:, 0], [1.0, 1.0])
+
+
+def test_the_ipc_model_checks_its_bodies_as_the_other_contact_models_do():
+    """Found by a probe: a face index past the vertices crashed the process inside ipctk's
+    mesh (a segfault), a NaN vertex gave a potential of 0, fractional face indices were cut,
+    a short static list gave an IndexError and a short names list blamed the poses."""
+    vertices, faces = icosphere(0)
+    for meshes, options, match in (
+        ([(vertices[:3], np.array([[0, 1, 5]]))], {}, r"mesh 'body0': face 0 has vertex indices \[0, 1, 5\] outside \[0, 3\)"),
+        ([(np.where(np.arange(len(vertices))[:, None] == 2, np.nan, vertices), faces)], {}, r"mesh 'body0': vertex 2 is not finite"),
+        ([(vertices, faces + 0.5)], {}, r"mesh 'body0': face 0 has non-integer vertex indices"),
+        ([(vertices, faces)] * 2, dict(static=[True]), r"static: expected 2 flags"),
+        ([(vertices, faces)] * 2, dict(names=["ball"]), r"names: 1 names for 2 bodies"),
+        ([], {}, r"meshes: need at least one body"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            IpcContactModel(meshes, **options)

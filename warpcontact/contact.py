@@ -36,7 +36,7 @@ from ._runtime import HostReadback, LaunchCache, host_buffer, resolve_device, ru
 from ._validate import QUATERNION_TOLERANCE, as_float64_array, check_barrier_support, check_coordinates, check_count, checked_flag, is_positive_finite, is_real, is_whole, scale_problem, validated_poses
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus, float32_search
 from .rotation import rigid_step_travel
-from .sphere_tree import SphereTree, build_sphere_tree
+from .sphere_tree import SphereTree, build_sphere_tree, validated_mesh
 
 __all__ = ["CENTRED_WEIGHTS", "ContactEvaluation", "ContactModel", "CONTACT_MODES", "LaggedFriction", "QUATERNION_TOLERANCE", "TermLists", "symmetric_from_upper"]
 
@@ -117,6 +117,32 @@ def _static_flags(static, num_bodies: int) -> np.ndarray:
     if flags.shape != (num_bodies,):
         raise ValueError(f"static: expected {num_bodies} flags, got shape {flags.shape}")
     return np.array([checked_flag(flag, f"static: entry {i}") for i, flag in enumerate(flags)], dtype=bool)
+
+
+def checked_bodies(meshes, names, static) -> tuple[list, list, np.ndarray]:
+    """(meshes as validated (float64 vertices, int64 faces) pairs, one name per body, static
+    flags) of a contact model's arguments; ValueError naming the argument and body. One rule
+    for every contact model (the IPC baseline took a face index past its vertices into ipctk,
+    which crashed the process)."""
+    meshes = list(meshes)
+    if len(meshes) < 1:
+        raise ValueError("meshes: need at least one body")
+    if isinstance(names, str):  # it was read as one name per character
+        raise ValueError(f"names: expected one name per body, got the string {names!r}")
+    names = [f"body{i}" for i in range(len(meshes))] if names is None else [str(n) for n in names]
+    if len(names) != len(meshes):
+        raise ValueError(f"names: {len(names)} names for {len(meshes)} bodies")
+    repeated = sorted(n for n, count in collections.Counter(names).items() if count > 1)
+    if repeated:
+        raise ValueError(f"names: {repeated[0]!r} names more than one body; contact_pairs could not tell them apart")
+    checked = []
+    for i, mesh in enumerate(meshes):
+        try:
+            vertices, faces = mesh
+        except (TypeError, ValueError):
+            raise ValueError(f"meshes[{i}] ({names[i]}): expected a (vertices, faces) pair") from None
+        checked.append(validated_mesh(vertices, faces, names[i]))
+    return checked, names, _static_flags(static, len(meshes))
 
 
 def hessian_slots(static: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -349,19 +375,8 @@ class ContactModel:
         for label, count in (("max_leaf_iterations", max_leaf_iterations), ("top_replicas", top_replicas), ("term_chunks", term_chunks)):
             if count is not None or label == "max_leaf_iterations":
                 check_count(count, label)
-        meshes = list(meshes)
-        if len(meshes) < 1:
-            raise ValueError("meshes: need at least one body")
+        meshes, self.names, static_flags = checked_bodies(meshes, names, static)
         num_bodies = len(meshes)
-        if isinstance(names, str):  # it was read as one name per character
-            raise ValueError(f"names: expected one name per body, got the string {names!r}")
-        self.names = [f"body{i}" for i in range(num_bodies)] if names is None else [str(n) for n in names]
-        if len(self.names) != num_bodies:
-            raise ValueError(f"names: {len(self.names)} names for {num_bodies} bodies")
-        repeated = sorted(n for n, count in collections.Counter(self.names).items() if count > 1)
-        if repeated:
-            raise ValueError(f"names: {repeated[0]!r} names more than one body; contact_pairs could not tell them apart")
-        static_flags = _static_flags(static, num_bodies)
 
         self._mode = mode
         self._centred_weight = centred_weight
@@ -383,14 +398,9 @@ class ContactModel:
         self._min_chunk_leaf_terms = _MIN_CHUNK_LEAF_TERMS  # tests lower it to split small scenes
 
         trees, triangles = [], []
-        for i, mesh in enumerate(meshes):
-            try:
-                vertices, faces = mesh
-            except (TypeError, ValueError):
-                raise ValueError(f"meshes[{i}] ({self.names[i]}): expected a (vertices, faces) pair") from None
-            tree = build_sphere_tree(vertices, faces, name=self.names[i])
-            trees.append(tree)
-            triangles.append(np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)])
+        for i, (vertices, faces) in enumerate(meshes):
+            trees.append(build_sphere_tree(vertices, faces, name=self.names[i]))
+            triangles.append(vertices[faces])
         self.trees: list[SphereTree] = trees
         self.node_offset = np.cumsum([0] + [t.num_nodes for t in trees])[:-1].astype(np.int32)
         self.triangle_offset = np.cumsum([0] + [t.num_triangles for t in trees])[:-1].astype(np.int32)

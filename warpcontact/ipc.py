@@ -35,7 +35,7 @@ import numpy as np
 from dataclasses import dataclass
 
 from .articulation import connected_labels
-from .contact import ContactEvaluation, LaggedFriction, check_friction_arguments, contact_body_pairs, hessian_slots
+from .contact import ContactEvaluation, LaggedFriction, check_friction_arguments, checked_bodies, contact_body_pairs, hessian_slots
 from .rotation import quat_from_rotation_vector, quat_to_matrix, skew
 from ._validate import as_float64_array, check_barrier_support, check_coordinates, checked_flag, validated_poses
 
@@ -82,19 +82,16 @@ class IpcContactModel:
             raise ValueError(f"device: the ipc baseline runs on the CPU only (ipctk), got {device!r}")
         check_barrier_support(dhat)
         self._ipctk, self._sparse = ipctk, sp
-        meshes = list(meshes)
+        meshes, self.names, self.static = checked_bodies(meshes, names, static)
         self.num_bodies = len(meshes)
-        self.names = [f"body{i}" for i in range(self.num_bodies)] if names is None else [str(n) for n in names]
-        self.static = np.zeros(self.num_bodies, dtype=bool) if static is None else np.asarray(static, dtype=bool)
         self.dhat = float(dhat)
         self.body_pairs = contact_body_pairs(self.static, exclude_pairs)
         self.hessian_bodies, self._hessian_slot = hessian_slots(self.static)
         vertices, faces, body_of = [], [], []
         offset = 0
         for b, (V, F) in enumerate(meshes):
-            V = np.asarray(V, dtype=np.float64)
             vertices.append(V)
-            faces.append(np.asarray(F, dtype=np.int64) + offset)
+            faces.append(F + offset)
             body_of.append(np.full(len(V), b, dtype=np.int32))
             offset += len(V)
         self._local = np.concatenate(vertices)
