@@ -97,6 +97,16 @@ def test_infeasible_samples_are_dropped():
     nothing = bundled_gradient(rollout, sigmas=np.array([1e-9]), samples=4, rng=np.random.default_rng(0))
     assert np.all(nothing(np.array([[2.0]]))[1] == 0.0)
 
+    # Found by a probe: a sample whose gradient is not finite was averaged in (the bundle NaN, none counted dropped).
+    def rollout_nan(values, gradient=True):
+        loss, grad, trajectory = quadratic(values, gradient)
+        return loss, (np.full_like(grad, np.nan) if gradient and values[0, 0] > 1.0 else grad), trajectory
+
+    tally = {}
+    _, grad, _ = bundled_gradient(rollout_nan, sigmas=np.array([1.0]), samples=64, rng=np.random.default_rng(0), tally=tally)(x)
+    np.testing.assert_allclose(grad, np.mean(2.0 * kept, axis=0))
+    assert tally == {"bundle_samples": 64, "bundle_samples_dropped": 64 - len(kept)}
+
 
 def test_an_infeasible_iterate_takes_no_place_in_the_sigma_schedule():
     """The descent halves an update whose rollout fails and calls the estimate again: each

@@ -99,6 +99,8 @@ def bundled_gradient(rollout, *, sigmas: np.ndarray, samples: int, rng: np.rando
                 _, grad, _ = rollout(values + sigma * rng.standard_normal(np.shape(values)))
             except (ValueError, SolverError):
                 continue
+            if not np.isfinite(grad).all():  # dropped like a failed sample: averaged in, it made the bundle NaN
+                continue
             total += grad
             feasible += 1
         if tally is not None:
