@@ -1354,8 +1354,9 @@ def test_an_inside_out_piece_is_refused_and_a_cavity_is_not():
 def test_a_body_too_small_or_large_for_its_mass_properties_is_named_as_such():
     """Found by a probe: a 1e-80 m or 1e75 m box with a density was refused as "inertia must
     be a finite, symmetric positive definite 3x3 matrix" though no inertia was given, after
-    numpy's overflow warnings."""
-    for size, mass in ((1e-80, "1e-237"), (1e75, "1e+228")):
+    numpy's overflow warnings (1e-80 m is now below the smallest extent; 1e-70 m is not, and
+    its inertia still underflows)."""
+    for size, mass in ((1e-70, "1e-207"), (1e75, "1e+228")):
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             with pytest.raises(ValueError, match=rf"body 'speck': the inertia of its mesh \({re.escape(f'{size:.3g}')} m across\) at mass {re.escape(mass)} kg is not a finite positive definite float64 matrix .*; give mass and inertia, or rescale the scene"):
