@@ -19,8 +19,8 @@ Choices (docs/architecture.md explains them):
   window.
 - Samples come from one ``numpy.random.Generator`` seeded by ``BundleSettings.seed``, so a
   run is reproducible.
-- A sample whose rollout is infeasible (bodies intersecting at the start, or a failed step)
-  is dropped from the average; with no feasible sample the gradient is zero. The average
+- A sample whose rollout is infeasible (bodies intersecting at the start, or a failed step),
+  or whose gradient is not finite, is dropped from the average; with no feasible sample the gradient is zero. The average
   then leans away from where rollouts fail (a cue placed into the ball it should strike):
   the drawn and dropped samples are counted (``tally``; a task run's ``extra`` and
   metrics.json, ``bundle_samples`` and ``bundle_samples_dropped``).
@@ -84,7 +84,8 @@ def bundled_gradient(rollout, *, sigmas: np.ndarray, samples: int, rng: np.rando
     halves back) takes no place in the schedule: it used to, so each one skipped a sigma. The
     count of bundles drawn so far is the attribute ``calls`` (a checkpoint saves and
     restores it). ``tally``, if given, counts the samples drawn (``bundle_samples``) and
-    those dropped as infeasible (``bundle_samples_dropped``)."""
+    those dropped as infeasible or with a gradient that is not finite
+    (``bundle_samples_dropped``)."""
 
     def estimate(values, gradient=True):
         sigma = float(sigmas[min(estimate.calls, len(sigmas) - 1)])

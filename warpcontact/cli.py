@@ -602,7 +602,7 @@ def _bench_frame(args) -> int:
         progress=show,
     )
     print(f"wrote {Path(args.out) / 'frame.json'}, frame.csv, {_bench_plot_name(args, 'frame.png')}")
-    if all(r["error"] is not None for r in rows):  # it exited 0 with nothing measured
+    if all(r["frames"] == 0 and r["contact_seconds"] is None for r in rows):  # it exited 0 with nothing measured
         print(f"error: no frame was measured: {rows[0]['error'] if rows else 'no scenes'}", file=sys.stderr)
         return 1
     return 0
@@ -640,16 +640,17 @@ def _bench_accuracy(args) -> int:
     return 0
 
 
-def _whole_number(low: int, high: int = MAX_COUNT):
-    """An argparse type: a whole number from ``low`` to ``high``."""
+def _whole_number(low: int, high: int | None = MAX_COUNT):
+    """An argparse type: a whole number from ``low`` to ``high`` (None: no bound)."""
+    wanted = f"a whole number >= {low}" if high is None else f"a whole number from {low} to {high:,}"
 
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"must be a whole number from {low} to {high:,}, got {text!r}") from None
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"must be a whole number from {low} to {high:,}, got {value}")
+            raise argparse.ArgumentTypeError(f"must be {wanted}, got {text!r}") from None
+        if value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"must be {wanted}, got {value}")
         return value
 
     return parse
@@ -657,6 +658,7 @@ def _whole_number(low: int, high: int = MAX_COUNT):
 
 _positive_int = _whole_number(1)
 _non_negative_int = _whole_number(0)
+_seed = _whole_number(0, None)  # numpy takes any whole number >= 0
 # Bounds of what a benchmark or a simulation is asked to hold in memory: --pairs 1e11 failed
 # with numpy's MemoryError traceback (6.55 TiB), --points 1e8 grew past 12 GB, and simulate
 # kept 1e11 frames' poses (a task's horizon has the same bound).
@@ -716,7 +718,7 @@ def _add_task_arguments(parser):
     )
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--quick", action="store_true", help="short horizons and few iterations (minutes on a CPU)")
-    parser.add_argument("--seed", type=_non_negative_int, default=0, help="seed of the gb model's samples and of --init-samples")
+    parser.add_argument("--seed", type=_seed, default=0, help="seed of the gb model's samples and of --init-samples")
     parser.add_argument(
         "--init-samples",
         type=_positive_int,

@@ -277,13 +277,13 @@ def _excluded_pair_keys(exclude_pairs, n: int) -> np.ndarray:
 
 def check_friction_arguments(mu, friction, slip_smoothing) -> None:
     """ValueError naming the argument unless ``mu`` (the contact stiffness) and
-    ``slip_smoothing`` (m/s) are positive scales and ``friction`` is the model's one-value
-    float64 array (``friction_frame``: NaN gave NaN friction, mu = -1 a negative energy,
-    a float a Warp error from inside a kernel launch)."""
-    for label, value, unit in (("mu", mu, ""), ("slip_smoothing", slip_smoothing, "m/s")):
-        problem = scale_problem(value, unit) if is_positive_finite(value) else "must be a positive finite number"
-        if problem is not None:
-            raise ValueError(f"{label}: {problem}, got {value!r}")
+    ``slip_smoothing`` (the step's slip length, friction smoothing x dt, m) are positive and
+    finite and ``friction`` is the model's one-value float64 array (``friction_frame``: NaN
+    gave NaN friction, mu = -1 a negative energy, a float a Warp error from inside a kernel
+    launch). Their ranges are the model settings' (``ImplicitSolver``)."""
+    for label, value in (("mu", mu), ("slip_smoothing", slip_smoothing)):
+        if not is_positive_finite(value):
+            raise ValueError(f"{label}: must be a positive finite number, got {value!r}")
     if not (isinstance(friction, wp.array) and friction.dtype == wp.float64 and friction.shape == (1,)):
         raise ValueError(f"friction: expected a wp.array of one float64 (the model's friction), got {friction!r}")
 

@@ -30,7 +30,8 @@ warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``Body
         warpcontact:pd:kpLinear (double3)         warpcontact:pd:kdLinear (double3)
         warpcontact:pd:kpAngular (double)         warpcontact:pd:kdAngular (double)
         warpcontact:control:dofs (string[]: the optimised DOFs, each once: x y z rx ry rz
-            yaw (= rz), and vx vy vz for initial_state control; a PD target needs PD stiffness)
+            yaw (the rotation about the stage's up axis: rz, or ry on a Y-up stage), and vx vy vz
+            for initial_state control; a PD target needs PD stiffness)
         warpcontact:group (int, e.g. the label of a Sort cube)
 
 Any other warpcontact: attribute, or one on another kind of prim, is an error naming it (a

@@ -95,7 +95,9 @@ def triangle_pair_potential(
             always evaluated in float64 at the final plane.
 
     Zero-area triangles are valid: the potential is defined on convex hulls, so a collapsed
-    triangle acts as the segment or point it is.
+    triangle acts as the segment or point it is. A pair spanning less than
+    ``_validate.MIN_EXTENT`` (1e-75 m) without collapsing to one point is refused (its
+    search's fourth powers of length underflow: disjoint such triangles read as touching).
     """
     a = as_float64_array(A, "A", trailing_shape=(3, 3))
     b = as_float64_array(B, "B", trailing_shape=(3, 3))

@@ -894,7 +894,7 @@ class ImplicitSolver:
         if fall > MAX_COORDINATE:
             # The step's free fall g dt^2 then overflowed the kernels' coordinates: the error
             # named an internal argument of the advancement bound.
-            raise ValueError(f"model.gravity and dt: gravity {model.gravity.tolist()} m/s^2 falls {fall:.3g} m in dt={dt} s, beyond the +-{MAX_COORDINATE:g} m of a body's coordinates; reduce dt or gravity")
+            raise ValueError(f"model.gravity and dt: gravity {np.asarray(model.gravity, dtype=np.float64).tolist()} m/s^2 falls {fall:.3g} m in dt={dt} s, beyond the +-{MAX_COORDINATE:g} m of a body's coordinates; reduce dt or gravity")
         coords_now, joint_target = self._joint_arrays(state_in, state_out, control, q)
         ball_target, ball_start = self._ball_arrays(control, q_now)
         dynamic = self._dynamic

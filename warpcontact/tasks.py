@@ -753,13 +753,14 @@ class TaskProblem:
         if bad.size:  # an initial state's NaN was blamed on the scene's finite velocities
             row, column = (int(i) for i in bad[0])
             raise ValueError(f"values: row {row}, dof {self.dof_names[column]!r} is {float(values[row, column])!r}; decision variables must be finite")
-        values_arr = wp.array(values, dtype=wp.float64, device=device, requires_grad=True)
-        # The solver writes every output state's poses; only the start needs filling.
-        states = [self._state(*start)] + [self.model.state() for _ in range(frames)]
+        start_state = self._state(*start)
         if self.kind == "initial_state" and not np.array_equal(np.asarray(start[0], dtype=np.float64)[self.body], self.base_pose):
             # The control places its body at the scene's pose plus its offsets: another pose
             # given for it was replaced without a word.
             raise ValueError(f"start: an initial_state control places body {self.model.body_names[self.body]!r} itself (the scene's pose plus the control's offsets); start's pose for it must be the scene's, {self.base_pose.tolist()}")
+        values_arr = wp.array(values, dtype=wp.float64, device=device, requires_grad=True)
+        # The solver writes every output state's poses; only the start needs filling.
+        states = [start_state] + [self.model.state() for _ in range(frames)]
         controls = [self.model.control() for _ in range(frames)] if self.kind != "initial_state" else [None] * frames
         loss = wp.zeros(1, dtype=wp.float64, device=device, requires_grad=True)
         tape = wp.Tape()
