@@ -147,10 +147,9 @@ def check_coordinates(arr: np.ndarray, name: str) -> None:
         )
 
 
-def extent_problem(points: np.ndarray) -> str | None:
-    """Why points (n, 3) span too little for float64 geometry, or None: a span below
-    MIN_EXTENT (collapsed to one point is valid)."""
-    extent = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
+def extent_problem(extent: float) -> str | None:
+    """Why points spanning ``extent`` (m, their largest coordinate range) span too little for
+    float64 geometry, or None: a span below MIN_EXTENT (collapsed to one point is valid)."""
     if 0.0 < extent < MIN_EXTENT:
         return f"spans {extent:g} m, below the {MIN_EXTENT:g} m that float64 contact geometry resolves (collapsed to one point is valid)"
     return None

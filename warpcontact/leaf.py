@@ -109,7 +109,7 @@ def triangle_pair_potential(
         extents = np.ptp(np.concatenate([a, b], axis=1), axis=1).max(axis=1)
         small = np.flatnonzero((extents > 0.0) & (extents < MIN_EXTENT))
         if small.size:  # such disjoint triangles read as touching
-            raise ValueError(f"A and B: pair {small[0]} {extent_problem(np.concatenate([a[small[0]], b[small[0]]]))}")
+            raise ValueError(f"A and B: pair {small[0]} {extent_problem(float(extents[small[0]]))}")
     check_count(max_iterations, "max_iterations")
     derivatives = checked_flag(derivatives, "derivatives")
     if dhat is not None:

@@ -1198,8 +1198,10 @@ class ImplicitSolver:
         # not through its material: only its own centre leaving the container passes through.
         # Taken as solid, a ball falling in a closed box was refused at its second step.
         containers = {i: self._container(a[i], b[i], q_from) for i in suspect}
+        # Per pair, (body whose centre is followed, body whose surface it must not cross).
+        movers = {i: ((a[i], b[i]), (b[i], a[i])) if containers[i] is None else (containers[i],) for i in suspect}
         for i in suspect:
-            for mover, other in ((a[i], b[i]), (b[i], a[i])) if containers[i] is None else (containers[i],):
+            for mover, other in movers[i]:
                 where = self._centre_crossing(mover, other, path) if self._crossing_geometry(mover).centre_inside else None
                 if where is not None:
                     return refusal(i, f"{names[mover]!r}'s centre of mass crosses {names[other]!r}'s surface at {where:.0%} of it")
@@ -1213,10 +1215,7 @@ class ImplicitSolver:
         for i in suspect:
             if containers[i] is None and closest_distance[i] < inner[a[i]] + inner[b[i]]:
                 return refusal(i, f"their centres come {closest_distance[i]:.3g} m apart at {clipped[i]:.0%} of it, inside both bodies (the balls about their centres inside them have radii {inner[a[i]]:.3g} and {inner[b[i]]:.3g} m)")
-        followed = np.array(
-            [self._crossing_geometry(containers[i][0]).centre_inside if containers[i] is not None else self._crossing_geometry(a[i]).centre_inside and self._crossing_geometry(b[i]).centre_inside for i in suspect],
-            dtype=bool,
-        )
+        followed = np.array([all(self._crossing_geometry(mover).centre_inside for mover, _ in movers[i]) for i in suspect], dtype=bool)
         suspect = suspect[~followed]
         closest = suspect[(fraction[suspect] > 0.0) & (fraction[suspect] < 1.0)]
         for s in np.unique(np.round(fraction[closest], 3)):

@@ -240,7 +240,7 @@ def validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
         bad = int(np.flatnonzero(~finite_vertex)[0])
         raise ValueError(f"mesh {name!r}: vertex {bad} is not finite: {positions[bad].tolist()}")
     check_coordinates(positions, f"mesh {name!r}: vertices")
-    problem = extent_problem(positions)
+    problem = extent_problem(float(np.ptp(positions, axis=0).max()) if len(positions) else 0.0)
     if problem is not None:
         raise ValueError(f"mesh {name!r}: {problem}")
 
