@@ -45,10 +45,13 @@ from .types import Control, Model, State
 
 __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
 
+_GAIN_ARRAYS = ("body_kp_linear", "body_kd_linear", "body_kp_angular", "body_kd_angular")
 # Model arrays a recorded step's backward pushes adjoints into, and those it does not (a
 # gradient requested of one of those is refused rather than left at zero).
 _DIFFERENTIATED_MODEL_ARRAYS = ("body_mass", "contact_stiffness", "friction")
-_UNDIFFERENTIATED_MODEL_ARRAYS = ("body_unit_second_moment", "body_kp_linear", "body_kd_linear", "body_kp_angular", "body_kd_angular")
+_UNDIFFERENTIATED_MODEL_ARRAYS = ("body_unit_second_moment", *_GAIN_ARRAYS)
+# The model arrays a user may change between steps, read once a step (``_checked_model_parameters``).
+_CHECKED_MODEL_ARRAYS = ("contact_stiffness", "friction", "body_dynamic", "body_mass", "body_unit_second_moment", *_GAIN_ARRAYS)
 # The wp.Tape attribute in which recorded steps note their state and control arrays:
 # (the tape.launches list they were recorded into, {id(array): a control array's values at
 # that step, on the device or the host, or None for a state array}). tape.reset() replaces the launches list, which
@@ -463,8 +466,9 @@ class ImplicitSolver:
         others failed as "no convergence" or blamed dt. ValueError naming the parameter (and
         body or coordinate)."""
         model = self.model
-        mu = float(model.contact_stiffness.numpy()[0])
-        friction = float(model.friction.numpy()[0])
+        read = self._readback.read  # enqueued with the step's poses (``_solve``)
+        mu = float(read("contact_stiffness")[0])
+        friction = float(read("friction")[0])
         for name, value in (("contact_stiffness", mu), ("friction", friction), ("friction_smoothing", model.friction_smoothing)):
             problem = contact_setting_problem(name, value)
             if problem is not None:
@@ -476,7 +480,7 @@ class ImplicitSolver:
         # Which bodies are static is fixed by finalize (the contact model's lists and this
         # solver's coordinates follow it); changed in the array, a resting box made static
         # was flung up 0.5 m in 3 steps.
-        dynamic = model.body_dynamic.numpy()
+        dynamic = read("body_dynamic")
         bad = np.flatnonzero((dynamic != 0) != self._dynamic)
         if bad.size:
             b = int(bad[0])
@@ -484,13 +488,13 @@ class ImplicitSolver:
                 f"model.body_dynamic: body {model.body_names[b]!r} has {int(dynamic[b])} where the model was built "
                 f"{'dynamic (1)' if self._dynamic[b] else 'static (0)'}; which bodies are static is fixed when the model is built: build it again"
             )
-        mass = model.body_mass.numpy()
+        mass = read("body_mass")
         bad = np.flatnonzero(self._dynamic & ~(np.isfinite(mass) & (mass > 0.0)))
         if bad.size:
             raise ValueError(f"model.body_mass: body {model.body_names[bad[0]]!r} has mass {float(mass[bad[0]])!r}; a dynamic body's mass must be positive and finite")
         # Changed after finalize to NaN, zero or negative, it was blamed on dt ("rotation per
         # step too large") for a body at rest, and the tolerance kept the old one's size.
-        moment = model.body_unit_second_moment.numpy()
+        moment = read("body_unit_second_moment")
         with np.errstate(invalid="ignore"):
             symmetric = np.isfinite(moment).all(axis=(1, 2)) & (np.abs(moment - moment.transpose(0, 2, 1)) <= 1e-9 * np.abs(moment).max(axis=(1, 2))[:, None, None]).all(axis=(1, 2))
         positive = np.zeros(len(moment), dtype=bool)
@@ -499,8 +503,8 @@ class ImplicitSolver:
         if bad.size:
             raise ValueError(f"model.body_unit_second_moment: body {model.body_names[bad[0]]!r} has {moment[bad[0]].tolist()}; a dynamic body's must be finite, symmetric and positive definite (m^2)")
         self._unit_second_moment_trace = np.trace(moment, axis1=1, axis2=2)
-        for name in ("body_kp_linear", "body_kd_linear", "body_kp_angular", "body_kd_angular"):
-            gains = getattr(model, name).numpy().reshape(model.num_bodies, -1)
+        for name in _GAIN_ARRAYS:
+            gains = read(name).reshape(model.num_bodies, -1)
             bad = np.flatnonzero(self._dynamic & ~(np.isfinite(gains) & (gains >= 0.0)).all(axis=1))
             if bad.size:  # a negative gain put energy in, silently
                 raise ValueError(f"model.{name}: body {model.body_names[bad[0]]!r} has {gains[bad[0]].tolist()}; PD gains must be finite and >= 0")
@@ -878,9 +882,13 @@ class ImplicitSolver:
             for name in ("body_q", "body_q_prev"):
                 _check_pose_array(getattr(state, name, None), model.num_bodies, f"{label}.{name}", "one per body of this model (use model.state())")
         _check_no_shared_arrays(state_in, state_out)
-        # Copies: on a CPU .numpy() is a view of the state's memory.
-        q_now = state_in.body_q.numpy().copy()
-        q_prev = state_in.body_q_prev.numpy().copy()
+        # One wait for the poses and every model parameter the step checks: each read of its
+        # own was a synchronisation of a GPU.
+        self._readback.enqueue(body_q=state_in.body_q, body_q_prev=state_in.body_q_prev, **{name: getattr(model, name) for name in _CHECKED_MODEL_ARRAYS})
+        self._readback.wait()
+        # Copies: the reads are views of the state's memory (CPU) or of reused host buffers.
+        q_now = self._readback.read("body_q").copy()
+        q_prev = self._readback.read("body_q_prev").copy()
         for label, arr in (("state_in.body_q", q_now), ("state_in.body_q_prev", q_prev)):
             if not np.isfinite(arr).all():
                 raise ValueError(f"{label}: contains non-finite values")
