@@ -310,6 +310,10 @@ def test_bad_joints_get_clear_errors():
         b.add_joint("hinge", child=a, anchor=(0, 0, 0), axis=(0, 0, 1))
     with pytest.raises(ValueError, match="zero length"):
         b.add_joint("revolute", child=a, anchor=(0, 0, 0), axis=(0, 0, 0))
+    # Its norm overflowed: the axis was stored as zero, a hinge that never turned.
+    b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(1e300, 1e300, 0), name="huge")
+    np.testing.assert_allclose(b.finalize().articulation.joints[0].axes[0], [np.sqrt(0.5), np.sqrt(0.5), 0.0], rtol=1e-15)
+    b, a, c = two_boxes()
     with pytest.raises(ValueError, match="orthogonal"):
         b.add_joint("universal", child=a, anchor=(0, 0, 0), axis=[(0, 0, 1), (0, 1, 1)])
     with pytest.raises(ValueError, match="same body"):

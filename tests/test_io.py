@@ -1955,6 +1955,12 @@ def test_d6_values_that_were_ignored_are_refused(tmp_path):
     io.load_scene(path)
     with pytest.raises(ValueError, match="prim /World/hinge: a D6 joint from the world with locked translations and free rotations .* its anchor is 0.5 m from it"):
         io.load_scene(path).build_model()
+    # With free translations too, UsdPhysics' coordinates (and their drives and limits) are
+    # the anchor's, a base's the centre's: drives to 0 held the centre where the anchor belongs.
+    path = tmp_path / "sliding_pivot.usda"
+    stage = _hinge_stage(path, joint="D6", locked=("rotX", "rotZ"))
+    with pytest.raises(ValueError, match=r"prim /World/hinge: a D6 joint from the world with free translations \(the anchor's\) and free rotations .* its anchor is 0.5 m from it"):
+        io.load_scene(path).build_model()
 
 
 def _slider_stage(path, *, limits=(0.5, 1.5), target=1.2):

@@ -1776,6 +1776,17 @@ def test_builder_warns_about_bodies_the_barrier_would_hold_far_above_a_support()
     rail.add_box((0.01, 0.01, 0.01), density=500.0, name="die", pose=(1.0, 0.0, 0.006, 0.0, 0.0, 0.0, 1.0))
     with pytest.warns(UserWarning, match=r"holds these bodies .* 'die'"):
         rail.finalize()
+    # A pendulum's own hinge, or a link of its chain, is no support for it (a lone pendulum
+    # was warned of).
+    pendulum = wc.ModelBuilder(contact_stiffness=1e-6)
+    link = None
+    for k in range(2):
+        child = pendulum.add_box((0.01, 0.01, 0.01), density=500.0, name=f"link{k}", pose=(0.0, 0.0, -0.01 * k - 0.005, 0.0, 0.0, 0.0, 1.0))
+        pendulum.add_joint("revolute", child=child, parent=link, anchor=(0.0, 0.0, -0.01 * k), axis=(0.0, 1.0, 0.0))
+        link = child
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        pendulum.finalize()
 
 
 def test_builder_warns_about_bodies_the_barrier_would_press_too_close_to_a_support():

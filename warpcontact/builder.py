@@ -129,7 +129,14 @@ def _unit_axes(axis, count: int, where: str) -> np.ndarray:
     axes = axes.reshape(-1, 3)
     if axes.shape[0] != count or not np.isfinite(axes).all():
         raise ValueError(f"{where}: expected {count} finite axis vector(s) of 3 values, got {axis!r}")
-    norms = np.linalg.norm(axes, axis=1)
+    with np.errstate(over="ignore"):
+        norms = np.linalg.norm(axes, axis=1)
+    huge = ~np.isfinite(norms)
+    if huge.any():
+        # The norm of an axis given as (1e300, 1e300, 0) overflowed, and the axis was
+        # normalised to zero (a hinge that never turned), silently.
+        axes[huge] /= np.abs(axes[huge]).max(axis=1, keepdims=True)
+        norms[huge] = np.linalg.norm(axes[huge], axis=1)
     if (norms < 1e-12).any():
         raise ValueError(f"{where}: joint axis has zero length")
     axes = axes / norms[:, None]
@@ -815,14 +822,17 @@ class ModelBuilder:
         ``contact_stiffness``): a mu chosen for heavier bodies makes light ones float or be
         thrown up, which no error reports."""
         weight = float(np.linalg.norm(self.gravity))
-        # Without a support there is nothing to rest on (a lone body, a hanging chain): a
-        # support is a static body or a body jointed to the world (a table on a rail).
-        supported = any(body.static for body in self._bodies) or any(joint.parent < 0 for joint in self._joints)
-        if weight == 0.0 or self.contact_mode not in ("bsh", "brute") or not supported:
+        if weight == 0.0 or self.contact_mode not in ("bsh", "brute"):
             return
+        # Without a support there is nothing to rest on (a lone body, a hanging chain): a
+        # support is a static body or a body jointed to the world (a table on a rail), other
+        # than those of the body's own joint tree (a lone pendulum was warned of by its hinge).
+        tree = connected_labels(len(self._bodies), [(joint.parent, joint.child) for joint in self._joints if joint.parent >= 0])
+        anchored_trees = {tree[joint.child] for joint in self._joints if joint.parent < 0}
+        any_static = any(body.static for body in self._bodies)
         floating, pressed = [], []
-        for body, radius in zip(self._bodies, body_radius):
-            if body.static:
+        for b, (body, radius) in enumerate(zip(self._bodies, body_radius)):
+            if body.static or not (any_static or anchored_trees - {tree[b]}):
                 continue
             gap = float(np.sqrt(100.0 * self.contact_stiffness / (body.mass * weight)))
             described = f"{body.name!r} (mass {body.mass:.3g} kg, radius {radius:.3g} m: ~{gap:.2g} m)"

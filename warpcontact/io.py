@@ -265,14 +265,17 @@ class Scene:
                 raise ValueError(f"{self.source or '<scene>'}: prim {b.path}: {exc}") from None
         index = {b.name: i for i, b in enumerate(self.bodies)}
         for j in self.joints:
-            if j.kind == "base" and set(j.dofs) & {"rx", "ry", "rz"} and not {"x", "y", "z"} <= set(j.dofs):
+            if j.kind == "base" and set(j.dofs) & {"rx", "ry", "rz"}:
                 # A base joint turns the body about its centre of mass along world axes through
-                # it; a D6 anchor elsewhere, held by locked translations, would turn it about the
-                # anchor (it silently turned about the centre of mass instead).
+                # it, and its translations are the centre's. A D6 anchor elsewhere would turn it
+                # about the anchor (held by locked translations), and its free translations,
+                # with their drives and limits, would be the anchor's: it silently turned about
+                # the centre of mass, and drives held the centre where they hold the anchor.
                 off = float(np.linalg.norm(j.child_frame[:3] - builder.body_center_of_mass(index[j.child])))
                 if off > 1e-6 * max(1.0, float(np.linalg.norm(j.child_frame[:3]))):
+                    held = "free translations (the anchor's)" if {"x", "y", "z"} <= set(j.dofs) else "locked translations"
                     raise ValueError(
-                        f"{self.source or '<scene>'}: prim {j.path}: a D6 joint from the world with locked translations and free "
+                        f"{self.source or '<scene>'}: prim {j.path}: a D6 joint from the world with {held} and free "
                         f"rotations turns its body about the centre of mass here, but its anchor is {off:.3g} m from it; "
                         "put localPos1 at the body's centre of mass"
                     )
