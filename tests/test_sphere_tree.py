@@ -261,9 +261,18 @@ NAN_VERTICES[2, 1] = np.nan
         # below ~1e-77 m the leaf search's fourth powers did (disjoint triangles touched).
         (GOOD_VERTICES * 1e-160, GOOD_FACES, "m, below the 1e-75 m that float64 contact geometry resolves"),
         (GOOD_VERTICES * 1e-82, GOOD_FACES, "m, below the 1e-75 m that float64 contact geometry resolves"),
+        # The faces' extent: a vertex no face uses, 1 m away, let such a mesh through.
+        (np.vstack([GOOD_VERTICES * 1e-170, [[1.0, 0.0, 0.0]]]), GOOD_FACES, "spans 1e-170 m, below the 1e-75 m"),
     ],
 )
 def test_bad_input_names_mesh_and_problem(vertices, faces, message):
     with pytest.raises(ValueError, match="bad_mesh") as error:
         build_sphere_tree(vertices, faces, name="bad_mesh")
     assert message in str(error.value)
+
+
+def test_unused_vertices_do_not_count_in_the_extent():
+    """A body collapsed to one point is valid; an unused vertex 1e-80 m from it had it refused."""
+    point = np.vstack([np.zeros((3, 3)), [[1e-80, 0.0, 0.0]]])
+    tree = build_sphere_tree(point, np.array([[0, 1, 2]]))
+    assert tree.radii.max() == 0.0

@@ -240,9 +240,6 @@ def validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
         bad = int(np.flatnonzero(~finite_vertex)[0])
         raise ValueError(f"mesh {name!r}: vertex {bad} is not finite: {positions[bad].tolist()}")
     check_coordinates(positions, f"mesh {name!r}: vertices")
-    problem = extent_problem(float(np.ptp(positions, axis=0).max()) if len(positions) else 0.0)
-    if problem is not None:
-        raise ValueError(f"mesh {name!r}: {problem}")
 
     raw_faces = _mesh_array(faces, name, "faces")
     if raw_faces.ndim != 2 or raw_faces.shape[1] != 3:
@@ -261,7 +258,14 @@ def validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
             f"mesh {name!r}: face {bad} has vertex indices {raw_faces[bad].tolist()} "
             f"outside [0, {positions.shape[0]}) (the mesh has {positions.shape[0]} vertices)"
         )
-    return positions, np.ascontiguousarray(raw_faces, dtype=np.int64)
+    faces = np.ascontiguousarray(raw_faces, dtype=np.int64)
+    # The faces' vertices only: an unused vertex 1 m away let a mesh 1e-170 m across through
+    # (its tree's radii underflowed to 0), and one 1e-80 m from a point body refused it.
+    used = positions[np.unique(faces)]
+    problem = extent_problem(float(np.ptp(used, axis=0).max()))
+    if problem is not None:
+        raise ValueError(f"mesh {name!r}: {problem}")
+    return positions, faces
 
 
 def _mesh_array(value, name: str, what: str) -> np.ndarray:
