@@ -118,6 +118,9 @@ _PASS_THROUGH_TRAVEL = 0.5
 # of a small dt's correction, and dropping it every step lost every force (at dt 1e-6 a
 # thrown box felt no gravity, a sliding one no friction, a pendulum never swung).
 _CONVERGED_ACCELERATION = 1e-5
+# No converged step is longer than this fraction of the closest body pair's separation,
+# across which the barrier's force changes by twice as much.
+_CONVERGED_GAP_FRACTION = 1e-2
 # 16 units of float64 roundoff, relative. A Newton step cannot resolve a position more finely
 # than its coordinates' rounding: steps below this times the largest dynamic coordinate count
 # as converged (a lone 1 cm box 50 km up took Newton steps of 0.2 ulp against a tolerance of
@@ -275,6 +278,11 @@ class StepInfo:
     objective: float
     min_separation: float
     friction_pairs: int
+
+
+def _closest_separation(evaluation) -> float:
+    """The smallest lower bound on a body pair's surface distance (m), inf without pairs."""
+    return float(evaluation.pair_separation.min()) if len(evaluation.pair_separation) else np.inf
 
 
 def retract(poses: np.ndarray, step: np.ndarray) -> np.ndarray:
@@ -1016,7 +1024,11 @@ class ImplicitSolver:
                 direction = self._friction_exact_direction(q, grad, hess, direction, friction)
                 full, travel = self._step_travel(direction)
                 step_length = float(travel.max())
-            converged_length = max(min(tol, _CONVERGED_ACCELERATION * dt * dt), _ROUNDING * float(np.abs(q[dynamic, :3]).max(initial=0.0)))
+            # Beside a 1/x barrier Newton's step is about half the gap, however unbalanced the
+            # force: a box started 4e-11 m above another "converged" at its first step of 2e-11
+            # m, pressed by 2e17 N, and stayed there.
+            closest = _closest_separation(contact)
+            converged_length = max(min(tol, _CONVERGED_ACCELERATION * dt * dt, _CONVERGED_GAP_FRACTION * closest), _ROUNDING * float(np.abs(q[dynamic, :3]).max(initial=0.0)))
             # A step the saddle-free floor made short is no convergence (_saddle_free_direction).
             hidden = 0.0 if floored is None else float(self._step_travel(floored, None if art is None else jacobian)[1].max())
             if step_length <= converged_length:
@@ -1087,7 +1099,7 @@ class ImplicitSolver:
             iterations,
             step_length,
             value,
-            float(contact.pair_separation.min()) if len(contact.pair_separation) else np.inf,
+            _closest_separation(contact),
             friction.pairs if friction is not None else 0,
         )
         return self.last_step, lambda: self._backward_function(state_in, state_out, control, step_in, hess, jacobian, contact.grad, q, q_now, q_prev, (q_solved, q_start))
