@@ -2159,6 +2159,37 @@ def test_a_static_collider_keeps_its_double_precision_pose(tmp_path):
         np.testing.assert_allclose(loaded.pose, saved.pose, rtol=0, atol=1e-12)
 
 
+def test_a_collider_keeps_its_double_precision_place_on_its_body(tmp_path):
+    """A rigid body's collider was placed by UsdPhysics' float32 localPos: a cube at x =
+    1000.123456789 on its body at the origin moved 1.7e-5 m and overlapped a ground authored
+    1e-5 m from it (build_model refused the scene)."""
+    x = 1000.123456789
+    path = tmp_path / "offset.usda"
+    path.write_text(f"""#usda 1.0
+(
+    metersPerUnit = 1
+    upAxis = "Z"
+)
+def PhysicsScene "physicsScene" {{}}
+def Xform "body" ( prepend apiSchemas = ["PhysicsRigidBodyAPI"] ) {{
+    def Cube "shape" ( prepend apiSchemas = ["PhysicsCollisionAPI"] ) {{
+        double size = 1
+        double3 xformOp:translate = ({x!r}, 0, 0.5)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+    }}
+}}
+def Cube "ground" ( prepend apiSchemas = ["PhysicsCollisionAPI"] ) {{
+    double size = 1
+    double3 xformOp:translate = ({x + 1 + 1e-5!r}, 0, 0.5)
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+}}
+""")
+    scene = io.load_scene(path)
+    body = scene.body("body")
+    np.testing.assert_allclose(body.vertices[:, 0].min() + body.pose[0], x - 0.5, rtol=0, atol=1e-12)
+    scene.build_model()
+
+
 def test_save_scene_takes_numpy_settings_and_broadcast_joint_values(tmp_path):
     """np.float32 / np.int64 settings raised a raw pxr type-mismatch error, and a universal
     joint's single limit pair or gain (which the builder broadcasts) an IndexError."""

@@ -95,7 +95,7 @@ from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
 from .leaf import LEAF_PRECISIONS
-from .rotation import pose_mul, quat_conjugate, quat_from_matrix, quat_mul, quat_rotate, quat_to_matrix, rotation_vector_from_quat
+from .rotation import pose_inverse, pose_mul, quat_conjugate, quat_from_matrix, quat_mul, quat_rotate, quat_to_matrix, rotation_vector_from_quat
 
 __all__ = [
     "BodySpec",
@@ -769,6 +769,16 @@ def _frame(matrix) -> np.ndarray:
     return np.array([t[0], t[1], t[2], *(q / np.linalg.norm(q))])
 
 
+def _frame_on_body(prim, body_prim, body_frame: np.ndarray, matrix, UsdGeom, Usd) -> np.ndarray:
+    """A collider's frame (``_frame``) in the frame of its rigid body, an ancestor: composed
+    from the transforms between the two, exact where there are none; from the world
+    matrices where the collider resets the transform stack."""
+    relative, reset = UsdGeom.XformCache(Usd.TimeCode.Default()).ComputeRelativeTransform(prim, body_prim)
+    if reset:
+        return pose_mul(pose_inverse(body_frame), _frame(matrix))
+    return _frame(relative)
+
+
 # physics:approximation tokens (MeshCollisionAPI) that stand in for the exact triangles in
 # engines that cannot collide a dynamic triangle mesh; this contact model collides the
 # triangles themselves. convexHull asks for the hull of the mesh's points, which is built;
@@ -1050,9 +1060,10 @@ def load_scene(path) -> Scene:
                 # localPos / localRot place the collider in its rigid body's frame, or in the
                 # world for a collider without a rigid body (a static body of its own). Scale is
                 # already in the shape's dimensions (meshScale, radius, halfExtents).
-                # A collider of its own takes its frame from the world matrix, in double:
-                # localPos / localRot are float32 (a ground at x = 1000.123456789 moved 1.7e-5 m).
-                local_pose = _frame(matrix) if not owner else np.array([*desc.localPos, *_quat_xyzw(desc.localRot)], dtype=np.float64)
+                # Both are read from the transforms, in double: localPos / localRot are float32 (a
+                # ground at x = 1000.123456789 moved 1.7e-5 m, and a collider placed there on its
+                # body at the origin overlapped a ground 1e-5 m from it).
+                local_pose = _frame(matrix) if not owner else _frame_on_body(prim, stage.GetPrimAtPath(owner), owner_frame, matrix, UsdGeom, Usd)
                 local_pose[3:] /= np.linalg.norm(local_pose[3:])
                 local_pose[:3] *= meters
                 vertices = vertices * meters
