@@ -1580,6 +1580,12 @@ def test_unmodelled_damping_and_restitution_are_named_in_a_warning(tmp_path):
     stage.GetRootLayer().Save()
     with pytest.warns(UserWarning, match=r"damped\.usda: not modelled, so ignored: /World/box physxRigidBody:angularDamping 0.05, /World/rubber physics:restitution 0.8$"):
         io.load_scene(path)
+    # Gravity switched off and locked axes were not named: the box fell, free.
+    box.CreateAttribute("physxRigidBody:disableGravity", Sdf.ValueTypeNames.Bool).Set(True)
+    box.CreateAttribute("physxRigidBody:lockedRotAxis", Sdf.ValueTypeNames.Int).Set(7)
+    stage.GetRootLayer().Save()
+    with pytest.warns(UserWarning, match=r"angularDamping 0.05, /World/box physxRigidBody:disableGravity 1, /World/box physxRigidBody:lockedRotAxis 7, /World/rubber"):
+        io.load_scene(path)
 
 
 @pytest.mark.parametrize("axis", ["Z", "Y", "X"])
@@ -2157,6 +2163,60 @@ def test_a_static_collider_keeps_its_double_precision_pose(tmp_path):
     io.save_scene(io.Scene(bodies=[ground, crate]), path)
     for saved, loaded in zip((ground, crate), io.load_scene(path).bodies):
         np.testing.assert_allclose(loaded.pose, saved.pose, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize(("shape", "blocked", "scale"), [("Cube", "size", None), ("Sphere", "radius", None), ("Capsule_1", "radiusTop", "(1, 1, 2)")])
+def test_a_blocked_primitive_dimension_is_named(tmp_path, shape, blocked, scale):
+    """A value block (`double size = None`) reads as None: float(None) was a TypeError traceback."""
+    path = tmp_path / "blocked.usda"
+    scaled = f"double3 xformOp:scale = {scale}\n        uniform token[] xformOpOrder = [\"xformOp:scale\"]" if scale else ""
+    path.write_text(f"""#usda 1.0
+(
+    upAxis = "Z"
+)
+def Xform "body" ( prepend apiSchemas = ["PhysicsRigidBodyAPI"] ) {{
+    def {shape} "shape" ( prepend apiSchemas = ["PhysicsCollisionAPI"] ) {{
+        double {blocked} = None
+        {scaled}
+    }}
+}}
+""")
+    with pytest.raises(ValueError, match=rf"blocked.usda: prim /body/shape: {blocked} is blocked \(authored as None\)"):
+        io.load_scene(path)
+
+
+def test_a_sheared_plane_loads_as_usd_draws_it(tmp_path):
+    """A Plane turned 45 degrees inside a parent scaled (1, 1, 3) loaded at 45 degrees (its
+    frame's nearest rotation); USD draws it at 71.6: a point 5 m along it lay 5 m off."""
+    path = tmp_path / "sheared_plane.usda"
+    path.write_text("""#usda 1.0
+(
+    upAxis = "Z"
+)
+def Xform "parent" {
+    double3 xformOp:scale = (1, 1, 3)
+    uniform token[] xformOpOrder = ["xformOp:scale"]
+    def Plane "ground" ( prepend apiSchemas = ["PhysicsCollisionAPI"] ) {
+        uniform token axis = "Z"
+        float xformOp:rotateY = 45
+        uniform token[] xformOpOrder = ["xformOp:rotateY"]
+    }
+}
+def Xform "body" ( prepend apiSchemas = ["PhysicsRigidBodyAPI"] ) {
+    double3 xformOp:translate = (0, 0, 5)
+    uniform token[] xformOpOrder = ["xformOp:translate"]
+    def Cube "shape" ( prepend apiSchemas = ["PhysicsCollisionAPI"] ) {
+        double size = 1
+    }
+}
+""")
+    ground = io.load_scene(path).body("ground")
+    corners = ground.vertices @ quat_matrix(ground.pose[3:]).T + ground.pose[:3]
+    stage = Usd.Stage.Open(str(path))
+    matrix = np.array(UsdGeom.Xformable(stage.GetPrimAtPath("/parent/ground")).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+    # USD draws the plane through its origin (row 3) along its x and y axes (rows 0 and 1).
+    normal = np.cross(matrix[0, :3], matrix[1, :3])
+    np.testing.assert_allclose((corners - matrix[3, :3]) @ (normal / np.linalg.norm(normal)), 0.0, atol=1e-9 * np.abs(corners).max())
 
 
 def test_a_collider_keeps_its_double_precision_place_on_its_body(tmp_path):

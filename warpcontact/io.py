@@ -520,6 +520,12 @@ def _shape_triangles(kind, prim, UsdGeom, source, desc=None) -> tuple[np.ndarray
     if kind == "MeshShape":
         points, faces = _mesh_triangles(prim, UsdGeom, source)
         return (points if desc is None else points * np.asarray(desc.meshScale, dtype=np.float64)), faces
+    for name in _READ_GEOMETRY:
+        attr = prim.GetAttribute(name)
+        if attr and attr.Get() is None:
+            # A schema attribute reads None only when a value block hides its value and fallback
+            # (`double size = None`): float(None) was a TypeError traceback.
+            raise ValueError(f"{where}: {name} is blocked (authored as None), which leaves the shape without that dimension; author a value")
     _check_dimensions(kind, prim, where)
     size = _primitive_size(kind, prim, UsdGeom, desc)
     if size is None:
@@ -826,6 +832,24 @@ def _plane_body(path: str, frame: np.ndarray, axis: str, meters: float, others: 
     return BodySpec(name=path.rsplit("/", 1)[-1], path=path, vertices=corners, faces=faces, pose=pose, static=True)
 
 
+def _plane_frame(matrix, axis: str) -> np.ndarray:
+    """A Plane's frame (``_frame``), turned where a shear tilts the plane away from it so that
+    its ``axis`` is the plane's normal as USD draws it, L^-1 axis (a Plane turned 45 degrees
+    inside a parent scaled (1, 1, 3) loaded at 45 degrees, USD draws it at 71.6)."""
+    frame = _frame(matrix)
+    linear = _linear_part(matrix)
+    if _scaled_along_own_axes(linear):
+        return frame
+    normal = np.linalg.solve(linear, _AXES[axis])
+    normal /= np.linalg.norm(normal)
+    drawn = quat_rotate(frame[3:], _AXES[axis])
+    if drawn @ normal < 0.0:  # the plane is two-sided: the nearer of its two normals
+        normal = -normal
+    half_turn = np.array([*np.cross(drawn, normal), 1.0 + drawn @ normal])
+    frame[3:] = quat_mul(half_turn / np.linalg.norm(half_turn), frame[3:])
+    return frame
+
+
 def _in_frame(points: np.ndarray, matrix, frame: np.ndarray) -> np.ndarray:
     """Points of a prim's own frame, moved by its world ``matrix`` (scale and shear
     included), in the frame ``frame`` = (position, xyzw quaternion) of the same stage."""
@@ -1031,7 +1055,7 @@ def load_scene(path) -> Scene:
                 if owner:
                     raise ValueError(f"{source}: prim {prim_path}: a Plane collider is infinite; it cannot belong to rigid body {owner}")
                 # Its size depends on every other body: built after them.
-                planes.append((str(prim_path), _frame(_world_matrix(prim, UsdGeom, Usd, source)), _axis_token(desc.axis)))
+                planes.append((str(prim_path), _plane_frame(_world_matrix(prim, UsdGeom, Usd, source), _axis_token(desc.axis)), _axis_token(desc.axis)))
                 continue
             approximation = _approximation(kind, desc, prim, source)
             matrix = _world_matrix(prim, UsdGeom, Usd, source)
@@ -1588,7 +1612,13 @@ def _read_collider_mass(body_prim, collider_prims, body: BodySpec, UsdPhysics, u
 
 # PhysX schema attributes (Isaac assets author them) that change a body's motion and that
 # this simulator does not model; the rest of that schema tunes PhysX's own solver.
-_PHYSX_DAMPING = ("physxRigidBody:linearDamping", "physxRigidBody:angularDamping")
+_PHYSX_MOTION = (
+    "physxRigidBody:linearDamping",
+    "physxRigidBody:angularDamping",
+    "physxRigidBody:disableGravity",
+    "physxRigidBody:lockedPosAxis",
+    "physxRigidBody:lockedRotAxis",
+)
 
 
 def _all_prims(stage, Usd):
@@ -1620,12 +1650,12 @@ def _refuse_mistyped_schema_attributes(stage, Usd, source: str) -> None:
 
 def _warn_unmodelled(stage, collider_materials: dict, UsdPhysics, Usd, source: str) -> None:
     """Warn, naming the prims, about authored physics this simulator does not model: non-zero
-    PhysX body damping, and restitution of the colliders' physics materials (not a parameter
+    PhysX body damping, gravity switched off and locked axes, and restitution of the colliders' physics materials (not a parameter
     here: the implicit step dissipates part of the normal impact velocity, more at larger
     time steps; docs/architecture.md, "Impacts bounce a little")."""
     found = []
     for prim in _all_prims(stage, Usd):
-        for name in _PHYSX_DAMPING:
+        for name in _PHYSX_MOTION:
             attr = prim.GetAttribute(name)
             if attr and attr.HasAuthoredValue() and attr.Get():
                 found.append(f"{prim.GetPath()} {name} {attr.Get():g}")
