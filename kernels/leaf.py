@@ -53,6 +53,7 @@ __all__ = [
     "LEAF_CONTACT",
     "LEAF_NOT_CONVERGED",
     "LEAF_NONFINITE",
+    "MAX_LEAF_SEPARATION",
     "LeafSolution",
     "leaf_barrier",
     "leaf_solve",
@@ -99,7 +100,7 @@ _MAX_BACKTRACKS = wp.constant(60)
 # read as contact. Such pairs are reported not converged. A body-level potential never
 # solves them (they are far terms there unless eps is huge); ten times the size of the
 # observable universe is no limit on a scene.
-_MAX_LEAF_SEPARATION = wp.constant(wp.float64(1.0e27))
+MAX_LEAF_SEPARATION = wp.constant(wp.float64(1.0e27))
 
 
 @wp.struct
@@ -605,7 +606,7 @@ def leaf_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, max_iterations: int, fl
     sol, e = _leaf_start(ta_world, tb_world, wp.float64(0.0))
     if sol.status != LEAF_OK:
         return sol
-    if _separation_lower_bound(ta_world, tb_world) > _MAX_LEAF_SEPARATION:
+    if _separation_lower_bound(ta_world, tb_world) > MAX_LEAF_SEPARATION:
         sol.status = LEAF_NOT_CONVERGED
         return sol
     start = _scaled_bisector(sol, e)

@@ -66,6 +66,51 @@ def test_bench_contact_writes_results_and_plot(tmp_path, capsys):
             assert 0 < r["force_cosine_min"] <= 1.0 + 1e-12
     assert (tmp_path / "contact.png").stat().st_size > 1000
     assert _csv_rows(tmp_path / "contact.csv") == len(rows)
+    # Beyond 1e27 m brute force's leaf planes do not solve: rows were written from a reference
+    # of value inf and zero forces, exit 0. A refused run also deleted the earlier plot alone.
+    before = {name: (tmp_path / name).read_bytes() for name in ("contact.json", "contact.csv", "contact.png")}
+    assert main([*args[:5], "1e-2", "1e28", *args[6:], "--overwrite"]) == 2
+    assert "error: gaps: 1e+28 m is beyond the 1e+27 m up to which leaf planes are solved" in capsys.readouterr().err
+    assert {name: (tmp_path / name).read_bytes() for name in before} == before
+
+
+def test_bench_csv_cells_are_empty_where_the_json_has_null(tmp_path):
+    """The CSV wrote nan and inf where the JSON wrote null."""
+    from warpcontact import bench
+
+    bench._write_csv(tmp_path / "rows.csv", [{"a": 1.5, "b": float("nan"), "c": np.float64("inf"), "d": (1.0, float("nan"))}])
+    with (tmp_path / "rows.csv").open() as f:
+        assert list(csv.DictReader(f)) == [{"a": "1.5", "b": "", "c": "", "d": "[1.0, null]"}]
+
+
+def test_bench_leaf_names_pairs_it_cannot_allocate(tmp_path, monkeypatch):
+    """--pairs 10000000, its largest, needs 29 GB: a RuntimeError traceback on smaller machines."""
+    from warpcontact import bench
+
+    def no_memory(*args, **kwargs):
+        raise RuntimeError("Failed to allocate 25920000000 bytes on device 'cpu'")
+
+    monkeypatch.setattr(bench.wp, "empty", no_memory)
+    with pytest.raises(ValueError, match=r"pairs: 10 pairs need 2.93e-05 GB of buffers on cpu \(2928 bytes a pair\), more than it could allocate"):
+        bench.run_leaf_benchmark(num_pairs=10, repeats=1, device="cpu", out_dir=tmp_path)
+
+
+def test_bench_strike_gaps_are_refused_where_positions_cannot_hold_them(capsys):
+    """--gap 1e-30 placed the striker 1.1e-16 m into the struck ball while frame.json recorded
+    1e-30; 1e200 was blamed on the striker's pose."""
+    for gap, message in ((1e-30, r"gap: 1e-30 m rounds to \S+ m beside"), (1e200, r"gap: 1e\+200 m puts the striker beyond")):
+        with pytest.raises(ValueError, match=message):
+            accuracy_scene(points_per_ball=8, gap=gap)
+    assert main(["bench", "frame", "--scenes", "peer_billiards_abc", "--frames", "1", "--out", "unused"]) == 2
+    assert "peer_billiards_abc: peer billiards come in" in capsys.readouterr().err
+
+
+def test_a_broken_peer_ball_file_is_named(tmp_path):
+    from warpcontact import bench
+
+    (tmp_path / "broken.obj").write_text("# no vertices\n")
+    with pytest.raises(ValueError, match=r"broken.obj: not a ball mesh \(0 vertices read\)"):
+        bench._peer_ball(tmp_path / "broken.obj")
 
 
 @pytest.mark.parametrize("subdivisions", [0, 1])
@@ -238,6 +283,11 @@ def test_an_overwriting_bench_interrupted_before_its_first_row_leaves_no_earlier
     monkeypatch.setattr(bench, "_median_seconds", interrupted)
     assert main([*args, "--overwrite"]) == 130
     assert not any((tmp_path / name).exists() for name in ("scaling.json", "scaling.csv", "scaling.png"))
+    # It said the finished rows were kept, and left the folder it had made.
+    assert "interrupted; no row was finished (the earlier run's scaling.json, scaling.csv" in capsys.readouterr().err
+    fresh = tmp_path / "fresh"
+    assert main([*args[:-1], str(fresh)]) == 130
+    assert "interrupted; no row was finished" in capsys.readouterr().err and not fresh.exists()
 
 
 def test_an_overwriting_bench_with_a_bad_argument_keeps_the_earlier_results(tmp_path, capsys):
@@ -330,6 +380,7 @@ def test_bench_accuracy_errors_are_named_and_failed_rows_shown(tmp_path, capsys,
     assert re.search(r"tolerance\s+bsh\s+0.5\s+1e-06 .* implicit step: no convergence", out)
     rows = json.loads((tmp_path / "accuracy.json").read_text())["rows"]
     assert [r["sweep"] for r in rows] == ["reference", "eps", "eps", "tolerance", "precision"] and rows[3]["error"]
+    assert re.search(r"precision\s+bsh\s+0.5\s+\S+\s+float64", out)  # the table had no precision column
 
 
 def test_bench_accuracy_writes_results_and_plot(tmp_path):

@@ -16,7 +16,7 @@ from .contact import ContactModel
 from .hull import convex_hull_mesh
 from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
-from ._validate import check_coordinates, gap_problem
+from ._validate import MAX_COORDINATE, check_coordinates, gap_problem
 from .leaf import DEFAULT_MAX_ITERATIONS, LEAF_PRECISIONS, float32_search
 from .rotation import quat_rotate
 
@@ -87,9 +87,13 @@ def _plot_at_end(path: Path, plot, rows: list[dict]) -> None:
     """Draw a bench's plot once its rows are final, also when the run is interrupted (the
     JSON and CSV are rewritten after every row, so an interrupted run keeps its rows). A plot
     that cannot be drawn (no drawable rows, no matplotlib) removes an earlier run's, which a
-    rerun with --overwrite used to leave beside the new results."""
+    rerun with --overwrite used to leave beside the new results. A run that wrote no row
+    leaves an earlier run's plot beside its JSON and CSV, which it did not replace either (a
+    refused --overwrite run deleted the plot alone)."""
+    if not rows:
+        return
     try:
-        drawn = bool(rows) and plot(rows, path)
+        drawn = plot(rows, path)
     except Exception as exc:  # noqa: BLE001 - in a finally: it must not replace the run's own exception (Ctrl-C)
         warnings.warn(f"{path.name} not drawn: {type(exc).__name__}: {exc}", stacklevel=2)
         drawn = False
@@ -106,7 +110,9 @@ def _write_csv(path: Path, rows: list[dict]):
             writer = csv.DictWriter(f, fieldnames=columns, restval="")
             writer.writeheader()
             for row in rows:
-                writer.writerow({k: ("" if v is None else json.dumps(json_ready(v), allow_nan=False) if isinstance(v, (list, tuple, dict)) else v) for k, v in row.items()})
+                # Non-finite numbers are empty cells, as they are null in the JSON (the CSV had nan and inf).
+                cells = {k: json_ready(v) for k, v in row.items()}
+                writer.writerow({k: ("" if v is None else json.dumps(v, allow_nan=False) if isinstance(v, (list, dict)) else v) for k, v in cells.items()})
 
     replace_file(path, write)
 
@@ -128,6 +134,11 @@ def _relative_errors(approx: np.ndarray, reference: np.ndarray) -> tuple[float, 
     return (float(np.median(err)), float(err.max())) if err.size else (0.0, 0.0)
 
 
+# A leaf benchmark pair's buffers: two triangles (mat33d), value, plane, status, iterations,
+# gradient (6 vec3d) and Hessian (6 x 6 mat33d).
+_LEAF_BYTES_PER_PAIR = 2 * 72 + 8 + 32 + 4 + 4 + 6 * 24 + 36 * 72
+
+
 def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, seed: int = 0, precisions=("float64",)) -> dict:
     """Time batched leaf solves (value only, and value + gradient + Hessian) for each plane
     search precision; rows after the first also give their errors against the first
@@ -136,14 +147,18 @@ def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, s
     flags = [float32_search(p) for p in precisions]
     A, B = leaf_benchmark_pairs(num_pairs, seed=seed)
     with wp.ScopedDevice(dev):
-        tri_a = wp.array(A, dtype=wp.mat33d)
-        tri_b = wp.array(B, dtype=wp.mat33d)
-        value = wp.empty(num_pairs, dtype=wp.float64)
-        plane = wp.empty(num_pairs, dtype=wp.vec4d)
-        status = wp.empty(num_pairs, dtype=wp.int32)
-        iterations = wp.empty(num_pairs, dtype=wp.int32)
-        grad = wp.empty((num_pairs, 6), dtype=wp.vec3d)
-        hess = wp.empty((num_pairs, 6, 6), dtype=wp.mat33d)
+        try:
+            tri_a = wp.array(A, dtype=wp.mat33d)
+            tri_b = wp.array(B, dtype=wp.mat33d)
+            value = wp.empty(num_pairs, dtype=wp.float64)
+            plane = wp.empty(num_pairs, dtype=wp.vec4d)
+            status = wp.empty(num_pairs, dtype=wp.int32)
+            iterations = wp.empty(num_pairs, dtype=wp.int32)
+            grad = wp.empty((num_pairs, 6), dtype=wp.vec3d)
+            hess = wp.empty((num_pairs, 6, 6), dtype=wp.mat33d)
+        except (RuntimeError, MemoryError):
+            # The largest --pairs (10 million) needs 29 GB: a traceback on a machine with less.
+            raise ValueError(f"pairs: {num_pairs} pairs need {num_pairs * _LEAF_BYTES_PER_PAIR / 1e9:.3g} GB of buffers on {dev} ({_LEAF_BYTES_PER_PAIR} bytes a pair), more than it could allocate; ask for fewer") from None
 
         def launch(search32: bool, derivatives: bool):
             wp.launch(
@@ -224,6 +239,10 @@ def contact_benchmark_scenes(*, subdivisions: int, gaps) -> list[dict]:
     scenes = []
     for gap in gaps:
         problem = gap_problem(gap, 2.0 * reach)
+        if problem is None and gap > float(leaf_kernels.MAX_LEAF_SEPARATION):
+            # Brute force's leaf planes do not solve there: rows were written from a reference
+            # of value inf and zero forces, and the run exited 0.
+            problem = f"{gap:g} m is beyond the {float(leaf_kernels.MAX_LEAF_SEPARATION):g} m up to which leaf planes are solved (brute force, the reference)"
         if problem is not None:
             raise ValueError(f"gaps: {problem}")
         two = _identity_poses([[0.0, 0.0, 0.0], [2.0 * reach + gap, 0.0, 0.0]])
@@ -293,6 +312,9 @@ def run_contact_benchmark(
             for mode, eps, weight in [("brute", None, None)] + [("bsh", e, w) for w in centred_weights for e in eps_values]:
                 model = ContactModel(scene["meshes"], mode=mode, eps=eps or 1.0, centred_weight=weight or "paper", device=dev)
                 result = model.evaluate(scene["poses"])  # warm-up: compile and size buffers
+                if result.unsolved_pairs or result.contact_pairs or not np.isfinite(result.value):
+                    # Rows were written from an unsolved reference (value inf, forces 0) and the run exited 0.
+                    raise ValueError(f"gaps: at {scene['gap']:g} m, {mode}'s evaluation of {scene['scene']} is not finite (unsolved pairs: {result.unsolved_pairs[:3]})")
                 seconds = _median_seconds(lambda: model.evaluate(scene["poses"]), repeats)
                 if reference is None:
                     reference = result
@@ -463,6 +485,8 @@ def _peer_ball(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
     mesh = trimesh.load(path, process=False, force="mesh")
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    if len(vertices) < 4:  # an empty or broken file: the hull's error named neither it nor the scene
+        raise ValueError(f"{path}: not a ball mesh ({len(vertices)} vertices read)")
     hull_vertices, hull_faces = convex_hull_mesh(vertices - vertices.mean(axis=0))
     if len(hull_faces) != len(mesh.faces):
         raise ValueError(f"{path}: not a ball in convex position ({len(mesh.faces)} faces, hull {len(hull_faces)})")
@@ -497,7 +521,8 @@ def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path =
     if path.suffix.lower() in io.USD_READ_SUFFIXES:
         return io.load_scene(path)
     if spec.startswith("peer_billiards_"):
-        triangles = int(spec.rsplit("_", 1)[1])
+        count = spec.rsplit("_", 1)[1]
+        triangles = int(count) if count.isdigit() else None  # int("abc") was the whole message
         if triangles not in PEER_BALLS:
             raise ValueError(f"{spec}: peer billiards come in {sorted(PEER_BALLS)} triangles")
         file = Path(peer_meshes) / PEER_BALLS[triangles]
@@ -555,6 +580,13 @@ def strike_setup(scene, *, gap: float, speed: float) -> dict:
     struck = min(others, key=lambda b: np.linalg.norm(_horizontal(b.pose[:3] - striker.pose[:3], up)))
     offset = _horizontal(struck.pose[:3] - striker.pose[:3], up)
     reach = _horizontal_radius(striker, up) + _horizontal_radius(struck, up)
+    # Before the gap is placed: at 1e-30 m the two stood 1.1e-16 m into each other while the
+    # results recorded the gap asked for; at 1e200 m the error named the striker's pose.
+    problem = gap_problem(gap, float(np.abs(struck.pose[:3]).max()) + reach)
+    if problem is None and not reach + gap <= MAX_COORDINATE:
+        problem = f"{gap:g} m puts the striker beyond the +-{MAX_COORDINATE:g} m of a body's coordinates"
+    if problem is not None:
+        raise ValueError(f"gap: {problem}")
     if np.linalg.norm(offset) <= 1e-9 * reach:
         raise ValueError(f"{scene.source or '<scene>'}: the striker {striker_name!r} stands straight above or below {struck.name!r}: there is no horizontal direction to strike it along")
     direction = offset / np.linalg.norm(offset)

@@ -611,11 +611,11 @@ def _bench_frame(args) -> int:
 def _bench_accuracy(args) -> int:
     from .bench import run_accuracy_benchmark
 
-    print(f"{'sweep':>9} {'model':>5} {'eps':>5} {'tol':>7} {'forward s':>9} {'Newton it':>9} {'backward s':>10} {'traj dev m':>10} {'F err max':>9} {'F cos min':>9} {'grad cos':>12}  note")
+    print(f"{'sweep':>9} {'model':>5} {'eps':>5} {'tol':>7} {'leaf':>7} {'forward s':>9} {'Newton it':>9} {'backward s':>10} {'traj dev m':>10} {'F err max':>9} {'F cos min':>9} {'grad cos':>12}  note")
 
     def show(r):
         print(
-            f"{r['sweep']:>9} {r['model']:>5} {_fmt(r['eps'], '5g')} {r['tolerance']:7.0e} {_fmt(r.get('forward_seconds'), '9.4f')} {_fmt(r.get('newton_iterations'), '9.1f')} "
+            f"{r['sweep']:>9} {r['model']:>5} {_fmt(r['eps'], '5g')} {r['tolerance']:7.0e} {r['leaf_precision']:>7} {_fmt(r.get('forward_seconds'), '9.4f')} {_fmt(r.get('newton_iterations'), '9.1f')} "
             f"{_fmt(r.get('backward_seconds'), '10.5f')} {_fmt(r.get('trajectory_deviation_max'), '10.2e')} {_fmt(r.get('force_error_max'), '9.2e')} "
             f"{_fmt(r.get('force_cosine_min'), '9.5f')} {_fmt(r.get('gradient_cosine'), '12.9f')}  {r.get('error') or ''}",
             flush=True,
@@ -923,7 +923,13 @@ def main(argv=None) -> int:
             stale = [path for path, signature in earlier.items() if _signature(path) == signature]
             for path in stale:
                 path.unlink()
-            kept = f"; the rows finished before it are in {args.out}" + (f" (the earlier run's {', '.join(p.name for p in stale)} removed)" if stale else "")
+            removed = f" (the earlier run's {', '.join(p.name for p in stale)} removed)" if stale else ""
+            if any((Path(args.out) / name).exists() for name in args.outputs):
+                kept = f"; the rows finished before it are in {args.out}{removed}"
+            else:
+                # It said the rows were kept when there were none, and left the folder it made.
+                _remove_empty(created)
+                kept = f"; no row was finished{removed}"
         print(f"\ninterrupted{kept}", file=sys.stderr)
         return 130
     except FileExistsError as exc:
