@@ -450,7 +450,7 @@ def test_gaps_that_float64_positions_cannot_hold_are_refused_before_any_row(tmp_
     """Found by a probe: bench contact at --gaps 1e-17 placed the balls touching and wrote
     rows labelled 1e-17 (value ratio NaN, force errors as if all were well), and 1e300 failed
     only after the other gaps' rows were written; demo called 1e-300 unsolved pairs."""
-    for gaps, message in ((["0.01", "1e-17"], "error: gaps: 1e-17 m rounds to 0 m beside 1 m of body, below what float64 positions resolve"), (["0.01", "1e300"], "error: gaps: the rack's centres at 1e+300 m: ")):
+    for gaps, message in ((["0.01", "1e-17"], "error: gaps: 1e-17 m rounds to 0 m beside 1 m of body, below what float64 positions resolve"), (["0.01", "1e300"], "error: gaps: 1e+300 m is beyond the 1e+27 m up to which leaf planes are solved")):
         assert main(["bench", "contact", "--gaps", *gaps, "--eps", "0.5", "--repeats", "1", "--ipc-dhat", "0", "--out", str(tmp_path / "c")]) == 2
         assert message in capsys.readouterr().err
         assert not (tmp_path / "c" / "contact.json").exists()
