@@ -290,6 +290,29 @@ def test_an_overwriting_bench_interrupted_before_its_first_row_leaves_no_earlier
     assert "interrupted; no row was finished" in capsys.readouterr().err and not fresh.exists()
 
 
+def test_a_folder_another_running_command_writes_to_is_refused(tmp_path, capsys):
+    """Two runs into one folder both passed their start checks, and the later one's results
+    replaced the other's without --overwrite. A lock whose process ended (killed) is taken
+    over, with what that process left half written."""
+    import os
+    import subprocess
+
+    from warpcontact._files import LOCK_NAME
+
+    args = ["bench", "scaling", "--points", "8", "--repeats", "1", "--out", str(tmp_path)]
+    (tmp_path / LOCK_NAME).write_text(f"{os.getppid()}\n")  # a running process
+    assert main(args) == 2
+    assert f"another warpcontact command (process {os.getppid()}) is writing there" in capsys.readouterr().err
+    assert (tmp_path / LOCK_NAME).exists() and not (tmp_path / "scaling.json").exists()
+    ended = subprocess.Popen(["true"])
+    ended.wait()
+    (tmp_path / LOCK_NAME).write_text(f"{ended.pid}\n")
+    (tmp_path / ".results-abc").mkdir()
+    (tmp_path / ".tmp-abc.json").write_text("{")
+    assert main(args) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scaling.csv", "scaling.json", "scaling.png"]
+
+
 def test_an_overwriting_bench_with_a_bad_argument_keeps_the_earlier_results(tmp_path, capsys):
     """--overwrite removed the earlier run's outputs before the arguments were checked: a
     mistyped device or scene name lost them."""

@@ -160,6 +160,25 @@ def test_an_authored_centre_of_mass_and_inertia_count_with_a_mass_from_density(t
         io.model_to_scene_poses(scene, model, np.zeros((1, 3, 7)))  # an IndexError before
 
 
+def test_a_usd_write_that_fails_is_an_os_error_naming_the_file(tmp_path):
+    """A full disk or a file size limit was a traceback of an empty pxr error (a run's
+    handler for a failed write, with its --resume hint, never saw it)."""
+    import resource
+
+    scene = io.load_scene(write_physics_scene(tmp_path / "a.usda"))
+    poses = np.repeat(np.array([b.pose for b in scene.bodies])[None], 50, axis=0)
+    out = tmp_path / "out"
+    out.mkdir()
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (2048, hard))  # Python ignores SIGXFSZ: writes fail with EFBIG
+    try:
+        with pytest.raises(OSError, match=r"out/traj.usda: USD could not write the file \(.*File too large; [\d,]+ bytes free on its disk\)"):
+            io.export_trajectory(scene, poses, out / "traj.usda")
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    assert not list(out.iterdir())  # no partial file, no temporary
+
+
 def test_trajectory_export_authors_its_first_frame_as_the_default_and_keeps_the_up_axis(tmp_path):
     # Only time samples were written: read without a time, every moving body sat at the
     # origin; and a Y-up scene's trajectory was labelled Z-up (lying on its side in usdview).

@@ -9,7 +9,53 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["json_ready", "replace_file", "replace_files", "replace_json", "replace_text"]
+__all__ = ["LOCK_NAME", "hold_folder", "json_ready", "replace_file", "replace_files", "replace_json", "replace_text"]
+
+# The file a command holds in its output folder while it writes there (``hold_folder``).
+LOCK_NAME = ".warpcontact-lock"
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def hold_folder(folder):
+    """Claim ``folder`` for one command: create its LOCK_NAME exclusively, holding this
+    process's id; returns the function that releases it. ValueError naming the other process
+    while a running one holds it: two runs into one folder passed their checks for earlier
+    results at their starts, and the later one's results replaced the other's without a word.
+    A lock whose process has ended (killed) is taken over, and what that process was writing
+    (hidden ``.results-*`` folders and ``.tmp-*`` files, ``replace_files``, ``replace_file``)
+    is removed."""
+    folder = Path(folder)
+    lock = folder / LOCK_NAME
+    while True:
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            break
+        except FileExistsError:
+            try:
+                holder = int(lock.read_text().split()[0])
+            except (OSError, ValueError, IndexError):  # being written, or unreadable
+                holder = None
+            if holder is None or (holder != os.getpid() and _running(holder)):
+                who = f"process {holder}" if holder is not None else f"a process (see {lock})"
+                raise ValueError(f"{folder}: another warpcontact command ({who}) is writing there; wait for it to finish or choose another --out") from None
+            lock.unlink(missing_ok=True)
+    with os.fdopen(fd, "w") as f:
+        f.write(f"{os.getpid()}\n")
+    for leftover in [*folder.glob(".results-*"), *folder.glob(".tmp-*")]:
+        if leftover.is_dir():
+            shutil.rmtree(leftover, ignore_errors=True)
+        else:
+            leftover.unlink(missing_ok=True)
+    return lambda: lock.unlink(missing_ok=True)
 
 
 def replace_file(path, write) -> None:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._files import replace_file, replace_files, replace_json
+from ._files import hold_folder, replace_file, replace_files, replace_json
 from ._validate import MAX_COUNT, MAX_FRAMES, gap_problem
 from .contact import CENTRED_WEIGHTS
 from .leaf import LEAF_PRECISIONS
@@ -900,19 +900,26 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     earlier = {}
     created = _missing_folders(Path(args.out)) if getattr(args, "out", None) is not None else []
+    release = None
     try:
-        if getattr(args, "out", None) is not None:
-            # Every command that writes checks its folder and earlier results before any work,
-            # a resumed run too (the same command with --resume: it skipped the check, and
-            # replaced a trajectory that a simulate had written there since); a resume with
-            # no checkpoint is told that by the command instead.
-            out = _output_folder(args.out)
-            _refuse_unwritable_names(out, args.outputs)
-            _refuse_input_among_outputs(args, out)
-            if not getattr(args, "resume", False) or (out / CHECKPOINT_NAME).exists():
-                _refuse_earlier_results(out, args.outputs, args.overwrite)
-        earlier = _earlier_files(args)
-        return args.func(args)
+        try:
+            if getattr(args, "out", None) is not None:
+                # Every command that writes checks its folder and earlier results before any
+                # work, a resumed run too (the same command with --resume: it skipped the
+                # check, and replaced a trajectory that a simulate had written there since); a
+                # resume with no checkpoint is told that by the command instead. The folder is
+                # held until the command ends, so that no other command writes there meanwhile.
+                out = _output_folder(args.out)
+                release = hold_folder(out)
+                _refuse_unwritable_names(out, args.outputs)
+                _refuse_input_among_outputs(args, out)
+                if not getattr(args, "resume", False) or (out / CHECKPOINT_NAME).exists():
+                    _refuse_earlier_results(out, args.outputs, args.overwrite)
+            earlier = _earlier_files(args)
+            return args.func(args)
+        finally:
+            if release is not None:
+                release()
     except KeyboardInterrupt:
         # run, compare and simulate keep their own partial results; the benches save a row at a time.
         kept = ""

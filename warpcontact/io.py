@@ -81,6 +81,7 @@ from __future__ import annotations
 
 import inspect
 import os
+import shutil
 import warnings
 from collections import Counter
 from dataclasses import dataclass, field, replace
@@ -2062,7 +2063,17 @@ def _atomic_save(stage_writer, path, overwrite: bool):
         raise ValueError(f"{path.parent}: output folder does not exist")
     if not os.access(path.parent, os.W_OK):
         raise ValueError(f"{path.parent}: output folder is not writable")
-    replace_file(path, stage_writer)
+
+    def write(temporary: Path):
+        try:
+            stage_writer(temporary)
+        except RuntimeError as exc:  # pxr's Tf.ErrorException
+            # A full disk or a file size limit was a traceback of an empty pxr error, and the
+            # CLI's handlers for a failed write (a run's --resume hint) never saw it.
+            reason = _usd_error_text(exc) or "no reason given"
+            raise OSError(f"{path}: USD could not write the file ({reason}; {shutil.disk_usage(path.parent).free:,} bytes free on its disk)") from None
+
+    replace_file(path, write)
 
 
 def _usd_scalar(value, kind, Sdf, name: str):
