@@ -1434,3 +1434,16 @@ def test_task_rollouts_start_with_the_scene_s_authored_velocities():
     next(b for b in ant.bodies if not b.static).linear_velocity = np.array([0.1, 0.0, 0.0])
     with pytest.raises(ValueError, match="task rollouts of articulated scenes start at rest"):
         TaskProblem(ant)
+
+
+def test_a_checkpoint_that_cannot_be_saved_is_named(tmp_path, monkeypatch):
+    """A full disk printed "[Errno 28] No space left on device", naming neither the file nor
+    what was kept."""
+    from warpcontact import tasks
+
+    def full_disk(path, write):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(tasks, "replace_file", full_disk)
+    with pytest.raises(OSError, match=r"checkpoint.npz: saving the checkpoint failed \(No space left on device\); no earlier one was written"):
+        tasks.TaskCheckpoint(tmp_path / "checkpoint.npz").save({}, {})

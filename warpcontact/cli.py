@@ -946,7 +946,8 @@ def main(argv=None) -> int:
         # A folder that passed the writability check can still refuse the write (sysfs, a
         # full disk, a read-only mount): a traceback before.
         _remove_empty(created)
-        print(f"error: {exc}", file=sys.stderr)
+        # On a line of its own: it was printed after a run's progress bar, on its line.
+        print(f"\nerror: {exc}", file=sys.stderr)
         return 1
     except ValueError as exc:
         _remove_empty(created)

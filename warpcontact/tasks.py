@@ -439,7 +439,12 @@ class TaskCheckpoint:
             with temporary.open("wb") as f:
                 np.savez(f, meta=np.array(json.dumps(meta, default=_json_scalar)), **arrays)
 
-        replace_file(self.path, write)
+        try:
+            replace_file(self.path, write)
+        except OSError as exc:
+            # A full disk named neither the file nor what was kept ("[Errno 28] No space left on device").
+            kept = "the previous one is kept" if self.path.exists() else "no earlier one was written"
+            raise OSError(f"{self.path}: saving the checkpoint failed ({exc.strerror or exc}); {kept}") from None
 
     def load(self, fingerprint: dict | None = None) -> dict:
         """The saved state; ValueError naming the file when it is missing, unreadable, of
