@@ -457,6 +457,23 @@ def test_a_body_set_exactly_on_a_support_is_refused_naming_both():
     assert q[-1, 1, 0] == pytest.approx(-9.8, abs=1e-3)
 
 
+def test_a_tiny_friction_smoothing_does_not_freeze_a_falling_box():
+    """At friction_smoothing 1e-12 m/s the friction's curvature made the box's fall a Newton
+    step of 2.6e-10 m, under the tolerance: it hung 1 cm above the ground, step after step,
+    "converged" at its first iteration."""
+    from warpcontact import scenes
+
+    def gaps(smoothing):
+        b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-6, friction=0.5, friction_smoothing=smoothing)
+        ground = scenes.ground_rectangle(4.0, 4.0, 0.5)
+        b.add_body((ground.vertices, ground.faces), static=True, name="ground")
+        b.add_box((0.4, 0.4, 0.4), density=500.0, name="box", pose=(0.0, 0.0, 0.21, 0.0, 0.0, np.sin(0.15), np.cos(0.15)))
+        q, _ = rollout(b.finalize(), 4, 0.02)
+        return q[1:, 1, 2] - 0.2
+
+    np.testing.assert_allclose(gaps(1e-12), gaps(1e-4), rtol=0, atol=1e-5)
+
+
 def test_a_body_started_within_the_tolerance_of_a_support_is_pushed_out():
     """Beside the 1/x barrier Newton's step is about half the gap whatever the force: a box
     started 4e-11 m (1e-10 of its size) above another "converged" at its first iteration,
