@@ -1030,3 +1030,67 @@ def test_excluded_pairs_holding_bools_are_refused():
     with pytest.raises(ValueError, match=r"exclude_pairs: \(0, 5\) is not a pair"):
         contact_body_pairs(static, np.array([[1, 2], [0, 5]]))
     assert len(contact_body_pairs(static, np.array([[2, 1]]))) == len(contact_body_pairs(static, [(1, 2)])) == 5
+
+
+def test_an_evaluation_whose_lists_could_not_grow_leaves_the_model_usable(monkeypatch):
+    """The blend list was replaced before its records were allocated: when that allocation
+    failed (MemoryError), the next evaluation's kernels wrote past the old records (a
+    segfault)."""
+    ball = icosphere(1, 0.5)
+    far, close = identity_poses(np.zeros((12, 3))), identity_poses(np.zeros((12, 3)))
+    far[:, 0], far[:, 1] = 3.0 * (np.arange(12) % 4), 3.0 * (np.arange(12) // 4)
+    close[:, 0], close[:, 1] = 1.02 * (np.arange(12) % 4), 1.02 * (np.arange(12) // 4)
+    reference = wc.ContactModel([ball] * 12).evaluate(close)
+    model = wc.ContactModel([ball] * 12)
+    model.evaluate(far)  # lists sized for the bodies far apart
+
+    def no_memory(self, blend_records):
+        raise MemoryError("simulated")
+
+    monkeypatch.setattr(wc.ContactModel, "_new_records", no_memory)
+    with pytest.raises(MemoryError):
+        model.evaluate(close)
+    monkeypatch.undo()
+    again = model.evaluate(close)
+    assert again.value == reference.value and np.array_equal(again.grad, reference.grad)
+
+
+def test_an_evaluation_interrupted_while_it_deals_chunks_leaves_later_ones_right():
+    """Ctrl-C between the chunk labels and their count left a count of 1 over split labels:
+    later unsplit evaluations skipped the body pairs of chunk 1 (value 1,173,745 for
+    1,224,973), until one was split again."""
+    import sys
+
+    from warpcontact import contact
+
+    ball = icosphere(3, 0.5)
+    split = identity_poses(np.array([[0.0, 0.0, 0.0], [1.001, 0.0, 0.0], [-1.001, 0.0, 0.0]]))
+    whole = split.copy()
+    whole[2, 0] = -1.3
+    reference = wc.ContactModel([ball] * 3, term_chunks=2).evaluate(whole)
+    model = wc.ContactModel([ball] * 3, term_chunks=2)
+    counts = [model.evaluate(poses).num_leaf for poses in (split, whole)]
+    assert [model._chunk_count(count) for count in counts] == [2, 1]  # split, then not
+    code = contact.ContactModel._deal_seed_chunks.__code__
+    lines = open(code.co_filename).read().splitlines()
+    last = next(n for n in range(code.co_firstlineno, len(lines) + 1) if "self._seed_chunk_count = self._term_chunks" in lines[n - 1])
+
+    def interrupt(frame, event, arg):
+        if frame.f_code is not code:
+            return None
+
+        def at_line(frame, event, arg):
+            if event == "line" and frame.f_lineno == last:
+                raise KeyboardInterrupt
+            return at_line
+
+        return at_line
+
+    sys.settrace(interrupt)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            model.evaluate(split)
+    finally:
+        sys.settrace(None)
+    again = model.evaluate(whole)
+    assert again.value == reference.value and np.array_equal(again.grad, reference.grad)

@@ -57,6 +57,33 @@ def test_recorded_launches_see_every_changed_argument():
     assert np.signbit(run(_add_kernel, other, -0.0, 1)[0])  # -0 x 1 + -0 = -0
 
 
+def test_a_recorded_launch_interrupted_while_it_is_repacked_is_packed_again(monkeypatch):
+    """Ctrl-C between the command's new size and its record's left the record at the old
+    size: the next launch at that size replayed the interrupted one's (wrong sums)."""
+    from warp._src import context
+
+    device = resolve_device("cpu")
+    cache = LaunchCache(device)
+    values = wp.array([1.0, 2.0, 3.0], dtype=wp.float64, device=device)
+    out = wp.zeros(3, dtype=wp.float64, device=device)
+    offset = _Offset()
+    offset.value = 0.0
+    cache.launch("site", _add_kernel, dim=2, inputs=[values, 1.0, offset], outputs=[out])
+    set_dim = context.Launch.set_dim
+
+    def interrupted(self, dim):
+        set_dim(self, dim)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(context.Launch, "set_dim", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        cache.launch("site", _add_kernel, dim=3, inputs=[values, 1.0, offset], outputs=[out])
+    monkeypatch.undo()
+    out.zero_()
+    cache.launch("site", _add_kernel, dim=2, inputs=[values, 1.0, offset], outputs=[out])
+    assert out.numpy().tolist() == [1.0, 2.0, 0.0]
+
+
 def test_concurrent_tasks_all_run_and_raise_the_first_error():
     done = []
     run_concurrently([lambda i=i: done.append(i) for i in range(5)])

@@ -104,14 +104,20 @@ class LaunchCache:
             self._records[site] = [kernel, command, params, dim]
         else:
             _, command, packed, packed_dim = record
-            for index, value in enumerate(params):
-                if _repack(value, packed[index]):
-                    command.set_param_at_index(index, value)
-                    packed[index] = value
-            # set_dim validates and rebuilds the launch bounds (~9 us): only when they change.
-            if dim != packed_dim:
-                command.set_dim(dim)
-                record[3] = dim
+            try:
+                for index, value in enumerate(params):
+                    if _repack(value, packed[index]):
+                        command.set_param_at_index(index, value)
+                        packed[index] = value
+                # set_dim validates and rebuilds the launch bounds (~9 us): only when they change.
+                if dim != packed_dim:
+                    command.set_dim(dim)
+                    record[3] = dim
+            except BaseException:
+                # Interrupted between the command and its record (Ctrl-C), the record kept the
+                # old values, and later launches replayed the command's new ones: wrong sums.
+                del self._records[site]
+                raise
         command.launch()
 
 

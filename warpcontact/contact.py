@@ -533,18 +533,23 @@ class ContactModel:
         self._reserve_records(0)
 
     def _reserve_lists(self, *, far: int, blend: int, leaf: int):
+        """Grows the term lists to hold ``far``, ``blend`` and ``leaf`` terms. A list and its
+        companions (levels and records, iterations and planes) are allocated first and then
+        replaced together: replaced one by one, an allocation that failed (MemoryError) left a
+        longer list beside shorter companions, which the next evaluation's kernels wrote past
+        (a segfault)."""
         self._graph = None
         with wp.ScopedDevice(self.device):
-            if self._far is None or self._far.shape[0] < far:
-                self._far = wp.zeros(far, dtype=wp.vec4i)
+            far_list = wp.zeros(far, dtype=wp.vec4i) if self._far is None or self._far.shape[0] < far else self._far
             if self._blend is None or self._blend.shape[0] < blend:
-                self._blend = wp.zeros(blend, dtype=wp.vec4i)
-                self._blend_level = wp.zeros(blend, dtype=wp.int32)
-                self._reserve_records(blend)
+                blend_lists = (wp.zeros(blend, dtype=wp.vec4i), wp.zeros(blend, dtype=wp.int32), self._new_records(blend))
+            else:
+                blend_lists = (self._blend, self._blend_level, self._records)
             if self._leaf is None or self._leaf.shape[0] < leaf:
-                self._leaf = wp.zeros(leaf, dtype=wp.vec4i)
-                self._leaf_iterations = wp.zeros(leaf, dtype=wp.int32)
-                self._leaf_plane = wp.zeros(leaf, dtype=wp.vec4d)
+                leaf_lists = (wp.zeros(leaf, dtype=wp.vec4i), wp.zeros(leaf, dtype=wp.int32), wp.zeros(leaf, dtype=wp.vec4d))
+            else:
+                leaf_lists = (self._leaf, self._leaf_iterations, self._leaf_plane)
+        self._far, (self._blend, self._blend_level, self._records), (self._leaf, self._leaf_iterations, self._leaf_plane) = far_list, blend_lists, leaf_lists
 
     def _reserve_tasks(self, count: int):
         """Two task lists of at least ``count``: traversal rounds read one and fill the other."""
@@ -776,6 +781,9 @@ class ContactModel:
             k = load.index(min(load))
             chunk[seed] = k
             load[k] += c
+        # Unknown while the labels change: an interruption between the two left a count of 1
+        # over split labels, and later unsplit evaluations skipped the pairs of chunk 1.
+        self._seed_chunk_count = None
         self._seed_chunk.numpy()[:] = chunk
         self._seed_chunk_count = self._term_chunks
         return self._term_chunks
