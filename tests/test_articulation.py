@@ -298,6 +298,16 @@ def test_a_joint_target_is_the_default_control_and_is_checked():
     b, a_body, c = two_boxes()
     b.add_joint("universal", child=a_body, anchor=(0, 0, 1.2), axis=[(1, 0, 0), (0, 1, 0)], target=[np.nan, 0.2])
     np.testing.assert_allclose(b.finalize().articulation.default_targets, [0.0, 0.2], atol=1e-12)
+    # A coordinate without gains has no target: one of 1e160 was refused as an overflowing
+    # energy of kp 0 (0 x inf), while 1e100 was taken.
+    control = model.control(requires_grad=False)
+    model.articulation.kp[:] = 0.0
+    model.articulation.kd[:] = 0.0
+    control.joint_target.assign(np.array([1e160]))
+    free, _ = simulate(model, model.state(requires_grad=False), 3, 0.01, control)
+    control.joint_target.assign(np.array([0.0]))
+    held, _ = simulate(model, model.state(requires_grad=False), 3, 0.01, control)
+    np.testing.assert_array_equal(free[-1].joint_q.numpy(), held[-1].joint_q.numpy())
     for kind, target, match in (("revolute", [0.1, 0.2], r"target needs 1 value, got shape \(2,\)"), ("revolute", np.inf, r"target must be finite"), ("ball", 0.1, r"ball joints have no coordinates to target")):
         b, a_body, c = two_boxes()
         with pytest.raises(ValueError, match=match):

@@ -1953,6 +1953,12 @@ def test_set_body_velocity_refuses_half_a_turn_a_step():
             wc.set_body_velocity(state, wp.zeros(1, dtype=wp.vec3d), wp.zeros(1, dtype=wp.vec3d), 0.04, body_names=names)
     with pytest.raises(ValueError, match=r"body 'spinner' \(index 0\) turns"):  # not np.str_('spinner')
         wc.set_body_velocity(state, wp.zeros(1, dtype=wp.vec3d), wp.array([[0.0, 0.0, 100.0]], dtype=wp.vec3d), 0.04, body_names=np.array(["spinner"]))
+    # One array for both poses: the body moved back a step and stayed at rest, silently.
+    aliased = model.state()
+    aliased.body_q_prev = aliased.body_q
+    with pytest.raises(ValueError, match=r"state.body_q_prev: is the same array as state.body_q"):
+        wc.set_body_velocity(aliased, wp.array([[1.0, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(1, dtype=wp.vec3d), 0.04)
+    np.testing.assert_array_equal(aliased.body_q.numpy(), before)
     state = model.state()
     wc.set_body_velocity(state, wp.zeros(1, dtype=wp.vec3d), wp.array([[0.0, 0.0, 78.0]], dtype=wp.vec3d), 0.04)  # 3.12 rad
     nxt = model.state()
@@ -2085,3 +2091,14 @@ def test_a_small_eps_is_warned_about_and_named_when_a_step_fails():
         for _ in range(20):
             solver.step(states[0], states[1], None, 0.02)
             states.reverse()
+
+
+def test_rotation_vectors_of_quaternions_of_any_norm():
+    """The small-angle series was chosen by an absolute threshold: a 90 degree turn given as
+    a quaternion of norm 1e-12 read 2.0 rad, a 3 rad one 28.2 (outside [0, pi])."""
+    from warpcontact.rotation import quat_from_rotation_vector, rotation_vector_from_quat
+
+    for angle in (1e-9, np.pi / 2, 3.0):
+        unit = quat_from_rotation_vector(np.array([0.0, 0.0, angle]))
+        for norm in (1.0, 1e-6, 1e-12, 1e-20, 1e150):
+            np.testing.assert_allclose(rotation_vector_from_quat(unit * norm), [0.0, 0.0, angle], rtol=1e-14, atol=0.0)

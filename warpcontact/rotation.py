@@ -65,12 +65,15 @@ def quat_from_rotation_vector(w) -> np.ndarray:
 
 
 def rotation_vector_from_quat(q) -> np.ndarray:
-    """log of a unit quaternion: the rotation vector with angle in [0, pi]."""
+    """log of a quaternion (of any norm: the rotation it stands for): the rotation vector
+    with angle in [0, pi]."""
     q = np.asarray(q, dtype=np.float64)
     q = np.where(q[..., 3:] < 0.0, -q, q)
     s = np.linalg.norm(q[..., :3], axis=-1, keepdims=True)
     angle = 2.0 * np.arctan2(s, q[..., 3:])
-    small = s <= 1e-12
+    # Relative to w: the series also holds for quaternions of any norm (a 90 degree turn
+    # scaled to norm 1e-12 read 2.0 rad, a 3 rad one 28.2).
+    small = s <= 1e-12 * np.abs(q[..., 3:])
     scale = np.where(small, 2.0 / np.maximum(q[..., 3:], 1e-300), angle / np.where(small, 1.0, s))
     return scale * q[..., :3]
 

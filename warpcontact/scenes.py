@@ -29,10 +29,11 @@ import numpy as np
 import trimesh
 
 from .articulation import frame_in_body
-from ._validate import is_positive_finite, is_whole
+from ._validate import is_positive_finite, is_whole, real_array
 from .hull import convex_hull
 from .io import BodySpec, JointSpec, Scene, SimulationSettings, TaskSpec, save_scene
 from .robots import AntSpec, ant_description
+from .sphere_tree import validated_mesh
 
 __all__ = ["SCENE_NAMES", "BILLIARDS_SERIES", "BILLIARDS_FRICTION", "BILLIARDS_GOALS", "BILLIARDS_REFERENCE_STRIKE", "RACK_BENCHMARK_FRICTION", "build_scene", "billiards_scene", "benchmark_rack", "rack_centres", "write_scenes", "shipped_scene", "fibonacci_ball", "rest_on_face", "decimate", "bunny_mesh"]
 
@@ -80,6 +81,8 @@ def rest_on_face(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, f
     Raises ValueError for a mesh that is not closed, outward-oriented and convex (every
     such mesh has a stable face: the one nearest its centre of mass).
     """
+    # Checked first: indices past the vertices were an IndexError, 2-D points trimesh's error.
+    vertices, faces = validated_mesh(vertices, faces, "ball")
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     if not (mesh.is_watertight and mesh.volume > 0):
         raise ValueError(f"not a closed, outward-oriented surface (watertight: {mesh.is_watertight}, volume {mesh.volume:.3g} m^3)")
@@ -169,12 +172,22 @@ def bunny_mesh(target_faces: int = 270, height: float = 0.3):
     return v, f, (float(props["volume"]), np.asarray(props["center_mass"]), np.asarray(props["inertia"]))
 
 
+# The most cells of a grid ground: two million triangles.
+_MAX_GROUND_CELLS = 1_000_000
+
+
 def ground_rectangle(size_x: float, size_y: float, cell: float | None = None, centre=(0.0, 0.0)) -> BodySpec:
     """A static rectangle of size_x by size_y m at z = 0: two triangles (every scene's
     ground), or squares of about ``cell`` m, two triangles each (a grid, for tests of
     contact across the seams between coplanar faces)."""
+    # Sizes of 0 made a ground of no area, negative ones one facing down, NaN ones NaN
+    # vertices named as "vertex 0" by the builder; a cell of 1e-9 m asked for 6.9 EiB.
+    _require(is_positive_finite(size_x), "size_x", "positive and finite (m)", size_x)
+    _require(is_positive_finite(size_y), "size_y", "positive and finite (m)", size_y)
+    _require(real_array(centre) is not None and np.shape(centre) == (2,) and np.isfinite(real_array(centre)).all(), "centre", "2 finite numbers (m)", centre)
     _require(cell is None or is_positive_finite(cell), "cell", "positive and finite (m), or None", cell)
     nx, ny = (1, 1) if cell is None else (max(1, int(round(size_x / cell))), max(1, int(round(size_y / cell))))
+    _require(nx * ny <= _MAX_GROUND_CELLS, "cell", f"at least {np.sqrt(size_x * size_y / _MAX_GROUND_CELLS):.3g} m for this size (at most {_MAX_GROUND_CELLS:,} cells)", cell)
     xs = np.linspace(-size_x / 2, size_x / 2, nx + 1) + centre[0]
     ys = np.linspace(-size_y / 2, size_y / 2, ny + 1) + centre[1]
     X, Y = np.meshgrid(xs, ys, indexing="ij")
@@ -238,6 +251,8 @@ RACK_BALLS = RACK_ROWS * (RACK_ROWS + 1) // 2
 def rack_centres(spacing: float) -> list[tuple[float, float]]:
     """(x, y) centres of a RACK_BALLS-ball triangle rack, ``spacing`` m between neighbours'
     centres, its apex at the origin and its rows along +x."""
+    # 0 stacked the balls on one point, a negative spacing mirrored the rack.
+    _require(is_positive_finite(spacing), "spacing", "positive and finite (m)", spacing)
     return [(row * spacing * np.sqrt(3) / 2, (k - row / 2) * spacing) for row in range(RACK_ROWS) for k in range(row + 1)]
 
 
@@ -256,7 +271,7 @@ def billiards_scene(vertices: np.ndarray, faces: np.ndarray, *, friction: float 
             the edges of a grid's triangles feels their seams, which makes where it stops
             a rough function of where it starts); a grid cell size in m otherwise.
     """
-    vertices, height = rest_on_face(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64))
+    vertices, height = rest_on_face(vertices, faces)
     ball = (vertices, faces)
     radius = np.linalg.norm(vertices, axis=1).max()
     spacing = 2 * radius + 0.05
@@ -439,13 +454,13 @@ def _gather(seed: int = 2, *, bunny: bool = False) -> Scene:
 
 def build_scene(name: str) -> Scene:
     """The named task scene (``SCENE_NAMES``)."""
+    if not (isinstance(name, str) and name in SCENE_NAMES):  # a list was "unhashable type"
+        raise ValueError(f"scene: {name!r} is not one of {', '.join(SCENE_NAMES)}")
     if name == "billiards":
         return billiards_scene(*fibonacci_ball(18))
     if name in BILLIARDS_SERIES:
         return benchmark_rack(*fibonacci_ball(BILLIARDS_SERIES[name]))
     builders = {"push": _push, "ant_push": _ant_push, "sort": _sort, "gather": _gather, "gather_bunny": lambda: _gather(bunny=True)}
-    if name not in builders:
-        raise ValueError(f"scene: {name!r} is not one of {', '.join(SCENE_NAMES)}")
     return builders[name]()
 
 

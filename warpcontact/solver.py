@@ -601,7 +601,8 @@ class ImplicitSolver:
         """Joint-space PD (implicit, like the body PD) and limit barriers: value, gradient, diagonal Hessian."""
         art = self._articulation
         dt = step_in.dt
-        error = coords - step_in.joint_target
+        # A coordinate without stiffness has no target: a far one (1e160) made its energy 0 x inf.
+        error = np.where(art.kp != 0.0, coords - step_in.joint_target, 0.0)
         velocity = coords - step_in.joint_q
         with np.errstate(over="ignore"):  # a target beyond float64's reach: _solve names it
             value = 0.5 * float(np.sum(art.kp * error**2 + art.kd / dt * velocity**2))
@@ -984,7 +985,7 @@ class ImplicitSolver:
             # Joint coordinates outside their limits were refused with the state (_joint_arrays).
             if art is not None and art.num_coordinates:
                 with np.errstate(over="ignore"):
-                    overflow = np.flatnonzero(~np.isfinite(art.kp * (coords_now - joint_target) ** 2))
+                    overflow = np.flatnonzero(~np.isfinite(art.kp * np.where(art.kp != 0.0, coords_now - joint_target, 0.0) ** 2))
                 if overflow.size:
                     c = overflow[0]
                     raise ValueError(f"control.joint_target: the PD energy of coordinate {art.coordinate_names[c]!r} overflows float64 (target {joint_target[c]:.6g}, coordinate {coords_now[c]:.6g}, kp {art.kp[c]:.6g})")

@@ -169,6 +169,10 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
         if not isinstance(poses, wp.array) or poses.dtype != wp.transformd or poses.ndim != 1:
             raise ValueError(f"state.{label}: expected a wp.array of wp.transformd, one per body (use model.state())")
     n = state.body_q.shape[0]
+    if state.body_q_prev.ptr == state.body_q.ptr:
+        # The kernel wrote the previous poses over the current ones: the body moved back by
+        # a step and stayed at rest, silently.
+        raise ValueError("state.body_q_prev: is the same array as state.body_q; a state needs two pose arrays (use model.state())")
     for label, arr in (("linear_velocity", linear_velocity), ("angular_velocity", angular_velocity)):
         if not isinstance(arr, wp.array) or arr.shape != (n,) or arr.dtype != wp.vec3d:
             raise ValueError(f"{label}: expected a wp.array of {n} vec3d")
