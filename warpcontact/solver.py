@@ -1087,7 +1087,9 @@ class ImplicitSolver:
                 raise SolverError(self._diagnostics("line search failed", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden))
             q, coords, value, grad, hess, contact, jacobian = trial, t_coords, t_value, t_grad, t_hess, t_contact, t_jacobian
         if not converged:
-            raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact))
+            # The move the saddle-free floor hid at the last iterate, as where steps converge:
+            # steps capped by a pressed pair's gap iterate on to here.
+            raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden))
 
         # The friction adjoint needs the poses the friction terms saw: unit quaternions for the
         # static bodies too, whose user-given values (of any norm) go back into state_out.
