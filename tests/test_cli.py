@@ -90,7 +90,7 @@ def test_bench_leaf_names_pairs_it_cannot_allocate(tmp_path, monkeypatch):
     def no_memory(*args, **kwargs):
         raise RuntimeError("Failed to allocate 25920000000 bytes on device 'cpu'")
 
-    monkeypatch.setattr(bench.wp, "empty", no_memory)
+    monkeypatch.setattr(bench, "leaf_solve_buffers", no_memory)
     with pytest.raises(ValueError, match=r"pairs: 10 pairs need 2.93e-05 GB of buffers on cpu \(2928 bytes a pair\), more than it could allocate"):
         bench.run_leaf_benchmark(num_pairs=10, repeats=1, device="cpu", out_dir=tmp_path)
 

@@ -17,7 +17,7 @@ from .hull import convex_hull_mesh
 from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
 from ._validate import MAX_COORDINATE, gap_problem
-from .leaf import DEFAULT_MAX_ITERATIONS, LEAF_PRECISIONS, float32_search
+from .leaf import DEFAULT_MAX_ITERATIONS, LEAF_PRECISIONS, float32_search, leaf_solve_buffers
 from .rotation import quat_rotate
 
 __all__ = [
@@ -148,14 +148,7 @@ def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, s
     A, B = leaf_benchmark_pairs(num_pairs, seed=seed)
     with wp.ScopedDevice(dev):
         try:
-            tri_a = wp.array(A, dtype=wp.mat33d)
-            tri_b = wp.array(B, dtype=wp.mat33d)
-            value = wp.empty(num_pairs, dtype=wp.float64)
-            plane = wp.empty(num_pairs, dtype=wp.vec4d)
-            status = wp.empty(num_pairs, dtype=wp.int32)
-            iterations = wp.empty(num_pairs, dtype=wp.int32)
-            grad = wp.empty((num_pairs, 6), dtype=wp.vec3d)
-            hess = wp.empty((num_pairs, 6, 6), dtype=wp.mat33d)
+            tri_a, tri_b, value, plane, status, iterations, grad, hess = leaf_solve_buffers(A, B, 6)
         except (RuntimeError, MemoryError):
             # The largest --pairs (10 million) needs 29 GB: a traceback on a machine with less.
             raise ValueError(f"pairs: {num_pairs} pairs need {num_pairs * _LEAF_BYTES_PER_PAIR / 1e9:.3g} GB of buffers on {dev} ({_LEAF_BYTES_PER_PAIR} bytes a pair), more than it could allocate; ask for fewer") from None

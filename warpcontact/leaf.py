@@ -15,6 +15,7 @@ __all__ = [
     "LeafStatus",
     "TrianglePairPotential",
     "triangle_pair_potential",
+    "leaf_solve_buffers",
     "centered_potential",
     "quintic_blend",
 ]
@@ -119,14 +120,7 @@ def triangle_pair_potential(
     dev = resolve_device(device)
     ncols = 6 if derivatives else 0
     with wp.ScopedDevice(dev):
-        tri_a = wp.array(a, dtype=wp.mat33d)
-        tri_b = wp.array(b, dtype=wp.mat33d)
-        value = wp.empty(n, dtype=wp.float64)
-        plane = wp.empty(n, dtype=wp.vec4d)
-        status = wp.empty(n, dtype=wp.int32)
-        iterations = wp.empty(n, dtype=wp.int32)
-        grad = wp.zeros((n, ncols), dtype=wp.vec3d)
-        hess = wp.zeros((n, ncols, ncols), dtype=wp.mat33d)
+        tri_a, tri_b, value, plane, status, iterations, grad, hess = leaf_solve_buffers(a, b, ncols)
         if n:
             wp.launch(
                 leaf_kernels.leaf_potential_kernel,
@@ -149,6 +143,24 @@ def triangle_pair_potential(
         ok=status_np == LeafStatus.OK,
         status=status_np,
         iterations=iterations.numpy(),
+    )
+
+
+def leaf_solve_buffers(a: np.ndarray, b: np.ndarray, columns: int) -> tuple:
+    """The arrays of a batched ``leaf_potential_kernel`` launch on the current device: the
+    (n, 3, 3) triangles ``a`` and ``b`` as mat33d, then its outputs: value, plane, status,
+    iterations, gradient (n, ``columns``) vec3d and Hessian (n, ``columns``, ``columns``)
+    mat33d blocks (``columns`` 6 with derivatives, else 0)."""
+    n = len(a)
+    return (
+        wp.array(a, dtype=wp.mat33d),
+        wp.array(b, dtype=wp.mat33d),
+        wp.empty(n, dtype=wp.float64),
+        wp.empty(n, dtype=wp.vec4d),
+        wp.empty(n, dtype=wp.int32),
+        wp.empty(n, dtype=wp.int32),
+        wp.zeros((n, columns), dtype=wp.vec3d),
+        wp.zeros((n, columns, columns), dtype=wp.mat33d),
     )
 
 
