@@ -2191,6 +2191,7 @@ def test_a_blocked_primitive_dimension_is_named(tmp_path, shape, blocked, scale)
     scaled = f"double3 xformOp:scale = {scale}\n        uniform token[] xformOpOrder = [\"xformOp:scale\"]" if scale else ""
     path.write_text(f"""#usda 1.0
 (
+    metersPerUnit = 1
     upAxis = "Z"
 )
 def Xform "body" ( prepend apiSchemas = ["PhysicsRigidBodyAPI"] ) {{
@@ -2210,6 +2211,7 @@ def test_a_sheared_plane_loads_as_usd_draws_it(tmp_path):
     path = tmp_path / "sheared_plane.usda"
     path.write_text("""#usda 1.0
 (
+    metersPerUnit = 1
     upAxis = "Z"
 )
 def Xform "parent" {
