@@ -390,7 +390,8 @@ class ModelBuilder:
 
     Args:
         gravity: (3,) gravitational acceleration (m/s^2).
-        contact_stiffness: potential coefficient mu (the paper uses 1e-6 .. 5e-9). It sets
+        contact_stiffness: potential coefficient mu (J m: P is 1/m; the paper uses 1e-6 ..
+            5e-9). It sets
             how far above a support a body rests: about sqrt(100 mu / (m g)) for a box on a
             face (measured: a 1 m box of 1,000 kg/m^3 rests 1.1e-4 m up at mu 1e-6; a 1 mm
             box of the same density rests 1.2e-4 m up at mu 1e-15, and at 1e-6 the barrier
@@ -408,7 +409,7 @@ class ModelBuilder:
             32 mm above 1,250 and 48 mm above 5,000; the estimate is 2.2 mm).
         eps: blend margin of the hierarchical contact potential; below 0.01 the blend is
             steep and Newton slow (warned about).
-        friction: friction coefficient; 0 disables friction (and all its work, its gradient
+        friction: friction coefficient (default 0); 0 disables friction (and all its work, its gradient
             included unless ``model.friction.requires_grad`` is set).
         friction_smoothing: slip speed (m/s) below which the friction law is smoothed.
         centred_weight: ``"paper"`` or ``"pairs"``: how a far cluster pair's centred term
@@ -503,15 +504,18 @@ class ModelBuilder:
         Args:
             mesh: ``trimesh.Trimesh`` or (vertices (nv, 3), faces (nf, 3)) in the mesh frame (m).
             pose: (7,) pose of the mesh frame (px, py, pz, qx, qy, qz, qw).
+            name: unique body name (default ``body{index}``).
             density: kg/m^3: the mass of the mesh's volume (a closed, consistently
-                outward-wound mesh); or ``mass`` (kg) instead.
+                outward-wound mesh); or ``mass`` instead.
+            mass: kg, instead of ``density``.
             inertia: kg m^2 about the centre of mass in the mesh frame's axes; default the
                 mesh volume's, scaled to the mass.
             center_of_mass: (3,) in the mesh frame (m); default the mesh volume's centroid,
                 or for a mesh without a volume (given an inertia) its surface's centroid.
             static: fixed in place; no degrees of freedom and no mass properties.
-            kp_linear, kd_linear: PD gains per translation axis (scalar or 3 values).
-            kp_angular, kd_angular: PD gains of the orientation.
+            kp_linear, kd_linear: PD gains per translation axis (scalar or 3 values; N/m,
+                N s/m).
+            kp_angular, kd_angular: PD gains of the orientation (N m/rad, N m s/rad).
         """
         name = self._body_name(name)
         static = checked_flag(static, f"body {name!r}: static")
@@ -628,6 +632,8 @@ class ModelBuilder:
             target: per coordinate, the PD target (rad or m) of ``Model.control()``'s
                 ``joint_target`` (a USD drive's targetPosition); default, or NaN for a
                 coordinate: the initial coordinates.
+            name: unique joint name (default ``joint{index}``); coordinates are named
+                ``{name}:{k}`` (a base joint's ``{name}:{dof}``).
         """
         if name is not None and not isinstance(name, str):
             raise ValueError(f"joint {len(self._joints)}: name must be a string, got {name!r}")

@@ -71,7 +71,8 @@ class ContactEvaluation:
 
     Attributes:
         value: total potential (1/m, as its leaf barriers 1/g; scaled by the contact stiffness in the step);
-            +inf when any two bodies touch or intersect.
+            +inf when any two bodies touch or intersect, or a leaf solve did not converge
+            (``unsolved_pairs``).
         grad: (nbodies, 6) dP/d(dp, dtheta) per body; zero rows for static bodies.
         hessian: (6 m, 6 m) second derivatives in the same coordinates of the m non-static
             bodies (``ContactModel.hessian_bodies``, in index order): static bodies have no

@@ -2398,6 +2398,7 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
     Args:
         scene: the scene that was simulated (meshes, names, targets).
         poses: (frames, nbodies, 7) prim-frame poses per frame (``model_to_scene_poses``).
+        path: the .usda (or .usd, .usdc) file to write.
         fps: frames per second; default 1 / time step.
         overwrite: replace an existing file.
 

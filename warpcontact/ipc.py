@@ -63,6 +63,12 @@ class IpcContactModel:
         meshes: list of (V, F) per body in the body frame.
         dhat: barrier support distance (m).
         static, names: as for ``ContactModel``.
+        device: "cpu" (ipctk runs on the CPU only).
+        exclude_pairs: (a, b) body index pairs without contact terms (jointed links).
+
+    Raises:
+        ValueError: without the IPC Toolkit (``pip install 'warpcontact[ipc]'``), on another
+            device, or for bad meshes or a bad ``dhat``.
     """
 
     mode = "ipc"

@@ -50,9 +50,9 @@ class TrianglePairPotential:
     """Leaf potentials of N triangle pairs.
 
     Attributes:
-        value: (N,) potential P; +inf where the triangles touch or intersect.
+        value: (N,) potential P (1/m); +inf where the triangles touch or intersect.
         grad: (N, 2, 3, 3) dP/dx; [:, 0] for A's vertices, [:, 1] for B's (1/m^2: P is 1/m).
-        hessian: (N, 18, 18) d2P/dx2 in the order of ``grad.reshape(N, 18)``.
+        hessian: (N, 18, 18) d2P/dx2 (1/m^3) in the order of ``grad.reshape(N, 18)``.
         plane: (N, 4) optimal plane (n, d) in world coordinates; |n| < 1, not normalised.
         ok: (N,) True where the solve converged to a finite value.
         status: (N,) ``LeafStatus`` code.

@@ -107,7 +107,9 @@ def actuated_coordinates(joints) -> list[str]:
 
 
 def add_ant(builder, *, position=(0.0, 0.0), yaw: float = 0.0, ground_height: float = 0.0, spec: AntSpec = AntSpec(), name: str = "ant") -> dict:
-    """Add the ant (see ``ant_description``) to a ``ModelBuilder``.
+    """Add the ant (see ``ant_description``) to a ``ModelBuilder``, standing at ``position``
+    (x, y; m) with its feet 1 mm above ``ground_height`` (m), facing ``yaw`` (rad); ``spec``
+    sizes it and ``name`` prefixes its links and joints.
 
     Returns a dict with ``bodies`` (short name -> body index), ``joints`` (short name ->
     joint index) and ``actuated`` (the 12 leg coordinate names: per leg hip swing, hip lift,
