@@ -292,25 +292,28 @@ def test_an_overwriting_bench_interrupted_before_its_first_row_leaves_no_earlier
 
 def test_a_folder_another_running_command_writes_to_is_refused(tmp_path, capsys):
     """Two runs into one folder both passed their start checks, and the later one's results
-    replaced the other's without --overwrite. A lock whose process ended (killed) is taken
-    over, with what that process left half written."""
+    replaced the other's without --overwrite. A lock file whose process ended (killed) is
+    taken over, with the temporaries that process left; other hidden files are the user's."""
+    import fcntl
     import os
-    import subprocess
 
     from warpcontact._files import LOCK_NAME
 
     args = ["bench", "scaling", "--points", "8", "--repeats", "1", "--out", str(tmp_path)]
-    (tmp_path / LOCK_NAME).write_text(f"{os.getppid()}\n")  # a running process
-    assert main(args) == 2
-    assert f"another warpcontact command (process {os.getppid()}) is writing there" in capsys.readouterr().err
-    assert (tmp_path / LOCK_NAME).exists() and not (tmp_path / "scaling.json").exists()
-    ended = subprocess.Popen(["true"])
-    ended.wait()
-    (tmp_path / LOCK_NAME).write_text(f"{ended.pid}\n")
-    (tmp_path / ".results-abc").mkdir()
-    (tmp_path / ".tmp-abc.json").write_text("{")
+    lock = tmp_path / LOCK_NAME
+    lock.write_text("4242\n")
+    with lock.open("r+") as held:  # a running command's lock
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        assert main(args) == 2
+        assert "another warpcontact command (process 4242) is writing there" in capsys.readouterr().err
+    assert lock.exists() and not (tmp_path / "scaling.json").exists()
+    (tmp_path / ".warpcontact-tmp-abc").mkdir()  # what the killed holder was writing
+    (tmp_path / ".warpcontact-tmp-def.json").write_text("{")
+    (tmp_path / ".tmp-notes.txt").write_text("mine")
     assert main(args) == 0
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["scaling.csv", "scaling.json", "scaling.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".tmp-notes.txt", "scaling.csv", "scaling.json", "scaling.png"]
+    os.close(os.open(lock, os.O_CREAT | os.O_WRONLY))  # empty: its process ended before it wrote
+    assert main([*args, "--overwrite"]) == 0 and not lock.exists()
 
 
 def test_an_overwriting_bench_with_a_bad_argument_keeps_the_earlier_results(tmp_path, capsys):

@@ -9,53 +9,75 @@ from pathlib import Path
 
 import numpy as np
 
+try:
+    import fcntl
+except ImportError:  # not POSIX
+    fcntl = None
+
 __all__ = ["LOCK_NAME", "hold_folder", "json_ready", "replace_file", "replace_files", "replace_json", "replace_text"]
 
-# The file a command holds in its output folder while it writes there (``hold_folder``).
+# The file a command holds in its output folder while it writes there (``hold_folder``), and
+# the prefix of the temporaries the writers below leave only if they are killed.
 LOCK_NAME = ".warpcontact-lock"
+_TEMPORARY_PREFIX = ".warpcontact-tmp-"
 
 
-def _running(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        return True
-    return True
+def _holder(fd: int) -> str:
+    """Who holds a lock file, as its text (a process id) says."""
+    text = os.pread(fd, 64, 0).decode(errors="replace").strip()
+    return f"process {text}" if text.isdigit() else "a running process"
 
 
 def hold_folder(folder):
-    """Claim ``folder`` for one command: create its LOCK_NAME exclusively, holding this
-    process's id; returns the function that releases it. ValueError naming the other process
-    while a running one holds it: two runs into one folder passed their checks for earlier
-    results at their starts, and the later one's results replaced the other's without a word.
-    A lock whose process has ended (killed) is taken over, and what that process was writing
-    (hidden ``.results-*`` folders and ``.tmp-*`` files, ``replace_files``, ``replace_file``)
-    is removed."""
+    """Claim ``folder`` for one command: lock its LOCK_NAME (``fcntl.flock``, which the
+    kernel releases when the process ends, however it ends), writing this process's id in it;
+    returns the function that releases it and removes the file. ValueError naming the other
+    process while a running one holds it: two runs into one folder passed their checks for
+    earlier results at their starts, and the later one's results replaced the other's
+    without a word. A lock file left by a process that ended without releasing it (killed)
+    is taken over, and the temporaries such a process was writing (``replace_file``,
+    ``replace_files``) are removed. Without ``fcntl`` (not POSIX) nothing is locked."""
+    if fcntl is None:
+        return lambda: None
     folder = Path(folder)
     lock = folder / LOCK_NAME
     while True:
         try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-            break
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_RDWR)
+            left_behind = False
         except FileExistsError:
             try:
-                holder = int(lock.read_text().split()[0])
-            except (OSError, ValueError, IndexError):  # being written, or unreadable
-                holder = None
-            if holder is None or (holder != os.getpid() and _running(holder)):
-                who = f"process {holder}" if holder is not None else f"a process (see {lock})"
-                raise ValueError(f"{folder}: another warpcontact command ({who}) is writing there; wait for it to finish or choose another --out") from None
-            lock.unlink(missing_ok=True)
-    with os.fdopen(fd, "w") as f:
-        f.write(f"{os.getpid()}\n")
-    for leftover in [*folder.glob(".results-*"), *folder.glob(".tmp-*")]:
-        if leftover.is_dir():
-            shutil.rmtree(leftover, ignore_errors=True)
-        else:
-            leftover.unlink(missing_ok=True)
-    return lambda: lock.unlink(missing_ok=True)
+                fd = os.open(lock, os.O_RDWR)
+            except FileNotFoundError:  # released meanwhile
+                continue
+            left_behind = True
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _holder(fd)
+            os.close(fd)
+            raise ValueError(f"{folder}: another warpcontact command ({holder}) is writing there; wait for it to finish or choose another --out") from None
+        try:
+            current = os.stat(lock).st_ino
+        except FileNotFoundError:
+            current = None
+        if current == os.fstat(fd).st_ino:
+            break
+        os.close(fd)  # its holder released and removed it while this one opened it: again
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    if left_behind:
+        for leftover in folder.glob(f"{_TEMPORARY_PREFIX}*"):
+            if leftover.is_dir():
+                shutil.rmtree(leftover, ignore_errors=True)
+            else:
+                leftover.unlink(missing_ok=True)
+
+    def release():
+        lock.unlink(missing_ok=True)
+        os.close(fd)
+
+    return release
 
 
 def replace_file(path, write) -> None:
@@ -67,7 +89,7 @@ def replace_file(path, write) -> None:
     if not path.parent.is_dir():
         # mkstemp named its temporary file, not the output.
         raise FileNotFoundError(f"{path}: its folder does not exist")
-    fd, temporary = tempfile.mkstemp(suffix=path.suffix, prefix=".tmp-", dir=path.parent)
+    fd, temporary = tempfile.mkstemp(suffix=path.suffix, prefix=_TEMPORARY_PREFIX, dir=path.parent)
     os.close(fd)
     os.unlink(temporary)  # some writers (Usd.Stage.CreateNew) refuse an existing file
     try:
@@ -87,7 +109,7 @@ def replace_files(folder, names):
     loop, can be cut between two files): written one by one, a failed trajectory left a new
     metrics.json beside an earlier run's trajectory.usda."""
     folder = Path(folder)
-    staged = Path(tempfile.mkdtemp(prefix=".results-", dir=folder))
+    staged = Path(tempfile.mkdtemp(prefix=_TEMPORARY_PREFIX, dir=folder))
     try:
         yield staged
         for name in names:
