@@ -1828,6 +1828,47 @@ def test_builder_warns_about_bodies_the_barrier_would_hold_far_above_a_support()
         pendulum.finalize()
 
 
+def test_builder_warns_about_bodies_the_ipc_barrier_would_press_too_close_to_a_support():
+    """At the default mu 1e-6 the ipc baseline's barrier let a 32 kg box sink to 6e-17 m above
+    the ground, where every step failed to converge (and ipctk's collision queries took
+    minutes), without a word; its measured resting gap is 28 mu dhat^4 / (m g)."""
+    import warnings
+
+    pytest.importorskip("ipctk")
+    for mu, warned in ((1e-6, True), (1e3, False)):
+        b = wc.ModelBuilder(contact_stiffness=mu, contact_mode="ipc")
+        b.add_box((4.0, 4.0, 0.1), static=True, name="ground", pose=(0.0, 0.0, -0.05, 0.0, 0.0, 0.0, 1.0))
+        b.add_box((0.4, 0.4, 0.4), density=500.0, name="box", pose=(0.0, 0.0, 0.21, 0.0, 0.0, 0.0, 1.0))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            b.finalize()
+        messages = [str(w.message) for w in caught]
+        assert any(re.search(r"contact_stiffness 1e-06 lets these bodies rest closer than 2e-07 of their radius .*ipc barrier's resting gap ~28 mu ipc_dhat\^4 / \(m g\)\): 'box' \(mass 32 kg, radius 0.346 m: ~8.9e-16 m\)", m) for m in messages) == warned, messages
+
+
+def test_a_pressed_static_pair_does_not_hold_the_ipc_steps_of_other_bodies():
+    """ipc's separation is one distance over every collision, static pairs included: a static
+    block 1e-9 m above the ground capped every body's converged step at 1e-11 m (a falling
+    box took other iterations and ended elsewhere)."""
+    import warnings
+
+    pytest.importorskip("ipctk")
+
+    def fall(block):
+        b = wc.ModelBuilder(contact_stiffness=1e3, contact_mode="ipc")
+        b.add_box((4.0, 4.0, 0.1), static=True, name="ground", pose=(0.0, 0.0, -0.05, 0.0, 0.0, 0.0, 1.0))
+        if block:
+            b.add_box((0.2, 0.2, 0.2), static=True, name="block", pose=(1.5, 1.5, 0.1 + 1e-9, 0.0, 0.0, 0.0, 1.0))
+        b.add_box((0.4, 0.4, 0.4), density=500.0, name="box", pose=(0.0, 0.0, 0.25, 0.0, 0.0, 0.0, 1.0))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = b.finalize()
+        q, solver = rollout(model, 10, 0.02)
+        return q[:, -1]
+
+    np.testing.assert_array_equal(fall(True), fall(False))
+
+
 def test_builder_warns_about_bodies_the_barrier_would_press_too_close_to_a_support():
     """A 1 m, 1,000 kg cube dropped onto the ground at mu 1e-12 (resting gap ~1e-7 m, 1.2e-7 of
     its radius) stalled Newton at the impact ("no convergence after 500 iterations") with no

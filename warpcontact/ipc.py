@@ -42,6 +42,11 @@ from ._validate import as_float64_array, check_barrier_support, check_coordinate
 # A step's arc is checked in chord pieces whose bulge stays below this fraction of dhat.
 ARC_BULGE = 1e-3
 MAX_ARC_PIECES = 64
+# Interval splits of one continuous collision query (Tight-Inclusion CCD), past which it
+# returns its conservative time of impact: ipctk's default (1e7) let a query between faces
+# ~1e-16 m apart (a box sunk through a soft barrier) split for minutes and take 12 GB. Queries
+# between separated faces take far fewer.
+CCD_MAX_ITERATIONS = 100_000
 
 __all__ = ["IpcContactModel"]
 
@@ -106,6 +111,7 @@ class IpcContactModel:
         self._mesh = ipctk.CollisionMesh(self._local, ipctk.edges(F), F)
         self._mesh.can_collide = ipctk.make_vertex_patches_filter(self._patches(exclude_pairs)[self._body_of])
         self._potential = ipctk.BarrierPotential(self.dhat, 1.0)
+        self._ccd = ipctk.TightInclusionCCD(max_iterations=CCD_MAX_ITERATIONS)
         self._world = self._local.copy()
         self._positions = np.zeros((self.num_bodies, 3))
         self._collisions = ipctk.NormalCollisions()
@@ -296,7 +302,7 @@ class IpcContactModel:
         start = world
         for piece in range(pieces):
             end = vertices_at((piece + 1) / pieces)
-            alpha = float(self._ipctk.compute_collision_free_stepsize(self._mesh, start, end))
+            alpha = float(self._ipctk.compute_collision_free_stepsize(self._mesh, start, end, narrow_phase_ccd=self._ccd))
             if alpha < 1.0:
                 return fraction * (piece + alpha) / pieces
             start = end

@@ -118,7 +118,7 @@ _PASS_THROUGH_TRAVEL = 0.5
 # of a small dt's correction, and dropping it every step lost every force (at dt 1e-6 a
 # thrown box felt no gravity, a sliding one no friction, a pendulum never swung).
 _CONVERGED_ACCELERATION = 1e-5
-# No converged step is longer than this fraction of the closest body pair's separation,
+# No body's converged step is longer than this fraction of its closest pair's separation,
 # across which the barrier's force changes by twice as much.
 _CONVERGED_GAP_FRACTION = 1e-2
 # 16 units of float64 roundoff, relative. A Newton step cannot resolve a position more finely
@@ -414,6 +414,8 @@ class ImplicitSolver:
         n = model.num_bodies
         # The contact model's flags, made by finalize: the model's body_dynamic is a writable array.
         self._dynamic = ~model.contact.static
+        # The body pairs whose separation bounds cap a converged step (``_body_gaps``).
+        self._pair_bodies = np.asarray(model.contact.body_pairs).reshape(-1, 2) if isinstance(model.contact, ContactModel) else None
         # Per body, tr of its second moment per unit mass (m^2): the size of the rotational
         # inertia term, which L computes as a difference of such terms (``_solve``); read with
         # the other parameters at every step (``_checked_model_parameters``).
@@ -467,14 +469,14 @@ class ImplicitSolver:
         bodies.dt = float(dt)
         return bodies
 
-    def _checked_model_parameters(self) -> tuple[float, float, np.ndarray]:
+    def _checked_model_parameters(self, read) -> tuple[float, float, np.ndarray]:
         """The contact stiffness mu, the friction coefficient and the body masses, after checking the model parameters a user may change (or
         a gradient step may push) after ``finalize``, the joints' gains and limits included: a
         zero mass sent a resting puck 16 m up and a negative friction spun it, silently; the
         others failed as "no convergence" or blamed dt. ValueError naming the parameter (and
-        body or coordinate)."""
+        body or coordinate). ``read(name)`` gives the values of the model array ``name`` (each
+        of ``_CHECKED_MODEL_ARRAYS``), read back once for the step (``_solve``)."""
         model = self.model
-        read = self._readback.read  # enqueued with the step's poses (``_solve``)
         mu = float(read("contact_stiffness")[0])
         friction = float(read("friction")[0])
         for name, value in (("contact_stiffness", mu), ("friction", friction), ("friction_smoothing", model.friction_smoothing)):
@@ -520,6 +522,17 @@ class ImplicitSolver:
         if problem is not None:
             raise ValueError(f"model.articulation.{problem}")
         return mu, friction, mass
+
+    def _body_gaps(self, evaluation) -> np.ndarray | None:
+        """Per body, the smallest separation bound of its contact pairs at ``evaluation`` (m;
+        inf without pairs); None for a contact model without per-pair bounds (ipc's one
+        distance also counts static pairs, which would hold every body to their gap)."""
+        if self._pair_bodies is None:
+            return None
+        gaps = np.full(self.model.num_bodies, np.inf)
+        for side in (0, 1):
+            np.minimum.at(gaps, self._pair_bodies[:, side], evaluation.pair_separation)
+        return gaps
 
     def _friction_frame(self, mu: float, friction: float, dt: float) -> "LaggedFriction | None":
         """Lagged friction data at the configuration the contact model evaluated last (q^t);
@@ -908,7 +921,7 @@ class ImplicitSolver:
             _check_pose_array(control.body_target, len(q_now), "control.body_target", "one per body (use model.control())")
         q = normalized_poses(q_now)
         # Before the joint arrays, which are checked against the limits.
-        mu, friction_coefficient, mass = self._checked_model_parameters()
+        mu, friction_coefficient, mass = self._checked_model_parameters(self._readback.read)
         fall = float(np.abs(model.gravity).max()) * dt * dt
         if fall > MAX_COORDINATE:
             # The step's free fall g dt^2 then overflowed the kernels' coordinates: the error
@@ -1032,14 +1045,18 @@ class ImplicitSolver:
                 direction = self._friction_exact_direction(q, grad, hess, direction, friction)
                 full, travel = self._step_travel(direction)
                 step_length = float(travel.max())
+            rounding_length = _ROUNDING * float(np.abs(q[dynamic, :3]).max(initial=0.0))
+            converged_length = max(min(tol, _CONVERGED_ACCELERATION * dt * dt, slip_length), rounding_length)
             # Beside a 1/x barrier Newton's step is about half the gap, however unbalanced the
             # force: a box started 4e-11 m above another "converged" at its first step of 2e-11
-            # m, pressed by 2e17 N, and stayed there.
-            closest = _closest_separation(contact)
-            converged_length = max(min(tol, _CONVERGED_ACCELERATION * dt * dt, _CONVERGED_GAP_FRACTION * closest, slip_length), _ROUNDING * float(np.abs(q[dynamic, :3]).max(initial=0.0)))
+            # m, pressed by 2e17 N, and stayed there. So no body's step may exceed a fraction
+            # of its closest pair's separation (its own: one pressed pair held every body of a
+            # scene to its gap).
+            gaps = self._body_gaps(contact)
+            pressed = gaps is not None and bool(np.any(travel > np.maximum(_CONVERGED_GAP_FRACTION * gaps, rounding_length)))
             # A step the saddle-free floor made short is no convergence (_saddle_free_direction).
             hidden = 0.0 if floored is None else float(self._step_travel(floored, None if art is None else jacobian)[1].max())
-            if step_length <= converged_length:
+            if step_length <= converged_length and not pressed:
                 if hidden > converged_length:
                     raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden))
                 converged = True
