@@ -1866,7 +1866,9 @@ def test_a_pressed_static_pair_does_not_hold_the_ipc_steps_of_other_bodies():
         q, solver = rollout(model, 10, 0.02)
         return q[:, -1]
 
-    np.testing.assert_array_equal(fall(True), fall(False))
+    # ipctk sums in threads: last digits (~1e-17 m) differ from run to run; the cap moved the
+    # box 1.7e-10 m.
+    np.testing.assert_allclose(fall(True), fall(False), rtol=0, atol=1e-13)
 
 
 def test_builder_warns_about_bodies_the_barrier_would_press_too_close_to_a_support():
