@@ -96,6 +96,32 @@ def test_the_ccd_bound_follows_a_turning_body_s_arc():
     assert np.isfinite(model.evaluate(turned).value)
 
 
+def test_each_ccd_query_is_capped(monkeypatch):
+    """ipctk's default narrow phase splits a query up to 1e7 times: a box sunk through a soft
+    barrier (the builder's default mu with ipc) split one query for minutes at 12 GB. Past
+    the cap Tight-Inclusion returns its conservative time of impact."""
+    import ipctk
+    import trimesh
+
+    from warpcontact import ipc
+
+    box = trimesh.creation.box(extents=(0.4, 0.4, 0.4))
+    model = IpcContactModel([(box.vertices, box.faces)] * 2, static=[True, False])
+    model.evaluate(identity_poses([[0.0, 0.0, 0.0], [0.0, 0.0, 0.5]]))
+    caps = []
+    query = ipctk.compute_collision_free_stepsize
+
+    def recorded(mesh, start, end, **options):
+        caps.append(options["narrow_phase_ccd"].max_iterations)
+        return query(mesh, start, end, **options)
+
+    monkeypatch.setattr(ipctk, "compute_collision_free_stepsize", recorded)
+    step = np.zeros((2, 6))
+    step[1, 2] = -0.2
+    assert 0.0 < model.advancement_limit(step) < 0.5
+    assert caps and set(caps) == {ipc.CCD_MAX_ITERATIONS} and ipc.CCD_MAX_ITERATIONS == 100_000
+
+
 def test_poses_are_checked_by_the_contact_model_s_rules():
     """The IPC model normalised any quaternion: a zero one gave value 0 with a NaN gradient,
     and one of norm 2 was taken as a rotation. It now refuses both as ContactModel does."""
