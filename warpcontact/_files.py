@@ -43,7 +43,7 @@ def hold_folder(folder):
     lock = folder / LOCK_NAME
     while True:
         try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_RDWR)
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_RDWR, 0o644)
             left_behind = False
         except FileExistsError:
             try:
