@@ -36,7 +36,7 @@ from ._runtime import HostReadback, LaunchCache, host_buffer, resolve_device, ru
 from ._validate import QUATERNION_TOLERANCE, as_float64_array, check_barrier_support, check_coordinates, check_count, checked_flag, is_positive_finite, is_real, is_whole, scale_problem, validated_poses
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus, float32_search
 from .rotation import rigid_step_travel
-from .sphere_tree import SphereTree, build_sphere_tree, validated_mesh
+from .sphere_tree import SphereTree, tree_of_validated_mesh, validated_mesh
 
 __all__ = ["CENTRED_WEIGHTS", "ContactEvaluation", "ContactModel", "CONTACT_MODES", "LaggedFriction", "QUATERNION_TOLERANCE", "TermLists", "symmetric_from_upper"]
 
@@ -399,8 +399,8 @@ class ContactModel:
         self._min_chunk_leaf_terms = _MIN_CHUNK_LEAF_TERMS  # tests lower it to split small scenes
 
         trees, triangles = [], []
-        for i, (vertices, faces) in enumerate(meshes):
-            trees.append(build_sphere_tree(vertices, faces, name=self.names[i]))
+        for vertices, faces in meshes:
+            trees.append(tree_of_validated_mesh(vertices, faces))
             triangles.append(vertices[faces])
         self.trees: list[SphereTree] = trees
         self.node_offset = np.cumsum([0] + [t.num_nodes for t in trees])[:-1].astype(np.int32)

@@ -19,7 +19,7 @@ import numpy as np
 
 from ._validate import check_coordinates, extent_problem, real_dtype
 
-__all__ = ["SphereTree", "build_sphere_tree", "validated_mesh"]
+__all__ = ["SphereTree", "build_sphere_tree", "tree_of_validated_mesh", "validated_mesh"]
 
 
 @dataclass(frozen=True)
@@ -86,7 +86,13 @@ def build_sphere_tree(vertices, faces, *, name: str = "mesh") -> SphereTree:
         ValueError: naming the mesh and the problem, for non-numeric input, wrong shapes,
             non-finite vertices, non-integer or out-of-range face indices, or no faces.
     """
-    positions, face_indices = validated_mesh(vertices, faces, name)
+    return tree_of_validated_mesh(*validated_mesh(vertices, faces, name))
+
+
+def tree_of_validated_mesh(positions: np.ndarray, face_indices: np.ndarray) -> SphereTree:
+    """``build_sphere_tree`` of a mesh ``validated_mesh`` returned (float64 positions, int64
+    faces), for callers that validated it already (a contact model checks its bodies first:
+    validating again was a second pass over every mesh)."""
     num_triangles = face_indices.shape[0]
     num_nodes = 2 * num_triangles - 1
 
