@@ -280,11 +280,6 @@ class StepInfo:
     friction_pairs: int
 
 
-def _closest_separation(evaluation) -> float:
-    """The smallest lower bound on a body pair's surface distance (m), inf without pairs."""
-    return float(evaluation.pair_separation.min()) if len(evaluation.pair_separation) else np.inf
-
-
 def retract(poses: np.ndarray, step: np.ndarray) -> np.ndarray:
     """Poses moved by rigid coordinates: p + dp, exp([dtheta]x) R (world axes)."""
     out = poses.copy()
@@ -414,7 +409,7 @@ class ImplicitSolver:
         n = model.num_bodies
         # The contact model's flags, made by finalize: the model's body_dynamic is a writable array.
         self._dynamic = ~model.contact.static
-        # The body pairs whose separation bounds cap a converged step (``_body_gaps``).
+        # The body pairs whose separation bounds cap a converged step (``_pressed``).
         self._pair_bodies = np.asarray(model.contact.body_pairs).reshape(-1, 2) if isinstance(model.contact, ContactModel) else None
         # Per body, tr of its second moment per unit mass (m^2): the size of the rotational
         # inertia term, which L computes as a difference of such terms (``_solve``); read with
@@ -523,16 +518,18 @@ class ImplicitSolver:
             raise ValueError(f"model.articulation.{problem}")
         return mu, friction, mass
 
-    def _body_gaps(self, evaluation) -> np.ndarray | None:
-        """Per body, the smallest separation bound of its contact pairs at ``evaluation`` (m;
-        inf without pairs); None for a contact model without per-pair bounds (ipc's one
-        distance also counts static pairs, which would hold every body to their gap)."""
+    def _pressed(self, travel: np.ndarray, evaluation, rounding_length: float) -> bool:
+        """Whether a body's step ``travel`` (m) exceeds _CONVERGED_GAP_FRACTION of the
+        separation bound of its closest pair at ``evaluation`` (and the coordinates'
+        ``rounding_length``); never for a contact model without per-pair bounds (ipc's one
+        distance also counts static pairs, which would hold every body to their gap). Asked
+        only of steps short enough to converge otherwise."""
         if self._pair_bodies is None:
-            return None
+            return False
         gaps = np.full(self.model.num_bodies, np.inf)
         for side in (0, 1):
             np.minimum.at(gaps, self._pair_bodies[:, side], evaluation.pair_separation)
-        return gaps
+        return bool(np.any(travel > np.maximum(_CONVERGED_GAP_FRACTION * gaps, rounding_length)))
 
     def _friction_frame(self, mu: float, friction: float, dt: float) -> "LaggedFriction | None":
         """Lagged friction data at the configuration the contact model evaluated last (q^t);
@@ -1047,16 +1044,14 @@ class ImplicitSolver:
                 step_length = float(travel.max())
             rounding_length = _ROUNDING * float(np.abs(q[dynamic, :3]).max(initial=0.0))
             converged_length = max(min(tol, _CONVERGED_ACCELERATION * dt * dt, slip_length), rounding_length)
+            # A step the saddle-free floor made short is no convergence (_saddle_free_direction).
+            hidden = 0.0 if floored is None else float(self._step_travel(floored, None if art is None else jacobian)[1].max())
             # Beside a 1/x barrier Newton's step is about half the gap, however unbalanced the
             # force: a box started 4e-11 m above another "converged" at its first step of 2e-11
             # m, pressed by 2e17 N, and stayed there. So no body's step may exceed a fraction
             # of its closest pair's separation (its own: one pressed pair held every body of a
             # scene to its gap).
-            gaps = self._body_gaps(contact)
-            pressed = gaps is not None and bool(np.any(travel > np.maximum(_CONVERGED_GAP_FRACTION * gaps, rounding_length)))
-            # A step the saddle-free floor made short is no convergence (_saddle_free_direction).
-            hidden = 0.0 if floored is None else float(self._step_travel(floored, None if art is None else jacobian)[1].max())
-            if step_length <= converged_length and not pressed:
+            if step_length <= converged_length and not self._pressed(travel, contact, rounding_length):
                 if hidden > converged_length:
                     raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden))
                 converged = True
@@ -1126,7 +1121,7 @@ class ImplicitSolver:
             iterations,
             step_length,
             value,
-            _closest_separation(contact),
+            float(contact.pair_separation.min()) if len(contact.pair_separation) else np.inf,
             friction.pairs if friction is not None else 0,
         )
         return self.last_step, lambda: self._backward_function(state_in, state_out, control, step_in, hess, jacobian, contact.grad, q, q_now, q_prev, (q_solved, q_start))
