@@ -92,11 +92,12 @@ import trimesh
 
 from ._files import replace_file
 from ._validate import MAX_COORDINATE, MAX_FRAMES, QUATERNION_TOLERANCE, checked_flag, is_positive_finite, is_real, real_array, shown, time_step_problem
+from .articulation import frame_in_body
 from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact_setting_problem, coordinate_limits, flat_twice_area
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
 from .leaf import LEAF_PRECISIONS
-from .rotation import pose_inverse, pose_mul, quat_conjugate, quat_from_matrix, quat_mul, quat_rotate, quat_to_matrix, rotation_vector_from_quat
+from .rotation import pose_mul, quat_conjugate, quat_from_matrix, quat_mul, quat_rotate, quat_to_matrix, rotation_vector_from_quat
 
 __all__ = [
     "BodySpec",
@@ -811,13 +812,14 @@ def _frame(matrix) -> np.ndarray:
     return np.array([t[0], t[1], t[2], *(q / np.linalg.norm(q))])
 
 
-def _frame_on_body(prim, body_prim, body_frame: np.ndarray, matrix, UsdGeom, Usd) -> np.ndarray:
+def _frame_on_body(prim, body_prim, body_frame: np.ndarray, matrix, transforms) -> np.ndarray:
     """A collider's frame (``_frame``) in the frame of its rigid body, an ancestor: composed
-    from the transforms between the two, exact where there are none; from the world
-    matrices where the collider resets the transform stack."""
-    relative, reset = UsdGeom.XformCache(Usd.TimeCode.Default()).ComputeRelativeTransform(prim, body_prim)
+    from the transforms between the two (``transforms``, the load's UsdGeom.XformCache),
+    exact where there are none; from the world matrices where the collider resets the
+    transform stack."""
+    relative, reset = transforms.ComputeRelativeTransform(prim, body_prim)
     if reset:
-        return pose_mul(pose_inverse(body_frame), _frame(matrix))
+        return frame_in_body(body_frame, _frame(matrix))
     return _frame(relative)
 
 
@@ -1059,6 +1061,7 @@ def load_scene(path) -> Scene:
     collider_materials: dict[str, list] = {}  # collider path -> its bound physics materials
     planes = []  # (path, world frame in stage units, axis token) of Plane colliders
     shape_kinds = [k for k in descs if k.endswith("Shape")]
+    transforms = UsdGeom.XformCache(Usd.TimeCode.Default())
     for kind in shape_kinds:
         for prim_path, desc in descs[kind]:
             prim = stage.GetPrimAtPath(prim_path)
@@ -1123,7 +1126,7 @@ def load_scene(path) -> Scene:
                 # Both are read from the transforms, in double: localPos / localRot are float32 (a
                 # ground at x = 1000.123456789 moved 1.7e-5 m, and a collider placed there on its
                 # body at the origin overlapped a ground 1e-5 m from it).
-                local_pose = _frame(matrix) if not owner else _frame_on_body(prim, stage.GetPrimAtPath(owner), owner_frame, matrix, UsdGeom, Usd)
+                local_pose = _frame(matrix) if not owner else _frame_on_body(prim, stage.GetPrimAtPath(owner), owner_frame, matrix, transforms)
                 local_pose[3:] /= np.linalg.norm(local_pose[3:])
                 local_pose[:3] *= meters
                 vertices = vertices * meters
