@@ -17,7 +17,7 @@ from .hull import convex_hull_mesh
 from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
 from ._validate import MAX_COORDINATE, gap_problem
-from .leaf import DEFAULT_MAX_ITERATIONS, LEAF_PRECISIONS, float32_search, leaf_solve_buffers
+from .leaf import DEFAULT_MAX_ITERATIONS, LEAF_PRECISIONS, float32_search, leaf_solve_buffers, leaf_solve_bytes_per_pair
 from .rotation import quat_rotate
 
 __all__ = [
@@ -111,7 +111,7 @@ def _write_csv(path: Path, rows: list[dict]):
             writer.writeheader()
             for row in rows:
                 # Non-finite numbers are empty cells, as they are null in the JSON (the CSV had nan and inf).
-                cells = {k: json_ready(v) for k, v in row.items()}
+                cells = json_ready(row)
                 writer.writerow({k: ("" if v is None else json.dumps(v, allow_nan=False) if isinstance(v, (list, dict)) else v) for k, v in cells.items()})
 
     replace_file(path, write)
@@ -134,11 +134,6 @@ def _relative_errors(approx: np.ndarray, reference: np.ndarray) -> tuple[float, 
     return (float(np.median(err)), float(err.max())) if err.size else (0.0, 0.0)
 
 
-# A leaf benchmark pair's buffers: two triangles (mat33d), value, plane, status, iterations,
-# gradient (6 vec3d) and Hessian (6 x 6 mat33d).
-_LEAF_BYTES_PER_PAIR = 2 * 72 + 8 + 32 + 4 + 4 + 6 * 24 + 36 * 72
-
-
 def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, seed: int = 0, precisions=("float64",)) -> dict:
     """Time batched leaf solves (value only, and value + gradient + Hessian) for each plane
     search precision; rows after the first also give their errors against the first
@@ -151,7 +146,8 @@ def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, s
             tri_a, tri_b, value, plane, status, iterations, grad, hess = leaf_solve_buffers(A, B, 6)
         except (RuntimeError, MemoryError):
             # The largest --pairs (10 million) needs 29 GB: a traceback on a machine with less.
-            raise ValueError(f"pairs: {num_pairs} pairs need {num_pairs * _LEAF_BYTES_PER_PAIR / 1e9:.3g} GB of buffers on {dev} ({_LEAF_BYTES_PER_PAIR} bytes a pair), more than it could allocate; ask for fewer") from None
+            per_pair = leaf_solve_bytes_per_pair(6)
+            raise ValueError(f"pairs: {num_pairs} pairs need {num_pairs * per_pair / 1e9:.3g} GB of buffers on {dev} ({per_pair} bytes a pair), more than it could allocate; ask for fewer") from None
 
         def launch(search32: bool, derivatives: bool):
             wp.launch(
@@ -304,7 +300,7 @@ def run_contact_benchmark(
             for mode, eps, weight in [("brute", None, None)] + [("bsh", e, w) for w in centred_weights for e in eps_values]:
                 model = ContactModel(scene["meshes"], mode=mode, eps=eps or 1.0, centred_weight=weight or "paper", device=dev)
                 result = model.evaluate(scene["poses"])  # warm-up: compile and size buffers
-                if result.unsolved_pairs or result.contact_pairs or not np.isfinite(result.value):
+                if not result.ok or not np.isfinite(result.value):
                     # Rows were written from an unsolved reference (value inf, forces 0) and the run exited 0.
                     raise ValueError(f"gaps: at {scene['gap']:g} m, {mode}'s evaluation of {scene['scene']} is not finite (unsolved pairs: {result.unsolved_pairs[:3]})")
                 seconds = _median_seconds(lambda: model.evaluate(scene["poses"]), repeats)

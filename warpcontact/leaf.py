@@ -16,6 +16,7 @@ __all__ = [
     "TrianglePairPotential",
     "triangle_pair_potential",
     "leaf_solve_buffers",
+    "leaf_solve_bytes_per_pair",
     "centered_potential",
     "quintic_blend",
 ]
@@ -146,22 +147,33 @@ def triangle_pair_potential(
     )
 
 
+def _leaf_solve_layout(columns: int) -> tuple:
+    """(dtype, shape per pair) of each array of ``leaf_solve_buffers``."""
+    return (
+        (wp.mat33d, ()),
+        (wp.mat33d, ()),
+        (wp.float64, ()),
+        (wp.vec4d, ()),
+        (wp.int32, ()),
+        (wp.int32, ()),
+        (wp.vec3d, (columns,)),
+        (wp.mat33d, (columns, columns)),
+    )
+
+
 def leaf_solve_buffers(a: np.ndarray, b: np.ndarray, columns: int) -> tuple:
     """The arrays of a batched ``leaf_potential_kernel`` launch on the current device: the
     (n, 3, 3) triangles ``a`` and ``b`` as mat33d, then its outputs: value, plane, status,
     iterations, gradient (n, ``columns``) vec3d and Hessian (n, ``columns``, ``columns``)
-    mat33d blocks (``columns`` 6 with derivatives, else 0)."""
+    mat33d blocks (``columns`` 6 with derivatives, else 0); the outputs are zeroed."""
     n = len(a)
-    return (
-        wp.array(a, dtype=wp.mat33d),
-        wp.array(b, dtype=wp.mat33d),
-        wp.empty(n, dtype=wp.float64),
-        wp.empty(n, dtype=wp.vec4d),
-        wp.empty(n, dtype=wp.int32),
-        wp.empty(n, dtype=wp.int32),
-        wp.zeros((n, columns), dtype=wp.vec3d),
-        wp.zeros((n, columns, columns), dtype=wp.mat33d),
-    )
+    (a_type, _), (b_type, _), *outputs = _leaf_solve_layout(columns)
+    return (wp.array(a, dtype=a_type), wp.array(b, dtype=b_type), *(wp.zeros((n, *shape), dtype=dtype) for dtype, shape in outputs))
+
+
+def leaf_solve_bytes_per_pair(columns: int) -> int:
+    """The bytes ``leaf_solve_buffers`` takes per triangle pair."""
+    return sum(wp.types.type_size_in_bytes(dtype) * int(np.prod(shape)) for dtype, shape in _leaf_solve_layout(columns))
 
 
 def _evaluate_scalar_kernel(kernel, x: np.ndarray, device):

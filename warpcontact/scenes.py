@@ -184,7 +184,8 @@ def ground_rectangle(size_x: float, size_y: float, cell: float | None = None, ce
     # vertices named as "vertex 0" by the builder; a cell of 1e-9 m asked for 6.9 EiB.
     _require(is_positive_finite(size_x), "size_x", "positive and finite (m)", size_x)
     _require(is_positive_finite(size_y), "size_y", "positive and finite (m)", size_y)
-    _require(real_array(centre) is not None and np.shape(centre) == (2,) and np.isfinite(real_array(centre)).all(), "centre", "2 finite numbers (m)", centre)
+    centre_values = real_array(centre)
+    _require(centre_values is not None and centre_values.shape == (2,) and np.isfinite(centre_values).all(), "centre", "2 finite numbers (m)", centre)
     _require(cell is None or is_positive_finite(cell), "cell", "positive and finite (m), or None", cell)
     nx, ny = (1, 1) if cell is None else (max(1, int(round(size_x / cell))), max(1, int(round(size_y / cell))))
     _require(nx * ny <= _MAX_GROUND_CELLS, "cell", f"at least {np.sqrt(size_x * size_y / _MAX_GROUND_CELLS):.3g} m for this size (at most {_MAX_GROUND_CELLS:,} cells)", cell)
