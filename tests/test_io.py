@@ -2294,3 +2294,65 @@ def test_save_scene_takes_numpy_settings_and_broadcast_joint_values(tmp_path):
     hinge = io.JointSpec("hinge", "/World/joints/hinge", "revolute", None, "arm", world, np.array([0.0, 0.0, 0.2, 0.0, 0.0, 0.0, 1.0]), axes=np.array([[1.0, 0.0, 0.0]]), limits=(-0.3, 0.3))
     io.save_scene(io.Scene(bodies=[arm], joints=[hinge]), tmp_path / "hinge.usda")
     np.testing.assert_allclose(io.load_scene(tmp_path / "hinge.usda").build_model().articulation.lower, [-0.3], rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("joint", "attribute"),
+    [
+        ("RevoluteJoint", "drive:angular:physics:stiffness"),
+        ("RevoluteJoint", "drive:angular:physics:targetPosition"),
+        ("D6", "limit:transX:physics:low"),
+    ],
+)
+def test_a_joint_drive_or_limit_animated_is_refused(tmp_path, joint, attribute):
+    """Multiple-apply schema attributes were not among those a load checks: a drive gain in
+    time samples alone loaded as 0, a locked D6 axis's limit as free, and a drive target
+    animated over the frames was held at its default; all without a word."""
+    path = tmp_path / "hinge.usda"
+    stage = _hinge_stage(path, joint=joint, target=5.0)
+    attr = stage.GetPrimAtPath("/World/hinge").GetAttribute(attribute)
+    value = attr.Get()
+    attr.Clear()
+    attr.Set(value, 0.0)
+    _load_refused(stage, path, f"prim /World/hinge: /World/hinge.{attribute} is animated \\(time samples or a spline\\) but has no default value")
+    attr.Set(value)
+    attr.Set(value + 10.0, 20.0)
+    _load_refused(stage, path, f"prim /World/hinge: {attribute} is animated, but a {'D6Joint' if joint == 'D6' else joint}'s values are read once")
+    attr.Clear()
+    attr.Set(value)
+    attr.Set(value, 0.0)  # one sample equal to the default, as exporters write a constant
+    stage.GetRootLayer().Save()
+    assert len(io.load_scene(path).joints) == 1
+
+
+def test_a_disabled_body_inside_an_enabled_one_gives_it_its_colliders(tmp_path):
+    """UsdPhysics gives the colliders under a disabled body to the nearest enabled body above
+    it; the disabled one, left with none, was refused as "rigid body has no collider"."""
+    path = write_physics_scene(tmp_path / "nested.usda", drop_height=3.0)
+    stage = Usd.Stage.Open(str(path))
+    inner = UsdGeom.Xform.Define(stage, "/World/box/inner")
+    inner.AddTranslateOp().Set(Gf.Vec3d(0.6, 0.0, 0.0))
+    UsdPhysics.RigidBodyAPI.Apply(inner.GetPrim()).CreateRigidBodyEnabledAttr(False)
+    _cube_collider(stage, "/World/box/inner/shape", 0.2, (0.0, 0.0, 0.0))
+    stage.GetRootLayer().Save()
+    scene = io.load_scene(path)
+    assert [b.name for b in scene.bodies] == ["ground", "box"]
+    assert len(scene.body("box").faces) == 24  # its own cube and the inner one
+    np.testing.assert_allclose(scene.body("box").vertices[:, 0].max() - scene.body("box").vertices[:, 0].min(), 0.25 + 0.7, atol=1e-9)
+    hinge = UsdPhysics.RevoluteJoint.Define(stage, "/World/hinge")
+    hinge.CreateAxisAttr("Y")
+    hinge.CreateBody1Rel().SetTargets(["/World/box/inner"])
+    stage.GetRootLayer().Save()
+    assert io.load_scene(path).joints[0].child == "box"  # UsdPhysics' resolution, as for the colliders
+
+
+def test_every_world_weld_of_a_body_is_checked(tmp_path):
+    """Only the last of two fixed joints welding one body was checked: a contradicting weld
+    authored first loaded, holding the body where the other put it."""
+    path = write_physics_scene(tmp_path / "welded.usda", drop_height=3.0)
+    stage = Usd.Stage.Open(str(path))
+    for name, x in (("wrong", 5.1), ("right", 0.1)):
+        weld = UsdPhysics.FixedJoint.Define(stage, f"/World/{name}")
+        weld.CreateBody1Rel().SetTargets(["/World/box"])
+        weld.CreateLocalPos0Attr(Gf.Vec3f(x, 0.0, 3.0))
+    _load_refused(stage, path, "prim /World/wrong: the fixed joint's frames on /World/box and on the world disagree by 5 m")

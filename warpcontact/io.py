@@ -734,9 +734,16 @@ def _require_default_values(prim, UsdGeom, Usd, source: str) -> None:
     missing and silently counted as its fallback (a body authored at z = 1 m in samples
     loaded at the origin; a sampled mass of 7 kg gave the default density's, a sampled Cube
     size of 0.5 the fallback 2)."""
-    read = [attr for attr in prim.GetAttributes() if attr.GetName().startswith(_READ_PREFIXES) or attr.GetName() in _READ_GEOMETRY]
-    for attr in (*_transform_attributes(prim, UsdGeom), *read):
+    for attr in (*_transform_attributes(prim, UsdGeom), *_read_attributes(prim)):
         _require_default_value(attr, Usd, f"{source}: prim {prim.GetPath()}")
+
+
+def _read_attributes(prim) -> list:
+    """The attributes of ``prim`` a load reads besides its transform: the physics and
+    warpcontact ones, those of multiple-apply schemas (``drive:angular:physics:stiffness``,
+    ``limit:rotY:physics:low``: time-sampled alone, a drive's gain loaded as 0 and a locked
+    D6 axis as free) and a collider's geometry."""
+    return [attr for attr in prim.GetAttributes() if attr.GetName().startswith(_READ_PREFIXES) or ":physics:" in attr.GetName() or attr.GetName() in _READ_GEOMETRY]
 
 
 def _require_default_value(attr, Usd, where: str) -> None:
@@ -767,6 +774,16 @@ def _disabled_owner(prim, disabled: set, UsdPhysics) -> str:
             return ""
         ancestor = ancestor.GetParent()
     return ""
+
+
+def _enabled_body_above(prim, disabled: set, UsdPhysics) -> bool:
+    """Whether an enabled rigid body (not in ``disabled``) lies above ``prim``."""
+    ancestor = prim.GetParent()
+    while ancestor and not ancestor.IsPseudoRoot():
+        if ancestor.HasAPI(UsdPhysics.RigidBodyAPI) and str(ancestor.GetPath()) not in disabled:
+            return True
+        ancestor = ancestor.GetParent()
+    return False
 
 
 def _animated(prim, UsdGeom) -> bool:
@@ -967,7 +984,16 @@ def load_scene(path) -> Scene:
     for kind, items in descs.items():
         if kind == "Scene" or kind.endswith("Joint"):
             for prim_path, _ in items:
-                _require_default_values(stage.GetPrimAtPath(prim_path), UsdGeom, Usd, source)
+                prim = stage.GetPrimAtPath(prim_path)
+                _require_default_values(prim, UsdGeom, Usd, source)
+                # A drive target animated over the frames was held at its default silently.
+                animated = [attr for attr in _read_attributes(prim) if _moves(attr)]
+                if animated:
+                    raise ValueError(
+                        f"{source}: prim {prim_path}: {animated[0].GetName()} is animated, but a {kind}'s values are read once, at the "
+                        "default time (they would be held there); remove the animation"
+                        + (" (a joint's targets over time are a Control's joint_target)" if kind.endswith("Joint") else "")
+                    )
 
     # Gravity: the PhysicsScene's, else standard gravity along -up.
     gravity = np.array([0.0, 0.0, -9.81]) if up == UsdGeom.Tokens.z else np.array([0.0, -9.81, 0.0])
@@ -1154,8 +1180,15 @@ def load_scene(path) -> Scene:
         offsets = np.cumsum([0] + [len(vertices) for vertices, _ in pieces[:-1]])
         target.vertices = np.concatenate([vertices for vertices, _ in pieces])
         target.faces = np.concatenate([faces + offset for (_, faces), offset in zip(pieces, offsets)])
-    for body_path, (joint_path, desc) in welds.items():
-        _check_weld(stage, bodies[body_path], joint_path, desc, static_bodies, meters, UsdGeom, Usd, source)
+    for body_path, body_welds in welds.items():
+        for joint_path, desc in body_welds:
+            _check_weld(stage, bodies[body_path], joint_path, desc, static_bodies, meters, UsdGeom, Usd, source)
+    # UsdPhysics gives a disabled body's colliders to the nearest enabled body above it (its
+    # MassAPI): one left with none is not simulated and has nothing to load (it was refused
+    # as having no collider). UsdPhysics takes a joint to it to that body too.
+    for path in disabled:
+        if len(bodies[path].faces) == 0 and _enabled_body_above(stage.GetPrimAtPath(path), disabled, UsdPhysics):
+            del bodies[path]
     others = [*bodies.values(), *static_bodies.values()]  # without the planes: each sized by the rest alone
     for path, frame, axis in planes:
         static_bodies[path] = _plane_body(path, frame, axis, meters, others)
@@ -1233,7 +1266,7 @@ def _axis_token(value) -> str:
 
 
 def _world_welds(descs: dict, source: str) -> dict:
-    """{rigid body path: (joint path, desc)} of the enabled FixedJoints that weld a rigid body
+    """{rigid body path: [(joint path, desc), ...]} of the enabled FixedJoints that weld a rigid body
     to the world (or to a collider without a rigid body): such a body never moves, so it
     loads as a static body (an articulated robot's fixed base). A fixed joint between two
     rigid bodies is refused: merge them into one body."""
@@ -1246,7 +1279,9 @@ def _world_welds(descs: dict, source: str) -> dict:
         if len(moving) != 1:
             what = "joins two rigid bodies (merge them into one body)" if moving else "joins no rigid body"
             raise ValueError(f"{source}: prim {prim_path}: this fixed joint {what}; fixed joints are supported only to the world")
-        welds[moving[0]] = (str(prim_path), desc)
+        # Every weld of a body is checked: keeping the last one let a contradicting weld
+        # authored before it through.
+        welds.setdefault(moving[0], []).append((str(prim_path), desc))
     return welds
 
 
