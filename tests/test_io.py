@@ -1,5 +1,6 @@
 """USD import / export: hand-written UsdPhysics scenes, round trips, trajectories, errors."""
 
+import re
 import warnings
 
 import numpy as np
@@ -158,6 +159,13 @@ def test_an_authored_centre_of_mass_and_inertia_count_with_a_mass_from_density(t
     np.testing.assert_allclose(io.model_to_scene_poses(scene, model, q)[0, 1], scene.body("box").pose, atol=1e-12)
     with pytest.raises(ValueError, match=r"body_q: expected \(\.\.\., 2, 7\) poses of a model of the scene's 2 bodies, got shape \(1, 3, 7\)"):
         io.model_to_scene_poses(scene, model, np.zeros((1, 3, 7)))  # an IndexError before
+    # A quaternion at another norm (the step keeps a static body's as given) turns the centre
+    # of mass's offset as its unit quaternion does (a probe: a plate 2 m off its frame at 4 m).
+    turned = q.copy()
+    turned[..., 3:] = [0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)]
+    scaled = turned.copy()
+    scaled[..., 3:] *= 1.7
+    np.testing.assert_allclose(io.model_to_scene_poses(scene, model, scaled)[..., :3], io.model_to_scene_poses(scene, model, turned)[..., :3], rtol=0, atol=1e-12)
 
 
 def test_a_usd_write_that_fails_is_an_os_error_naming_the_file(tmp_path):
@@ -2063,6 +2071,30 @@ def test_overwrite_must_be_a_flag(tmp_path):
     with pytest.raises(ValueError, match="overwrite: expected True/False"):
         io.save_scene(build_scene("push"), path, overwrite="False")
     assert path.read_text() == "keep"
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda s: setattr(s.bodies[1], "mass", 1e40), r"prim /World/cue: mass must be positive \(or 0: not specified\), got inf"),
+        (lambda s: setattr(s.bodies[1], "linear_velocity", np.array([1e39, 0.0, 0.0])), r"prim /World/cue: physics:velocity must be finite"),
+        (lambda s: s.bodies[1].__dict__.update(target_position=np.zeros(3), target_tolerance=-1.0), r"prim /World/cue: warpcontact:target:tolerance must be >= 0"),
+        (lambda s: setattr(s.bodies[1], "inertia", -np.eye(3)), r"prim /World/cue: "),
+    ],
+)
+def test_save_scene_never_writes_a_file_load_scene_refuses(tmp_path, change, message):
+    """Found by a probe: each of these was written, with overwrite over a good file, and the
+    file was then refused at load (a float32 mass or velocity overflowing to inf)."""
+    from warpcontact.scenes import build_scene
+
+    scene = build_scene("billiards_512")
+    path = tmp_path / "scene.usda"
+    io.save_scene(scene, path)
+    good = path.read_bytes()
+    change(scene)
+    with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: not written, as load_scene would refuse it \(values the schemas type as float are written as float32\): {message}"):
+        io.save_scene(scene, path, overwrite=True)
+    assert path.read_bytes() == good and [p.name for p in tmp_path.iterdir()] == ["scene.usda"]
 
 
 @pytest.mark.parametrize(

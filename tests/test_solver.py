@@ -375,6 +375,48 @@ def test_without_friction_no_friction_work_is_done():
     assert solver.last_step.friction_pairs == 0
 
 
+def test_friction_with_no_pairs_and_absent_ball_joints_cost_nothing(monkeypatch):
+    """Found by a probe: with a friction coefficient and no friction pairs, every evaluation
+    still summed the friction terms (zeros; 0.9 ms an evaluation at 64 bodies), and every
+    step computed the frames of the ball joints a scene without any has (0.24 ms)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e-6, friction=0.5)
+    b.add_box((0.5, 0.5, 0.5), density=500.0, name="a", pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    b.add_box((0.5, 0.5, 0.5), density=500.0, name="b", pose=(10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    calls = []
+    monkeypatch.setattr(model.contact, "friction_terms", lambda *args, **kwargs: calls.append(args))
+    monkeypatch.setattr(type(model.articulation), "_ball_frames", lambda *args: calls.append(args))
+    first = model.state(requires_grad=False)
+    wc.set_body_velocity(first, wp.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(2, dtype=wp.vec3d), 0.04)
+    q, solver = rollout(model, 3, 0.04, first=first)
+    assert solver.last_step.friction_pairs == 0 and calls == []
+    assert q[-1, 0, 0] > 0.1  # it moved
+
+
+def test_the_pass_through_scan_is_skipped_when_no_body_moves_far_enough(monkeypatch):
+    """Found by a probe: the scan over every body pair (0.4-0.7 ms) ran at each step of a
+    resting scene. No pair can be suspect while twice the largest centre shift is under
+    _PASS_THROUGH_TRAVEL of the smallest radius; above it the scan runs (and refuses)."""
+    from warpcontact import solver as solver_module
+
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e-6)
+    b.add_box((0.4, 0.4, 0.4), density=500.0, name="left", pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    b.add_box((0.4, 0.4, 0.4), density=500.0, name="right", pose=(0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    solver = wc.ImplicitSolver(model)
+    q = model.state(requires_grad=False).body_q.numpy()
+    bound = solver_module._PASS_THROUGH_TRAVEL * model.body_radius.min() / 2.0
+    scans = []
+    real = solver_module.rigid_step_between
+    monkeypatch.setattr(solver_module, "rigid_step_between", lambda *args: scans.append(1) or real(*args))
+    still = q.copy()
+    still[0, 0] += 0.99 * bound
+    assert solver._pass_through(q, still, 0.04) is None and scans == []
+    through = q.copy()
+    through[0, 0] += 1.0  # the left box's centre ends inside the right one
+    assert "pass through each other" in solver._pass_through(q, through, 0.04) and scans == [1]
+
+
 def test_fast_impact_on_thin_wall_never_tunnels():
     b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e-6)
     b.add_box((0.05, 3.0, 3.0), static=True, name="wall", pose=(2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
@@ -526,6 +568,28 @@ def test_model_parameters_changed_after_finalize_are_checked_by_the_step(change,
     change(model)
     with pytest.raises(ValueError, match=message):
         wc.ImplicitSolver(model).step(first, model.state(requires_grad=False), None, 0.04)
+
+
+@pytest.mark.parametrize(
+    ("name", "replacement", "got"),
+    [
+        ("body_mass", lambda m: wp.array(m.body_mass.numpy(), dtype=wp.float32), r"float32 array of shape \(2,\)"),
+        ("body_mass", lambda m: m.body_mass.numpy(), "ndarray"),
+        ("body_mass", lambda m: wp.array(np.ones(3), dtype=wp.float64), r"float64 array of shape \(3,\)"),
+        ("friction", lambda m: wp.zeros(0, dtype=wp.float64), r"float64 array of shape \(0,\)"),
+        ("contact_stiffness", lambda m: wp.array([1e-7, 5.0], dtype=wp.float64), r"float64 array of shape \(2,\)"),
+        ("body_dynamic", lambda m: wp.array(m.body_dynamic.numpy(), dtype=wp.int64), r"int64 array of shape \(2,\)"),
+    ],
+)
+def test_model_arrays_replaced_by_other_kinds_of_array_are_named(name, replacement, got):
+    """Found by a probe: a float32 or numpy mass failed inside Warp's struct or the readback,
+    a mass of 3 bodies in a numpy broadcast, an empty friction with an IndexError; a second
+    contact stiffness was ignored."""
+    model, first = _box_thrown_at_a_plate((0.0, 0.0, 0.0), start=(0.0, 0.0, 0.2 + 1e-4))
+    solver = wc.ImplicitSolver(model)
+    setattr(model, name, replacement(model))
+    with pytest.raises(ValueError, match=rf"model.{name}: expected a \w+ wp.array of shape \(\d*,?\) on cpu, as the model was built, got {got}"):
+        solver.step(first, model.state(requires_grad=False), None, 0.04)
 
 
 def test_scales_at_the_edges_of_float64_are_named_and_a_float32_dt_is_taken():

@@ -635,6 +635,8 @@ class ArticulationModel:
         """Relative rotations (nball, 4) of the ball joints at ``poses`` (nbodies, 7): unit
         quaternions (x, y, z, w) of the child's joint frame in the parent's joint frame (the
         world's for a joint to the world), the convention of ``Control.ball_target``."""
+        if not self.num_ball_joints:
+            return np.zeros((0, 4))  # read every step: the frames of no joints cost 0.24 ms
         return _relative_rotation(*self._ball_frames(poses))
 
     def _ball_drive_matrices(self, poses: np.ndarray, target: np.ndarray, start: np.ndarray, dt: float, gains: tuple | None = None):

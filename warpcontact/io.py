@@ -2272,6 +2272,16 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
         for j in scene.joints:
             _author_joint(stage, j, Gf, UsdPhysics)
         stage.GetRootLayer().Save()
+        # The file is held to the loader's rules themselves before it replaces anything: a
+        # mass of 1e40 (inf once a float32), a negative target tolerance or a NaN inertia was
+        # written, over a good file with overwrite, and refused at load.
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                load_scene(tmp)
+            except ValueError as exc:
+                reason = str(exc).replace(f"{tmp}: ", "", 1).replace(str(tmp), str(path))
+                raise ValueError(f"{path}: not written, as load_scene would refuse it (values the schemas type as float are written as float32): {reason}") from None
 
     _atomic_save(write, path, overwrite)
 
@@ -2507,6 +2517,9 @@ def model_to_scene_poses(scene: Scene, model, body_q) -> np.ndarray:
     if body_q.ndim < 2 or body_q.shape[-2:] != (len(scene.bodies), 7) or model.num_bodies != len(scene.bodies):
         raise ValueError(f"body_q: expected (..., {len(scene.bodies)}, 7) poses of a model of the scene's {len(scene.bodies)} bodies, got shape {body_q.shape} for a model of {model.num_bodies}")
     out = body_q.copy()
+    # The step keeps a static body's quaternion at the norm it was given: rotating by it
+    # unnormalised put a plate 2 m off its frame at 4 m.
+    rotations = body_q[..., 3:] / np.linalg.norm(body_q[..., 3:], axis=-1, keepdims=True)
     for i in range(len(scene.bodies)):
-        out[..., i, :3] = body_q[..., i, :3] - quat_rotate(body_q[..., i, 3:], model.body_center_of_mass[i])
+        out[..., i, :3] = body_q[..., i, :3] - quat_rotate(rotations[..., i, :], model.body_center_of_mass[i])
     return out

@@ -151,7 +151,12 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
     (1 m/s set for 0.04 s steps moves at 4 m/s in 0.01 s steps). To change dt mid-run, set
     the velocities again for the new dt. Two poses tell turns apart only below half a turn a
     step, so |angular velocity| * dt must stay below pi (ValueError naming the body: by
-    ``body_names``, e.g. ``model.body_names``, where given, else by index).
+    ``body_names``, e.g. ``model.body_names``, where given, else by index). A jointed body's
+    velocities should be a motion its joints allow: the step keeps only the part they allow,
+    weighted by the bodies' inertia, as an impulse would (a rod hinged at its end and given 2
+    rad/s about its centre, no linear velocity, turns at 0.5 rad/s about the hinge), and says
+    nothing: two poses a step apart cannot tell a disallowed velocity from an allowed one's
+    second-order arc.
 
     Args:
         linear_velocity: (nbodies,) vec3d centre-of-mass velocities (m/s).
