@@ -118,14 +118,24 @@ def test_an_infeasible_iterate_takes_no_place_in_the_sigma_schedule():
 
     sigmas = np.array([0.5, 0.25, 0.125])
     estimate = bundled_gradient(rollout, sigmas=sigmas, samples=2, rng=np.random.default_rng(3))
-    estimate(np.array([[0.0]]))
+    estimate(np.array([[0.5]]))
     with pytest.raises(ValueError):
         estimate(np.array([[2.0]]))
     assert estimate.calls == 1
-    _, grad, _ = estimate(np.array([[0.0]]))
+    _, grad, _ = estimate(np.array([[0.5]]))
     rng = np.random.default_rng(3)
     rng.standard_normal((2, 1, 1))
-    np.testing.assert_allclose(grad, np.mean(2.0 * sigmas[1] * rng.standard_normal((2, 1, 1)), axis=0))
+    np.testing.assert_allclose(grad, np.mean(2.0 * (0.5 + sigmas[1] * rng.standard_normal((2, 1, 1))), axis=0))
+
+
+def test_a_zero_loss_draws_no_bundle():
+    """A zero loss is success, where the descent stops: its bundle (samples rollouts, each
+    with a backward pass) was drawn to be dropped (a probe)."""
+    estimate = bundled_gradient(quadratic, sigmas=np.array([0.5, 0.25]), samples=4, rng=np.random.default_rng(7))
+    state = estimate.__dict__.copy()
+    loss, grad, _ = estimate(np.array([[0.0, 0.0]]))
+    assert loss == 0.0 and np.array_equal(grad, np.zeros((1, 2)))
+    assert estimate.calls == 0 and estimate.__dict__ == state
 
 
 def test_a_loss_only_call_draws_no_bundle():

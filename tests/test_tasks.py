@@ -173,6 +173,26 @@ def test_descent_stops_at_success():
     assert result.iterations == len(result.loss_history) < 10
 
 
+@pytest.mark.parametrize("model", ["ours", "gb"])
+def test_a_window_at_success_costs_one_rollout_and_no_backward_pass(monkeypatch, model):
+    """Found by a probe: a descent whose first rollout already met every target still ran a
+    backward pass (ours) or drew a whole bundle (gb: 8 more rollouts, each with its backward
+    pass) for a gradient it never used; receding windows after success paid it each."""
+    scene = space_billiards()
+    scene.bodies[0].control_dofs = ("vx", "vy")
+    scene.bodies[1].target_tolerance = 10.0  # met at the start
+    backward = []
+    real = wp.Tape.backward
+    monkeypatch.setattr(wp.Tape, "backward", lambda tape, *args, **kwargs: backward.append(1) or real(tape, *args, **kwargs))
+    rollouts = []
+    real_rollout = TaskProblem.rollout
+    monkeypatch.setattr(TaskProblem, "rollout", lambda problem, *args, **kwargs: rollouts.append(1) or real_rollout(problem, *args, **kwargs))
+    settings = TaskSettings(horizon=6, receding_horizon=0, iterations=5, learning_rate=1.0)
+    result = TaskProblem(scene, settings=settings, model=model).optimize()
+    assert result.success and result.loss_history == [0.0]
+    assert backward == [] and len(rollouts) == 1
+
+
 def test_infeasible_updates_are_undone():
     """Position offsets can push the cue ball into the target ball; such steps are rejected."""
     result = TaskProblem(space_billiards()).optimize()
@@ -618,7 +638,14 @@ def test_cli_stride_reaches_the_settings_and_is_checked_against_the_window(tmp_p
     assert main(["run", str(scene_path), "--stride", "2", "--iters", "1", "--out", str(tmp_path / "out")]) == 0
     assert "window 2 executed 2 frame(s) at a time" in capsys.readouterr().out
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
-    assert metrics["receding_stride"] == 2 and len(metrics["loss_history"]) == 2
+    assert metrics["receding_stride"] == 2 and metrics["window"] == 2 and len(metrics["loss_history"]) == 2
+    # An authored receding horizon not shorter than the horizon leaves one window: the
+    # metrics said "receding horizon 10, stride 2" for a one-window run (a probe).
+    scene.task.receding_horizon = 10
+    io.save_scene(scene, scene_path, overwrite=True)
+    assert main(["run", str(scene_path), "--iters", "1", "--out", str(tmp_path / "one")]) == 0
+    metrics = json.loads((tmp_path / "one" / "metrics.json").read_text())
+    assert (metrics["receding_horizon"], metrics["window"], metrics["receding_stride"]) == (10, 4, None)
     with pytest.raises(SystemExit):
         main(["run", str(scene_path), "--stride", "0", "--out", str(tmp_path / "bad")])
 
@@ -906,6 +933,9 @@ def test_a_checkpoint_is_never_overwritten_or_resumed_into_another_problem(tmp_p
         TaskProblem(make_scene(), settings=other).optimize(checkpoint=checkpoint, resume=True)
     with pytest.raises(ValueError, match="checkpoint of another problem .*model: 'ours' saved, 'sdrs' now"):
         TaskProblem(make_scene(), settings=settings, model="sdrs").optimize(checkpoint=checkpoint, resume=True)
+    # A yaw turns about the stage's up axis: the same bodies on a Y-up stage are another problem (a probe).
+    with pytest.raises(ValueError, match="checkpoint of another problem .*up_axis: None saved, 'Y' now"):
+        TaskProblem(dataclasses.replace(make_scene(), up_axis="Y"), settings=settings).optimize(checkpoint=checkpoint, resume=True)
     assert checkpoint.read_bytes() == saved
     with pytest.raises(ValueError, match="missing.npz: no checkpoint to resume"):
         TaskProblem(make_scene(), settings=settings).optimize(checkpoint=tmp_path / "missing.npz", resume=True)

@@ -80,7 +80,7 @@ def bundled_gradient(rollout, *, sigmas: np.ndarray, samples: int, rng: np.rando
     with sigma = sigmas[k] (the last sigma once the schedule is used up), and the loss and
     trajectory at ``values`` itself. A call with ``gradient=False`` (the descent's last
     iterate, which is only evaluated) runs the one rollout at ``values``, draws nothing and
-    returns no gradient. A call whose rollout at ``values`` fails (an update the descent then
+    returns no gradient, and so does one whose loss there is 0 (a zero gradient). A call whose rollout at ``values`` fails (an update the descent then
     halves back) takes no place in the schedule: it used to, so each one skipped a sigma. The
     count of bundles drawn so far is the attribute ``calls`` (a checkpoint saves and
     restores it). ``tally``, if given, counts the samples drawn (``bundle_samples``) and
@@ -92,6 +92,10 @@ def bundled_gradient(rollout, *, sigmas: np.ndarray, samples: int, rng: np.rando
         loss, _, trajectory = rollout(values, gradient=False)
         if not gradient:
             return loss, None, trajectory
+        if loss == 0.0:
+            # Success: the descent stops here, and a bundle (samples rollouts with their
+            # backward passes) would only be drawn to be dropped; none is counted.
+            return loss, np.zeros(np.shape(values)), trajectory
         estimate.calls += 1
         total = np.zeros_like(values, dtype=np.float64)
         feasible = 0

@@ -283,10 +283,14 @@ def _result_metrics(result) -> dict:
 
 def _settings_metrics(settings, args, models) -> dict:
     """The optimisation settings of a run or compare, with ipc's stiffness when ipc runs."""
+    receding = settings.window < settings.horizon
     return {
         "horizon": settings.horizon,
         "receding_horizon": settings.receding_horizon,
-        "receding_stride": settings.receding_stride,
+        # The window each descent optimised: the horizon where the receding horizon is 0 or
+        # not shorter (an authored 10 over 6 frames read as a receding run of stride 2).
+        "window": settings.window,
+        "receding_stride": settings.receding_stride if receding else None,
         "learning_rate": settings.learning_rate,
         # The Adam iterations asked for per window; "iterations" counts those run.
         "iterations_per_window": settings.iterations,

@@ -797,14 +797,19 @@ class TaskProblem:
                 device=device,
             )
         grad = None
-        if gradient:
+        loss_value = float(loss.numpy()[0])
+        if gradient and loss_value == 0.0:
+            # Every target's ReLU term is 0: so is the gradient, without a backward pass (a
+            # descent stops there; each receding window after success ran one).
+            grad = np.zeros(shape)
+        elif gradient:
             backward_start = time.perf_counter()
             tape.backward(loss)
             grad = values_arr.grad.numpy().reshape(shape)
             if timings is not None:
                 timings["backward_seconds"] = time.perf_counter() - backward_start
         trajectory = np.array([s.body_q.numpy() for s in states])
-        return float(loss.numpy()[0]), grad, trajectory
+        return loss_value, grad, trajectory
 
     # --- optimisation ---------------------------------------------------------------------
 
@@ -1020,6 +1025,9 @@ class TaskProblem:
                     # Only where the run samples, so that checkpoints written without the key
                     # (runs that do not sample) still resume.
                     **({"sample_box": [b.tolist() for b in self._sample_box]} if self.settings.initial_samples else {}),
+                    # A yaw turns about the stage's up axis: a Z-up run's checkpoint resumed into
+                    # the Y-up scene. Only where not Z, so that earlier Z-up checkpoints resume.
+                    **({"up_axis": scene.up_axis} if scene.up_axis != "Z" else {}),
                     "bodies": digest.hexdigest(),
                 },
                 default=_fingerprint_value,
