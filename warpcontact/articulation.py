@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .rotation import axial, pose_inverse, pose_mul, quat_conjugate, quat_from_rotation_vector, quat_mul, quat_rotate, quat_to_matrix, rotation_vector_from_quat
+from .rotation import axial, cross, pose_inverse, pose_mul, quat_conjugate, quat_from_rotation_vector, quat_mul, quat_rotate, quat_to_matrix, rotation_vector_from_quat
 
 __all__ = [
     "BASE_DOFS",
@@ -474,7 +474,7 @@ class ArticulationModel:
         else:  # universal: R_rel = Rot(e1, q1) Rot(e2, q2)
             e1, e2 = joint.axes
             u = quat_rotate(q_rel, e2)
-            q1 = float(np.arctan2(u @ np.cross(e1, e2), u @ e2))
+            q1 = float(np.arctan2(u @ cross(e1, e2), u @ e2))
             values = np.array([q1, _signed_angle(quat_mul(_rotation_about(e1, -q1), q_rel), e2)])
         error = _rotation_gap(_joint_rotation(joint, values), q_rel)
         if error > _ANGLE_TOLERANCE:
@@ -581,7 +581,7 @@ class ArticulationModel:
                 continue
             c = a_p @ a_c
             sine = np.sqrt(max(1.0 - c * c, 1e-300))
-            dc = np.cross(a_c, a_p)
+            dc = cross(a_c, a_p)
             d2c = 0.5 * (np.outer(a_c, a_p) + np.outer(a_p, a_c)) - c * np.eye(3)
             dbeta = -dc / sine
             d2beta = -d2c / sine - c / sine**3 * np.outer(dc, dc)
@@ -610,7 +610,7 @@ class ArticulationModel:
             axis = w / speed
             centre = (axis @ a_c) * axis
             radial = a_c - centre
-            A, B, C = float(a_p @ centre), float(a_p @ radial), float(a_p @ np.cross(axis, a_c))
+            A, B, C = float(a_p @ centre), float(a_p @ radial), float(a_p @ cross(axis, a_c))
             allowed = np.cos(swing + fraction * (cone["limit"] - swing))
             amplitude = float(np.hypot(B, C))
             if amplitude == 0.0 or allowed - A <= -amplitude:
@@ -764,7 +764,7 @@ class ArticulationModel:
         a = axes[dofs]
         rotating = (self.dof_kind[dofs] != PRISMATIC)[:, None]
         omega = np.where(rotating, a, 0.0)
-        velocity = np.where(rotating, np.cross(a, p - points[dofs]), a)
+        velocity = np.where(rotating, cross(a, p - points[dofs]), a)
         return dofs, omega, velocity
 
     def curvature(self, poses: np.ndarray, grad: np.ndarray) -> np.ndarray:
@@ -790,8 +790,8 @@ class ArticulationModel:
             J[6 * b + 3 : 6 * b + 6, dofs] = omega.T
             g_p, g_w = grad[b, :3], grad[b, 3:]
             # g_p . (a_k x v_l) = (g_p x a_k) . v_l; zero rows for prismatic k via omega
-            M = np.cross(g_p, omega) @ velocity.T
-            N = 0.5 * np.cross(g_w, omega) @ omega.T
+            M = cross(g_p, omega) @ velocity.T
+            N = 0.5 * cross(g_w, omega) @ omega.T
             U = M + N
             block = np.triu(U, 1)
             block = block + block.T + np.diag(np.diag(M))

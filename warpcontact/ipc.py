@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 from .articulation import connected_labels
 from .contact import ContactEvaluation, LaggedFriction, check_friction_arguments, checked_bodies, contact_body_pairs, hessian_slots
-from .rotation import quat_from_rotation_vector, quat_to_matrix, skew
+from .rotation import cross, quat_from_rotation_vector, quat_to_matrix, skew
 from ._validate import as_float64_array, check_barrier_support, check_coordinates, checked_flag, validated_poses
 
 # A step's arc is checked in chord pieces whose bulge stays below this fraction of dhat.
@@ -163,7 +163,7 @@ class IpcContactModel:
         r = V - positions[self._body_of]
         dynamic = ~self.static[self._body_of]
         grad = np.zeros((n, 6))
-        np.add.at(grad, self._body_of, np.concatenate([g, np.cross(r, g)], axis=1))
+        np.add.at(grad, self._body_of, np.concatenate([g, cross(r, g)], axis=1))
         J = np.zeros((len(V), 3, 6))
         J[:, :, :3] = np.eye(3)
         J[:, :, 3:] = -skew(r)
@@ -257,7 +257,7 @@ class IpcContactModel:
         slip = V_next - V_now
         dynamic = ~self.static[self._body_of]
         r_next = V_next - q_next[self._body_of, :3]
-        velocity = multiplier[self._body_of, :3] + np.cross(multiplier[self._body_of, 3:], r_next)
+        velocity = multiplier[self._body_of, :3] + cross(multiplier[self._body_of, 3:], r_next)
         velocity[~dynamic] = 0.0
         lagged_jacobian = data.potential.force_jacobian(
             data.collisions, mesh, V_now, np.zeros_like(V_now), slip, data.normal_potential, ipctk.TangentialPotential.LAGGED_DISPLACEMENTS
@@ -268,7 +268,7 @@ class IpcContactModel:
         vertex_adjoint[~dynamic] = 0.0
         r_now = V_now - q_now[self._body_of, :3]
         adj_q = np.zeros((self.num_bodies, 6))
-        np.add.at(adj_q, self._body_of, np.concatenate([vertex_adjoint, np.cross(r_now, vertex_adjoint)], axis=1))
+        np.add.at(adj_q, self._body_of, np.concatenate([vertex_adjoint, cross(r_now, vertex_adjoint)], axis=1))
         contraction = float(w @ data.potential.gradient(data.collisions, mesh, slip))
         friction = float(lagged.friction.numpy()[0])
         return adj_q, contraction / friction, contraction / lagged.mu

@@ -8,6 +8,7 @@ Rotation vectors w rotate by |w| radians about w / |w| (right-handed).
 import numpy as np
 
 __all__ = [
+    "cross",
     "quat_mul",
     "quat_conjugate",
     "quat_rotate",
@@ -26,10 +27,23 @@ __all__ = [
 ]
 
 
+def cross(a, b) -> np.ndarray:
+    """a x b of 3-vectors (..., 3), broadcasting: np.cross's products and differences in its
+    order (the same rounding) without its axis handling, which was most of the time of the
+    host's small rotations (1.5 s of a 4.1 s profiled 40-frame Ant-Push rollout)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def quat_mul(q, r) -> np.ndarray:
     """Hamilton product q r (apply r first, then q)."""
-    x1, y1, z1, w1 = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
-    x2, y2, z2, w2 = np.moveaxis(np.asarray(r, dtype=np.float64), -1, 0)
+    q = np.asarray(q, dtype=np.float64)
+    r = np.asarray(r, dtype=np.float64)
+    x1, y1, z1, w1 = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    x2, y2, z2, w2 = r[..., 0], r[..., 1], r[..., 2], r[..., 3]
     return np.stack(
         [
             w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
@@ -51,7 +65,7 @@ def quat_rotate(q, v) -> np.ndarray:
     q = np.asarray(q, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
     u, w = q[..., :3], q[..., 3:]
-    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+    return v + 2.0 * cross(u, cross(u, v) + w * v)
 
 
 def quat_from_rotation_vector(w) -> np.ndarray:

@@ -40,7 +40,7 @@ from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
 from .articulation import connected_labels, joint_limit_energy
 from .builder import STEEP_BLEND_EPS, contact_setting_problem, gravity_problem, steep_blend, winding_numbers
 from .contact import UNSOLVED_HINT, ContactModel, LaggedFriction
-from .rotation import normalized_poses, quat_from_matrix, quat_norm, quat_from_rotation_vector, quat_mul, quat_to_matrix, rigid_step_between, rigid_step_travel
+from .rotation import cross, normalized_poses, quat_from_matrix, quat_norm, quat_from_rotation_vector, quat_mul, quat_to_matrix, rigid_step_between, rigid_step_travel
 from .types import Control, Model, State
 
 __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
@@ -164,7 +164,7 @@ def _segments_cross_triangles(start: np.ndarray, end: np.ndarray, triangles: np.
     direction = end - start
     e1 = triangles[:, 1] - triangles[:, 0]
     e2 = triangles[:, 2] - triangles[:, 0]
-    h = np.cross(direction[:, None, :], e2[None, :, :])
+    h = cross(direction[:, None, :], e2[None, :, :])
     det = np.einsum("tj,ktj->kt", e1, h)
     scale = np.linalg.norm(direction, axis=1)[:, None] * np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
     # A chord parallel to a face divides by zero; the mask drops it (no warning reaches users).
@@ -172,7 +172,7 @@ def _segments_cross_triangles(start: np.ndarray, end: np.ndarray, triangles: np.
         inverse = 1.0 / det
         offset = start[:, None, :] - triangles[None, :, 0]
         u = inverse * np.einsum("ktj,ktj->kt", offset, h)
-        q = np.cross(offset, e1[None, :, :])
+        q = cross(offset, e1[None, :, :])
         v = inverse * np.einsum("kj,ktj->kt", direction, q)
         t = inverse * np.einsum("tj,ktj->kt", e2, q)
         crossing = (np.abs(det) > 1e-14 * scale) & (u >= 0.0) & (v >= 0.0) & (u + v <= 1.0) & (t >= 0.0) & (t <= 1.0)
