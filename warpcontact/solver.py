@@ -587,10 +587,11 @@ class ImplicitSolver:
             value += f_value
             grad += f_grad
             hess += f_hess
-        # The contact Hessians hold the dynamic bodies only, in index order.
-        blocks = read("energy_hess")
-        for k, b in enumerate(np.flatnonzero(self._dynamic)):
-            hess[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] += blocks[b]
+        # The contact Hessians hold the dynamic bodies only, in index order: the k-th one's
+        # body terms are the k-th diagonal 6x6 block.
+        dynamic = np.flatnonzero(self._dynamic)
+        rows = 6 * np.arange(len(dynamic))[:, None] + np.arange(6)
+        hess[rows[:, :, None], rows[:, None, :]] += read("energy_hess")[dynamic]
         art = self._articulation
         if art is None:
             return value, grad[self._dofs], hess, contact, None
