@@ -776,3 +776,14 @@ def test_ipc_stiffness_reaches_the_ipc_model_only(tmp_path, monkeypatch):
     assert json.loads((tmp_path / "cmp" / "compare.json").read_text())["ipc_stiffness"] == cli.IPC_TASK_STIFFNESS
     with pytest.raises(SystemExit):
         main(["run", str(scene), "--model", "ipc", "--ipc-stiffness", "0", "--out", str(tmp_path / "bad")])
+
+
+def test_convergence_plots_use_a_log_axis_only_across_decades():
+    """Found by a probe: stalled baselines at 6.21 beside ours at 6.2100005 drew a log axis
+    whose every tick read "6.21x10^0"."""
+    from warpcontact.cli import _loss_axis_scale
+
+    assert _loss_axis_scale({"ours": [6.2100005, 6.2100003], "ipc": [6.21, 6.21]}) == "linear"
+    assert _loss_axis_scale({"ours": [6.21, 0.5, 0.0], "ipc": [6.21]}) == "log"
+    assert _loss_axis_scale({"ours": [0.0, 0.0], "ipc": []}) is None
+    assert _loss_axis_scale({}) is None

@@ -456,8 +456,20 @@ def _plot_name(name: str, plotted: bool) -> str:
     return name if plotted else f"not {name} (matplotlib is not installed: pip install 'warpcontact[plot]')"
 
 
+def _loss_axis_scale(histories: dict) -> str | None:
+    """"log" for losses spanning a factor of 10 or more (as the paper's figures), "linear"
+    below (on a log axis within one decade every tick read "6.21x10^0", and the stalled
+    baselines' 6.21 could not be told from 6.2100005), None where no loss is positive."""
+    positive = np.concatenate([np.asarray(h, dtype=np.float64).ravel() for h in histories.values()] or [np.zeros(0)])
+    positive = positive[positive > 0]
+    if not positive.size:
+        return None
+    return "log" if positive.max() >= 10.0 * positive.min() else "linear"
+
+
 def _plot_convergence(histories: dict, path: Path, *, title: str) -> bool:
-    """Loss against optimiser iteration, log scale (as the paper's figures), one line per model.
+    """Loss against optimiser iteration, one line per model, on a log scale (as the paper's
+    figures) where the losses span a factor of 10 or more (``_loss_axis_scale``).
 
     A loss of exactly 0 (every target within tolerance) has no place on a log axis; such
     points are left out and the legend says the model reached 0. Where nothing is drawn (no
@@ -480,15 +492,19 @@ def _plot_convergence(histories: dict, path: Path, *, title: str) -> bool:
         reached = bool(len(loss)) and loss.min() == 0.0
         dash, marker = styles[index % len(styles)]
         ax.plot(np.arange(1, len(loss) + 1), np.where(loss > 0, loss, np.nan), linestyle=dash, marker=marker, markersize=4, label=f"{label} (reached 0)" if reached else label)
-    if any((np.asarray(h, dtype=np.float64) > 0).any() for h in histories.values()):
+    scale = _loss_axis_scale(histories)
+    if scale == "log":
         ax.set_yscale("log")
+    elif scale == "linear":
+        ax.set_ylabel("loss (linear: its values span less than a factor of 10)")
     else:
         # Every loss 0 (the targets met from the start): an empty log axis told nothing.
         ax.text(0.5, 0.5, "loss 0 at every iteration", transform=ax.transAxes, ha="center", va="center")
     if longest:
         ax.set_xlim(0.5, longest + 0.5)
     ax.set_xlabel("optimiser iteration")
-    ax.set_ylabel("loss")
+    if scale != "linear":
+        ax.set_ylabel("loss")
     ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
     if histories:
