@@ -131,11 +131,13 @@ def test_an_infeasible_iterate_takes_no_place_in_the_sigma_schedule():
 def test_a_zero_loss_draws_no_bundle():
     """A zero loss is success, where the descent stops: its bundle (samples rollouts, each
     with a backward pass) was drawn to be dropped (a probe)."""
-    estimate = bundled_gradient(quadratic, sigmas=np.array([0.5, 0.25]), samples=4, rng=np.random.default_rng(7))
+    rng = np.random.default_rng(7)
+    generator = rng.bit_generator.state
+    estimate = bundled_gradient(quadratic, sigmas=np.array([0.5, 0.25]), samples=4, rng=rng)
     state = estimate.__dict__.copy()
     loss, grad, _ = estimate(np.array([[0.0, 0.0]]))
     assert loss == 0.0 and np.array_equal(grad, np.zeros((1, 2)))
-    assert estimate.calls == 0 and estimate.__dict__ == state
+    assert estimate.calls == 0 and estimate.__dict__ == state and rng.bit_generator.state == generator
 
 
 def test_a_loss_only_call_draws_no_bundle():

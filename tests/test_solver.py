@@ -396,7 +396,8 @@ def test_friction_with_no_pairs_and_absent_ball_joints_cost_nothing(monkeypatch)
 def test_the_pass_through_scan_is_skipped_when_no_body_moves_far_enough(monkeypatch):
     """Found by a probe: the scan over every body pair (0.4-0.7 ms) ran at each step of a
     resting scene. No pair can be suspect while twice the largest centre shift is under
-    _PASS_THROUGH_TRAVEL of the smallest radius; above it the scan runs (and refuses)."""
+    _PASS_THROUGH_TRAVEL of the smallest radius; the skip keeps a factor 2 of slack, above
+    which the scan runs (and finds nothing, or refuses)."""
     from warpcontact import solver as solver_module
 
     b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e-6)
@@ -405,16 +406,18 @@ def test_the_pass_through_scan_is_skipped_when_no_body_moves_far_enough(monkeypa
     model = b.finalize()
     solver = wc.ImplicitSolver(model)
     q = model.state(requires_grad=False).body_q.numpy()
-    bound = solver_module._PASS_THROUGH_TRAVEL * model.body_radius.min() / 2.0
+    bound = solver_module._PASS_THROUGH_TRAVEL * model.body_radius.min() / 4.0
     scans = []
     real = solver_module.rigid_step_between
     monkeypatch.setattr(solver_module, "rigid_step_between", lambda *args: scans.append(1) or real(*args))
     still = q.copy()
     still[0, 0] += 0.99 * bound
     assert solver._pass_through(q, still, 0.04) is None and scans == []
+    still[0, 0] = q[0, 0] + 1.01 * bound  # scanned: a quarter of the threshold moves nothing
+    assert solver._pass_through(q, still, 0.04) is None and scans == [1]
     through = q.copy()
     through[0, 0] += 1.0  # the left box's centre ends inside the right one
-    assert "pass through each other" in solver._pass_through(q, through, 0.04) and scans == [1]
+    assert "pass through each other" in solver._pass_through(q, through, 0.04) and scans == [1, 1]
 
 
 def test_fast_impact_on_thin_wall_never_tunnels():
@@ -2225,3 +2228,10 @@ def test_the_host_cross_product_rounds_as_numpys_and_broadcasts():
         b = rng.standard_normal(shape_b) * 10.0 ** rng.integers(-200, 200, size=shape_b)
         with np.errstate(over="ignore", invalid="ignore", under="ignore"):
             np.testing.assert_array_equal(cross(a, b), np.cross(a, b))
+    # Indexing components would read a pose's first entries silently (a review).
+    with pytest.raises(ValueError, match=r"cross: expected 3-vectors \(\.\.\., 3\), got shapes \(2, 7\) and \(3,\)"):
+        cross(np.zeros((2, 7)), np.zeros(3))
+    from warpcontact.rotation import quat_mul
+
+    with pytest.raises(ValueError, match=r"quat_mul: expected quaternions \(\.\.\., 4\), got shapes \(7,\) and \(4,\)"):
+        quat_mul(np.zeros(7), np.zeros(4))

@@ -80,7 +80,9 @@ def bundled_gradient(rollout, *, sigmas: np.ndarray, samples: int, rng: np.rando
     with sigma = sigmas[k] (the last sigma once the schedule is used up), and the loss and
     trajectory at ``values`` itself. A call with ``gradient=False`` (the descent's last
     iterate, which is only evaluated) runs the one rollout at ``values``, draws nothing and
-    returns no gradient, and so does one whose loss there is 0 (a zero gradient). A call whose rollout at ``values`` fails (an update the descent then
+    returns no gradient; one whose loss there is 0 (success, where the descent stops) runs
+    only that rollout, draws nothing (the generator does not advance) and returns a zero
+    gradient. A call whose rollout at ``values`` fails (an update the descent then
     halves back) takes no place in the schedule: it used to, so each one skipped a sigma. The
     count of bundles drawn so far is the attribute ``calls`` (a checkpoint saves and
     restores it). ``tally``, if given, counts the samples drawn (``bundle_samples``) and

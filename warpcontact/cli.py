@@ -283,14 +283,13 @@ def _result_metrics(result) -> dict:
 
 def _settings_metrics(settings, args, models) -> dict:
     """The optimisation settings of a run or compare, with ipc's stiffness when ipc runs."""
-    receding = settings.window < settings.horizon
     return {
         "horizon": settings.horizon,
         "receding_horizon": settings.receding_horizon,
         # The window each descent optimised: the horizon where the receding horizon is 0 or
         # not shorter (an authored 10 over 6 frames read as a receding run of stride 2).
         "window": settings.window,
-        "receding_stride": settings.receding_stride if receding else None,
+        "receding_stride": settings.receding_stride if settings.receding else None,
         "learning_rate": settings.learning_rate,
         # The Adam iterations asked for per window; "iterations" counts those run.
         "iterations_per_window": settings.iterations,
@@ -299,7 +298,7 @@ def _settings_metrics(settings, args, models) -> dict:
 
 
 def _settings_line(settings) -> str:
-    stride = f" executed {settings.receding_stride} frame(s) at a time" if settings.window < settings.horizon else ""
+    stride = f" executed {settings.receding_stride} frame(s) at a time" if settings.receding else ""
     return f"horizon {settings.horizon}, window {settings.window}{stride}, {settings.iterations} iterations, lr {settings.learning_rate}"
 
 

@@ -81,6 +81,7 @@ from __future__ import annotations
 
 import inspect
 import os
+import re
 import shutil
 import warnings
 from collections import Counter
@@ -97,7 +98,7 @@ from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
 from .leaf import LEAF_PRECISIONS
-from .rotation import pose_mul, quat_conjugate, quat_from_matrix, quat_mul, quat_rotate, quat_to_matrix, rotation_vector_from_quat
+from .rotation import pose_mul, quat_conjugate, quat_from_matrix, quat_mul, quat_norm, quat_rotate, quat_to_matrix, rotation_vector_from_quat
 
 __all__ = [
     "BodySpec",
@@ -725,6 +726,7 @@ def _transform_attributes(prim, UsdGeom):
 # The attributes a load reads (besides transforms): animating others (visibility, colours)
 # is left alone.
 _READ_PREFIXES = ("physics:", "warpcontact:")
+_READ_PER_AXIS = re.compile(r"(drive|limit):[^:]+:physics:")
 _READ_GEOMETRY = ("points", "faceVertexCounts", "faceVertexIndices", "holeIndices", "orientation", "size", "radius", "height", "axis", "radiusTop", "radiusBottom")
 
 
@@ -740,10 +742,12 @@ def _require_default_values(prim, UsdGeom, Usd, source: str) -> None:
 
 def _read_attributes(prim) -> list:
     """The attributes of ``prim`` a load reads besides its transform: the physics and
-    warpcontact ones, those of multiple-apply schemas (``drive:angular:physics:stiffness``,
-    ``limit:rotY:physics:low``: time-sampled alone, a drive's gain loaded as 0 and a locked
-    D6 axis as free) and a collider's geometry."""
-    return [attr for attr in prim.GetAttributes() if attr.GetName().startswith(_READ_PREFIXES) or ":physics:" in attr.GetName() or attr.GetName() in _READ_GEOMETRY]
+    warpcontact ones, those of the drive and limit schemas, which apply per axis
+    (``drive:angular:physics:stiffness``, ``limit:rotY:physics:low``: time-sampled alone, a
+    drive's gain loaded as 0 and a locked D6 axis as free), and a collider's geometry. Not
+    other multiple-apply attributes a load does not read (a recording's animated
+    ``state:angular:physics:position``)."""
+    return [attr for attr in prim.GetAttributes() if attr.GetName().startswith(_READ_PREFIXES) or _READ_PER_AXIS.match(attr.GetName()) or attr.GetName() in _READ_GEOMETRY]
 
 
 def _require_default_value(attr, Usd, where: str) -> None:
@@ -2519,7 +2523,10 @@ def model_to_scene_poses(scene: Scene, model, body_q) -> np.ndarray:
     out = body_q.copy()
     # The step keeps a static body's quaternion at the norm it was given: rotating by it
     # unnormalised put a plate 2 m off its frame at 4 m.
-    rotations = body_q[..., 3:] / np.linalg.norm(body_q[..., 3:], axis=-1, keepdims=True)
+    norms = quat_norm(body_q[..., 3:])
+    if not np.all(np.isfinite(norms) & (norms > 0.0)):
+        raise ValueError("body_q: every quaternion must be finite and non-zero (the rotation of a pose)")
+    rotations = body_q[..., 3:] / norms[..., None]
     for i in range(len(scene.bodies)):
         out[..., i, :3] = body_q[..., i, :3] - quat_rotate(rotations[..., i, :], model.body_center_of_mass[i])
     return out

@@ -28,11 +28,14 @@ __all__ = [
 
 
 def cross(a, b) -> np.ndarray:
-    """a x b of 3-vectors (..., 3), broadcasting: np.cross's products and differences in its
-    order (the same rounding) without its axis handling, which was most of the time of the
-    host's small rotations (1.5 s of a 4.1 s profiled 40-frame Ant-Push rollout)."""
+    """a x b of 3-vectors (..., 3), broadcasting, in float64: np.cross's products and
+    differences in its order (the same rounding for float64 input) without its axis
+    handling, which was most of the time of the host's small rotations (1.5 s of a 4.1 s
+    profiled 40-frame Ant-Push rollout)."""
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
+    if a.shape[-1:] != (3,) or b.shape[-1:] != (3,):  # indexing would take a pose's first three silently
+        raise ValueError(f"cross: expected 3-vectors (..., 3), got shapes {a.shape} and {b.shape}")
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
@@ -42,6 +45,8 @@ def quat_mul(q, r) -> np.ndarray:
     """Hamilton product q r (apply r first, then q)."""
     q = np.asarray(q, dtype=np.float64)
     r = np.asarray(r, dtype=np.float64)
+    if q.shape[-1:] != (4,) or r.shape[-1:] != (4,):  # indexing would take a pose's first four silently
+        raise ValueError(f"quat_mul: expected quaternions (..., 4), got shapes {q.shape} and {r.shape}")
     x1, y1, z1, w1 = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     x2, y2, z2, w2 = r[..., 0], r[..., 1], r[..., 2], r[..., 3]
     return np.stack(

@@ -100,6 +100,11 @@ class TaskSettings:
         horizon, otherwise the whole horizon (one window)."""
         return self.receding_horizon if 0 < self.receding_horizon < self.horizon else self.horizon
 
+    @property
+    def receding(self) -> bool:
+        """Whether the horizon is planned in receding windows shorter than it (else one window)."""
+        return self.window < self.horizon
+
     @classmethod
     def from_task(cls, scene, *, quick: bool = False, iterations: int | None = None, receding_stride: int | None = None) -> TaskSettings:
         """The settings a scene's task metadata asks for.
@@ -123,7 +128,7 @@ class TaskSettings:
             settings = cls(t.horizon or scene.settings.frames, t.receding_horizon, t.iterations, t.learning_rate, t.receding_stride)
             prefix = "task:"
             if quick:
-                one_window = settings.window == settings.horizon
+                one_window = not settings.receding
                 settings.horizon = min(settings.horizon, GENERIC_QUICK_HORIZON)
                 # A task optimised as one window stays one: a window authored longer than
                 # the horizon became a receding one of GENERIC_QUICK_WINDOW frames.
@@ -136,7 +141,7 @@ class TaskSettings:
         source = scene.source or "<scene>"
         stride_name = f"warpcontact:{prefix}recedingStride"
         if receding_stride is not None:
-            if settings.window == settings.horizon:
+            if not settings.receding:
                 raise ValueError(f"{source}: --stride applies to receding-window tasks; this one optimises a single window of {settings.horizon} frames")
             settings.receding_stride, stride_name = receding_stride, "--stride"
         names = {
@@ -673,7 +678,7 @@ class TaskProblem:
             self.start = (self.model.initial_q.copy(), state.body_q_prev.numpy().copy())
         else:
             self.start = (self.model.initial_q.copy(), self.model.initial_q.copy())
-        if self.kind != "pd_targets" and self.settings.window < self.settings.horizon:
+        if self.kind != "pd_targets" and self.settings.receding:
             # Only per-frame PD targets can be planned window by window; the run used to
             # optimise one window of the whole horizon while reporting the receding settings.
             raise ValueError(f"{source}: receding-horizon control applies to pd_targets tasks, and this task's control is {self.kind} (set warpcontact:task:recedingHorizon to 0)")
@@ -802,6 +807,8 @@ class TaskProblem:
             # Every target's ReLU term is 0: so is the gradient, without a backward pass (a
             # descent stops there; each receding window after success ran one).
             grad = np.zeros(shape)
+            if timings is not None:
+                timings["backward_seconds"] = 0.0
         elif gradient:
             backward_start = time.perf_counter()
             tape.backward(loss)
@@ -868,7 +875,7 @@ class TaskProblem:
         if saved and self.bundle is not None and "bundle_samples" not in extra:
             # A checkpoint from before the sample counts: they start at this resume.
             extra["bundle_samples_counted_since_resume"] = True
-        receding = self.kind == "pd_targets" and s.window < s.horizon
+        receding = self.kind == "pd_targets" and s.receding
 
         def saver(objective, **outer):
             """``_descend``'s save callback: the descent's state with the run's around it."""
