@@ -412,6 +412,9 @@ class ImplicitSolver:
         # The dtype and shape of each model array the step reads back, as the model had them
         # when this solver was made: one replaced by another kind of array failed deep in
         # Warp or numpy.
+        for name in _CHECKED_MODEL_ARRAYS:
+            if not isinstance(getattr(model, name), wp.array):
+                raise ValueError(f"model.{name}: expected a wp.array (as finalize makes it), got {_described(getattr(model, name))}")
         self._model_array_layout = {name: (getattr(model, name).dtype, getattr(model, name).shape) for name in _CHECKED_MODEL_ARRAYS}
         # The body pairs whose separation bounds cap a converged step (``_pressed``).
         self._pair_bodies = np.asarray(model.contact.body_pairs).reshape(-1, 2) if isinstance(model.contact, ContactModel) else None
