@@ -449,7 +449,12 @@ def test_a_state_whose_coordinates_disagree_with_its_poses_is_refused():
         wc.ImplicitSolver(model).step(state, model.state(), None, 0.01)
     state = model.state(requires_grad=False)
     state.body_q.assign(np.array([[0.0, 0.3, 0.0, 0.0, 0.0, 0.0, 1.0]]))
-    with pytest.raises(ValueError, match="joint 'rail' .*state_in.body_q violate the prismatic joint"):
+    with pytest.raises(ValueError, match=r"joint 'rail' .*state_in.body_q violate the prismatic joint \(off-axis offset 0.3 m, relative rotation 0 rad; it allows neither\)"):
+        wc.ImplicitSolver(model).step(state, model.state(), None, 0.01)
+    # A turn alone was reported as "off-axis offset 0 m or relative rotation" (a probe).
+    state = model.state(requires_grad=False)
+    state.body_q.assign(np.array([[0.0, 0.0, 0.0, 0.0, 0.0, np.sin(0.2), np.cos(0.2)]]))
+    with pytest.raises(ValueError, match=r"violate the prismatic joint \(off-axis offset 0 m, relative rotation 0.4 rad; it allows neither\)"):
         wc.ImplicitSolver(model).step(state, model.state(), None, 0.01)
 
 
@@ -994,6 +999,12 @@ def test_base_joint_settings_follow_the_dofs_as_given():
     b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
     slider = b.add_box((0.2, 0.2, 0.2), density=500.0, name="slider", pose=(0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
     b.add_joint("base", child=slider, dofs=("rz", "x"), limits=[(-0.1, 0.1), (-5.0, 5.0)], kp=[1.0, 50.0], kd=[0.1, 5.0], target=[0.05, 2.0], name="b")
+    # A string was split into letters: "xyz" taken as three translations, "rz" refused as ('r', 'z') (a probe).
+    other = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    free = other.add_box((0.2, 0.2, 0.2), density=500.0, name="free")
+    for text in ("xyz", "rz"):
+        with pytest.raises(ValueError, match=rf"dofs must be a sequence of names from .*, such as \('x', 'rz'\), got the string '{text}'"):
+            other.add_joint("base", child=free, dofs=text)
     art = b.finalize().articulation
     assert art.coordinate_names == ["b:x", "b:rz"]
     np.testing.assert_array_equal(art.lower, [-5.0, -0.1])

@@ -461,8 +461,10 @@ class ArticulationModel:
             axis = joint.axes[0]
             value = float(offset @ axis)
             off_axis = float(np.linalg.norm(offset - value * axis))
-            if off_axis > tol or _rotation_gap(q_rel, np.array([0, 0, 0, 1.0])) > _ANGLE_TOLERANCE:
-                raise ValueError(f"{where}: {poses_label} violate the prismatic joint (off-axis offset {off_axis:.3g} m or relative rotation)")
+            turn = _rotation_gap(q_rel, np.array([0, 0, 0, 1.0]))
+            if off_axis > tol or turn > _ANGLE_TOLERANCE:
+                # Both named with their sizes: "off-axis offset 0 m or relative rotation" hid a 0.4 rad turn.
+                raise ValueError(f"{where}: {poses_label} violate the prismatic joint (off-axis offset {off_axis:.3g} m, relative rotation {turn:.3g} rad; it allows neither)")
             return np.array([value])
         gap = float(np.linalg.norm(offset))
         if gap > tol:

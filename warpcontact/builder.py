@@ -676,6 +676,9 @@ class ModelBuilder:
             if given:
                 # They were ignored: a base with dofs ("ry",) and an anchor turned about its centre.
                 raise ValueError(f"{where}: a base joint moves its body along world axes through its centre of mass; {', '.join(given)} do not apply to it")
+            if isinstance(dofs, str):
+                # Split into letters: "xyz" was taken as three translations, "rz" refused as ('r', 'z').
+                raise ValueError(f"{where}: dofs must be a sequence of names from {BASE_DOFS}, such as ('x', 'rz'), got the string {dofs!r}")
             dofs = tuple(dofs or ())
             unknown = [d for d in dofs if d not in BASE_DOFS]
             if unknown or len(set(dofs)) != len(dofs) or not dofs:
