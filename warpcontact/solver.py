@@ -41,7 +41,7 @@ from .articulation import connected_labels, joint_limit_energy
 from .builder import STEEP_BLEND_EPS, contact_setting_problem, gravity_problem, steep_blend, winding_numbers
 from .contact import UNSOLVED_HINT, ContactModel, LaggedFriction
 from .rotation import cross, normalized_poses, quat_from_matrix, quat_norm, quat_from_rotation_vector, quat_mul, quat_to_matrix, rigid_step_between, rigid_step_travel
-from .types import Control, Model, State
+from .types import Control, Model, State, shares_memory
 
 __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
 
@@ -214,21 +214,14 @@ def _check_no_shared_arrays(state_in: State, state_out: State) -> None:
     ``state_in`` one: the step writes its output while its result and backward still read
     the input (a State sharing another's arrays stopped a moving box dead, silently)."""
     names = ("body_q", "body_q_prev", "joint_q", "joint_q_prev")
-
-    def extent(array):
-        return (array.ptr, array.ptr + array.capacity) if isinstance(array, wp.array) and array.ptr and array.capacity else None
-
     for i, out_name in enumerate(names):
-        out = extent(getattr(state_out, out_name, None))
-        if out is None:
-            continue
+        out = getattr(state_out, out_name, None)
         # Against every input array, and against the output's other arrays (one array as
         # both body_q and body_q_prev held the box where it was).
         others = [("state_in", name) for name in names] + [("state_out", name) for name in names[i + 1 :]]
         for label, name in others:
             state = state_in if label == "state_in" else state_out
-            read = extent(getattr(state, name, None))
-            if read is not None and out[0] < read[1] and read[0] < out[1]:
+            if shares_memory(out, getattr(state, name, None)):
                 raise ValueError(
                     f"state_out.{out_name}: shares memory with {label}.{name}; a step writes state_out while it reads "
                     "state_in, so give state_out arrays of its own (model.state()); two States may alternate as input and output"
@@ -278,6 +271,12 @@ class StepInfo:
     objective: float
     min_separation: float
     friction_pairs: int
+
+
+def _pd_error(kp: np.ndarray, coords: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """The joint PD's error, coordinates minus targets, and 0 for a coordinate without
+    stiffness, which has no target (a far one, 1e160, made its energy 0 x inf)."""
+    return np.where(kp != 0.0, coords - target, 0.0)
 
 
 def retract(poses: np.ndarray, step: np.ndarray) -> np.ndarray:
@@ -409,6 +408,10 @@ class ImplicitSolver:
         n = model.num_bodies
         # The contact model's flags, made by finalize: the model's body_dynamic is a writable array.
         self._dynamic = ~model.contact.static
+        # The dynamic bodies in index order, and the rows of each one's 6x6 block in the
+        # contact Hessians (``ContactEvaluation.hessian``), which hold them alone.
+        self._dynamic_bodies = np.flatnonzero(self._dynamic)
+        self._block_rows = np.arange(6 * len(self._dynamic_bodies)).reshape(-1, 6)
         # The dtype and shape of each model array the step reads back, as the model had them
         # when this solver was made: one replaced by another kind of array failed deep in
         # Warp or numpy.
@@ -471,14 +474,14 @@ class ImplicitSolver:
         bodies.dt = float(dt)
         return bodies
 
-    def _checked_model_parameters(self, read) -> tuple[float, float, np.ndarray]:
+    def _checked_model_parameters(self) -> tuple[float, float, np.ndarray]:
         """The contact stiffness mu, the friction coefficient and the body masses, after checking the model parameters a user may change (or
         a gradient step may push) after ``finalize``, the joints' gains and limits included: a
         zero mass sent a resting puck 16 m up and a negative friction spun it, silently; the
         others failed as "no convergence" or blamed dt. ValueError naming the parameter (and
-        body or coordinate). ``read(name)`` gives the values of the model array ``name`` (each
-        of ``_CHECKED_MODEL_ARRAYS``), read back once for the step (``_solve``)."""
+        body or coordinate). The values are those ``_solve`` read back with the step's poses."""
         model = self.model
+        read = self._readback.read
         mu = float(read("contact_stiffness")[0])
         friction = float(read("friction")[0])
         for name, value in (("contact_stiffness", mu), ("friction", friction), ("friction_smoothing", model.friction_smoothing)):
@@ -509,7 +512,7 @@ class ImplicitSolver:
         # Of the dynamic bodies only: a static body's are never read (1,000 static boxes made
         # this check 0.7 ms a step).
         moment = read("body_unit_second_moment")
-        dynamic_bodies = np.flatnonzero(self._dynamic)
+        dynamic_bodies = self._dynamic_bodies
         checked = moment[dynamic_bodies]
         with np.errstate(invalid="ignore"):
             symmetric = np.isfinite(checked).all(axis=(1, 2)) & (np.abs(checked - checked.transpose(0, 2, 1)) <= 1e-9 * np.abs(checked).max(axis=(1, 2))[:, None, None]).all(axis=(1, 2))
@@ -537,10 +540,9 @@ class ImplicitSolver:
         only of steps short enough to converge otherwise."""
         if self._pair_bodies is None:
             return False
-        gaps = np.full(self.model.num_bodies, np.inf)
-        for side in (0, 1):
-            np.minimum.at(gaps, self._pair_bodies[:, side], evaluation.pair_separation)
-        return bool(np.any(travel > np.maximum(_CONVERGED_GAP_FRACTION * gaps, rounding_length)))
+        a, b = self._pair_bodies.T
+        limit = np.maximum(_CONVERGED_GAP_FRACTION * evaluation.pair_separation, rounding_length)
+        return bool(np.any((travel[a] > limit) | (travel[b] > limit)))
 
     def _friction_frame(self, mu: float, friction: float, dt: float) -> "LaggedFriction | None":
         """Lagged friction data at the configuration the contact model evaluated last (q^t);
@@ -591,11 +593,9 @@ class ImplicitSolver:
             value += f_value
             grad += f_grad
             hess += f_hess
-        # The contact Hessians hold the dynamic bodies only, in index order: the k-th one's
-        # body terms are the k-th diagonal 6x6 block.
-        dynamic = np.flatnonzero(self._dynamic)
-        rows = 6 * np.arange(len(dynamic))[:, None] + np.arange(6)
-        hess[rows[:, :, None], rows[:, None, :]] += read("energy_hess")[dynamic]
+        # The k-th dynamic body's terms are the k-th diagonal 6x6 block.
+        rows = self._block_rows
+        hess[rows[:, :, None], rows[:, None, :]] += read("energy_hess")[self._dynamic_bodies]
         art = self._articulation
         if art is None:
             return value, grad[self._dofs], hess, contact, None
@@ -624,8 +624,7 @@ class ImplicitSolver:
         """Joint-space PD (implicit, like the body PD) and limit barriers: value, gradient, diagonal Hessian."""
         art = self._articulation
         dt = step_in.dt
-        # A coordinate without stiffness has no target: a far one (1e160) made its energy 0 x inf.
-        error = np.where(art.kp != 0.0, coords - step_in.joint_target, 0.0)
+        error = _pd_error(art.kp, coords, step_in.joint_target)
         velocity = coords - step_in.joint_q
         with np.errstate(over="ignore"):  # a target beyond float64's reach: _solve names it
             value = 0.5 * float(np.sum(art.kp * error**2 + art.kd / dt * velocity**2))
@@ -936,7 +935,7 @@ class ImplicitSolver:
             _check_pose_array(control.body_target, len(q_now), "control.body_target", "one per body (use model.control())")
         q = normalized_poses(q_now)
         # Before the joint arrays, which are checked against the limits.
-        mu, friction_coefficient, mass = self._checked_model_parameters(self._readback.read)
+        mu, friction_coefficient, mass = self._checked_model_parameters()
         fall = float(np.abs(model.gravity).max()) * dt * dt
         if fall > MAX_COORDINATE:
             # The step's free fall g dt^2 then overflowed the kernels' coordinates: the error
@@ -1013,7 +1012,7 @@ class ImplicitSolver:
             # Joint coordinates outside their limits were refused with the state (_joint_arrays).
             if art is not None and art.num_coordinates:
                 with np.errstate(over="ignore"):
-                    overflow = np.flatnonzero(~np.isfinite(art.kp * np.where(art.kp != 0.0, coords_now - joint_target, 0.0) ** 2))
+                    overflow = np.flatnonzero(~np.isfinite(art.kp * _pd_error(art.kp, coords_now, joint_target) ** 2))
                 if overflow.size:
                     c = overflow[0]
                     raise ValueError(f"control.joint_target: the PD energy of coordinate {art.coordinate_names[c]!r} overflows float64 (target {joint_target[c]:.6g}, coordinate {coords_now[c]:.6g}, kp {art.kp[c]:.6g})")
@@ -1042,6 +1041,8 @@ class ImplicitSolver:
         # curvature (mu N / the slip smoothing) made a box's fall of 1 cm a Newton step of 2.6e-10
         # m at a smoothing of 1e-12 m/s, under the tolerance, and the box hung in the air.
         slip_length = step_in.friction.slip_smoothing if step_in.friction is not None and step_in.friction.pairs else np.inf
+        # Every iteration's converged length but the coordinates' rounding, which moves with q.
+        converged_step = min(tol, _CONVERGED_ACCELERATION * dt * dt, slip_length)
         converged = False
         iterations = 0
         step_length = np.inf
@@ -1061,7 +1062,7 @@ class ImplicitSolver:
                 full, travel = self._step_travel(direction)
                 step_length = float(travel.max())
             rounding_length = _ROUNDING * float(np.abs(q[dynamic, :3]).max(initial=0.0))
-            converged_length = max(min(tol, _CONVERGED_ACCELERATION * dt * dt, slip_length), rounding_length)
+            converged_length = max(converged_step, rounding_length)
             # A step the saddle-free floor made short is no convergence (_saddle_free_direction).
             hidden = 0.0 if floored is None else float(self._step_travel(floored, None if art is None else jacobian)[1].max())
             # Beside a 1/x barrier Newton's step is about half the gap, however unbalanced the
@@ -1153,7 +1154,7 @@ class ImplicitSolver:
         evaluated and rejected, an ``AdvancementFrame`` of q's term lists for the first
         Newton step's bound (else None), instead of evaluating q again."""
         model = self.model
-        dynamic = np.flatnonzero(self._dynamic)
+        dynamic = self._dynamic_bodies
         position = self._predicted_position.numpy()
         rotation = self._predicted_rotation.numpy()
         predicted = q[dynamic].copy()

@@ -143,6 +143,16 @@ class Model:
         )
 
 
+def shares_memory(a, b) -> bool:
+    """Whether two arrays overlap in memory (anything else, or an empty array, shares none)."""
+
+    def extent(array):
+        return (array.ptr, array.ptr + array.capacity) if isinstance(array, wp.array) and array.ptr and array.capacity else None
+
+    first, second = extent(a), extent(b)
+    return first is not None and second is not None and first[0] < second[1] and second[0] < first[1]
+
+
 def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity: wp.array, dt: float, *, body_names=None):
     """Set ``state.body_q_prev`` so that the state moves with the given velocities.
 
@@ -174,7 +184,7 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
         if not isinstance(poses, wp.array) or poses.dtype != wp.transformd or poses.ndim != 1:
             raise ValueError(f"state.{label}: expected a wp.array of wp.transformd, one per body (use model.state())")
     n = state.body_q.shape[0]
-    if state.body_q_prev.ptr == state.body_q.ptr:
+    if shares_memory(state.body_q_prev, state.body_q):
         # The kernel wrote the previous poses over the current ones: the body moved back by
         # a step and stayed at rest, silently.
         raise ValueError("state.body_q_prev: is the same array as state.body_q; a state needs two pose arrays (use model.state())")
