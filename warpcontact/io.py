@@ -98,7 +98,7 @@ from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
 from .leaf import LEAF_PRECISIONS
-from .rotation import pose_mul, quat_conjugate, quat_from_matrix, quat_mul, quat_norm, quat_rotate, quat_to_matrix, rotation_vector_from_quat
+from .rotation import normalized_poses, pose_mul, quat_conjugate, quat_from_matrix, quat_mul, quat_rotate, quat_to_matrix, rotation_vector_from_quat
 
 __all__ = [
     "BodySpec",
@@ -750,6 +750,13 @@ def _read_attributes(prim) -> list:
     return [attr for attr in prim.GetAttributes() if attr.GetName().startswith(_READ_PREFIXES) or _READ_PER_AXIS.match(attr.GetName()) or attr.GetName() in _READ_GEOMETRY]
 
 
+def _refuse_animated(animated: list, what: str, where: str, hint: str = "") -> None:
+    """Refuse the first of ``animated`` attributes (``where`` names their prim), of ``what``
+    a load reads once, at the default time: they would be held there."""
+    if animated:
+        raise ValueError(f"{where}: {animated[0].GetName()} is animated, but {what} read once, at the default time (they would be held there); remove the animation{hint}")
+
+
 def _require_default_value(attr, Usd, where: str) -> None:
     """Refuse an attribute that is animated but has no default value (``where`` names it)."""
     if _varies(attr) and attr.GetResolveInfo(Usd.TimeCode.Default()).GetSource() != Usd.ResolveInfoSourceDefault:
@@ -991,13 +998,8 @@ def load_scene(path) -> Scene:
                 prim = stage.GetPrimAtPath(prim_path)
                 _require_default_values(prim, UsdGeom, Usd, source)
                 # A drive target animated over the frames was held at its default silently.
-                animated = [attr for attr in _read_attributes(prim) if _moves(attr)]
-                if animated:
-                    raise ValueError(
-                        f"{source}: prim {prim_path}: {animated[0].GetName()} is animated, but a {kind}'s values are read once, at the "
-                        "default time (they would be held there); remove the animation"
-                        + (" (a joint's targets over time are a Control's joint_target)" if kind.endswith("Joint") else "")
-                    )
+                hint = " (a joint's targets over time are a Control's joint_target)" if kind.endswith("Joint") else ""
+                _refuse_animated([attr for attr in _read_attributes(prim) if _moves(attr)], f"a {kind}'s values are", f"{source}: prim {prim_path}", hint)
 
     # Gravity: the PhysicsScene's, else standard gravity along -up.
     gravity = np.array([0.0, 0.0, -9.81]) if up == UsdGeom.Tokens.z else np.array([0.0, -9.81, 0.0])
@@ -1114,11 +1116,7 @@ def load_scene(path) -> Scene:
             body_attributes = set(_transform_attributes(stage.GetPrimAtPath(owner), UsdGeom)) if owner else set()
             animated = [attr for attr in prim.GetAttributes() if attr.GetName() in _READ_GEOMETRY and _moves(attr)]
             animated += [attr for attr in _transform_attributes(prim, UsdGeom) if owner and attr not in body_attributes and _moves(attr)]
-            if animated:
-                raise ValueError(
-                    f"{source}: prim {prim_path}: {animated[0].GetName()} is animated, but a collider's shape and its place on its body "
-                    "are read once, at the default time (they would be held there); remove the animation"
-                )
+            _refuse_animated(animated, "a collider's shape and its place on its body are", f"{source}: prim {prim_path}")
             collider_materials[str(prim_path)] = _bound_physics_materials(stage, prim, desc)
             if kind == "PlaneShape":
                 if owner:
@@ -2523,10 +2521,10 @@ def model_to_scene_poses(scene: Scene, model, body_q) -> np.ndarray:
     out = body_q.copy()
     # The step keeps a static body's quaternion at the norm it was given: rotating by it
     # unnormalised put a plate 2 m off its frame at 4 m.
-    norms = quat_norm(body_q[..., 3:])
-    if not np.all(np.isfinite(norms) & (norms > 0.0)):
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rotations = normalized_poses(body_q)[..., 3:]
+    if not np.isfinite(rotations).all():
         raise ValueError("body_q: every quaternion must be finite and non-zero (the rotation of a pose)")
-    rotations = body_q[..., 3:] / norms[..., None]
     for i in range(len(scene.bodies)):
         out[..., i, :3] = body_q[..., i, :3] - quat_rotate(rotations[..., i, :], model.body_center_of_mass[i])
     return out

@@ -158,9 +158,9 @@ def quat_norm(q) -> np.ndarray:
 
 
 def normalized_poses(poses) -> np.ndarray:
-    """A copy of (n, 7) poses (p, q) with unit quaternions."""
+    """A copy of (..., 7) poses (p, q) with unit quaternions."""
     out = np.array(poses, dtype=np.float64)
-    out[:, 3:] /= quat_norm(out[:, 3:])[:, None]
+    out[..., 3:] /= quat_norm(out[..., 3:])[..., None]
     return out
 
 
