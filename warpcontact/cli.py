@@ -494,16 +494,13 @@ def _plot_convergence(histories: dict, path: Path, *, title: str) -> bool:
     scale = _loss_axis_scale(histories)
     if scale == "log":
         ax.set_yscale("log")
-    elif scale == "linear":
-        ax.set_ylabel("loss (linear: its values span less than a factor of 10)")
-    else:
+    elif scale is None:
         # Every loss 0 (the targets met from the start): an empty log axis told nothing.
         ax.text(0.5, 0.5, "loss 0 at every iteration", transform=ax.transAxes, ha="center", va="center")
     if longest:
         ax.set_xlim(0.5, longest + 0.5)
     ax.set_xlabel("optimiser iteration")
-    if scale != "linear":
-        ax.set_ylabel("loss")
+    ax.set_ylabel("loss (linear: its values span less than a factor of 10)" if scale == "linear" else "loss")
     ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
     if histories:
