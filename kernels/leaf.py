@@ -30,9 +30,21 @@ retracted by normalising n. The same formulas give the
 derivatives with B_k's normal columns projected on the tangent plane, B_k T with
 T = diag(P, 1); the solution stores T L_pp^-1 T, which applies that projection once per pair.
 
-All work happens in a local frame centred on the midpoint of the closest points: the
-potential is translation invariant (d absorbs the shift), and the local frame keeps the
-small gaps g_k free of cancellation when the triangles sit far from the world origin.
+All work happens in a local frame centred on the midpoint of the closest points and
+turned so that its z axis is the start normal e (``LeafSolution.frame``): the potential is
+invariant under both (d absorbs the shift; gaps are dot products), the centre keeps the
+small gaps g_k free of cancellation when the triangles sit far from the world origin, and
+the turn keeps the plane Hessian's stiff directions (the tilts and the offset, held by
+gaps far below the triangles' size) apart from its soft one (the normal's length) in
+every orientation. Solved in world axes, a near-touching pair turned off the axes mixed
+them, and the 4x4 solve lost the soft direction's digits: Hessians off by 1e-2 at 1e-7 m
+gaps, and pairs unsolved at 1e-8 m. Where the optimal plane tilts off e near contact (a face
+over a perpendicular face's edge), the search goes on in a frame along it (``_solve_from``).
+The plane search and L_pp^-1 stay in the turned frame;
+the solution's n and every derivative a caller reads are in world axes, so B_k's rows are
+world coordinates and its plane columns the frame's:
+
+    B_k = sigma_k b'(g_k) [R^T 0] + b''(g_k) n (R x_k, 1)^T,  R = ``frame`` (rows: its axes)
 
 The plane search (``_plane_newton``) is generic over the float type: ``leaf_solve`` with
 ``float32_search`` runs it in float32 and finishes it in float64 (``_solve_from_float32``).
@@ -101,6 +113,13 @@ _MAX_BACKTRACKS = wp.constant(60)
 # solves them (they are far terms there unless eps is huge); ten times the size of the
 # observable universe is no limit on a scene.
 MAX_LEAF_SEPARATION = wp.constant(wp.float64(1.0e27))
+# A plane whose normal leaves the search frame's z axis by more than this (radians) is
+# searched on in a frame along it, at most _MAX_REFRAMES times.
+_REFRAME_TILT = wp.constant(wp.float64(1.0e-8))
+# ... when some vertex is nearer to it than this fraction of the pair's extent (farther,
+# the plane Hessian's terms are within 1e9 of each other, and no digits are at stake).
+_REFRAME_GAP = wp.constant(wp.float64(1.0e-3))
+_MAX_REFRAMES = wp.constant(2)
 
 
 @wp.struct
@@ -108,11 +127,13 @@ class LeafSolution:
     status: wp.int32
     iterations: wp.int32
     value: wp.float64
-    # Optimal plane in the local frame; world offset is d - <n, origin>.
+    # Optimal plane in world axes about origin; world offset is d - <n, origin>.
     n: wp.vec3d
     d: wp.float64
     origin: wp.vec3d
-    # Vertices relative to origin (rows) and their gaps g_k.
+    # Rows: the axes of the frame the plane is solved in, z along the start normal.
+    frame: wp.mat33d
+    # Vertices relative to origin in world axes (rows) and their gaps g_k.
     ta: wp.mat33d
     tb: wp.mat33d
     gap_a: wp.vec3d
@@ -123,8 +144,9 @@ class LeafSolution:
     slope_b: wp.vec3d
     curv_a: wp.vec3d
     curv_b: wp.vec3d
-    # Inverse plane Hessian L_pp^-1 at the optimum; for SDRS T L_pp^-1 T with
-    # T = diag(I - n n^T, 1), which restricts every use to unit-normal plane variations.
+    # Inverse plane Hessian L_pp^-1 at the optimum, in the frame's plane coordinates
+    # (R n, d); for SDRS T L_pp^-1 T with T = diag(I - (R n)(R n)^T, 1), which restricts
+    # every use to unit-normal plane variations.
     lpp_inv: wp.mat44d
     # Barrier support: 0 for the paper's 1/g, > 0 for SDRS's log barrier on unit normals.
     dhat: wp.float64
@@ -361,8 +383,70 @@ def _is_finite_mat(m: wp.mat33d):
 
 
 @wp.func
+def _frame_from_normal(e: wp.vec3d):
+    """Rows: an orthonormal frame whose z axis is the unit vector e (Duff et al. 2017); the
+    identity, up to signs, for e on a world axis, so axis-aligned pairs keep every digit."""
+    sign = wp.float64(1.0)
+    if e[2] < wp.float64(0.0):
+        sign = wp.float64(-1.0)
+    a = wp.float64(-1.0) / (sign + e[2])
+    b = e[0] * e[1] * a
+    return wp.mat33d(
+        wp.float64(1.0) + sign * e[0] * e[0] * a, sign * b, -sign * e[0],
+        b, sign + e[1] * e[1] * a, -e[1],
+        e[0], e[1], e[2],
+    )  # fmt: skip
+
+
+@wp.func
+def _contact_frame(ta: wp.mat33d, tb: wp.mat33d, e: wp.vec3d, offset: wp.float64):
+    """Rows: the frame of a pair's plane search, z along the unit normal e of a separating
+    plane <x, e> + offset = 0 and x along the widest spread of the vertices nearest it
+    (weights (g_min / g)^3, as b'' at its gaps). Near vertices along one line (parallel edges) hold the tilt
+    towards that line stiffly and leave the tilt about it soft: only with the line on an
+    axis does the plane Hessian keep the soft tilt's digits."""
+    base = _frame_from_normal(e)
+    gap_min = wp.float64(wp.inf)
+    for k in range(3):
+        gap_min = wp.min(gap_min, wp.min(wp.dot(ta[k], e) + offset, -(wp.dot(tb[k], e) + offset)))
+    weight_sum = wp.float64(0.0)
+    first = wp.vec2d()
+    second = wp.vec3d()  # xx, xy, yy
+    for k in range(6):
+        x = ta[k % 3]
+        if k >= 3:
+            x = tb[k - 3]
+        local = base * x
+        ratio = gap_min / wp.abs(local[2] + offset)
+        weight = ratio * ratio * ratio
+        weight_sum += weight
+        first += weight * wp.vec2d(local[0], local[1])
+        second += weight * wp.vec3d(local[0] * local[0], local[0] * local[1], local[1] * local[1])
+    mean = first / weight_sum
+    xx = second[0] / weight_sum - mean[0] * mean[0]
+    xy = second[1] / weight_sum - mean[0] * mean[1]
+    yy = second[2] / weight_sum - mean[1] * mean[1]
+    angle = wp.float64(0.5) * wp.atan2(wp.float64(2.0) * xy, xx - yy)
+    c = wp.cos(angle)
+    s = wp.sin(angle)
+    return wp.matrix_from_rows(c * base[0] + s * base[1], c * base[1] - s * base[0], base[2])
+
+
+@wp.func
+def _frame_triangles(sol: LeafSolution):
+    """A's and B's vertices (rows) in the solution's frame."""
+    ta = wp.mat33d()
+    tb = wp.mat33d()
+    for k in range(3):
+        ta[k] = sol.frame * sol.ta[k]
+        tb[k] = sol.frame * sol.tb[k]
+    return ta, tb
+
+
+@wp.func
 def _leaf_start(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64):
-    """Local frame and unit start normal e, the closest points' bisector plane (n = e, d = 0).
+    """Local frame and unit start normal e, the closest points' bisector plane (n = e, d = 0),
+    which is (0, 0, 1, 0) in the frame (its z axis is e).
 
     Sets status CONTACT when no such plane separates the triangles strictly (they touch or
     intersect) and NONFINITE for non-finite input.
@@ -397,6 +481,7 @@ def _leaf_start(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64):
     # disjoint triangles strictly.
     e = sep / dist
     if _separates(ta, tb, e):
+        sol.frame = _contact_frame(ta, tb, e, wp.float64(0.0))
         return sol, e
     # At gaps far below the triangles' size that direction, rounded, can tilt the plane
     # across a large triangle's far vertices; a separating axis of the pair (face normals,
@@ -412,6 +497,7 @@ def _leaf_start(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64):
     sol.origin = origin
     sol.ta = ta
     sol.tb = tb
+    sol.frame = _contact_frame(ta, tb, axis, wp.float64(0.0))
     return sol, axis
 
 
@@ -427,11 +513,11 @@ def _separates(ta: wp.mat33d, tb: wp.mat33d, e: wp.vec3d):
 
 @wp.func
 def _store_plane(sol: LeafSolution, p: wp.vec4d):
+    """Stores the plane p, given in the frame, with n in world axes, and its gaps."""
     n = wp.vec3d(p[0], p[1], p[2])
-    sol.n = n
+    sol.n = wp.transpose(sol.frame) * n
     sol.d = p[3]
-    ta = sol.ta
-    tb = sol.tb
+    ta, tb = _frame_triangles(sol)
     sol.gap_a = wp.vec3d(wp.dot(ta[0], n) + p[3], wp.dot(ta[1], n) + p[3], wp.dot(ta[2], n) + p[3])
     sol.gap_b = wp.vec3d(-(wp.dot(tb[0], n) + p[3]), -(wp.dot(tb[1], n) + p[3]), -(wp.dot(tb[2], n) + p[3]))
     slope_a = wp.vec3d()
@@ -520,7 +606,7 @@ def _plane_newton(ta: Any, tb: Any, start: Any, dhat: Any, max_iterations: int, 
 
 @wp.func
 def _finish_solution(sol: LeafSolution, p: wp.vec4d, energy: wp.float64, hess: wp.mat44d, converged: bool, iterations: int):
-    """Stores the plane p, L and the inverse plane Hessian (taken at p) in ``sol``."""
+    """Stores the plane p, L and the inverse plane Hessian (all in the frame) in ``sol``."""
     sol.iterations = iterations
     if wp.isnan(energy):
         # No iterate at all: rounding lost the start plane of a pair ~1e-16 of its size
@@ -541,19 +627,52 @@ def _finish_solution(sol: LeafSolution, p: wp.vec4d, energy: wp.float64, hess: w
     if sol.dhat > wp.float64(0.0):
         # B_k T H^-1 T B_l^T: the plane moves on unit normals (module docstring). The
         # radial block of H is decoupled, so T H^-1 T is also the exact dp*/dx operator.
-        t = _tangent_projector(sol.n)
+        t = _tangent_projector(wp.vec3d(p[0], p[1], p[2]))
         inv = t * inv * t
     sol.lpp_inv = inv
     return sol
 
 
 @wp.func
+def _near_contact(ta: wp.mat33d, tb: wp.mat33d, p: wp.vec4d):
+    """Whether plane p (in the frame) leaves some vertex closer to it than _REFRAME_GAP of
+    the pair's extent about the local origin: the stiff terms that mix with soft ones."""
+    gap_min = wp.float64(wp.inf)
+    extent = wp.float64(0.0)
+    n = wp.vec3d(p[0], p[1], p[2])
+    for k in range(3):
+        gap_min = wp.min(gap_min, wp.min(wp.dot(ta[k], n) + p[3], -(wp.dot(tb[k], n) + p[3])))
+        extent = wp.max(extent, wp.max(wp.length(ta[k]), wp.length(tb[k])))
+    return gap_min < _REFRAME_GAP * wp.length(n) * extent
+
+
+@wp.func
 def _solve_from(sol: LeafSolution, start: wp.vec4d, fallback: wp.vec4d, max_iterations: int):
     """Newton on the plane in float64 from ``start``, or from ``fallback`` (a start known to
-    be feasible) where ``start`` is not; fills the solution."""
-    p, energy, hess, converged, it = _plane_newton(sol.ta, sol.tb, start, sol.dhat, max_iterations, _DECREMENT_TOL, _STALL_TOL, _FULL_STEP_TOL)
+    be feasible) where ``start`` is not (planes in the frame); fills the solution."""
+    ta, tb = _frame_triangles(sol)
+    p, energy, hess, converged, it = _plane_newton(ta, tb, start, sol.dhat, max_iterations, _DECREMENT_TOL, _STALL_TOL, _FULL_STEP_TOL)
     if not wp.isfinite(energy):
-        p, energy, hess, converged, it = _plane_newton(sol.ta, sol.tb, fallback, sol.dhat, max_iterations, _DECREMENT_TOL, _STALL_TOL, _FULL_STEP_TOL)
+        p, energy, hess, converged, it = _plane_newton(ta, tb, fallback, sol.dhat, max_iterations, _DECREMENT_TOL, _STALL_TOL, _FULL_STEP_TOL)
+    for _turn in range(_MAX_REFRAMES):
+        # A near-contact plane tilted off the frame's z axis is searched on, and its Hessian
+        # taken, in a frame along it, where the stiff and soft directions part again.
+        r = wp.length(wp.vec3d(p[0], p[1], p[2]))
+        if not wp.isfinite(energy) or wp.length(wp.vec2d(p[0], p[1])) <= _REFRAME_TILT * r or not _near_contact(ta, tb, p):
+            break
+        search_frame = sol.frame
+        n = wp.transpose(sol.frame) * wp.vec3d(p[0], p[1], p[2])
+        sol.frame = _contact_frame(sol.ta, sol.tb, n / r, p[3] / r)
+        turned = sol.frame * n
+        ta, tb = _frame_triangles(sol)
+        p_turned, energy_turned, hess_turned, converged_turned, it_turned = _plane_newton(
+            ta, tb, wp.vec4d(turned[0], turned[1], turned[2], p[3]), sol.dhat, max_iterations, _DECREMENT_TOL, _STALL_TOL, _FULL_STEP_TOL
+        )
+        if not wp.isfinite(energy_turned):
+            sol.frame = search_frame  # rounding left the plane infeasible in the new frame
+            break
+        p, energy, hess, converged = p_turned, energy_turned, hess_turned, converged_turned
+        it += it_turned
     return _finish_solution(sol, p, energy, hess, converged, it)
 
 
@@ -562,8 +681,9 @@ def _solve_from_float32(sol: LeafSolution, start: wp.vec4d, max_iterations: int)
     """Newton on the plane from ``start`` with the search in float32, finished in float64
     (``_solve_from``) from its plane: the float64 stage usually takes one or two steps, and
     the solution meets the float64 tolerances. The iteration cap applies to each stage."""
+    ta, tb = _frame_triangles(sol)
     p32, energy32, _hess32, _converged32, it32 = _plane_newton(
-        wp.mat33f(sol.ta), wp.mat33f(sol.tb), wp.vec4f(start), wp.float32(sol.dhat), max_iterations, _DECREMENT_TOL_F32, _STALL_TOL_F32, _FULL_STEP_TOL_F32
+        wp.mat33f(ta), wp.mat33f(tb), wp.vec4f(start), wp.float32(sol.dhat), max_iterations, _DECREMENT_TOL_F32, _STALL_TOL_F32, _FULL_STEP_TOL_F32
     )
     # Rounding may leave a near-touching start plane infeasible in float32, and the float32
     # optimum infeasible in float64: either stage then starts from the float64 start.
@@ -577,14 +697,15 @@ def _solve_from_float32(sol: LeafSolution, start: wp.vec4d, max_iterations: int)
 
 @wp.func
 def _scaled_bisector(sol: LeafSolution, e: wp.vec3d):
-    """The start plane of ``leaf_solve``: the bisector (normal e through the local origin)
-    at its best scale r, the minimiser of 12/(1-r) + coupling/r along it."""
+    """The start plane of ``leaf_solve`` in the frame: the bisector (normal e, the frame's z
+    axis, through the local origin) at its best scale r, the minimiser of
+    12/(1-r) + coupling/r along it."""
     coupling = wp.float64(0.0)
     for k in range(3):
         coupling += wp.float64(1.0) / wp.dot(sol.ta[k], e) - wp.float64(1.0) / wp.dot(sol.tb[k], e)
     q = wp.sqrt(coupling / wp.float64(12.0))
     r0 = q / (wp.float64(1.0) + q)
-    return wp.vec4d(r0 * e[0], r0 * e[1], r0 * e[2], wp.float64(0.0))
+    return wp.vec4d(wp.float64(0.0), wp.float64(0.0), r0, wp.float64(0.0))
 
 
 @wp.func
@@ -621,7 +742,7 @@ def sdrs_solve(ta_world: wp.mat33d, tb_world: wp.mat33d, dhat: wp.float64, max_i
     sol, e = _leaf_start(ta_world, tb_world, dhat)
     if sol.status != LEAF_OK:
         return sol
-    start = wp.vec4d(e[0], e[1], e[2], wp.float64(0.0))
+    start = wp.vec4d(wp.float64(0.0), wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
     # The bisector is the widest-margin plane (margin = half the distance): if it leaves
     # every gap at or beyond dhat, P = 0 and all derivatives vanish. So it does when the
     # deficit is below _SUPPORT_TOL dhat: there P < 1e-24 / dhat and the plane problem
@@ -662,7 +783,8 @@ def pair_solve_from_plane(ta_world: wp.mat33d, tb_world: wp.mat33d, plane: wp.ve
     if sol.status != LEAF_OK:
         return sol
     n = wp.vec3d(plane[0], plane[1], plane[2])
-    start = wp.vec4d(n[0], n[1], n[2], plane[3] + wp.dot(n, sol.origin))
+    turned = sol.frame * n
+    start = wp.vec4d(turned[0], turned[1], turned[2], plane[3] + wp.dot(n, sol.origin))
     return _solve_from(sol, start, _scaled_bisector(sol, e), max_iterations)
 
 
@@ -676,15 +798,16 @@ def leaf_vertex_gradient(sol: LeafSolution, k: int):
 
 @wp.func
 def leaf_mixed_block(sol: LeafSolution, k: int):
-    """B_k = d2L / dx_k dp (3x4)."""
+    """B_k = d2L / dx_k dp (3x4): rows world coordinates of x_k, columns the frame's plane
+    coordinates, those of ``lpp_inv`` (module docstring)."""
     x, sigma, _g = leaf_vertex(sol, k)
     b1, b2 = leaf_vertex_barrier(sol, k)
+    turned = sol.frame * x
     m = mat34d()
     for i in range(3):
         for j in range(3):
-            m[i, j] = b2 * sol.n[i] * x[j]
+            m[i, j] = b2 * sol.n[i] * turned[j] + sigma * b1 * sol.frame[j, i]
         m[i, 3] = b2 * sol.n[i]
-        m[i, i] = m[i, i] + sigma * b1
     return m
 
 
@@ -702,8 +825,13 @@ def leaf_hessian_block(sol: LeafSolution, k: int, l: int):
 
 @wp.func
 def leaf_plane_sensitivity(sol: LeafSolution, k: int):
-    """d p* / d x_k (4x3) of the optimal local plane p* = (n, d): -L_pp^-1 B_k^T."""
-    return -(sol.lpp_inv * wp.transpose(leaf_mixed_block(sol, k)))
+    """d p* / d x_k (4x3) of the optimal local plane p* = (n, d), n in world axes:
+    -L_pp^-1 B_k^T in the frame, its normal rows turned to world axes."""
+    to_world = wp.identity(n=4, dtype=wp.float64)
+    for i in range(3):
+        for j in range(3):
+            to_world[i, j] = sol.frame[j, i]
+    return -(to_world * sol.lpp_inv * wp.transpose(leaf_mixed_block(sol, k)))
 
 
 @wp.func
