@@ -1251,6 +1251,25 @@ def test_an_animated_collider_shape_or_place_on_its_body_is_refused(tmp_path):
     _load_refused(stage, path, r"prim /World/ground: points is animated")
 
 
+def test_an_animated_body_attribute_is_refused(tmp_path):
+    """Found by a probe: a body's time-sampled task target, PD gain or mass (with a default)
+    loaded at the default without a word, while the same on a PhysicsScene or a joint was
+    refused."""
+    for name, type_name, default, sample in (
+        ("warpcontact:target:position", Sdf.ValueTypeNames.Double3, Gf.Vec3d(2.5, 0.0, 0.25), Gf.Vec3d(0.0, 2.5, 0.25)),
+        ("warpcontact:pd:kpAngular", Sdf.ValueTypeNames.Double, 10.0, 20.0),
+        ("physics:mass", Sdf.ValueTypeNames.Float, 2.0, 3.0),
+    ):
+        path = write_physics_scene(tmp_path / f"{name.replace(':', '_')}.usda")
+        stage = Usd.Stage.Open(str(path))
+        attr = stage.GetPrimAtPath("/World/box").CreateAttribute(name, type_name, custom=name.startswith("warpcontact"))
+        attr.Set(default)
+        stage.GetRootLayer().Save()
+        io.load_scene(path)
+        attr.Set(sample, 100.0)
+        _load_refused(stage, path, rf"prim /World/box: {name} is animated, but a RigidBody's values are read once, at the default time")
+
+
 def _mesh_box_collider(stage, path, *, left_handed=False, extra_hole=False):
     """A closed 0.5 m Mesh box collider: counter-clockwise (outward) triangles, or clockwise
     ones authored as leftHanded; ``extra_hole`` adds a 1 m flap face listed in holeIndices."""
@@ -2361,6 +2380,33 @@ def test_a_joint_drive_or_limit_animated_is_refused(tmp_path, joint, attribute):
     state = stage.GetPrimAtPath("/World/hinge").CreateAttribute("state:angular:physics:position", Sdf.ValueTypeNames.Float)
     state.Set(0.0, 0.0)
     state.Set(30.0, 20.0)
+    stage.GetRootLayer().Save()
+    assert len(io.load_scene(path).joints) == 1
+
+
+@pytest.mark.parametrize(
+    ("joint", "schema", "instance", "match"),
+    [
+        ("RevoluteJoint", "DriveAPI", "angualr", r"PhysicsDriveAPI:angualr is not read on a RevoluteJoint \(it reads PhysicsDriveAPI:angular\)"),
+        ("RevoluteJoint", "DriveAPI", "rotY", r"PhysicsDriveAPI:rotY is not read on a RevoluteJoint \(it reads PhysicsDriveAPI:angular\)"),
+        ("RevoluteJoint", "LimitAPI", "rotY", r"PhysicsLimitAPI:rotY is not read on a RevoluteJoint \(it reads none\)"),
+        ("D6", "LimitAPI", "rotx", r"PhysicsLimitAPI:rotx is not read on a D6Joint \(it reads PhysicsLimitAPI:transX, .*rotZ\)"),
+        ("D6", "DriveAPI", "angular", r"PhysicsDriveAPI:angular is not read on a D6Joint \(it reads PhysicsDriveAPI:transX, .*rotZ\)"),
+    ],
+)
+def test_a_drive_or_limit_a_joint_does_not_read_is_refused(tmp_path, joint, schema, instance, match):
+    """Found by a probe: a misspelt or wrong-kind drive or limit instance was dropped without a
+    word (the ant's knee loaded unactuated, a hip's limited axis free), as were drive and
+    limit attributes authored without their instance applied."""
+    path = tmp_path / "hinge.usda"
+    stage = _hinge_stage(path, joint=joint, target=5.0)
+    prim = stage.GetPrimAtPath("/World/hinge")
+    extra = getattr(UsdPhysics, schema).Apply(prim, instance)
+    extra.CreateStiffnessAttr(2.0) if schema == "DriveAPI" else extra.CreateLowAttr(-1.0)
+    _load_refused(stage, path, f"prim /World/hinge: {match}; rename or remove it")
+    prim.RemoveAPI(getattr(UsdPhysics, schema), instance)
+    _load_refused(stage, path, f"prim /World/hinge: {'drive' if schema == 'DriveAPI' else 'limit'}:{instance}:physics:{'stiffness' if schema == 'DriveAPI' else 'low'} is authored without Physics{schema}:{instance} applied")
+    prim.RemoveProperty(f"{'drive' if schema == 'DriveAPI' else 'limit'}:{instance}:physics:{'stiffness' if schema == 'DriveAPI' else 'low'}")
     stage.GetRootLayer().Save()
     assert len(io.load_scene(path).joints) == 1
 

@@ -993,11 +993,12 @@ def load_scene(path) -> Scene:
     welds = _world_welds(descs, source)
     # Bodies and colliders are checked where they are read (with their ancestors' transforms).
     for kind, items in descs.items():
-        if kind == "Scene" or kind.endswith("Joint"):
+        if kind in ("Scene", "RigidBody") or kind.endswith("Joint"):
             for prim_path, _ in items:
                 prim = stage.GetPrimAtPath(prim_path)
                 _require_default_values(prim, UsdGeom, Usd, source)
-                # A drive target animated over the frames was held at its default silently.
+                # A drive target animated over the frames was held at its default silently, as
+                # were a body's animated task target, PD gains and density (a probe).
                 hint = " (a joint's targets over time are a Control's joint_target)" if kind.endswith("Joint") else ""
                 _refuse_animated([attr for attr in _read_attributes(prim) if _moves(attr)], f"a {kind}'s values are", f"{source}: prim {prim_path}", hint)
 
@@ -1255,6 +1256,38 @@ def _api_token(axis: str) -> str:
     return axis[0].lower() + axis[1:]
 
 
+# The PhysicsDriveAPI / PhysicsLimitAPI instances a load reads on each kind of joint
+# (revolute and prismatic limits are physics:lowerLimit / upperLimit, a spherical joint's
+# its cone angles).
+_AXIS_SCHEMA_INSTANCES = {
+    "revolute": {"PhysicsDriveAPI": ("angular",), "PhysicsLimitAPI": ()},
+    "prismatic": {"PhysicsDriveAPI": ("linear",), "PhysicsLimitAPI": ()},
+    "ball": {"PhysicsDriveAPI": tuple(_api_token(axis) for axis in _BALL_DRIVE_AXES), "PhysicsLimitAPI": ()},
+    "d6": {"PhysicsDriveAPI": tuple(_api_token(axis) for axis in _D6_AXIS_DOF), "PhysicsLimitAPI": tuple(_api_token(axis) for axis in _D6_AXIS_DOF)},
+}
+
+
+def _refuse_unread_axis_schemas(prim, usd_kind: str, kind: str, where: str) -> None:
+    """Refuse a drive or limit instance this kind of joint does not read, and drive or limit
+    attributes authored without their instance applied: both were dropped without a word
+    (a misspelt PhysicsDriveAPI:angualr loaded the joint unactuated, a limit:rotx a locked
+    axis as free)."""
+    read = _AXIS_SCHEMA_INSTANCES[kind]
+    applied = [str(schema) for schema in prim.GetAppliedSchemas()]
+    for schema in applied:
+        api, _, instance = schema.partition(":")
+        if api in read and instance not in read[api]:
+            reads = ", ".join(f"{api}:{token}" for token in read[api]) or "none"
+            raise ValueError(f"{where}: {schema} is not read on a {usd_kind} (it reads {reads}); rename or remove it")
+    for attr in prim.GetAttributes():
+        name = attr.GetName()
+        if _READ_PER_AXIS.match(name):
+            api = "PhysicsDriveAPI" if name.startswith("drive:") else "PhysicsLimitAPI"
+            instance = name.split(":")[1]
+            if f"{api}:{instance}" not in applied:
+                raise ValueError(f"{where}: {name} is authored without {api}:{instance} applied, so it would be ignored; apply the API or remove the attribute")
+
+
 def _coordinate_axes(free: list) -> list:
     """The free D6 axes that are joint coordinates: all, except that three free rotations
     make a ball, whose rotation is not a coordinate (articulation.Joint.num_coordinates)."""
@@ -1334,6 +1367,7 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
             if not desc.jointEnabled:
                 continue
             prim = stage.GetPrimAtPath(prim_path)
+            _refuse_unread_axis_schemas(prim, usd_kind, kind, where)
             for label in ("body0", "body1"):
                 rel = prim.GetRelationship(f"physics:{label}")
                 targets = rel.GetTargets() if rel else []
