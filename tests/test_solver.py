@@ -1319,6 +1319,9 @@ def test_bad_input_raises_before_writing_state():
         (dict(density=0.0), "density must be positive"),
         (dict(), "give a density or a mass"),
         (dict(mass=1.0, inertia=np.diag([1.0, 1.0, 5.0])), "triangle inequality"),
+        # A probe: a plate of no thickness passed here, and the first step refused an array
+        # the caller never set (model.body_unit_second_moment).
+        (dict(mass=1.0, inertia=np.diag([1 / 12, 1 / 12, 1 / 6])), r"'crate': inertia meets the triangle inequality with equality .* a body of no thickness"),
         (dict(density=1.0, pose=(0, 0, 0, 0, 0, 0, 2.0)), "quaternion"),
         (dict(static=True, kp_linear=1.0), "cannot be PD-actuated"),
         (dict(density=1.0, kp_linear=-1.0), "kp_linear"),

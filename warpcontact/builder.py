@@ -376,8 +376,14 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
             extent = float(np.ptp(mesh.vertices, axis=0).max())
             raise ValueError(f"{where}: the inertia of its mesh ({extent:.3g} m across) at mass {body_mass:.3g} kg is not a finite positive definite float64 matrix (it grows as the fifth power of the size); give mass and inertia, or rescale the scene")
         raise ValueError(f"{where}: inertia must be a finite, symmetric positive definite 3x3 matrix (kg m^2)")
-    if np.linalg.eigvalsh(second_moment).min() < -1e-12 * np.trace(inertia):
+    smallest = np.linalg.eigvalsh(second_moment).min()
+    if smallest < -1e-12 * np.trace(inertia):
         raise ValueError(f"{where}: inertia violates the triangle inequality (not physical)")
+    if smallest <= 0.0:  # the solver needs a positive definite second moment; it refused this only at the first step
+        raise ValueError(
+            f"{where}: inertia meets the triangle inequality with equality (e.g. I_zz = I_xx + I_yy), which puts the whole mass in a plane "
+            "or on a line, a body of no thickness; give the inertia of the body's real thickness"
+        )
     return body_mass, com, second_moment
 
 
