@@ -818,7 +818,8 @@ def run_frame_benchmark(
 
     # Every scene is read before any is timed: a bad name or a missing peer-mesh folder used
     # to end the default run after hours of the scenes before it.
-    built = {spec: frame_scene(spec, scene_dir=scene_dir, peer_meshes=peer_meshes) for spec in dict.fromkeys(scenes)}
+    scenes = list(dict.fromkeys(scenes))  # a scene named twice was timed twice, as models no longer are
+    built = {spec: frame_scene(spec, scene_dir=scene_dir, peer_meshes=peer_meshes) for spec in scenes}
     # and set up for its strike, once (a scene without a striker failed after the others' timing)
     setups = {spec: strike_setup(scene, gap=gap, speed=speed) for spec, scene in built.items()}
     # bsh first: brute force above --brute-max-triangles is timed at bsh's solved poses (listed
