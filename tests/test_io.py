@@ -772,6 +772,10 @@ def _author(path, edit):
         # A zero was replaced by 1 silently; a negative or NaN one surfaced as some other value's error.
         (lambda st: UsdGeom.SetStageMetersPerUnit(st, 0.0), r"metersPerUnit must be positive and finite, got 0.0"),
         (lambda st: UsdGeom.SetStageMetersPerUnit(st, float("nan")), r"metersPerUnit must be positive and finite, got nan"),
+        # A probe: a ZeroDivisionError and an OverflowError converting densities.
+        (lambda st: UsdGeom.SetStageMetersPerUnit(st, 1e-110), r"metersPerUnit must be from 1e-30 to 1e\+30, got 1e-110"),
+        (lambda st: UsdGeom.SetStageMetersPerUnit(st, 1e105), r"metersPerUnit must be from 1e-30 to 1e\+30, got 1e\+105"),
+        (lambda st: UsdPhysics.SetStageKilogramsPerUnit(st, 1e-200), r"kilogramsPerUnit must be from 1e-30 to 1e\+30, got 1e-200"),
         (lambda st: UsdPhysics.MassAPI.Apply(st.GetPrimAtPath("/World/box")).CreateCenterOfMassAttr(Gf.Vec3f(0, float("inf"), 0)), r"prim /World/box: centerOfMass must be finite"),
         (lambda st: UsdPhysics.MassAPI.Apply(st.GetPrimAtPath("/World/box")).CreateDiagonalInertiaAttr(Gf.Vec3f(float("nan"), 1, 1)), r"prim /World/box: diagonalInertia must be positive"),
         (lambda st: st.GetPrimAtPath("/World/box").CreateAttribute("warpcontact:target:position", Sdf.ValueTypeNames.Double3).Set(Gf.Vec3d(float("nan"), 0, 0)), r"prim /World/box: warpcontact:target:position must be 3 finite numbers"),

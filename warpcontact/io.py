@@ -969,12 +969,18 @@ def load_scene(path) -> Scene:
     # that leaves it out becomes a scene 100 times smaller, silently but for this warning.
     if not stage.HasAuthoredMetadata("metersPerUnit"):
         warnings.warn(f"{source}: metersPerUnit is not authored, so USD's fallback of 0.01 (centimetres) applies; author metersPerUnit = 1 for a scene in metres", stacklevel=2)
+    # Bounded so that densities (kg/m^3) and inertias (kg m^2) convert to finite, non-zero
+    # factors: 1e-110 m ended in a ZeroDivisionError, 1e105 m in an OverflowError.
     meters = float(UsdGeom.GetStageMetersPerUnit(stage))
     if not (np.isfinite(meters) and meters > 0):
         raise ValueError(f"{source}: metersPerUnit must be positive and finite, got {meters}")
+    if not _UNIT_RANGE[0] <= meters <= _UNIT_RANGE[1]:
+        raise ValueError(f"{source}: metersPerUnit must be from {_UNIT_RANGE[0]:g} to {_UNIT_RANGE[1]:g}, got {meters:g}")
     kilograms = float(UsdPhysics.GetStageKilogramsPerUnit(stage))
     if not (np.isfinite(kilograms) and kilograms > 0):
         raise ValueError(f"{source}: kilogramsPerUnit must be positive and finite, got {kilograms}")
+    if not _UNIT_RANGE[0] <= kilograms <= _UNIT_RANGE[1]:
+        raise ValueError(f"{source}: kilogramsPerUnit must be from {_UNIT_RANGE[0]:g} to {_UNIT_RANGE[1]:g}, got {kilograms:g}")
     units = _Units(meters, kilograms)
     up = UsdGeom.GetStageUpAxis(stage)
     if up not in (UsdGeom.Tokens.y, UsdGeom.Tokens.z):
@@ -1223,6 +1229,9 @@ def load_scene(path) -> Scene:
     return Scene(bodies=all_bodies, gravity=gravity, settings=settings, task=task, source=source, joints=joints, up_axis="Y" if up == UsdGeom.Tokens.y else "Z")
 
 
+# The stage units a load takes (metersPerUnit, kilogramsPerUnit): nanometres and light
+# years are well inside.
+_UNIT_RANGE = (1e-30, 1e30)
 _AXES = {"X": np.array([1.0, 0.0, 0.0]), "Y": np.array([0.0, 1.0, 0.0]), "Z": np.array([0.0, 0.0, 1.0])}
 _DEGREE = np.pi / 180.0
 
