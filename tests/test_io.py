@@ -1598,13 +1598,15 @@ def test_a_ball_joint_drive_target_is_refused(tmp_path):
 
 
 def test_bodies_closer_than_the_plane_search_resolves_are_refused_with_a_hint(tmp_path):
-    """A 0.5 m box 1e-9 m above a 4 m table: the leaf plane Hessian of its side faces against
-    the table has a condition number of ~4e15. It used to fail at the first step as
-    'objective is not finite at the start pose (unsolved leaf pairs: ...)'."""
+    """A 0.5 m box 1e-14 m above a 4 m table: its leaf plane searches do not converge. It used
+    to fail at the first step as 'objective is not finite at the start pose (unsolved leaf
+    pairs: ...)'. Until the searches ran in each pair's own frame, that was so from 1e-9 m
+    (its side faces against the table, whose plane Hessian had a condition number of ~4e15
+    in world axes); now 1e-13 m is solved."""
     from warpcontact import scenes
 
     box = trimesh.creation.box(extents=(0.5, 0.5, 0.5))
-    for gap, refused in ((1e-7, False), (1e-9, True)):
+    for gap, refused in ((1e-9, False), (1e-13, False), (1e-14, True)):
         body = io.BodySpec("box", "/World/box", np.asarray(box.vertices), np.asarray(box.faces), np.array([0.0, 0.0, 0.25 + gap, 0.0, 0.0, 0.0, 1.0]))
         scene = io.Scene(bodies=[scenes.ground_rectangle(4.0, 4.0), body])
         if not refused:

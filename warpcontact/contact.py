@@ -44,12 +44,14 @@ CONTACT_MODES = ("bsh", "brute", "sdrs")
 # How a cluster pair's centred term counts (ContactModel, centred_weight).
 CENTRED_WEIGHTS = ("paper", "pairs")
 
-# Why a leaf plane search fails in practice, for errors about unsolved pairs: a vertex 1e-8 m
-# over a 4 m triangle (perpendicular to it) leaves the plane Hessian with a condition
-# number of ~4e15, which float64 cannot solve (docs/architecture.md, "The leaf potential").
+# Why a leaf plane search fails in practice, for errors about unsolved pairs: a gap so far
+# below the triangles' size that the plane Hessian's stiff and soft directions are ~1e16
+# apart even in the pair's own frame (coplanar parallel edges 1e-9 of their size apart,
+# turned; a box's face 1e-14 of its size over a table; docs/architecture.md, "The leaf
+# potential").
 UNSOLVED_HINT = (
     "their leaf plane searches did not converge, most likely because they are closer than float64 resolves against "
-    "their triangles' size (a gap below about 1e-8 of it); start them farther apart, or split triangles far larger than "
+    "their triangles' size (a gap below about 1e-9 of it); start them farther apart, or split triangles far larger than "
     "the bodies on them. Bodies far below a micrometre "
     "meet this at any gap (the search is sized for 1e-6 m and up; docs/architecture.md, 'Its length scale'), and so do "
     "triangles more than 1e27 m apart"
