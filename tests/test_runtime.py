@@ -114,3 +114,22 @@ def test_concurrent_tasks_run_in_a_forked_child():
         child.kill()
         pytest.fail("run_concurrently hung in a forked child")
     assert child.exitcode == 0
+
+
+def test_the_library_leaves_warps_log_level_to_its_user(monkeypatch):
+    """Found by a probe: resolving a device set wp.config.log_level to WARNING, silencing a
+    user's own choice (module loads never showed). Only the CLI quiets Warp."""
+    import logging
+
+    import warpcontact as wc
+    from warpcontact import _runtime
+    from warpcontact.cli import main
+
+    monkeypatch.setattr(wp.config, "log_level", logging.DEBUG)
+    _runtime._init_warp.cache_clear()
+    builder = wc.ModelBuilder()
+    builder.add_box((1.0, 1.0, 1.0), density=1.0)
+    builder.finalize()
+    assert wp.config.log_level == logging.DEBUG
+    assert main(["list"]) == 0
+    assert wp.config.log_level == logging.WARNING

@@ -3,7 +3,6 @@
 import concurrent.futures
 import contextlib
 import functools
-import logging
 import math
 import os
 
@@ -15,8 +14,8 @@ __all__ = ["HostReadback", "LaunchCache", "host_buffer", "paused_tape", "resolve
 
 @functools.cache
 def _init_warp():
-    # Module-load chatter would drown the CLI output; warnings and errors still show.
-    wp.config.log_level = logging.WARNING
+    # The library leaves Warp's settings to its user (it set log_level to WARNING here, which
+    # silenced a user's own choice); the CLI quiets module-load chatter itself.
     wp.init()
 
 

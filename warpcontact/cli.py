@@ -3,6 +3,7 @@
 import argparse
 import contextlib
 import json
+import logging
 import os
 import signal
 import sys
@@ -11,6 +12,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import warp as wp
 
 from ._files import hold_folder, replace_file, replace_files, replace_json
 from ._validate import MAX_COUNT, MAX_FRAMES, gap_problem
@@ -914,6 +916,8 @@ def _remove_empty(folders: list) -> None:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    # Module-load chatter would drown the progress and results; warnings and errors still show.
+    wp.config.log_level = logging.WARNING
     earlier = {}
     created = _missing_folders(Path(args.out)) if getattr(args, "out", None) is not None else []
     release = None
