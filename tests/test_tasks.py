@@ -279,6 +279,19 @@ def test_task_problem_rejects_scenes_without_task_metadata():
         TaskProblem(scene)
 
 
+def test_a_joint_sine_task_refuses_control_dofs_it_would_not_read():
+    """Found by a probe: control dofs on a body of Ant-Push loaded and ran, and were never
+    read (validate_task even named that body the controlled one)."""
+    from warpcontact.scenes import build_scene
+    from warpcontact.tasks import validate_task
+
+    scene = build_scene("ant_push")
+    assert validate_task(scene)[0] is None
+    scene.body("box").control_dofs = ("x",)
+    with pytest.raises(ValueError, match=r"prim /World/box: warpcontact:control:dofs is not read by a joint_sine task"):
+        validate_task(scene)
+
+
 def test_quick_uses_the_scene_preset_or_caps_the_paper_settings():
     scene = space_billiards()
     scene.task.horizon, scene.task.receding_horizon, scene.task.iterations = 200, 48, 50

@@ -531,8 +531,8 @@ def validate_task(scene) -> tuple:
     Raises ValueError when the scene has no task metadata, no target bodies, a target
     position that is not 3 finite numbers or a tolerance that is negative or not finite, no
     or several controlled bodies, a static target or controlled body, an unknown control
-    kind, or control dofs that are unknown, repeated, or (for PD targets) velocities or
-    coordinates without PD stiffness.
+    kind, or control dofs that are unknown, repeated, (for PD targets) velocities or
+    coordinates without PD stiffness, or given to a joint_sine task.
     """
     source = scene.source or "<scene>"
     task = scene.task
@@ -541,9 +541,15 @@ def validate_task(scene) -> tuple:
     if task.control not in CONTROL_KINDS:
         raise ValueError(f"{source}: task control {task.control!r} is not one of {CONTROL_KINDS}")
     controlled = [i for i, b in enumerate(scene.bodies) if b.control_dofs]
+    if task.control == "joint_sine" and controlled:
+        # They were accepted and never read: the sine waves drive the joints only.
+        raise ValueError(
+            f"{source}: prim {scene.bodies[controlled[0]].path}: warpcontact:control:dofs is not read by a joint_sine task, "
+            "whose sine waves drive the joints' PD targets; remove it"
+        )
     if task.control != "joint_sine" and len(controlled) != 1:
         raise ValueError(f"{source}: expected exactly one body with warpcontact:control:dofs, found {len(controlled)}")
-    if controlled and task.control != "joint_sine":
+    if controlled:
         _check_control_dofs(scene.bodies[controlled[0]], task.control, source, scene.up_axis)
     targets = [i for i, b in enumerate(scene.bodies) if b.target_position is not None]
     if not targets:
