@@ -769,6 +769,9 @@ def _author(path, edit):
     "edit, match",
     [
         (lambda st: UsdPhysics.RigidBodyAPI(st.GetPrimAtPath("/World/box")).CreateVelocityAttr(Gf.Vec3f(float("nan"), 0, 0)), r"prim /World/box: physics:velocity must be finite, got \[nan, 0.0, 0.0\]"),
+        # A probe: a misspelt position met the tolerance's error, and a cm stage's -20 read "got -0.2".
+        (lambda st: [st.GetPrimAtPath("/World/box").CreateAttribute(name, Sdf.ValueTypeNames.Double3 if "pos" in name else Sdf.ValueTypeNames.Double).Set(value) for name, value in (("warpcontact:target:positon", Gf.Vec3d(1, 0, 0)), ("warpcontact:target:tolerance", 0.1))], r"prim /World/box: warpcontact:target:tolerance is authored without a warpcontact:target:position, which makes a body a target \(found warpcontact:target:positon: misspelt\?\)"),
+        (lambda st: [UsdGeom.SetStageMetersPerUnit(st, 0.01)] + [st.GetPrimAtPath("/World/box").CreateAttribute(name, kind).Set(value) for name, kind, value in (("warpcontact:target:position", Sdf.ValueTypeNames.Double3, Gf.Vec3d(250, 0, 0)), ("warpcontact:target:tolerance", Sdf.ValueTypeNames.Double, -20.0))], r"prim /World/box: warpcontact:target:tolerance must be >= 0 and finite, got -0.2 \(authored: position \[250.0, 0.0, 0.0\], tolerance -20.0, at metersPerUnit 0.01\)"),
         # A zero was replaced by 1 silently; a negative or NaN one surfaced as some other value's error.
         (lambda st: UsdGeom.SetStageMetersPerUnit(st, 0.0), r"metersPerUnit must be positive and finite, got 0.0"),
         (lambda st: UsdGeom.SetStageMetersPerUnit(st, float("nan")), r"metersPerUnit must be positive and finite, got nan"),

@@ -1945,13 +1945,18 @@ def _read_warpcontact_body(prim, body: BodySpec, meters: float, source: str):
     target = _cast_attr(prim, "target:position", _numbers, source)
     tolerance = _cast_attr(prim, "target:tolerance", _number, source)
     if target is None and tolerance is not None:
-        raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:target:tolerance is authored without a warpcontact:target:position, which makes a body a target")
+        # A misspelt position met this error before the unknown-attribute one that names it.
+        others = [a.GetName() for a in prim.GetAttributes() if a.GetName().startswith(_NS + "target:") and a.GetName() not in (_NS + "target:position", _NS + "target:tolerance")]
+        hint = f" (found {', '.join(others)}: misspelt?)" if others else ""
+        raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:target:tolerance is authored without a warpcontact:target:position, which makes a body a target{hint}")
     if target is not None:
         body.target_position = target * meters
         body.target_tolerance = (0.0 if tolerance is None else tolerance) * meters
         problem = target_problem(body)
         if problem:
-            raise ValueError(f"{source}: prim {prim.GetPath()}: {problem}")
+            # The check reads metres; the file's own values name what to change.
+            authored = f" (authored: position {target.tolist()}, tolerance {tolerance}, at metersPerUnit {meters:g})" if meters != 1.0 else ""
+            raise ValueError(f"{source}: prim {prim.GetPath()}: {problem}{authored}")
     _read_casts(prim, body, _BODY_ATTRIBUTES, source)
 
 
