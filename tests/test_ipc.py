@@ -178,3 +178,29 @@ def test_the_ipc_model_checks_its_bodies_as_the_other_contact_models_do():
     ):
         with pytest.raises(ValueError, match=match):
             IpcContactModel(meshes, **options)
+
+
+def test_ctrl_c_while_ipctk_initialises_is_an_interrupt_not_a_missing_toolkit(monkeypatch):
+    """Found by a probe: Ctrl-C inside ipctk's initialisation surfaces as an ImportError, which
+    was reported as "needs the IPC Toolkit" (exit 2), and the interrupt was lost."""
+    import builtins
+    import sys
+
+    real_import = builtins.__import__
+
+    def interrupted(name, *args, **kwargs):
+        if name == "ipctk":
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as interrupt:
+                raise ImportError("initialization failed") from interrupt
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.delitem(sys.modules, "ipctk", raising=False)
+    monkeypatch.setattr(builtins, "__import__", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        IpcContactModel([icosphere(0)] * 2)
+    monkeypatch.setattr(builtins, "__import__", real_import)
+    monkeypatch.setitem(sys.modules, "ipctk", None)  # not installed: still the clear error
+    with pytest.raises(ValueError, match=r"the ipc baseline needs the IPC Toolkit"):
+        IpcContactModel([icosphere(0)] * 2)

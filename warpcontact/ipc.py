@@ -88,6 +88,10 @@ class IpcContactModel:
             import ipctk
             import scipy.sparse as sp
         except ImportError as exc:
+            # Ctrl-C inside an extension's initialisation surfaces as an ImportError ("initialization
+            # failed"): it was reported as a missing IPC Toolkit, and the interrupt lost.
+            if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):
+                raise KeyboardInterrupt from exc
             raise ValueError(f"the ipc baseline needs the IPC Toolkit: pip install 'warpcontact[ipc]' ({exc})") from None
 
         if str(device) != "cpu":
