@@ -788,3 +788,23 @@ def test_convergence_plots_use_a_log_axis_only_across_decades():
     assert _loss_axis_scale({"ours": [6.21, 0.5, 0.0], "ipc": [6.21]}) == "log"
     assert _loss_axis_scale({"ours": [0.0, 0.0], "ipc": []}) is None
     assert _loss_axis_scale({}) is None
+
+
+def test_bench_module_load_time_covers_the_traversal_round_kernels(monkeypatch):
+    """Found by a probe: the traversal round kernels are modules of their own, which compiled
+    untimed inside the first model's build (7 s on a cold cache) and were missing from
+    module_load_seconds."""
+    import warp as wp
+
+    from warpcontact import bench
+    from warpcontact._runtime import resolve_device
+    from warpcontact.kernels import traversal
+
+    loaded = []
+    real = wp.load_module
+    monkeypatch.setattr(wp, "load_module", lambda module, device=None: loaded.append(module) or real(module, device=device))
+    bench._load_kernel_modules(resolve_device("cpu"))
+    names = [getattr(module, "name", getattr(module, "__name__", "")) for module in loaded]
+    for budget in (traversal.HOST_SIZED_VISIT_BUDGET, traversal.SYNC_FREE_VISIT_BUDGET):
+        assert traversal.traverse_round_kernel(budget).module.name in names
+    assert "warpcontact.kernels.leaf" in names

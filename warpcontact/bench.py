@@ -594,15 +594,20 @@ def strike_setup(scene, *, gap: float, speed: float) -> dict:
 
 
 def _load_kernel_modules(dev) -> float:
-    """Load (compile, or read from Warp's kernel cache) every warpcontact kernel module; seconds."""
+    """Load (compile, or read from Warp's kernel cache) every warpcontact kernel module, and
+    the traversal round kernels of both visit budgets (modules of their own: they compiled
+    untimed inside the first model's build, 7 s on a cold cache); seconds."""
     import importlib
     import pkgutil
 
     from . import kernels
+    from .kernels import traversal
 
     start = time.perf_counter()
     for info in pkgutil.iter_modules(kernels.__path__):
         wp.load_module(importlib.import_module(f"{kernels.__name__}.{info.name}"), device=dev)
+    for budget in (traversal.HOST_SIZED_VISIT_BUDGET, traversal.SYNC_FREE_VISIT_BUDGET):
+        wp.load_module(traversal.traverse_round_kernel(budget).module, device=dev)
     return time.perf_counter() - start
 
 
