@@ -49,9 +49,12 @@ CENTRED_WEIGHTS = ("paper", "pairs")
 # apart even in the pair's own frame (coplanar parallel edges 1e-9 of their size apart,
 # turned; a box's face 1e-14 of its size over a table; docs/architecture.md, "The leaf
 # potential").
+# Where bodies rest: a weight far beyond the contact stiffness presses them closer than any start.
+PRESSED_GAP_HINT = "a body of mass m rests ~sqrt(100 mu / (m g)) m above its support; the builder warns when that is below 2e-7 of its radius"
 UNSOLVED_HINT = (
     "their leaf plane searches did not converge, most likely because they are closer than float64 resolves against "
-    "their triangles' size (a gap below about 1e-9 of it); start them farther apart, or split triangles far larger than "
+    "their triangles' size (a gap below about 1e-9 of it); start them farther apart, raise the contact stiffness if their "
+    f"weight presses them this close ({PRESSED_GAP_HINT}), or split triangles far larger than "
     "the bodies on them. Bodies far below a micrometre "
     "meet this at any gap (the search is sized for 1e-6 m and up; docs/architecture.md, 'Its length scale'), and so do "
     "triangles more than 1e27 m apart"

@@ -39,7 +39,7 @@ from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
 from .articulation import connected_labels, joint_limit_energy
 from .builder import STEEP_BLEND_EPS, contact_setting_problem, gravity_problem, steep_blend, winding_numbers
-from .contact import UNSOLVED_HINT, ContactModel, LaggedFriction
+from .contact import PRESSED_GAP_HINT, UNSOLVED_HINT, ContactModel, LaggedFriction
 from .rotation import cross, normalized_poses, quat_from_matrix, quat_norm, quat_from_rotation_vector, quat_mul, quat_to_matrix, rigid_step_between, rigid_step_travel
 from .types import Control, Model, State, shares_memory
 
@@ -1368,7 +1368,8 @@ class ImplicitSolver:
             hidden_move = f"; eigenvalues floored at 1e-10 of the largest hid a move of {hidden:.1e} m" if hidden else ""
             hint += (
                 f"; the Newton system's eigenvalue magnitudes span {values.min():.1e} .. {values.max():.1e}{hidden_move}: {pressed or 'contact'} "
-                "pressed this close is far stiffer than the bodies' inertia, beyond what float64 resolves; start the bodies farther apart"
+                "pressed this close is far stiffer than the bodies' inertia, beyond what float64 resolves; start the bodies farther apart, "
+                f"or, where their weight presses them this close, raise the contact stiffness ({PRESSED_GAP_HINT})"
             )
         if unsolved.failed:
             pairs = ", ".join(f"{a} and {b}" for a, b in unsolved.pairs)
