@@ -1593,8 +1593,6 @@ def _read_d6(desc, spec: JointSpec, where: str, units: _Units, prim):
     the world with world-aligned axes, which makes a base joint."""
     limits = {str(pair.first).split(".")[-1]: pair.second for pair in desc.jointLimits}
     drives = {str(pair.first).split(".")[-1]: pair.second for pair in desc.jointDrives}
-    if "Distance" in limits and limits["Distance"].enabled:
-        raise ValueError(f"{where}: a D6 distance limit is not supported (it was ignored); remove it")
     free = [axis for axis in _D6_AXIS_DOF if not (axis in limits and limits[axis].enabled and limits[axis].lower > limits[axis].upper)]
     translations = [a for a in free if a.startswith("Trans")]
     rotations = [a for a in free if a.startswith("Rot")]
