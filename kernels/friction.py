@@ -1,17 +1,24 @@
 """Frictional damping (paper appendix "Frictional Contact Modeling"), lagged and smoothed.
 
-For every leaf pair (triangles A on body a, B on body b) listed at the step's start q^t:
+For every leaf pair (triangles A on body a, B on body b) listed at the step's start q^t, and
+each vertex x_k of its carrying triangle C (the moving one against a static body, else the
+smaller one; ``_carrying_side``):
 
-    N   = mu W |n| sum_{k in A} -b'(g_k)     normal force magnitude of the pair's leaf
-                                             potential (net force on A), times the local
-                                             support weight W
+    N_k = mu W |n| (-b'(g_k))                the normal force of the pair's leaf potential
+                                             on vertex k, |dP/dx_k|, times the local
+                                             support weight W (sum_k N_k is the pair's net
+                                             force: the plane balances the two sides)
     n^  = n / |n|,   T = I - n^ n^^T          lagged contact normal of the separating plane
-    p   = c_A^t or c_B^t                     one of the triangles' centroids at q^t: the
-                                             moving one's against a static body, else the
-                                             smaller triangle's (``_contact_weights``)
-    u   = T (x_a(X_A; q) - x_b(X_B; q))      tangential slip over the step of the two
-                                             bodies' material points X_A, X_B at p at q^t
-    D   = lambda N (sqrt(|u|^2 + e^2) - e),  e = v_eps dt
+    p_k = x_k^t                              the vertex's place at q^t
+    u_k = T (x_a(X_A,k; q) - x_b(X_B,k; q))  tangential slip over the step of the two
+                                             bodies' material points at p_k at q^t
+    D   = lambda sum_k N_k (sqrt(|u_k|^2 + e^2) - e),  e = v_eps dt
+
+as the paper's D = sum_k lambda |dP/dx_k| D_par(x_k), over C's vertices. Until 2026-11-27 a
+pair's friction acted at one point, C's centroid, with the whole N: where the normal force
+sits on C's vertices at an edge (a box tipping about it), the centroids up to 0.38 m above
+the edge slipped as the box turned, and their friction made a couple that held a box 30
+degrees over its edge, 12 degrees past its balance (a helper's diagnosis).
 
 The leaf potential is the contact model's (``pair_solve`` with its ``dhat``): for the
 paper's model b(g) = 1/g (so -b' = 1/g^2) and W = 1 - Phi((rho - d1)/(d2 - d1)) of P_local
@@ -28,7 +35,7 @@ slip (with each triangle's own centroid, as until 2026-11-26, a plate and a box 
 together at 2 rad/s felt full Coulomb friction against the turn and lost 41% of their angular
 momentum in 0.5 s).
 
-The adjoint contracts a pair's force with ell, the relative displacement of the two
+The adjoint below is per point (drop the k): it contracts a point's force with ell, the relative displacement of the two
 bodies' points under the step's adjoint multiplier (rigid coordinates of both bodies). With w = x_a - x_b,
 u = T w, root = sqrt(|u|^2 + e^2), s = u / root and F2 = (I - s s^T) / root
 (the derivative of s in u), the contraction C = ell . dD/dx_a = lambda N (ell . s) varies as
@@ -42,8 +49,9 @@ and since F2 and T commute (s is tangent) and n^ . dn^ = 0, with m = F2 T ell:
 dN and dn^ go on through the plane's sensitivity dp*/dx (``leaf_plane_sensitivity``), dw
 through the rigid motion of the two points at q^t: with the step's rotations dR = R R^t^T,
 dw = -dR_A (dp_A^t + dtheta_A x r_A) + dR_B (dp_B^t + dtheta_B x r_B) + (dR_A - dR_B) dp
-(r: p from each body's centre; p follows its centroid, the choice being fixed at q^t), and
-through the lever arms of ell.
+(r: p from each body's centre; p follows its vertex, the carrying triangle being fixed at
+q^t), and through the lever arms of ell. dN_k = mu (f_k (|n| dW + W d|n|) - W |n| b''(g_k)
+dg_k) with f_k = -b'(g_k); n^ is the pair's, so the points' cotangents on it add up.
 
 No leaf pair is solved twice for its plane: the setup reads N and n^ off the optimal planes
 that the contact evaluation at q^t left (``leaf_term_kernel``), and keeps them; the adjoint
@@ -54,7 +62,7 @@ after at most one step (``pair_solve_from_plane``).
 import warp as wp
 
 from .blend import shell_blend
-from .leaf import LEAF_OK, leaf_barrier, leaf_plane_sensitivity, pair_solve_from_plane
+from .leaf import LEAF_OK, leaf_barrier, leaf_plane_sensitivity, leaf_vertex, leaf_vertex_barrier, pair_solve_from_plane
 from .reduction import Targets, add_record_gradient, add_record_value, add_term_hessian_block, target_record
 from .rigid import rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
 
@@ -68,9 +76,10 @@ class FrictionFrame:
     """Lagged friction data of one step, one entry per leaf pair listed at q^t."""
 
     leaf_items: wp.array(dtype=wp.vec4i)  # (triangle_a, triangle_b, parent, body pair)
-    normal_force: wp.array(dtype=wp.float64)  # N (0: no friction from this pair)
     normal: wp.array(dtype=wp.vec3d)  # n^
     plane: wp.array(dtype=wp.vec4d)  # the leaf's optimal plane (n, d) at q^t, world frame
+    # Three entries per pair (3 tid + k), one per vertex k of the triangle carrying its points:
+    vertex_force: wp.array(dtype=wp.float64)  # N_k (0: no friction from this vertex)
     point_a: wp.array(dtype=wp.vec3d)  # X_A, body frame of a
     point_b: wp.array(dtype=wp.vec3d)  # X_B, body frame of b
     offset: wp.array(dtype=wp.vec3d)  # x_a(X_A) - x_b(X_B) at q^t: 0 up to rounding
@@ -88,22 +97,16 @@ def _leaf_radius(t: wp.mat33d):
 
 
 @wp.func
-def _contact_weights(local_a: wp.mat33d, local_b: wp.mat33d, dynamic_a: wp.int32, dynamic_b: wp.int32):
-    """The weights of the two centroids in the shared point p: all on the moving triangle's
-    where the other body is static, else on the smaller triangle's (A's on a tie). A blend of
-    the two put a box's point on a two-triangle ground up to the box triangle's radius off
+def _carrying_side(local_a: wp.mat33d, local_b: wp.mat33d, dynamic_a: wp.int32, dynamic_b: wp.int32):
+    """The triangle whose vertices carry the pair's points (0: A, 1: B): the moving one where
+    the other body is static, else the smaller one (A on a tie). A blend of the two
+    centroids put a box's point on a two-triangle ground up to the box triangle's radius off
     its centroid (a sliding box's yaw torque 8x larger). The radii are the body-frame
     triangles', so a pair's choice never changes with the poses (from world triangles, two
     equal balls' rounding flipped it, and the step with it)."""
     if dynamic_b == 0 or (dynamic_a != 0 and _leaf_radius(local_a) <= _leaf_radius(local_b)):
-        return wp.float64(1.0), wp.float64(0.0)
-    return wp.float64(0.0), wp.float64(1.0)
-
-
-@wp.func
-def _contact_point(ca: wp.vec3d, cb: wp.vec3d, weight_a: wp.float64, weight_b: wp.float64):
-    """p = w_A c_A + w_B c_B (``_contact_weights``)."""
-    return weight_a * ca + weight_b * cb
+        return 0
+    return 1
 
 
 @wp.func
@@ -143,33 +146,37 @@ def friction_setup_kernel(
     pos_b = body_position[pair[1]]
     ta = world_triangle(local_a, rot_a, pos_a)
     tb = world_triangle(local_b, rot_b, pos_b)
-    ca = _centroid(ta)
-    cb = _centroid(tb)
-    # One material point of each body at the same place: a rigid motion of both moves them
-    # alike (no slip). A ground triangle's centroid may be metres from a box's.
-    weight_a, weight_b = _contact_weights(local_a, local_b, body_dynamic[pair[0]], body_dynamic[pair[1]])
-    contact = _contact_point(ca, cb, weight_a, weight_b)
-    point_a = wp.transpose(rot_a) * (contact - pos_a)
-    point_b = wp.transpose(rot_b) * (contact - pos_b)
-    frame.point_a[tid] = point_a
-    frame.point_b[tid] = point_b
-    frame.offset[tid] = (rot_a * point_a + pos_a) - (rot_b * point_b + pos_b)  # 0 up to rounding, so u(q^t) = 0 exactly
-    frame.normal_force[tid] = wp.float64(0.0)
+    # Each vertex of the carrying triangle is a material point of both bodies at the same
+    # place: a rigid motion of the two moves them alike (no slip).
+    side = _carrying_side(local_a, local_b, body_dynamic[pair[0]], body_dynamic[pair[1]])
+    carrier = ta
+    sigma = wp.float64(1.0)
+    if side == 1:
+        carrier = tb
+        sigma = wp.float64(-1.0)
+    for k in range(3):
+        point_a = wp.transpose(rot_a) * (carrier[k] - pos_a)
+        point_b = wp.transpose(rot_b) * (carrier[k] - pos_b)
+        frame.point_a[3 * tid + k] = point_a
+        frame.point_b[3 * tid + k] = point_b
+        frame.offset[3 * tid + k] = (rot_a * point_a + pos_a) - (rot_b * point_b + pos_b)  # 0 up to rounding, so u(q^t) = 0 exactly
+        frame.vertex_force[3 * tid + k] = wp.float64(0.0)
     frame.normal[tid] = wp.vec3d()
     plane = frame.plane[tid]
     n = wp.vec3d(plane[0], plane[1], plane[2])
     norm = wp.length(n)
     if not (norm > wp.float64(0.0)):
         return
-    q = wp.float64(0.0)
+    forces = wp.vec3d()
     for k in range(3):
-        gap = wp.dot(ta[k], n) + plane[3]
+        gap = sigma * (wp.dot(carrier[k], n) + plane[3])
         if not (gap > wp.float64(0.0)):
             return
         _b, b1, _b2 = leaf_barrier(gap, dhat)
-        q -= b1
-    weight, _ = _support_weight(ca, cb, _leaf_radius(ta) + _leaf_radius(tb), eps, dhat)
-    frame.normal_force[tid] = mu * weight * norm * q
+        forces[k] = -b1
+    weight, _ = _support_weight(_centroid(ta), _centroid(tb), _leaf_radius(ta) + _leaf_radius(tb), eps, dhat)
+    for k in range(3):
+        frame.vertex_force[3 * tid + k] = mu * weight * norm * forces[k]
     frame.normal[tid] = n / norm
 
 
@@ -192,33 +199,22 @@ def _slip(
     return ra, rb, w, u
 
 
-@wp.kernel
-def friction_energy_kernel(
-    # Model:
-    friction: wp.array(dtype=wp.float64),
-    smoothing: wp.float64,
-    # Data in:
-    body_rotation: wp.array(dtype=wp.mat33d),
-    body_position: wp.array(dtype=wp.vec3d),
-    seed_body_pair: wp.array(dtype=wp.vec2i),
-    frame: FrictionFrame,
-    seed_chunk: wp.array(dtype=wp.int32),
-    chunk: int,
-    # Data out:
+@wp.func
+def _add_point_friction(
     targets: Targets,
+    record: int,
+    seed: int,
+    tid: int,
+    pair: wp.vec2i,
+    coeff: wp.float64,
+    smoothing: wp.float64,
+    nrm: wp.vec3d,
+    ra: wp.vec3d,
+    rb: wp.vec3d,
+    u: wp.vec3d,
 ):
-    """D of one lagged pair, its gradient and Hessian, added to one of its body pair's
-    records (``targets`` holds top-level records only); ``top_level_kernel`` sums them.
-    Only the pairs of body pairs in ``chunk`` (``seed_chunk``) are taken."""
-    tid = wp.tid()
-    coeff = friction[0] * frame.normal_force[tid]
-    seed = frame.leaf_items[tid][3]
-    if coeff == wp.float64(0.0) or seed_chunk[seed] != chunk:
-        return
-    pair = seed_body_pair[seed]
-    record = target_record(targets, -1, seed, tid)
-    nrm = frame.normal[tid]
-    ra, rb, w, u = _slip(nrm, frame.point_a[tid], frame.point_b[tid], frame.offset[tid], body_rotation[pair[0]], body_position[pair[0]], body_rotation[pair[1]], body_position[pair[1]])
+    """Adds one point's D = coeff (sqrt(|u|^2 + e^2) - e), its gradient and Hessian in both
+    bodies' rigid coordinates to ``record``."""
     root = wp.sqrt(wp.dot(u, u) + smoothing * smoothing)
     add_record_value(targets, record, coeff * (root - smoothing))
     tangent = wp.identity(n=3, dtype=wp.float64) - wp.outer(nrm, nrm)
@@ -252,6 +248,39 @@ def friction_energy_kernel(
 
 
 @wp.kernel
+def friction_energy_kernel(
+    # Model:
+    friction: wp.array(dtype=wp.float64),
+    smoothing: wp.float64,
+    # Data in:
+    body_rotation: wp.array(dtype=wp.mat33d),
+    body_position: wp.array(dtype=wp.vec3d),
+    seed_body_pair: wp.array(dtype=wp.vec2i),
+    frame: FrictionFrame,
+    seed_chunk: wp.array(dtype=wp.int32),
+    chunk: int,
+    # Data out:
+    targets: Targets,
+):
+    """D of one lagged pair (its three points), its gradient and Hessian, added to one of its
+    body pair's records (``targets`` holds top-level records only); ``top_level_kernel`` sums
+    them. Only the pairs of body pairs in ``chunk`` (``seed_chunk``) are taken."""
+    tid = wp.tid()
+    seed = frame.leaf_items[tid][3]
+    if friction[0] == wp.float64(0.0) or seed_chunk[seed] != chunk:
+        return
+    pair = seed_body_pair[seed]
+    record = target_record(targets, -1, seed, tid)
+    nrm = frame.normal[tid]
+    for k in range(3):
+        point = 3 * tid + k
+        coeff = friction[0] * frame.vertex_force[point]
+        if coeff != wp.float64(0.0):
+            ra, rb, _w, u = _slip(nrm, frame.point_a[point], frame.point_b[point], frame.offset[point], body_rotation[pair[0]], body_position[pair[0]], body_rotation[pair[1]], body_position[pair[1]])
+            _add_point_friction(targets, record, seed, tid, pair, coeff, smoothing, nrm, ra, rb, u)
+
+
+@wp.kernel
 def friction_adjoint_kernel(
     # Model:
     triangle_vertices: wp.array(dtype=wp.mat33d),
@@ -275,35 +304,17 @@ def friction_adjoint_kernel(
     adj_friction_out: wp.array(dtype=wp.float64),
     adj_mu_out: wp.array(dtype=wp.float64),
 ):
-    """lambda^T d(grad_q D)/dy for y = q^t (through N, n^ and the shared point), lambda_f and mu."""
+    """lambda^T d(grad_q D)/dy for y = q^t (through each point's N_k, n^ and the points'
+    places), lambda_f and mu."""
     tid = wp.tid()
-    big_n = frame.normal_force[tid]
     lam_f = friction[0]
-    if big_n == wp.float64(0.0) or lam_f == wp.float64(0.0):
+    if lam_f == wp.float64(0.0):
+        return
+    if frame.vertex_force[3 * tid] == wp.float64(0.0) and frame.vertex_force[3 * tid + 1] == wp.float64(0.0) and frame.vertex_force[3 * tid + 2] == wp.float64(0.0):
         return
     item = frame.leaf_items[tid]
     pair = seed_body_pair[item[3]]
     nrm = frame.normal[tid]
-    ra, rb, w, u = _slip(nrm, frame.point_a[tid], frame.point_b[tid], frame.offset[tid], rotation_next[pair[0]], position_next[pair[0]], rotation_next[pair[1]], position_next[pair[1]])
-    la = multiplier[pair[0]]
-    lb = multiplier[pair[1]]
-    ell = wp.vec3d()
-    if body_dynamic[pair[0]] != 0:
-        ell += wp.vec3d(la[0], la[1], la[2]) + wp.cross(wp.vec3d(la[3], la[4], la[5]), ra)
-    if body_dynamic[pair[1]] != 0:
-        ell -= wp.vec3d(lb[0], lb[1], lb[2]) + wp.cross(wp.vec3d(lb[3], lb[4], lb[5]), rb)
-    root = wp.sqrt(wp.dot(u, u) + smoothing * smoothing)
-    s = u / root
-    # C = ell . dD/dx_a = lambda N ell.s; its differential (derived in the module docstring):
-    # dC = lambda [ (ell.s) dN - N ((ell.n^) s + (n^.w) m) . dn^ + N m . dw ],  m = F2 T ell.
-    contraction = lam_f * big_n * wp.dot(ell, s)
-    wp.atomic_add(adj_friction_out, 0, contraction / lam_f)
-    wp.atomic_add(adj_mu_out, 0, contraction / mu)
-    t_ell = ell - wp.dot(ell, nrm) * nrm
-    m = (t_ell - wp.dot(u, t_ell) / (root * root) * u) / root
-    coeff_n = lam_f * wp.dot(ell, s)
-    v_n = -(lam_f * big_n) * (wp.dot(ell, nrm) * s + wp.dot(nrm, w) * m)
-
     # Time-t geometry and the leaf solution's sensitivities.
     rot_a = rotation_now[pair[0]]
     rot_b = rotation_now[pair[1]]
@@ -314,40 +325,72 @@ def friction_adjoint_kernel(
     sol = pair_solve_from_plane(ta, tb, frame.plane[tid], dhat, max_iterations)
     if sol.status != LEAF_OK:
         return
+    side_p = _carrying_side(triangle_vertices[item[0]], triangle_vertices[item[1]], body_dynamic[pair[0]], body_dynamic[pair[1]])
+    carrier = ta
+    if side_p == 1:
+        carrier = tb
+    la = multiplier[pair[0]]
+    lb = multiplier[pair[1]]
+    # Per point k: C_k = ell_k . dD_k/dx_a = lambda N_k ell_k.s_k; its differential (module
+    # docstring): dC_k = lambda [ (ell_k.s_k) dN_k - N_k ((ell_k.n^) s_k + (n^.w_k) m_k) . dn^
+    # + N_k m_k . dw_k ],  m_k = F2_k T ell_k. n^ is the pair's, so its cotangents add up.
+    coeff_n = wp.vec3d()
+    v_n = wp.vec3d()
+    point_cot = wp.mat33d()  # row k: the cotangent of point k's place p_k
+    for k in range(3):
+        point = 3 * tid + k
+        big_n = frame.vertex_force[point]
+        if big_n == wp.float64(0.0):
+            continue
+        ra, rb, w, u = _slip(nrm, frame.point_a[point], frame.point_b[point], frame.offset[point], rotation_next[pair[0]], position_next[pair[0]], rotation_next[pair[1]], position_next[pair[1]])
+        ell = wp.vec3d()
+        if body_dynamic[pair[0]] != 0:
+            ell += wp.vec3d(la[0], la[1], la[2]) + wp.cross(wp.vec3d(la[3], la[4], la[5]), ra)
+        if body_dynamic[pair[1]] != 0:
+            ell -= wp.vec3d(lb[0], lb[1], lb[2]) + wp.cross(wp.vec3d(lb[3], lb[4], lb[5]), rb)
+        root = wp.sqrt(wp.dot(u, u) + smoothing * smoothing)
+        s = u / root
+        contraction = lam_f * big_n * wp.dot(ell, s)
+        wp.atomic_add(adj_friction_out, 0, contraction / lam_f)
+        wp.atomic_add(adj_mu_out, 0, contraction / mu)
+        t_ell = ell - wp.dot(ell, nrm) * nrm
+        m = (t_ell - wp.dot(u, t_ell) / (root * root) * u) / root
+        coeff_n[k] = lam_f * wp.dot(ell, s)
+        v_n += -(lam_f * big_n) * (wp.dot(ell, nrm) * s + wp.dot(nrm, w) * m)
+        # The material points' offsets r_a = R_A X_A, r_b = R_B X_B move with q^t, as p_k's
+        # place in each body: d r_a = dR_A (dp_k - dp_A^t - dtheta_A x (p_k - p_A^t)), dR_A =
+        # R_A R_A^t^T the step's rotation (likewise b; p_k follows its vertex). C_k = g . ell
+        # sees them in w (cotangent lambda N_k m on r_a, minus it on r_b) and in ell's lever
+        # arms (g . (l_a x d r_a) = (g x l_a) . d r_a, l_a: the multiplier's rotation).
+        slip_cot = (lam_f * big_n) * m
+        g = (lam_f * big_n) * s
+        cot_a = slip_cot
+        cot_b = -slip_cot
+        if body_dynamic[pair[0]] != 0:
+            cot_a += wp.cross(g, wp.vec3d(la[3], la[4], la[5]))
+        if body_dynamic[pair[1]] != 0:
+            cot_b -= wp.cross(g, wp.vec3d(lb[3], lb[4], lb[5]))
+        turned_a = wp.transpose(rotation_next[pair[0]] * wp.transpose(rot_a)) * cot_a
+        turned_b = wp.transpose(rotation_next[pair[1]] * wp.transpose(rot_b)) * cot_b
+        point_cot[k] = turned_a + turned_b
+        if body_dynamic[pair[0]] != 0:
+            g_a = rigid_point_gradient(-turned_a, carrier[k] - pos_a)
+            for i in range(6):
+                wp.atomic_add(adj_now_out, pair[0], i, g_a[i])
+        if body_dynamic[pair[1]] != 0:
+            g_b = rigid_point_gradient(-turned_b, carrier[k] - pos_b)
+            for i in range(6):
+                wp.atomic_add(adj_now_out, pair[1], i, g_b[i])
     ca = _centroid(ta)
     cb = _centroid(tb)
     rho_vec = ca - cb
     rho_hat = rho_vec / wp.length(rho_vec)
     weight, dweight = _support_weight(ca, cb, _leaf_radius(ta) + _leaf_radius(tb), eps, dhat)
-    # The material points' offsets r_a = R_A X_A, r_b = R_B X_B move with q^t, as p's place in
-    # each body: d r_a = dR_A (dp - dp_A^t - dtheta_A x (p - p_A^t)), dR_A = R_A R_A^t^T the
-    # step's rotation (likewise b; p follows the centroid it sits on).
-    # C = g . ell sees them in w (cotangent lambda N m on r_a, minus it on r_b) and in ell's
-    # lever arms (g . (l_a x d r_a) = (g x l_a) . d r_a, l_a: the multiplier's rotation).
-    slip_cot = (lam_f * big_n) * m
-    g = (lam_f * big_n) * s
-    cot_a = slip_cot
-    cot_b = -slip_cot
-    if body_dynamic[pair[0]] != 0:
-        cot_a += wp.cross(g, wp.vec3d(la[3], la[4], la[5]))
-    if body_dynamic[pair[1]] != 0:
-        cot_b -= wp.cross(g, wp.vec3d(lb[3], lb[4], lb[5]))
-    turned_a = wp.transpose(rotation_next[pair[0]] * wp.transpose(rot_a)) * cot_a
-    turned_b = wp.transpose(rotation_next[pair[1]] * wp.transpose(rot_b)) * cot_b
-    point_cot = turned_a + turned_b
-    weight_a, weight_b = _contact_weights(triangle_vertices[item[0]], triangle_vertices[item[1]], body_dynamic[pair[0]], body_dynamic[pair[1]])
-    contact = _contact_point(ca, cb, weight_a, weight_b)
-    if body_dynamic[pair[0]] != 0:
-        g_a = rigid_point_gradient(-turned_a, contact - pos_a)
-        for i in range(6):
-            wp.atomic_add(adj_now_out, pair[0], i, g_a[i])
-    if body_dynamic[pair[1]] != 0:
-        g_b = rigid_point_gradient(-turned_b, contact - pos_b)
-        for i in range(6):
-            wp.atomic_add(adj_now_out, pair[1], i, g_b[i])
     norm = wp.length(sol.n)
     nhat = sol.n / norm
-    q = -(sol.slope_a[0] + sol.slope_a[1] + sol.slope_a[2])
+    sigma = wp.float64(1.0)
+    if side_p == 1:
+        sigma = wp.float64(-1.0)
     third = wp.float64(1.0) / wp.float64(3.0)
     for j in range(6):
         dp = leaf_plane_sensitivity(sol, j)  # 4x3
@@ -356,26 +399,27 @@ def friction_adjoint_kernel(
             for c in range(3):
                 dn[i, c] = dp[i, c]
         dd = wp.vec3d(dp[3, 0], dp[3, 1], dp[3, 2])
-        # dQ/dx_j with Q = sum_{k in A} -b'(g_k), g_k = <x_k, n> + d (local frame). For
-        # SDRS dn is tangent to |n| = 1 (the sensitivity is projected), so d|n| = 0 below.
-        dq = wp.vec3d()
-        for k in range(3):
-            dg = wp.transpose(dn) * sol.ta[k] + dd
-            if k == j:
-                dg += sol.n
-            dq -= sol.curv_a[k] * dg
         sign = wp.float64(1.0)
         if j >= 3:
             sign = wp.float64(-1.0)
         drho = (sign * third) * rho_hat
         dnorm = wp.transpose(dn) * nhat
-        dbig_n = mu * (dweight * norm * q * drho + weight * q * dnorm + weight * norm * dq)
-        dnhat_t_v = wp.transpose((wp.identity(n=3, dtype=wp.float64) - wp.outer(nhat, nhat)) * dn / norm) * v_n
-        # Each vertex moves its centroid, and p with it, by a third of its centroid's weight.
-        share = weight_a
-        if j >= 3:
-            share = weight_b
-        cot = coeff_n * dbig_n + dnhat_t_v + (share * third) * point_cot
+        cot = wp.transpose((wp.identity(n=3, dtype=wp.float64) - wp.outer(nhat, nhat)) * dn / norm) * v_n
+        # dN_k/dx_j with N_k = mu W |n| f_k, f_k = -b'(g_k), g_k = sigma (<x_k, n> + d) (local
+        # frame). For SDRS dn is tangent to |n| = 1 (the sensitivity is projected): d|n| = 0.
+        for k in range(3):
+            if coeff_n[k] == wp.float64(0.0):
+                continue
+            x, _sigma_k, _g = leaf_vertex(sol, 3 * side_p + k)
+            slope, curvature = leaf_vertex_barrier(sol, 3 * side_p + k)
+            dg = wp.transpose(dn) * x + dd
+            if j == 3 * side_p + k:
+                dg += sol.n
+            dbig_n = mu * (-slope * (dweight * norm * drho + weight * dnorm) - weight * norm * curvature * sigma * dg)
+            cot += coeff_n[k] * dbig_n
+        # Vertex j moves the point it carries.
+        if j >= 3 * side_p and j < 3 * side_p + 3:
+            cot += point_cot[j - 3 * side_p]
         side = 0
         x = ta[0]
         if j < 3:

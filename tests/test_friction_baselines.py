@@ -76,7 +76,7 @@ def test_no_friction_beyond_the_support_and_friction_inside(mode, dhat):
         else:
             assert value == 0.0 and np.all(grad == 0.0)
             if mode == "sdrs":  # listed by the broad phase, yet no normal force
-                assert lagged.pairs > 0 and np.all(lagged.data.normal_force.numpy() == 0.0)
+                assert lagged.pairs > 0 and np.all(lagged.data.vertex_force.numpy() == 0.0)
 
 
 @pytest.mark.parametrize("mode", ["bsh", "sdrs", "ipc"])
@@ -159,9 +159,10 @@ def test_sdrs_normal_forces_are_the_barrier_forces():
     contact = model.contact.evaluate(poses)
     mu = float(model.contact_stiffness.numpy()[0])
     frame = lagged.data
-    # Per pair N n^ is the barrier's force on triangle A (the ground; n^ points to A's side,
-    # down), which balances the force on the box: minus the gradient of its translation.
-    total = (frame.normal_force.numpy()[:, None] * frame.normal.numpy()).sum(axis=0)
+    # Per pair N n^ (the sum of its vertices' N_k) is the barrier's force on triangle A (the
+    # ground; n^ points to A's side, down), which balances the force on the box: minus the
+    # gradient of its translation.
+    total = (frame.vertex_force.numpy().reshape(-1, 3).sum(axis=1)[:, None] * frame.normal.numpy()).sum(axis=0)
     np.testing.assert_allclose(total, mu * contact.grad[1, :3], rtol=1e-9)
     assert total[2] < 0
 

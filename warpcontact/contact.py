@@ -1004,21 +1004,21 @@ class ContactModel:
 
     def friction_frame(self, mu: float, friction: wp.array, slip_smoothing: float) -> LaggedFriction:
         """Lagged friction data at the last evaluated configuration (a step's q^t): per leaf
-        pair, the normal force mu W |n| sum_A -b'(g_k) of this mode's leaf potential, its
-        plane normal and the two bodies' material points at the pair's shared contact point
-        (``kernels/friction.py``)."""
+        pair, its plane normal and, at each vertex of its carrying triangle, the vertex's
+        normal force mu W |n| (-b'(g_k)) of this mode's leaf potential and the two bodies'
+        material points there (``kernels/friction.py``)."""
         check_friction_arguments(mu, friction, slip_smoothing)
         self._require_evaluation("friction_frame")
         with wp.ScopedDevice(self.device):
             frame = friction_kernels.FrictionFrame()
             frame.leaf_items = self.leaf_items()
             count = frame.leaf_items.shape[0]
-            frame.normal_force = wp.zeros(count, dtype=wp.float64)
             frame.normal = wp.zeros(count, dtype=wp.vec3d)
             frame.plane = _leading_rows(self._leaf_plane, count)
-            frame.point_a = wp.zeros(count, dtype=wp.vec3d)
-            frame.point_b = wp.zeros(count, dtype=wp.vec3d)
-            frame.offset = wp.zeros(count, dtype=wp.vec3d)
+            frame.vertex_force = wp.zeros(3 * count, dtype=wp.float64)
+            frame.point_a = wp.zeros(3 * count, dtype=wp.vec3d)
+            frame.point_b = wp.zeros(3 * count, dtype=wp.vec3d)
+            frame.offset = wp.zeros(3 * count, dtype=wp.vec3d)
             if count:
                 wp.launch(
                     friction_kernels.friction_setup_kernel,
