@@ -963,7 +963,8 @@ def test_a_step_starts_from_the_last_evaluation_of_the_previous_step(monkeypatch
     """Each step starts at the pose where the previous step's last contact evaluation ended
     (its solution); reusing that evaluation saves one a step and changes nothing: the same
     poses, bit for bit, as evaluating again (a 20-frame strike of the 16-ball rack: 106 ->
-    87 evaluations)."""
+    87 evaluations). Here 68 -> 62 over 8 steps: the first has no previous step, and one
+    other (the third, since the vertex friction of 2026-11-27) evaluates as often either way."""
     model, first, dt = sliding_box_and_ball()
     evaluate = wc.ContactModel.evaluate
     fills, allowed = [], {"reuse": True}
@@ -979,7 +980,7 @@ def test_a_step_starts_from_the_last_evaluation_of_the_previous_step(monkeypatch
         runs[on] = (q, len(fills))
     (reused, with_reuse), (fresh, without) = runs[True], runs[False]
     np.testing.assert_array_equal(reused, fresh)
-    assert with_reuse <= without - 7, (with_reuse, without)
+    assert with_reuse <= without - 6, (with_reuse, without)
 
 
 def test_a_rejected_warm_start_bounds_the_first_step_with_the_start_lists(monkeypatch):
