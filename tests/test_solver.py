@@ -1421,6 +1421,22 @@ def test_a_failing_step_names_the_trials_with_unsolved_leaf_pairs():
         rollout(model, 10, dt, first=first, solver=wc.ImplicitSolver(model, max_iterations=40))
 
 
+def test_a_failing_step_names_the_length_it_had_to_converge_below():
+    """A 1 m box landing on a 4e10 m two-triangle ground does not converge in 40 Newton
+    iterations; the error said "(tolerance 2.828e+00 m)", tolerance times the ground's
+    radius, against a last step of 1e-6 m, though the step had to fall below 1e-5 m/s^2 x
+    dt^2 = 4e-9 m. It names that length now."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), friction=0.3)
+    ground = scenes.ground_rectangle(4e10, 4e10)
+    b.add_body((ground.vertices, ground.faces), static=True, name="ground")
+    b.add_box((1.0, 1.0, 1.0), density=1000.0, name="box", pose=(0.0, 0.0, 0.51, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    with pytest.raises(wc.SolverError, match=r"no convergence after 40 Newton iterations") as failure:
+        rollout(model, 5, 0.02, solver=wc.ImplicitSolver(model, max_iterations=40))
+    step, below = map(float, re.search(r"moves points up to (\S+) m \(converged below (\S+) m: the least of", str(failure.value)).groups())
+    assert below == pytest.approx(1e-5 * 0.02**2) and step > below
+
+
 @pytest.mark.parametrize("gap", [1e-9, 1e-8])
 def test_a_box_pressed_between_walls_beyond_float64s_reach_is_an_error_not_a_freeze(gap):
     """A frictionless box between two walls ``gap`` away, falling along them. At 1e-9 m the

@@ -1084,7 +1084,7 @@ class ImplicitSolver:
             # scene to its gap).
             if step_length <= converged_length and not self._pressed(travel, contact, rounding_length):
                 if hidden > converged_length:
-                    raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden))
+                    raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden, converged_length=converged_length))
                 converged = True
                 break
             decrement = -float(grad @ direction)
@@ -1127,12 +1127,12 @@ class ImplicitSolver:
                 if step_length <= rounding_step and hidden <= converged_length:
                     converged = True  # stalled at the rounding floor of L
                     break
-                raise SolverError(self._diagnostics("line search failed", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden))
+                raise SolverError(self._diagnostics("line search failed", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden, converged_length=converged_length))
             q, coords, value, grad, hess, contact, jacobian = trial, t_coords, t_value, t_grad, t_hess, t_contact, t_jacobian
         if not converged:
             # The move the saddle-free floor hid at the last iterate, as where steps converge:
             # steps capped by a pressed pair's gap iterate on to here.
-            raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden))
+            raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden, converged_length=converged_length))
 
         # The friction adjoint needs the poses the friction terms saw: unit quaternions for the
         # static bodies too, whose user-given values (of any norm) go back into state_out.
@@ -1364,7 +1364,7 @@ class ImplicitSolver:
         chord, t = hit
         return float(s[chord] + t / _PASS_THROUGH_CHORDS)
 
-    def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray, q_start: np.ndarray, dt: float, unsolved: "_UnsolvedTrials", hess: np.ndarray, evaluation, *, hidden: float = 0.0) -> str:
+    def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray, q_start: np.ndarray, dt: float, unsolved: "_UnsolvedTrials", hess: np.ndarray, evaluation, *, hidden: float = 0.0, converged_length: float) -> str:
         worst = np.argsort(-travel)[:3]
         names = self.model.body_names
         bodies = ", ".join(f"{names[i]} ({travel[i]:.3e} m)" for i in worst if travel[i] > 0)
@@ -1392,7 +1392,10 @@ class ImplicitSolver:
             hint += f"; {unsolved.failed} of {unsolved.trials} trial poses had unsolved leaf pairs (last: {pairs}): {UNSOLVED_HINT}"
         return (
             f"implicit step: {what} after {iterations} Newton iterations; last Newton step moves points "
-            f"up to {step_length:.3e} m (tolerance {self.tolerance * self._length_scale:.3e} m), L = {value:.9e}; "
+            # The length the step had to fall below, not tolerance x the largest radius alone: a
+            # 4e10 m ground made that 2.8 m, which a step of 1e-6 m "missed".
+            f"up to {step_length:.3e} m (converged below {converged_length:.3e} m: the least of tolerance x the largest body radius, "
+            f"1e-5 m/s^2 x dt^2 and the friction smoothing length, or the coordinates' rounding), L = {value:.9e}; "
             f"largest moves: {bodies}{hint}"
         )
 
