@@ -64,7 +64,7 @@ import warp as wp
 from .blend import shell_blend
 from .leaf import LEAF_OK, leaf_barrier, leaf_plane_sensitivity, leaf_vertex, leaf_vertex_barrier, pair_solve_from_plane
 from .reduction import Targets, add_record_gradient, add_record_value, add_term_hessian_block, target_record
-from .rigid import rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
+from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
 
 wp.set_module_options({"enable_backward": False})
 
@@ -200,51 +200,23 @@ def _slip(
 
 
 @wp.func
-def _add_point_friction(
-    targets: Targets,
-    record: int,
-    seed: int,
-    tid: int,
-    pair: wp.vec2i,
-    coeff: wp.float64,
-    smoothing: wp.float64,
-    nrm: wp.vec3d,
-    ra: wp.vec3d,
-    rb: wp.vec3d,
-    u: wp.vec3d,
-):
-    """Adds one point's D = coeff (sqrt(|u|^2 + e^2) - e), its gradient and Hessian in both
-    bodies' rigid coordinates to ``record``."""
+def _point_friction(coeff: wp.float64, smoothing: wp.float64, nrm: wp.vec3d, ra: wp.vec3d, rb: wp.vec3d, u: wp.vec3d):
+    """One point's D = coeff (sqrt(|u|^2 + e^2) - e), its gradient in both bodies' rigid
+    coordinates (a, b) and the Hessian blocks (a a), (a b), (b b)."""
     root = wp.sqrt(wp.dot(u, u) + smoothing * smoothing)
-    add_record_value(targets, record, coeff * (root - smoothing))
     tangent = wp.identity(n=3, dtype=wp.float64) - wp.outer(nrm, nrm)
     g = (coeff / root) * u  # dD/dx_a at the material point (u is tangent)
     f2 = (wp.identity(n=3, dtype=wp.float64) - wp.outer(u, u) / (root * root)) / root
     h = coeff * (tangent * f2 * tangent)
-    for side in range(2):
-        if targets.body_dynamic[pair[side]] == 0:
-            continue
-        sign = wp.float64(1.0)
-        r = ra
-        if side == 1:
-            sign = wp.float64(-1.0)
-            r = rb
-        add_record_gradient(targets, record, pair, side, rigid_point_gradient(sign * g, r))
-        for side_c in range(side, 2):
-            if targets.body_dynamic[pair[side_c]] == 0:
-                continue
-            sign_c = wp.float64(1.0)
-            rc = ra
-            if side_c == 1:
-                sign_c = wp.float64(-1.0)
-                rc = rb
-            block = rigid_point_pair_block(sign * sign_c * h, r, rc)
-            if side == side_c:
-                curv = rigid_point_curvature(sign * g, r)
-                for i in range(3):
-                    for j in range(3):
-                        block[3 + i, 3 + j] = block[3 + i, 3 + j] + curv[i, j]
-            add_term_hessian_block(targets, -1, seed, tid, side, side_c, block)
+    haa = rigid_point_pair_block(h, ra, ra)
+    hbb = rigid_point_pair_block(h, rb, rb)
+    curv_a = rigid_point_curvature(g, ra)
+    curv_b = rigid_point_curvature(-g, rb)
+    for i in range(3):
+        for j in range(3):
+            haa[3 + i, 3 + j] = haa[3 + i, 3 + j] + curv_a[i, j]
+            hbb[3 + i, 3 + j] = hbb[3 + i, 3 + j] + curv_b[i, j]
+    return coeff * (root - smoothing), rigid_point_gradient(g, ra), rigid_point_gradient(-g, rb), haa, -rigid_point_pair_block(h, ra, rb), hbb
 
 
 @wp.kernel
@@ -264,20 +236,48 @@ def friction_energy_kernel(
 ):
     """D of one lagged pair (its three points), its gradient and Hessian, added to one of its
     body pair's records (``targets`` holds top-level records only); ``top_level_kernel`` sums
-    them. Only the pairs of body pairs in ``chunk`` (``seed_chunk``) are taken."""
+    them. Only the pairs of body pairs in ``chunk`` (``seed_chunk``) are taken. The points'
+    terms are summed here, so a pair adds to the record once, not once per point."""
     tid = wp.tid()
     seed = frame.leaf_items[tid][3]
     if friction[0] == wp.float64(0.0) or seed_chunk[seed] != chunk:
         return
     pair = seed_body_pair[seed]
-    record = target_record(targets, -1, seed, tid)
     nrm = frame.normal[tid]
+    value = wp.float64(0.0)
+    ga = vec6d()
+    gb = vec6d()
+    haa = mat66d()
+    hab = mat66d()
+    hbb = mat66d()
+    any_point = bool(False)
     for k in range(3):
         point = 3 * tid + k
         coeff = friction[0] * frame.vertex_force[point]
         if coeff != wp.float64(0.0):
             ra, rb, _w, u = _slip(nrm, frame.point_a[point], frame.point_b[point], frame.offset[point], body_rotation[pair[0]], body_position[pair[0]], body_rotation[pair[1]], body_position[pair[1]])
-            _add_point_friction(targets, record, seed, tid, pair, coeff, smoothing, nrm, ra, rb, u)
+            d, da, db, daa, dab, dbb = _point_friction(coeff, smoothing, nrm, ra, rb, u)
+            value += d
+            ga += da
+            gb += db
+            haa += daa
+            hab += dab
+            hbb += dbb
+            any_point = True
+    if not any_point:
+        return
+    record = target_record(targets, -1, seed, tid)
+    add_record_value(targets, record, value)
+    add_record_gradient(targets, record, pair, 0, ga)
+    add_record_gradient(targets, record, pair, 1, gb)
+    dynamic_a = targets.body_dynamic[pair[0]] != 0
+    dynamic_b = targets.body_dynamic[pair[1]] != 0
+    if dynamic_a:
+        add_term_hessian_block(targets, -1, seed, tid, 0, 0, haa)
+    if dynamic_a and dynamic_b:
+        add_term_hessian_block(targets, -1, seed, tid, 0, 1, hab)
+    if dynamic_b:
+        add_term_hessian_block(targets, -1, seed, tid, 1, 1, hbb)
 
 
 @wp.kernel
@@ -336,6 +336,7 @@ def friction_adjoint_kernel(
     # + N_k m_k . dw_k ],  m_k = F2_k T ell_k. n^ is the pair's, so its cotangents add up.
     coeff_n = wp.vec3d()
     v_n = wp.vec3d()
+    contraction = wp.float64(0.0)
     point_cot = wp.mat33d()  # row k: the cotangent of point k's place p_k
     for k in range(3):
         point = 3 * tid + k
@@ -350,9 +351,7 @@ def friction_adjoint_kernel(
             ell -= wp.vec3d(lb[0], lb[1], lb[2]) + wp.cross(wp.vec3d(lb[3], lb[4], lb[5]), rb)
         root = wp.sqrt(wp.dot(u, u) + smoothing * smoothing)
         s = u / root
-        contraction = lam_f * big_n * wp.dot(ell, s)
-        wp.atomic_add(adj_friction_out, 0, contraction / lam_f)
-        wp.atomic_add(adj_mu_out, 0, contraction / mu)
+        contraction += lam_f * big_n * wp.dot(ell, s)
         t_ell = ell - wp.dot(ell, nrm) * nrm
         m = (t_ell - wp.dot(u, t_ell) / (root * root) * u) / root
         coeff_n[k] = lam_f * wp.dot(ell, s)
@@ -381,6 +380,8 @@ def friction_adjoint_kernel(
             g_b = rigid_point_gradient(-turned_b, carrier[k] - pos_b)
             for i in range(6):
                 wp.atomic_add(adj_now_out, pair[1], i, g_b[i])
+    wp.atomic_add(adj_friction_out, 0, contraction / lam_f)
+    wp.atomic_add(adj_mu_out, 0, contraction / mu)
     ca = _centroid(ta)
     cb = _centroid(tb)
     rho_vec = ca - cb

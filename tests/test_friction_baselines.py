@@ -159,9 +159,9 @@ def test_sdrs_normal_forces_are_the_barrier_forces():
     contact = model.contact.evaluate(poses)
     mu = float(model.contact_stiffness.numpy()[0])
     frame = lagged.data
-    # Per pair N n^ (the sum of its vertices' N_k) is the barrier's force on triangle A (the
-    # ground; n^ points to A's side, down), which balances the force on the box: minus the
-    # gradient of its translation.
+    # Per pair N n^ (the sum of its carrying triangle's N_k; the box's, which the plane's
+    # balance makes equal to the force on the ground's triangle A, n^ pointing to A's side,
+    # down) balances the force on the box: minus the gradient of its translation.
     total = (frame.vertex_force.numpy().reshape(-1, 3).sum(axis=1)[:, None] * frame.normal.numpy()).sum(axis=0)
     np.testing.assert_allclose(total, mu * contact.grad[1, :3], rtol=1e-9)
     assert total[2] < 0

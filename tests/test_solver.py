@@ -247,17 +247,26 @@ def test_friction_holds_a_stack_in_place():
     assert np.all(np.diff(q[:, 1:, 2], axis=1) > 0.5)
 
 
-def turntable(friction=0.5):
+def turntable(friction=0.5, *, box_first=False):
     """A 1 m plate held up by a translational PD only (free to turn) and a 0.3 m box resting
-    on its centre, settled for 0.2 s: (model, solver, control, settled state)."""
+    on its centre, settled for 0.2 s: (model, solver, control, settled state). The plate is
+    body 0 and the box body 1, or the other way round with ``box_first`` (each leaf pair's
+    friction then sits on its side A's triangle, the box's, instead of side B's)."""
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-6, friction=friction)
     kp, plate_mass = 1e5, 50.0
-    b.add_box((1.0, 1.0, 0.05), mass=plate_mass, name="plate", pose=(0, 0, 0, 0, 0, 0, 1), kp_linear=kp, kd_linear=2 * np.sqrt(kp * plate_mass))
-    b.add_box((0.3, 0.3, 0.3), density=500.0, name="box", pose=(0, 0, 0.1755, 0, 0, 0, 1))
+
+    def add_plate():
+        b.add_box((1.0, 1.0, 0.05), mass=plate_mass, name="plate", pose=(0, 0, 0, 0, 0, 0, 1), kp_linear=kp, kd_linear=2 * np.sqrt(kp * plate_mass))
+
+    def add_box():
+        b.add_box((0.3, 0.3, 0.3), density=500.0, name="box", pose=(0, 0, 0.1755, 0, 0, 0, 1))
+
+    for add in (add_box, add_plate) if box_first else (add_plate, add_box):
+        add()
     model = b.finalize()
     control = model.control(requires_grad=False)
     targets = model.initial_q.copy()
-    targets[0, 2] = 63.5 * 9.81 / kp  # the plate's PD carries both
+    targets[1 if box_first else 0, 2] = 63.5 * 9.81 / kp  # the plate's PD carries both
     control.body_target.assign(targets)
     solver = wc.ImplicitSolver(model)
     q, _ = rollout(model, 20, 0.01, control=control, solver=solver)
@@ -305,16 +314,20 @@ def test_friction_does_not_brake_bodies_turning_together():
     np.testing.assert_allclose(spin[-1], [2.0, 2.0], rtol=1e-5)
 
 
-def test_tape_gradients_of_a_turning_frictional_pair_match_finite_differences():
+@pytest.mark.parametrize("box_first", [False, True])
+def test_tape_gradients_of_a_turning_frictional_pair_match_finite_differences(box_first):
     """The shared contact point's place in each body moves with the step's start: its
     derivatives (lever arms included) against central differences, both bodies dynamic,
     turning and slipping. The steps solve to 1e-13: at the default 1e-10 central differences
     of 1e-5, 1e-6 and 1e-7 rad/s spread by 3e-4 relative on the smallest component, which
-    the tape's value lies within; at 1e-13 they agree with it to 1e-7."""
+    the tape's value lies within; at 1e-13 they agree with it to 1e-7. Both ways round: the
+    box's triangles, which carry the friction points, on side B of each leaf pair or on side
+    A (a review; the adjoint's gap signs differ)."""
     dt, steps = 0.01, 3
+    box, plate = (0, 1) if box_first else (1, 0)
 
     def run(spin, tape=None):
-        model, _solver, control, settled = turntable()
+        model, _solver, control, settled = turntable(box_first=box_first)
         solver = wc.ImplicitSolver(model, tolerance=1e-13)
         states = [model.state() for _ in range(steps + 1)]
         states[0].body_q.assign(settled.body_q.numpy())
@@ -325,19 +338,20 @@ def test_tape_gradients_of_a_turning_frictional_pair_match_finite_differences():
             wc.set_body_velocity(states[0], wp.zeros(2, dtype=wp.vec3d), angular, dt)
             for t in range(steps):
                 solver.step(states[t], states[t + 1], control, dt)
-            wp.launch(position_loss_kernel, dim=1, inputs=[states[-1].body_q, 1, wp.vec3d(0.05, -0.02, 0.2)], outputs=[loss])
+            wp.launch(position_loss_kernel, dim=1, inputs=[states[-1].body_q, box, wp.vec3d(0.05, -0.02, 0.2)], outputs=[loss])
 
         record(forward, tape)
         return angular, loss
 
-    spin = np.array([[0.0, 0.3, 2.0], [0.2, 0.0, 1.0]])  # the box slips on the plate, both tilt
+    spin = np.zeros((2, 3))
+    spin[plate], spin[box] = (0.0, 0.3, 2.0), (0.2, 0.0, 1.0)  # the box slips on the plate, both tilt
     tape = wp.Tape()
     angular, loss = run(spin, tape)
     tape.backward(loss)
     gradient = angular.grad.numpy()
     assert np.abs(gradient).max() > 5e-5
     h = 1e-6
-    for body, axis in ((0, 2), (1, 2), (0, 1), (1, 0)):
+    for body, axis in ((plate, 2), (box, 2), (plate, 1), (box, 0)):
         up, down = spin.copy(), spin.copy()
         up[body, axis] += h
         down[body, axis] -= h
