@@ -131,7 +131,8 @@ class LeafSolution:
     n: wp.vec3d
     d: wp.float64
     origin: wp.vec3d
-    # Rows: the axes of the frame the plane is solved in, z along the start normal.
+    # Rows: the axes of the frame the plane is solved in, z along the start normal, or along
+    # the optimal plane's where the search was re-framed (``_solve_from``).
     frame: wp.mat33d
     # Vertices relative to origin in world axes (rows) and their gaps g_k.
     ta: wp.mat33d
@@ -385,7 +386,7 @@ def _is_finite_mat(m: wp.mat33d):
 @wp.func
 def _frame_from_normal(e: wp.vec3d):
     """Rows: an orthonormal frame whose z axis is the unit vector e (Duff et al. 2017); the
-    identity, up to signs, for e on a world axis, so axis-aligned pairs keep every digit."""
+    identity, up to signs, for e on a world axis (``_contact_frame`` then turns it about z)."""
     sign = wp.float64(1.0)
     if e[2] < wp.float64(0.0):
         sign = wp.float64(-1.0)
@@ -668,11 +669,13 @@ def _solve_from(sol: LeafSolution, start: wp.vec4d, fallback: wp.vec4d, max_iter
         p_turned, energy_turned, hess_turned, converged_turned, it_turned = _plane_newton(
             ta, tb, wp.vec4d(turned[0], turned[1], turned[2], p[3]), sol.dhat, max_iterations, _DECREMENT_TOL, _STALL_TOL, _FULL_STEP_TOL
         )
-        if not wp.isfinite(energy_turned):
-            sol.frame = search_frame  # rounding left the plane infeasible in the new frame
+        it += it_turned
+        if not wp.isfinite(energy_turned) or (converged and not converged_turned):
+            # Rounding left the plane infeasible in the new frame, or the search there did
+            # not converge where the first one had: the previous frame's solution stands.
+            sol.frame = search_frame
             break
         p, energy, hess, converged = p_turned, energy_turned, hess_turned, converged_turned
-        it += it_turned
     return _finish_solution(sol, p, energy, hess, converged, it)
 
 
