@@ -64,7 +64,7 @@ import warp as wp
 from .blend import shell_blend
 from .leaf import LEAF_OK, leaf_barrier, leaf_plane_sensitivity, leaf_vertex, leaf_vertex_barrier, pair_solve_from_plane
 from .reduction import Targets, add_record_gradient, add_record_value, add_term_hessian_block, target_record
-from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, vec6d, world_triangle
+from .rigid import mat66d, rigid_point_gradient, rigid_separation_derivatives, vec6d, world_triangle
 
 wp.set_module_options({"enable_backward": False})
 
@@ -208,15 +208,8 @@ def _point_friction(coeff: wp.float64, smoothing: wp.float64, nrm: wp.vec3d, ra:
     g = (coeff / root) * u  # dD/dx_a at the material point (u is tangent)
     f2 = (wp.identity(n=3, dtype=wp.float64) - wp.outer(u, u) / (root * root)) / root
     h = coeff * (tangent * f2 * tangent)
-    haa = rigid_point_pair_block(h, ra, ra)
-    hbb = rigid_point_pair_block(h, rb, rb)
-    curv_a = rigid_point_curvature(g, ra)
-    curv_b = rigid_point_curvature(-g, rb)
-    for i in range(3):
-        for j in range(3):
-            haa[3 + i, 3 + j] = haa[3 + i, 3 + j] + curv_a[i, j]
-            hbb[3 + i, 3 + j] = hbb[3 + i, 3 + j] + curv_b[i, j]
-    return coeff * (root - smoothing), rigid_point_gradient(g, ra), rigid_point_gradient(-g, rb), haa, -rigid_point_pair_block(h, ra, rb), hbb
+    ga, gb, haa, hab, hbb = rigid_separation_derivatives(g, h, ra, rb)
+    return coeff * (root - smoothing), ga, gb, haa, hab, hbb
 
 
 @wp.kernel

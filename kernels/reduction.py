@@ -42,7 +42,7 @@ import warp as wp
 from .geometry import triangle_closest_points, triangle_separating_axis
 from .blend import centered_potential, shell_blend
 from .leaf import LEAF_CONTACT, LEAF_OK, LeafSolution, leaf_mixed_block, leaf_vertex_barrier, leaf_vertex_gradient, pair_solve
-from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_point_pair_block, upper_entry, vec6d, world_triangle
+from .rigid import mat66d, rigid_point_curvature, rigid_point_gradient, rigid_separation_derivatives, upper_entry, vec6d, world_triangle
 from .traversal import COUNTER_BLEND, COUNTER_FAR, COUNTER_LEAF, listed
 
 wp.set_module_options({"enable_backward": False})
@@ -145,17 +145,7 @@ def _centre_distance_derivatives(ci: wp.vec3d, cj: wp.vec3d, pos_a: wp.vec3d, po
     ri = ci - pos_a
     rj = cj - pos_b
     h = (wp.identity(n=3, dtype=wp.float64) - wp.outer(u, u)) / dist
-    grad_a = rigid_point_gradient(u, ri)
-    grad_b = rigid_point_gradient(-u, rj)
-    hess_aa = rigid_point_pair_block(h, ri, ri)
-    hess_ab = rigid_point_pair_block(-h, ri, rj)
-    hess_bb = rigid_point_pair_block(h, rj, rj)
-    curv_a = rigid_point_curvature(u, ri)
-    curv_b = rigid_point_curvature(-u, rj)
-    for i in range(3):
-        for j in range(3):
-            hess_aa[3 + i, 3 + j] = hess_aa[3 + i, 3 + j] + curv_a[i, j]
-            hess_bb[3 + i, 3 + j] = hess_bb[3 + i, 3 + j] + curv_b[i, j]
+    grad_a, grad_b, hess_aa, hess_ab, hess_bb = rigid_separation_derivatives(u, h, ri, rj)
     return dist, grad_a, grad_b, hess_aa, hess_ab, hess_bb
 
 

@@ -21,6 +21,7 @@ __all__ = [
     "rigid_point_gradient",
     "rigid_point_pair_block",
     "rigid_point_curvature",
+    "rigid_separation_derivatives",
     "upper_entry",
     "world_triangle",
 ]
@@ -58,6 +59,23 @@ def rigid_point_curvature(g: wp.vec3d, r: wp.vec3d):
     """(dtheta, dtheta) block added by the curvature of the exponential map."""
     half = wp.float64(0.5)
     return half * (wp.outer(g, r) + wp.outer(r, g)) - wp.dot(g, r) * wp.identity(n=3, dtype=wp.float64)
+
+
+@wp.func
+def rigid_separation_derivatives(g: wp.vec3d, h: wp.mat33d, ra: wp.vec3d, rb: wp.vec3d):
+    """A function of the separation x_a - x_b of a point of body a (offset ra) and one of
+    body b (offset rb), with gradient g and Hessian h in that separation: its rigid gradients
+    (a, b) and Hessian blocks (a a), (a b), (b b), curvature included."""
+    hess_aa = rigid_point_pair_block(h, ra, ra)
+    hess_ab = rigid_point_pair_block(-h, ra, rb)
+    hess_bb = rigid_point_pair_block(h, rb, rb)
+    curv_a = rigid_point_curvature(g, ra)
+    curv_b = rigid_point_curvature(-g, rb)
+    for i in range(3):
+        for j in range(3):
+            hess_aa[3 + i, 3 + j] = hess_aa[3 + i, 3 + j] + curv_a[i, j]
+            hess_bb[3 + i, 3 + j] = hess_bb[3 + i, 3 + j] + curv_b[i, j]
+    return rigid_point_gradient(g, ra), rigid_point_gradient(-g, rb), hess_aa, hess_ab, hess_bb
 
 
 @wp.func
