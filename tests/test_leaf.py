@@ -259,8 +259,9 @@ def test_turned_near_contact_hessian_is_the_turned_axis_aligned_one(make, gaps):
     gaps) with its soft ones, and the 4x4 solve lost their digits: at 1e-7 m, coplanar
     parallel edges' Hessians were off by a median 5e-3 (2.4e-2 at most), edge-edge pairs'
     by 1.4e-5; at 1e-9 m, 16 of 60 vertex-face pairs were unsolved. Against the
-    axis-aligned pair's Hessian (exact to 1e-13) turned with them, they now differ by what
-    rounding the turned vertices moves it (measured at most 6e-9 at 1e-7 m, 6e-7 at 1e-9 m)."""
+    axis-aligned pair's Hessian turned with them they now differ by what rounding the turned
+    vertices moves it (measured at most 6e-9 at 1e-7 m, 6e-7 at 1e-9 m). This checks that
+    the Hessian turns with the pair; the finite-difference tests above check its value."""
     rng = np.random.default_rng(0)
     for gap in gaps:
         A, B = make(gap)
