@@ -11,7 +11,7 @@ import warp as wp
 from ._runtime import resolve_device
 from ._validate import QUATERNION_TOLERANCE, SCALE_RANGE, check_barrier_support, check_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array, scale_problem, shown
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, connected_labels, default_limit_margins, frame_in_body
-from .contact import CENTRED_WEIGHTS, CONTACT_MODES, ContactModel
+from .contact import CENTRED_WEIGHTS, CONTACT_MODES, PRESSED_GAP, ContactModel
 from .leaf import float32_search
 from .rotation import pose_mul, quat_rotate
 from .sphere_tree import validated_mesh
@@ -387,8 +387,6 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
     return body_mass, com, second_moment
 
 
-# Resting gaps below this fraction of a body's radius make its impacts too stiff for Newton.
-_PRESSED_GAP = 2e-7
 # The ipc barrier (ipctk's, on squared distances) holds a body of weight m g about this times
 # mu dhat^4 / (m g) above a support: 28.0 measured for a box on two triangles over mu 1e3 -
 # 1e5, dhat 1e-2 - 2e-2 m and 32 - 320 kg (2026-11-27).
@@ -863,13 +861,13 @@ class ModelBuilder:
             described = f"{body.name!r} (mass {body.mass:.3g} kg, radius {radius:.3g} m: ~{gap:.2g} m)"
             if gap > 0.1 * radius and not ipc:
                 floating.append(described)
-            elif gap < _PRESSED_GAP * radius:
+            elif gap < PRESSED_GAP * radius:
                 pressed.append(described)
         for bodies, what, advice in (
             (floating, "holds these bodies above a support by more than a tenth of their radius", "choose mu for the lightest resting body"),
             # A 1 m, 1,000 kg cube dropped at mu 1e-12 (gap ~1e-7 m, 1.2e-7 of its radius) stalled Newton
             # at its impact with "no convergence"; at 1e-11 it lands.
-            (pressed, f"lets these bodies rest closer than {_PRESSED_GAP:g} of their radius to a support, where Newton may not converge at impacts", "choose mu for the heaviest resting body"),
+            (pressed, f"lets these bodies rest closer than {PRESSED_GAP:g} of their radius to a support, where Newton may not converge at impacts", "choose mu for the heaviest resting body"),
         ):
             if bodies:
                 estimate = (

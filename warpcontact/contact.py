@@ -49,8 +49,11 @@ CENTRED_WEIGHTS = ("paper", "pairs")
 # apart even in the pair's own frame (coplanar parallel edges 1e-9 of their size apart,
 # turned; a box's face 1e-14 of its size over a table; docs/architecture.md, "The leaf
 # potential").
+# Resting gaps below this fraction of a body's radius make its impacts too stiff for Newton
+# (the builder warns of them).
+PRESSED_GAP = 2e-7
 # Where bodies rest: a weight far beyond the contact stiffness presses them closer than any start.
-PRESSED_GAP_HINT = "a body of mass m rests ~sqrt(100 mu / (m g)) m above its support; the builder warns when that is below 2e-7 of its radius"
+PRESSED_GAP_HINT = f"a body of mass m rests ~sqrt(100 mu / (m g)) m above its support; the builder warns when that is below {PRESSED_GAP:g} of its radius"
 UNSOLVED_HINT = (
     "their leaf plane searches did not converge, most likely because they are closer than float64 resolves against "
     "their triangles' size (a gap below about 1e-9 of it); start them farther apart, raise the contact stiffness if their "
