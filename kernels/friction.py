@@ -330,6 +330,9 @@ def friction_adjoint_kernel(
     coeff_n = wp.vec3d()
     v_n = wp.vec3d()
     contraction = wp.float64(0.0)
+    # The step's rotations, transposed (dR^T = R^t R^T): the same for the pair's three points.
+    step_a = wp.transpose(rotation_next[pair[0]] * wp.transpose(rot_a))
+    step_b = wp.transpose(rotation_next[pair[1]] * wp.transpose(rot_b))
     point_cot = wp.mat33d()  # row k: the cotangent of point k's place p_k
     for k in range(3):
         point = 3 * tid + k
@@ -362,8 +365,8 @@ def friction_adjoint_kernel(
             cot_a += wp.cross(g, wp.vec3d(la[3], la[4], la[5]))
         if body_dynamic[pair[1]] != 0:
             cot_b -= wp.cross(g, wp.vec3d(lb[3], lb[4], lb[5]))
-        turned_a = wp.transpose(rotation_next[pair[0]] * wp.transpose(rot_a)) * cot_a
-        turned_b = wp.transpose(rotation_next[pair[1]] * wp.transpose(rot_b)) * cot_b
+        turned_a = step_a * cot_a
+        turned_b = step_b * cot_b
         point_cot[k] = turned_a + turned_b
         if body_dynamic[pair[0]] != 0:
             g_a = rigid_point_gradient(-turned_a, carrier[k] - pos_a)
