@@ -1377,6 +1377,15 @@ def test_bad_input_raises_before_writing_state():
         getattr(state, name).assign(poses)
         with pytest.raises(ValueError, match=rf"state_in.{name}: body 'left' \(index 0\) has a rotation quaternion of norm 9.95e[+-]1[56]\d; expected a norm in \[1e-150, 1e\+150\]"):
             solver.step(state, s1, None, 0.01)
+    # A previous pose beyond the coordinates' bound (set_body_velocity at 1e300 m/s) was
+    # blamed on dt and the control's targets; the current one on an argument named "poses".
+    for name in ("body_q", "body_q_prev"):
+        state = model.state()
+        poses = getattr(state, name).numpy()
+        poses[1, 0] = 1e200
+        getattr(state, name).assign(poses)
+        with pytest.raises(ValueError, match=rf"state_in.{name}: body 'right' \(index 1\) is at \[1e\+200, .*\], beyond the \+-1e\+150 m"):
+            solver.step(state, s1, None, 0.01)
     np.testing.assert_array_equal(s1.body_q.numpy(), before)
 
 

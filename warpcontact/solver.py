@@ -945,6 +945,12 @@ class ImplicitSolver:
         for label, arr in (("state_in.body_q", q_now), ("state_in.body_q_prev", q_prev)):
             if not np.isfinite(arr).all():
                 raise ValueError(f"{label}: contains non-finite values")
+            # Checked here by name: beyond it the previous pose (a velocity of 1e300 m/s given
+            # to set_body_velocity) was blamed on dt and the control's targets.
+            far = np.flatnonzero((np.abs(arr[:, :3]) > MAX_COORDINATE).any(axis=1))
+            if far.size:
+                b = int(far[0])
+                raise ValueError(f"{label}: body {model.body_names[b]!r} (index {b}) is at {arr[b, :3].tolist()}, beyond the +-{MAX_COORDINATE:g} m of a body's coordinates")
             _check_quaternion_norms(arr[:, 3:], np.ones(len(arr), dtype=bool), label, model.body_names)
         if control is not None:
             _check_pose_array(control.body_target, len(q_now), "control.body_target", "one per body (use model.control())")
