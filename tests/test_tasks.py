@@ -879,6 +879,31 @@ def test_rollout_refuses_values_of_the_wrong_shape():
         problem.rollout(np.zeros((3, 2)), (q0, q0), -1)
     with pytest.raises(ValueError, match=r"start q: expected \(2, 7\) poses .*got shape \(1, 7\)"):
         problem.rollout(np.zeros((3, 2)), (q0[:1], q0[:1]), 3)  # the missing pose was left as it was
+    # Found by a probe: text was read as numbers, and 1e200 was blamed on control.body_target.
+    with pytest.raises(ValueError, match=r"values: must be real numbers \(integers or floats\), got <U1 values"):
+        problem.rollout(np.full((3, 2), "1"), (q0, q0), 3)
+    values = np.zeros((3, 2))
+    values[2, 1] = -1e200
+    with pytest.raises(ValueError, match=r"values: row 2, dof 'y' is -1e\+200, beyond the \+-1e\+150"):
+        problem.rollout(values, (q0, q0), 3)
+
+
+def test_settings_changed_after_the_problem_was_built_are_checked_again():
+    """Found by a probe: the problem's settings are its own attribute and may be changed,
+    but optimize never checked them again: 0 iterations ended in an IndexError, a negative
+    learning rate ran uphill, and a receding horizon on an initial_state task ran one window."""
+    problem = TaskProblem(space_billiards(), settings=TaskSettings(horizon=2, receding_horizon=0, iterations=1, learning_rate=0.1))
+    for field, value, message in (
+        ("iterations", 0, r"settings.iterations must be a whole number from 1 to"),
+        ("learning_rate", -5.0, r"settings.learning_rate must be positive and finite, got -5.0"),
+        ("receding_horizon", 1, r"receding-horizon control applies to pd_targets tasks, and this task's control is initial_state"),
+    ):
+        original = getattr(problem.settings, field)
+        setattr(problem.settings, field, value)
+        with pytest.raises(ValueError, match=message):
+            problem.optimize()
+        setattr(problem.settings, field, original)
+    assert problem.optimize().iterations == 1
 
 
 def test_a_negative_pd_stiffness_is_reported_as_such():

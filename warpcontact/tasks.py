@@ -48,7 +48,7 @@ import numpy as np
 import warp as wp
 
 from ._files import replace_file
-from ._validate import MAX_FRAMES, is_positive_finite, is_real, is_whole
+from ._validate import MAX_COORDINATE, MAX_FRAMES, is_positive_finite, is_real, is_whole, real_array
 from .bundle import BundleSettings, bundled_gradient
 from .io import target_problem
 from .kernels import task as task_kernels
@@ -661,18 +661,11 @@ class TaskProblem:
         if settings is not None:
             settings.check()
         self.settings = settings or TaskSettings.from_task(scene)
-        if self.bundle is not None:
-            # The schedule itself, with the learning rate that sets its defaults: a sigma given
-            # below the default final one (the learning rate) rose, refused only once the
-            # descent began.
-            self.bundle.sigmas(self.settings.iterations - 1, self.settings.learning_rate)
         self.model = scene.build_model(device=device)
         self.solver = ImplicitSolver(self.model)
         self.dt = scene.settings.time_step
         device = self.model.device
         art = self.model.articulation
-        if art.num_coordinates and self.settings.receding_horizon:
-            raise ValueError(f"{source}: receding-horizon control of articulated scenes is not supported (set warpcontact:task:recedingHorizon to 0)")
         # The scene's authored velocities start every rollout, as they start `simulate` (task
         # runs used to start at rest whatever the scene said).
         self._initial_velocity = scene.initial_velocities()
@@ -684,10 +677,6 @@ class TaskProblem:
             self.start = (self.model.initial_q.copy(), state.body_q_prev.numpy().copy())
         else:
             self.start = (self.model.initial_q.copy(), self.model.initial_q.copy())
-        if self.kind != "pd_targets" and self.settings.receding:
-            # Only per-frame PD targets can be planned window by window; the run used to
-            # optimise one window of the whole horizon while reporting the receding settings.
-            raise ValueError(f"{source}: receding-horizon control applies to pd_targets tasks, and this task's control is {self.kind} (set warpcontact:task:recedingHorizon to 0)")
         if self.kind == "joint_sine":
             actuated = np.flatnonzero(art.kp > 0)
             if actuated.size == 0:
@@ -702,12 +691,31 @@ class TaskProblem:
             self.dof_names = tuple(body.control_dofs)
             self.base_pose = self.model.initial_q[self.body].copy()
             self._dof_codes = wp.array([task_kernels.DOF_CODES[_coordinate(d, scene.up_axis)] for d in self.dof_names], dtype=wp.int32, device=device)
-        if self.settings.initial_samples:
-            self._sample_box = sample_box(scene, self.settings.initial_samples)
         self._target_body = wp.array(targets, dtype=wp.int32, device=device)
         self._target_position = wp.array([scene.bodies[i].target_position for i in targets], dtype=wp.vec3d, device=device)
         self._target_tolerance = wp.array([scene.bodies[i].target_tolerance for i in targets], dtype=wp.float64, device=device)
         self.targets = targets
+        self._check_settings()
+
+    def _check_settings(self) -> None:
+        """Checks ``self.settings`` against this problem; ``optimize`` checks again, as the
+        settings may be changed after construction (0 iterations then ended in an
+        IndexError, a negative learning rate ran uphill without a word)."""
+        source = self.scene.source or "<scene>"
+        s = self.settings
+        s.check()
+        if self.bundle is not None:
+            # The schedule itself, with the learning rate that sets its defaults: a sigma given
+            # below the default final one (the learning rate) rose, refused only once the
+            # descent began.
+            self.bundle.sigmas(s.iterations - 1, s.learning_rate)
+        if self.model.articulation.num_coordinates and s.receding_horizon:
+            raise ValueError(f"{source}: receding-horizon control of articulated scenes is not supported (set warpcontact:task:recedingHorizon to 0)")
+        if self.kind != "pd_targets" and s.receding:
+            # Only per-frame PD targets can be planned window by window; the run used to
+            # optimise one window of the whole horizon while reporting the receding settings.
+            raise ValueError(f"{source}: receding-horizon control applies to pd_targets tasks, and this task's control is {self.kind} (set warpcontact:task:recedingHorizon to 0)")
+        self._sample_box = sample_box(self.scene, s.initial_samples) if s.initial_samples else None
 
     # --- rollouts -------------------------------------------------------------------------
 
@@ -753,7 +761,10 @@ class TaskProblem:
         if not is_whole(frames) or frames < 0:
             raise ValueError(f"frames: must be a whole number >= 0, got {frames!r}")
         shape = np.shape(values)
-        values = np.atleast_2d(np.asarray(values, dtype=np.float64))
+        given = real_array(values)
+        if given is None:  # np.asarray(..., dtype=float64) read text such as "1" as numbers
+            raise ValueError(f"values: must be real numbers (integers or floats), got {np.asarray(values).dtype} values")
+        values = np.atleast_2d(given)
         # The control kernels index the rows by frame and dof: a smaller array was read out
         # of bounds (a crash, "corrupted double-linked list").
         rows, columns = self.initial_values(1).shape
@@ -769,6 +780,10 @@ class TaskProblem:
         if bad.size:  # an initial state's NaN was blamed on the scene's finite velocities
             row, column = (int(i) for i in bad[0])
             raise ValueError(f"values: row {row}, dof {self.dof_names[column]!r} is {float(values[row, column])!r}; decision variables must be finite")
+        far = np.argwhere(np.abs(values) > MAX_COORDINATE)
+        if far.size:  # 1e200 was blamed on control.body_target, an array the caller never sees
+            row, column = (int(i) for i in far[0])
+            raise ValueError(f"values: row {row}, dof {self.dof_names[column]!r} is {float(values[row, column])!r}, beyond the +-{MAX_COORDINATE:g} that the simulation's coordinates represent")
         start_state = self._state(*start)
         if self.kind == "initial_state" and not np.array_equal(np.asarray(start[0], dtype=np.float64)[self.body], self.base_pose):
             # The control places its body at the scene's pose plus its offsets: another pose
@@ -859,6 +874,7 @@ class TaskProblem:
                 is stored (the CLI does, after writing its outputs: a failed write can then
                 be resumed instead of run again).
         """
+        self._check_settings()
         store = None if checkpoint is None else TaskCheckpoint(checkpoint)
         if store is None and resume:
             raise ValueError("resume: needs the checkpoint to resume from")
