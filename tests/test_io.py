@@ -803,6 +803,9 @@ def _author(path, edit):
         (lambda st: UsdGeom.Xform.Define(st, "/World").AddScaleOp().Set(Gf.Vec3f(float("inf"), 1, 1)), r"prim /World/\w+: /World.xformOp:scale must be finite, got \(inf, 1, 1\)"),
         # An orient of real part NaN composed to the identity, a finite matrix.
         (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).AddOrientOp().Set(Gf.Quatf(float("nan"), 0, 0, 0)), r"prim /World/box: /World/box.xformOp:orient must be finite, got \(nan, 0, 0, 0\)"),
+        # A round collider's or a Plane's axis other than X, Y or Z was read as X.
+        (lambda st: [st.RemovePrim("/World/box/shape"), UsdPhysics.CollisionAPI.Apply(UsdGeom.Capsule.Define(st, "/World/box/shape").GetPrim()), UsdGeom.Capsule(st.GetPrimAtPath("/World/box/shape")).CreateAxisAttr("w")], r"prim /World/box/shape: axis must be one of the tokens X, Y, Z \(upper case\), got 'w'"),
+        (lambda st: [st.RemovePrim("/World/ground"), UsdPhysics.CollisionAPI.Apply(UsdGeom.Plane.Define(st, "/World/ground").GetPrim()), UsdGeom.Plane(st.GetPrimAtPath("/World/ground")).CreateAxisAttr("Up")], r"prim /World/ground: axis must be one of the tokens X, Y, Z \(upper case\), got 'Up'"),
         # A projective matrix op had its last column dropped: the body sat metres off.
         (
             lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).AddTransformOp().Set(Gf.Matrix4d(1, 0, 0, 0.1, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1)),
@@ -1984,6 +1987,9 @@ def test_joint_limits_open_on_one_side_and_a_zero_drive_target_load(tmp_path, jo
         # Read as the identity (a zero quaternion) or normalised, with no word.
         (lambda st: st.GetPrimAtPath("/World/hinge").CreateAttribute("physics:localRot0", Sdf.ValueTypeNames.Quatf).Set(Gf.Quatf(0.0, 0.0, 0.0, 0.0)), r"prim /World/hinge: physics:localRot0 must be a unit quaternion, got \(0, 0, 0, 0\) \(norm 0\)"),
         (lambda st: st.GetPrimAtPath("/World/hinge").CreateAttribute("physics:localRot1", Sdf.ValueTypeNames.Quatf).Set(Gf.Quatf(2.0, 0.0, 0.0, 0.0)), r"prim /World/hinge: physics:localRot1 must be a unit quaternion"),
+        # UsdPhysics allows X, Y and Z; the parser read any other token ("W", a lowercase "y") as X.
+        (lambda st: st.GetPrimAtPath("/World/hinge").GetAttribute("physics:axis").Set("W"), r"prim /World/hinge: physics:axis must be one of the tokens X, Y, Z \(upper case\), got 'W'"),
+        (lambda st: st.GetPrimAtPath("/World/hinge").GetAttribute("physics:axis").Set("y"), r"prim /World/hinge: physics:axis must be one of the tokens X, Y, Z \(upper case\), got 'y'"),
         # A body1 that is no body read as "physics:body1 is not set".
         (lambda st: [UsdGeom.Xform.Define(st, "/World/plain"), st.GetPrimAtPath("/World/hinge").GetRelationship("physics:body1").SetTargets(["/World/plain"])], r"prim /World/hinge: body1 /World/plain is not a rigid body with a collider"),
     ],

@@ -568,6 +568,8 @@ def _shape_triangles(kind, prim, UsdGeom, source, desc=None) -> tuple[np.ndarray
     size = _primitive_size(kind, prim, UsdGeom, desc)
     if size is None:
         raise ValueError(f"{where}: collider type {kind} is not supported (use a Mesh, Cube, Sphere, Capsule, Cylinder, Cone or Plane)")
+    if "axis" in size:  # the parser's axis took any token as X
+        _axis_token(prim, "axis", where)
     if kind == "CubeShape":
         m = trimesh.creation.box(extents=size["extents"])
     elif kind == "SphereShape":
@@ -1129,7 +1131,8 @@ def load_scene(path) -> Scene:
                 if owner:
                     raise ValueError(f"{source}: prim {prim_path}: a Plane collider is infinite; it cannot belong to rigid body {owner}")
                 # Its size depends on every other body: built after them.
-                planes.append((str(prim_path), _plane_frame(_world_matrix(prim, UsdGeom, Usd, source), _axis_token(desc.axis)), _axis_token(desc.axis)))
+                axis = _axis_token(prim, "axis", f"{source}: prim {prim_path}")
+                planes.append((str(prim_path), _plane_frame(_world_matrix(prim, UsdGeom, Usd, source), axis), axis))
                 continue
             approximation = _approximation(kind, desc, prim, source)
             matrix = _world_matrix(prim, UsdGeom, Usd, source)
@@ -1305,8 +1308,19 @@ def _coordinate_axes(free: list) -> list:
     return free
 
 
-def _axis_token(value) -> str:
-    return str(value).split(".")[-1].upper()[-1]
+_AXIS_TOKENS = ("X", "Y", "Z")  # the allowedTokens of UsdPhysics' and UsdGeom's axis attributes
+
+
+def _axis_token(prim, name: str, where: str) -> str:
+    """The axis token, X, Y or Z, of a prim's attribute ``name`` (a joint's physics:axis; a
+    Capsule's, Cylinder's, Cone's or Plane's axis), its fallback where unauthored. Any other
+    value is refused naming the prim and attribute: the UsdPhysics parser read "W", or a
+    lowercase "y", as X, silently (USD does not enforce a schema's allowedTokens)."""
+    attr = prim.GetAttribute(name)
+    value = attr.Get() if attr else None
+    if value not in _AXIS_TOKENS:
+        raise ValueError(f"{where}: {name} must be one of the tokens {', '.join(_AXIS_TOKENS)} (upper case), got {value!r}")
+    return str(value)
 
 
 def _world_welds(descs: dict, source: str) -> dict:
@@ -1429,7 +1443,7 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
                 child_frame=frames[1],
             )
             if kind in ("revolute", "prismatic"):
-                spec.axes = _AXES[_axis_token(desc.axis)][None]
+                spec.axes = _AXES[_axis_token(prim, "physics:axis", where)][None]
                 scale = _DEGREE if kind == "revolute" else units.meters
                 # The parser disables a limit with an open side: its values are read instead.
                 bounds = _limit_bounds(desc.limit, scale, where, "limit")
@@ -1445,7 +1459,7 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
                     if target is not None:
                         spec.targets = np.array([target])
             elif kind == "ball":
-                spec.axes = _AXES[_axis_token(desc.axis)][None]
+                spec.axes = _AXES[_axis_token(prim, "physics:axis", where)][None]
                 cones = [prim.GetAttribute(f"physics:coneAngle{i}Limit") for i in (0, 1)]
                 angles = [float(a.Get()) for a in cones if a and a.HasAuthoredValue()]
                 if any(np.isnan(angles)) or (len(angles) == 2 and (np.isfinite(angles[0]) != np.isfinite(angles[1]))):
