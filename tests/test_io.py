@@ -806,6 +806,10 @@ def _author(path, edit):
         # A round collider's or a Plane's axis other than X, Y or Z was read as X.
         (lambda st: [st.RemovePrim("/World/box/shape"), UsdPhysics.CollisionAPI.Apply(UsdGeom.Capsule.Define(st, "/World/box/shape").GetPrim()), UsdGeom.Capsule(st.GetPrimAtPath("/World/box/shape")).CreateAxisAttr("w")], r"prim /World/box/shape: axis must be one of the tokens X, Y, Z \(upper case\), got 'w'"),
         (lambda st: [st.RemovePrim("/World/ground"), UsdPhysics.CollisionAPI.Apply(UsdGeom.Plane.Define(st, "/World/ground").GetPrim()), UsdGeom.Plane(st.GetPrimAtPath("/World/ground")).CreateAxisAttr("Up")], r"prim /World/ground: axis must be one of the tokens X, Y, Z \(upper case\), got 'Up'"),
+        # USD draws an orient off unit norm as given: (0, 0, 0, 0) as the identity, (0.5, 0, 0,
+        # 0.5) as 120 degrees about z (normalised: 90); both loaded without a word.
+        (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).AddOrientOp().Set(Gf.Quatf(0, 0, 0, 0)), r"prim /World/box: /World/box.xformOp:orient must be a unit quaternion, got \(0, 0, 0, 0\) \(norm 0\)"),
+        (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/ground")).AddOrientOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Quatd(0.5, 0, 0, 0.5)), r"prim /World/ground: /World/ground.xformOp:orient must be a unit quaternion, got \(0.5, 0, 0, 0.5\) \(norm 0.707106781\)"),
         # A projective matrix op had its last column dropped: the body sat metres off.
         (
             lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).AddTransformOp().Set(Gf.Matrix4d(1, 0, 0, 0.1, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1)),
@@ -822,6 +826,17 @@ def test_bad_values_name_the_file_prim_and_attribute(tmp_path, edit, match):
     path = _author(write_physics_scene(tmp_path / "v.usda"), edit)
     with pytest.raises(ValueError, match=r"v\.usda: " + match):
         io.load_scene(path)
+
+
+def test_a_half_precision_orient_loads_within_its_rounding(tmp_path):
+    """Orients off unit norm are refused (USD draws them as neither rotation), beyond the
+    rounding of the orient's precision: 90 degrees about z as quath is of norm 0.99979."""
+    path = write_physics_scene(tmp_path / "half.usda")
+    stage = Usd.Stage.Open(str(path))
+    UsdGeom.Xformable(stage.GetPrimAtPath("/World/box")).AddOrientOp(UsdGeom.XformOp.PrecisionHalf).Set(Gf.Quath(0.5**0.5, 0, 0, 0.5**0.5))
+    stage.GetRootLayer().Save()
+    pose = io.load_scene(path).body("box").pose
+    np.testing.assert_allclose(np.abs(pose[3:]), [0.0, 0.0, 0.5**0.5, 0.5**0.5], atol=1e-3)
 
 
 def test_unreadable_files_are_clear_errors(tmp_path):

@@ -673,11 +673,17 @@ def _align_axis(mesh, axis: str):
     return mesh
 
 
+# A half-precision (quath) orient's rounding: a unit quaternion's norm moves by up to 2^-11
+# relative when each component is rounded to half (90 degrees about z, norm 0.99979).
+_HALF_QUATERNION_TOLERANCE = 1e-3
+
+
 def _world_matrix(prim, UsdGeom, Usd, source: str):
     """A prim's local-to-world matrix; ValueError naming the transform attribute (the prim's
     own or an ancestor's) whose value is not finite (an SVD failed on it, naming nothing; an
-    orient of real part NaN composed to the identity), or a matrix op that is not affine
-    (its projective column was dropped: the body sat metres from where USD draws it)."""
+    orient of real part NaN composed to the identity), an orient that is not a unit
+    quaternion, or a matrix op that is not affine (its projective column was dropped: the
+    body sat metres from where USD draws it)."""
     for attr in _transform_attributes(prim, UsdGeom):
         value = attr.Get()
         if value is None:
@@ -685,6 +691,14 @@ def _world_matrix(prim, UsdGeom, Usd, source: str):
         numbers = np.asarray(_quat_xyzw(value) if hasattr(value, "GetReal") else value, dtype=np.float64)
         if not np.isfinite(numbers).all():
             raise ValueError(f"{source}: prim {prim.GetPath()}: {attr.GetPath()} must be finite, got {value}")
+        if hasattr(value, "GetReal"):
+            # An orient op: USD draws a quaternion off unit norm as given, neither as its
+            # normalised rotation nor (except (0, 0, 0, 0), the identity) as any rotation the
+            # loader would read back; a body oriented (0, 0, 0, 0) loaded unturned, silently.
+            norm = float(np.linalg.norm(numbers))
+            tolerance = _HALF_QUATERNION_TOLERANCE if str(attr.GetTypeName()) == "quath" else QUATERNION_TOLERANCE
+            if not abs(norm - 1.0) <= tolerance:
+                raise ValueError(f"{source}: prim {prim.GetPath()}: {attr.GetPath()} must be a unit quaternion, got {value} (norm {norm:.9g})")
         if numbers.shape == (4, 4) and not np.array_equal(numbers[:, 3], [0.0, 0.0, 0.0, 1.0]):
             raise ValueError(f"{source}: prim {prim.GetPath()}: {attr.GetPath()} is not an affine transform (its last column must be 0, 0, 0, 1), got {value}")
     matrix = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
