@@ -1307,6 +1307,25 @@ def test_a_limit_margin_over_half_the_range_is_refused():
         wc.ImplicitSolver(model).step(model.state(), model.state(), None, 0.01)
 
 
+def test_limits_too_narrow_for_the_barrier_are_refused():
+    """Found by a tester: limits of +-1e-200 rad (default margin 2e-201) were taken, and the
+    step ended in a NaN: the limit barrier squares the distance to the limit within its
+    margin, which underflows below 1e-150. The range (or cone limit) must leave a margin of
+    at least that; 1e-148 is taken."""
+    b, a, _ = two_boxes()
+    with pytest.raises(ValueError, match=r"joint 'hinge': coordinate 0's limits \[-1e-200, 1e-200\]: its limit barrier's margin 2e-201 is below 1e-150"):
+        b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), limits=(-1e-200, 1e-200), name="hinge")
+    with pytest.raises(ValueError, match=r"joint 'hinge': coordinate 0's limits \[-1.0, 1.0\]: its limit barrier's margin 1e-160 is below 1e-150"):
+        b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), limits=(-1.0, 1.0), limit_margin=1e-160, name="hinge")
+    with pytest.raises(ValueError, match=r"joint 'cone': cone_limit 1e-200: its limit barrier's margin 1e-201 is below 1e-150"):
+        b.add_joint("ball", child=a, anchor=(0, 0, 1.2), cone_limit=1e-200, name="cone")
+    b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), limits=(-1e-148, 1e-148), name="hinge")
+    model = _hanging_hinge([(-0.05, 0.15)])
+    model.articulation.lower[:], model.articulation.upper[:] = -1e-200, 1e-200  # set after finalize
+    with pytest.raises(ValueError, match=r"model.articulation.lower, upper, limit_margin: 'hinge:0' has limits \[-1e-200, 1e-200\]: its limit barrier's margin 2e-201"):
+        wc.ImplicitSolver(model).step(model.state(), model.state(), None, 0.01)
+
+
 def test_joint_targets_for_a_model_without_joint_coordinates_are_refused():
     """Targets for coordinates the model does not have were ignored (a ball-only model)."""
     model = _hanging_rod("ball")

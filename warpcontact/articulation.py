@@ -44,6 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ._validate import SCALE_RANGE
 from .rotation import axial, cross, pose_inverse, pose_mul, quat_conjugate, quat_from_rotation_vector, quat_mul, quat_rotate, quat_to_matrix, rotation_vector_from_quat
 
 __all__ = [
@@ -57,6 +58,7 @@ __all__ = [
     "Joint",
     "frame_in_body",
     "default_limit_margins",
+    "limit_margin_problem",
     "joint_limit_energy",
 ]
 
@@ -125,6 +127,23 @@ class Joint:
 def default_limit_margins(span: np.ndarray) -> np.ndarray:
     """A limit barrier's default margin: a tenth of the range (or cone limit), at most 0.1."""
     return np.minimum(0.1 * span, 0.1)
+
+
+# Smallest limit barrier margin (rad or m): the barrier squares s - m and divides by s^2 (s,
+# the distance to the limit, below m), which underflow below SCALE_RANGE's 1e-150; limits of
+# +-1e-200 rad (default margin 2e-201) gave a NaN step.
+MIN_LIMIT_MARGIN = SCALE_RANGE[0]
+
+
+def limit_margin_problem(margin: float) -> str | None:
+    """Why a limit barrier's margin (given, or the default ``default_limit_margins``) is too
+    small for float64, or None."""
+    if margin < MIN_LIMIT_MARGIN:
+        return (
+            f"its limit barrier's margin {margin:g} is below {MIN_LIMIT_MARGIN:g} (the barrier squares the distance to the limit "
+            f"within it, which underflows; the default margin, a tenth of the range or cone limit, needs one of at least {10 * MIN_LIMIT_MARGIN:g})"
+        )
+    return None
 
 
 def joint_limit_energy(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, margin: np.ndarray, stiffness: np.ndarray):
@@ -402,6 +421,11 @@ class ArticulationModel:
             if bad.size:
                 default = " (or NaN: the default)" if label == "limit_margin" else ""
                 return f"{label}: {self.coordinate_names[bad[0]]!r} has {float(values[bad[0]])!r}; a limited coordinate's must be positive and finite{default}"
+        margins = self.limit_margins()
+        for c in np.flatnonzero(limited):
+            problem = limit_margin_problem(float(margins[c]))
+            if problem is not None:
+                return f"lower, upper, limit_margin: {self.coordinate_names[c]!r} has limits [{float(self.lower[c])!r}, {float(self.upper[c])!r}]: {problem}"
         with np.errstate(invalid="ignore"):
             wide = np.flatnonzero(self.limit_margin > 0.5 * (self.upper - self.lower))
         if wide.size:
