@@ -333,6 +333,11 @@ def test_bad_joints_get_clear_errors():
     # Wrong counts used to surface as numpy reshape errors naming no joint.
     with pytest.raises(ValueError, match=r"joint 'tilted': expected 1 axis vector\(s\) of 3 values"):
         b.add_joint("revolute", child=a, anchor=(0, 0, 0), axis=(0, 1, 0, 0), name="tilted")
+    # Found by a tester: an anchor at 1e200 m was taken, and the hinged box never fell.
+    with pytest.raises(ValueError, match=r"joint 'far': anchor: 1e\+200 at index \(0,\) is beyond the \+-1e\+150 m"):
+        b.add_joint("revolute", child=a, anchor=(1e200, 0, 0), axis=(0, 1, 0), name="far")
+    with pytest.raises(ValueError, match=r"joint 'far': child_frame position: -1e\+200 at index \(2,\) is beyond the \+-1e\+150 m"):
+        b.add_joint("revolute", child=a, parent_frame=(0, 0, 0, 0, 0, 0, 1), child_frame=(0, 0, -1e200, 0, 0, 0, 1), axis=(0, 1, 0), name="far")
     with pytest.raises(ValueError, match="joint 'odd': limits must be 1 .lower, upper. pairs"):
         b.add_joint("revolute", child=a, anchor=(0, 0, 0), axis=(0, 1, 0), limits=[0.0, 1.0, 2.0], name="odd")
     b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), name="first")

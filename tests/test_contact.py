@@ -1135,3 +1135,15 @@ def test_a_triangle_listed_twice_is_refused():
         wc.ModelBuilder().add_body(copies, density=1.0, name="crate")
     with pytest.raises(ValueError, match=r"mesh 'body0': faces 0 and 12 are the same triangle"):
         wc.ContactModel([(cube.vertices, flipped), icosphere(0)])
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        # Found by a tester: taken, then blamed on the mesh's vertices.
+        (dict(mass=1.0, center_of_mass=[1e200, 0.0, 0.0]), r"body 'crate': center_of_mass: 1e\+200 at index \(0,\) is beyond the \+-1e\+150 m"),
+    ],
+)
+def test_add_body_refuses_values_beyond_what_float64_steps_represent(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        wc.ModelBuilder().add_body(trimesh.creation.box(extents=(1.0, 1.0, 1.0)), name="crate", **kwargs)

@@ -346,6 +346,7 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
         com = real_array(center_of_mass)
         if com is None or com.shape != (3,) or not np.isfinite(com).all():
             raise ValueError(f"{where}: center_of_mass must be 3 finite numbers (m, mesh frame), got {center_of_mass!r}")
+        check_coordinates(com, f"{where}: center_of_mass")  # it was blamed on the mesh's vertices
     elif closed:
         com = np.asarray(props["center_mass"], dtype=np.float64)
     else:
@@ -719,6 +720,7 @@ class ModelBuilder:
                 anchor = real_array(given)
                 if anchor is None or anchor.shape != (3,) or not np.isfinite(anchor).all():
                     raise ValueError(f"{where}: anchor must be 3 finite numbers, got {given!r}")
+                check_coordinates(anchor, f"{where}: anchor")  # beyond it, a hinged body's step went silently wrong
                 world_frame = np.concatenate([anchor, [0.0, 0.0, 0.0, 1.0]])
                 frames = (frame_in_body(parent_pose, world_frame), frame_in_body(child_body.pose, world_frame))
             elif parent_frame is not None and child_frame is not None:
@@ -728,6 +730,7 @@ class ModelBuilder:
                     frame = real_array(given)
                     if frame is None or frame.shape != (7,) or not np.isfinite(frame).all() or abs(np.linalg.norm(frame[3:]) - 1.0) > QUATERNION_TOLERANCE:
                         raise ValueError(f"{where}: {label} must be 7 finite numbers (p, unit quaternion), got {given!r}")
+                    check_coordinates(frame[:3], f"{where}: {label} position")
                     frame = frame.copy()
                     frame[3:] /= np.linalg.norm(frame[3:])
                     if body is not None:  # mesh frame -> centre-of-mass frame (same axes)
