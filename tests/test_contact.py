@@ -1142,8 +1142,24 @@ def test_a_triangle_listed_twice_is_refused():
     [
         # Found by a tester: taken, then blamed on the mesh's vertices.
         (dict(mass=1.0, center_of_mass=[1e200, 0.0, 0.0]), r"body 'crate': center_of_mass: 1e\+200 at index \(0,\) is beyond the \+-1e\+150 m"),
+        # Found by a tester: taken, then the first step of the body at rest failed "rotation
+        # per step too large" (the rotation prediction cubes the inertia per unit mass).
+        (dict(mass=1.0, inertia=np.eye(3) * 1e120), r"body 'crate': inertia over its mass 1 kg has eigenvalues 1e\+120 to 1e\+120 m\^2 \(squared radii of gyration\), outside \[1e-100, 1e\+100\] m\^2"),
+        (dict(mass=2.0, inertia=np.eye(3) * 2e-150), r"body 'crate': inertia over its mass 2 kg has eigenvalues 1e-150 to 1e-150 m\^2"),
     ],
 )
 def test_add_body_refuses_values_beyond_what_float64_steps_represent(kwargs, match):
     with pytest.raises(ValueError, match=match):
         wc.ModelBuilder().add_body(trimesh.creation.box(extents=(1.0, 1.0, 1.0)), name="crate", **kwargs)
+
+
+def test_inertia_per_unit_mass_at_the_ends_of_its_range_steps():
+    """Within UNIT_INERTIA_RANGE a body at rest steps; a mesh whose computed inertia leaves
+    it is named with its size."""
+    with pytest.raises(ValueError, match=r"body 'slab': the inertia of its mesh \(1e\+60 m across\) over its mass 1e\+180 kg has eigenvalues 1.67e\+119 .*; rescale the scene"):
+        wc.ModelBuilder().add_box((1e60, 1e60, 1e60), density=1.0, name="slab")
+    for scale in (1e-99, 1e99):
+        b = wc.ModelBuilder()
+        b.add_body(trimesh.creation.box(extents=(1.0, 1.0, 1.0)), mass=1.0, inertia=np.eye(3) * scale, name="crate")
+        model = b.finalize()
+        wc.ImplicitSolver(model).step(model.state(), model.state(), None, 0.01)
