@@ -1265,6 +1265,9 @@ def test_limit_margin_without_limits_is_refused():
         b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), limit_stiffness=50.0, name="hinge")
     with pytest.raises(ValueError, match="joint 'ball': limit_stiffness applies to a ball joint's cone_limit, and it has none"):
         b.add_joint("ball", child=a, anchor=(0, 0, 1.2), limit_stiffness=50.0, name="ball")
+    # Found by a tester: a ball joint's axis is its cone's, and without one it was ignored.
+    with pytest.raises(ValueError, match=r"joint 'ball': axis applies to a ball joint's cone_limit \(the swing limit's axis\), and it has none"):
+        b.add_joint("ball", child=a, anchor=(0, 0, 1.2), axis=(0, 0, 1), name="ball")
 
 
 def _hanging_hinge(limits=None):

@@ -819,6 +819,8 @@ class ModelBuilder:
             gains["target"] = _per_coordinate(target, count, "target", where)
             if np.isinf(gains["target"]).any():
                 raise ValueError(f"{where}: target must be finite (NaN: that coordinate's initial value), got {target!r}")
+        if kind == "ball" and axis is not None and cone_limit is None:  # accepted and ignored before
+            raise ValueError(f"{where}: axis applies to a ball joint's cone_limit (the swing limit's axis), and it has none")
         if order is not None:
             lower, upper = lower[order], upper[order]
             gains = {label: arr[order] for label, arr in gains.items()}

@@ -282,8 +282,8 @@ class Scene:
                         f"rotations turns its body about the centre of mass here, but its anchor is {off:.3g} m from it; "
                         "put localPos1 at the body's centre of mass"
                     )
-            options = {"dofs": j.dofs} if j.kind == "base" else {"parent_frame": j.parent_frame, "child_frame": j.child_frame, "axis": j.axes if len(j.axes) else None}
-            if j.cone_limit is not None:
+            options = {"dofs": j.dofs} if j.kind == "base" else {"parent_frame": j.parent_frame, "child_frame": j.child_frame, "axis": j.axes if len(j.axes) and (j.kind != "ball" or j.cone_limit is not None) else None}
+            if j.cone_limit is not None:  # a ball joint's axis is its cone's, passed only with one
                 options["cone_limit"] = j.cone_limit
             if len(j.kp):
                 options.update(kp=j.kp, kd=j.kd)
