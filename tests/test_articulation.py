@@ -350,6 +350,14 @@ def test_bad_joints_get_clear_errors():
     b.add_box((0.2, 0.2, 0.2), density=100.0, pose=(2, 0, 1, 0, 0, 0, 1), name="a")
     with pytest.raises(ValueError, match=r"body names must be unique; used more than once: \['a'\]"):
         b.finalize()
+    # Defaults skip the names given ("joint1" given, the next unnamed joint is "joint2", not
+    # a duplicate), and an empty name, replaced by the default before, is refused.
+    b, a, c = two_boxes()
+    b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), name="joint1")
+    b.add_joint("revolute", child=c, parent=a, anchor=(0.25, 0, 1), axis=(0, 1, 0))
+    assert [joint.name for joint in b.finalize().articulation.joints] == ["joint1", "joint2"]
+    with pytest.raises(ValueError, match=r"joint 0: name must not be empty, got ''"):
+        two_boxes()[0].add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), name="")
 
 
 def test_joint_cycle_is_refused():

@@ -1163,3 +1163,16 @@ def test_inertia_per_unit_mass_at_the_ends_of_its_range_steps():
         b.add_body(trimesh.creation.box(extents=(1.0, 1.0, 1.0)), mass=1.0, inertia=np.eye(3) * scale, name="crate")
         model = b.finalize()
         wc.ImplicitSolver(model).step(model.state(), model.state(), None, 0.01)
+
+
+def test_default_body_names_skip_the_names_given_and_an_empty_name_is_refused():
+    """Found by a tester: add_body(name="body1") then an unnamed body (default "body1") ended
+    in finalize's "body names must be unique; used more than once: ['body1']", though the
+    caller named one body so; and name="" was replaced by the default silently."""
+    b = wc.ModelBuilder()
+    b.add_body(trimesh.creation.box(extents=(1.0, 1.0, 1.0)), mass=1.0, name="body1")
+    for x in (3.0, 6.0):
+        b.add_body(trimesh.creation.box(extents=(1.0, 1.0, 1.0)), mass=1.0, pose=(x, 0, 0, 0, 0, 0, 1))
+    assert b.finalize().body_names == ["body1", "body2", "body3"]
+    with pytest.raises(ValueError, match=r"body 0: name must not be empty, got ''"):
+        wc.ModelBuilder().add_body(trimesh.creation.box(extents=(1.0, 1.0, 1.0)), mass=1.0, name="")

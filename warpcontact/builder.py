@@ -406,6 +406,24 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
     return body_mass, com, second_moment
 
 
+def _added_name(name, kind: str, names: list[str]) -> str:
+    """The name a body or joint (``kind``) added after ``names`` gets: ``name``, a non-empty
+    string, or by default the first of kind<index>, kind<index + 1>, ... that none of them has
+    (add_body(name="body1") and then an unnamed second body, "body1" by default, ended in
+    finalize's "used more than once"; "" was replaced by the default silently)."""
+    index = len(names)
+    if name is None:
+        taken = set(names)
+        while f"{kind}{index}" in taken:
+            index += 1
+        return f"{kind}{index}"
+    if not isinstance(name, str):
+        raise ValueError(f"{kind} {index}: name must be a string, got {name!r}")
+    if not name:
+        raise ValueError(f"{kind} {index}: name must not be empty, got ''; leave it out (None) for the default, {kind}<index> or the next free such name")
+    return name
+
+
 # The ipc barrier (ipctk's, on squared distances) holds a body of weight m g about this times
 # mu dhat^4 / (m g) above a support: 28.0 measured for a box on two triangles over mu 1e3 -
 # 1e5, dhat 1e-2 - 2e-2 m and 32 - 320 kg (2026-11-27).
@@ -533,7 +551,8 @@ class ModelBuilder:
         Args:
             mesh: ``trimesh.Trimesh`` or (vertices (nv, 3), faces (nf, 3)) in the mesh frame (m).
             pose: (7,) pose of the mesh frame (px, py, pz, qx, qy, qz, qw).
-            name: unique body name (default ``body{index}``).
+            name: unique body name, not empty (default ``body{index}``, or the next
+                ``body{n}`` no body added before has).
             density: kg/m^3: the mass of the mesh's volume (a closed, consistently
                 outward-wound mesh); or ``mass`` instead.
             mass: kg, instead of ``density``.
@@ -661,12 +680,11 @@ class ModelBuilder:
             target: per coordinate, the PD target (rad or m) of ``Model.control()``'s
                 ``joint_target`` (a USD drive's targetPosition); default, or NaN for a
                 coordinate: the initial coordinates.
-            name: unique joint name (default ``joint{index}``); coordinates are named
+            name: unique joint name, not empty (default ``joint{index}``, or the next
+                ``joint{n}`` free); coordinates are named
                 ``{name}:{k}`` (a base joint's ``{name}:{dof}``).
         """
-        if name is not None and not isinstance(name, str):
-            raise ValueError(f"joint {len(self._joints)}: name must be a string, got {name!r}")
-        name = name or f"joint{len(self._joints)}"
+        name = _added_name(name, "joint", [joint.name for joint in self._joints])
         where = f"joint {name!r}"
         if kind not in JOINT_KINDS:
             raise ValueError(f"{where}: unknown joint type {kind!r}; supported: {JOINT_KINDS}")
@@ -842,10 +860,8 @@ class ModelBuilder:
         return self._bodies[index].center_of_mass.copy()
 
     def _body_name(self, name: str | None) -> str:
-        """The name a body being added gets: the given one, or body<index>."""
-        if name is not None and not isinstance(name, str):
-            raise ValueError(f"body {len(self._bodies)}: name must be a string, got {name!r}")
-        return name or f"body{len(self._bodies)}"
+        """The name a body being added gets (``_added_name``)."""
+        return _added_name(name, "body", [body.name for body in self._bodies])
 
     def add_box(self, extents, **kwargs) -> int:
         """Add a box with the given (x, y, z) extents (m), centred on its frame."""
