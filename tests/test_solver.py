@@ -590,6 +590,8 @@ def test_a_body_started_within_the_tolerance_of_a_support_is_pushed_out():
         (lambda m: m.body_unit_second_moment.assign(np.array([np.eye(3), np.eye(3) * np.nan])), r"model.body_unit_second_moment: body 'box' has \[\[nan, nan, nan\]"),
         (lambda m: m.body_unit_second_moment.assign(np.array([np.eye(3), -0.01 * np.eye(3)])), r"body 'box' has .*; a dynamic body's must be finite, symmetric and positive definite"),
         (lambda m: m.body_unit_second_moment.assign(np.array([np.eye(3), [[0.01, 0.005, 0.0], [0.0, 0.01, 0.0], [0.0, 0.0, 0.01]]])), r"model.body_unit_second_moment: body 'box'"),
+        # add_body's range of the inertia over the mass, for a second moment changed since.
+        (lambda m: m.body_unit_second_moment.assign(np.array([np.eye(3), 1e120 * np.eye(3)])), r"model.body_unit_second_moment: body 'box': its inertia over its mass has eigenvalues 2e\+120 to 2e\+120 m\^2 .*outside \[1e-100, 1e\+100\] m\^2"),
         # Found by a probe: a resting box made static in the array was flung 0.5 m up in 3 steps.
         (lambda m: m.body_dynamic.assign(np.array([0, 0], dtype=np.int32)), r"model.body_dynamic: body 'box' has 0 where the model was built dynamic \(1\); .* build it again"),
         (lambda m: m.body_dynamic.assign(np.array([1, 1], dtype=np.int32)), r"model.body_dynamic: body 'plate' has 1 where the model was built static \(0\)"),

@@ -87,6 +87,27 @@ def is_positive_finite(value) -> bool:
 SCALE_RANGE = (1e-150, 1e150)
 
 
+# Range (m^2) of a dynamic body's inertia over its mass (eigenvalues: squared radii of
+# gyration): the rotation prediction (kernels/dynamics.py predict_kernel) compares the
+# determinant of a matrix of the second moment per unit mass with the cube of its trace,
+# which overflow or underflow float64 beyond ~1e+-102 m^2 (inertia eye(3) * 1e120 or 1e-150
+# at 1 kg was taken, and the first step of the body at rest failed "rotation per step too
+# large").
+UNIT_INERTIA_RANGE = (1e-100, 1e100)
+
+
+def unit_inertia_problem(eigenvalues) -> str | None:
+    """Why a body whose inertia over its mass has ``eigenvalues`` (m^2) cannot be stepped, or None."""
+    low, high = UNIT_INERTIA_RANGE
+    eigenvalues = np.asarray(eigenvalues, dtype=np.float64)
+    if low <= eigenvalues.min() and eigenvalues.max() <= high:
+        return None
+    return (
+        f"has eigenvalues {eigenvalues.min():.3g} to {eigenvalues.max():.3g} m^2 (squared radii of gyration), outside [{low:g}, {high:g}] m^2, "
+        "where the rotation prediction's cube of them is a float64 number"
+    )
+
+
 def scale_problem(value, unit: str) -> str | None:
     """Why ``value``, a positive scale in ``unit``, lies outside SCALE_RANGE, or None (it is
     checked positive and finite elsewhere)."""

@@ -9,7 +9,7 @@ import trimesh
 import warp as wp
 
 from ._runtime import resolve_device
-from ._validate import QUATERNION_TOLERANCE, SCALE_RANGE, check_barrier_support, check_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array, scale_problem, shown
+from ._validate import QUATERNION_TOLERANCE, SCALE_RANGE, check_barrier_support, check_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array, scale_problem, shown, unit_inertia_problem
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, connected_labels, default_limit_margins, frame_in_body, limit_margin_problem
 from .contact import CENTRED_WEIGHTS, CONTACT_MODES, PRESSED_GAP, ContactModel
 from .leaf import float32_search
@@ -317,15 +317,6 @@ def finite_vector(value, size: int) -> np.ndarray | None:
     return array
 
 
-# Range (m^2) of a dynamic body's inertia over its mass (eigenvalues: squared radii of
-# gyration): the rotation prediction (kernels/dynamics.py predict_kernel) compares the
-# determinant of a matrix of the second moment per unit mass with the cube of its trace,
-# which overflow or underflow float64 beyond ~1e+-102 m^2 (inertia eye(3) * 1e120 or 1e-150
-# at 1 kg was taken, and the first step of the body at rest failed "rotation per step too
-# large").
-UNIT_INERTIA_RANGE = (1e-100, 1e100)
-
-
 def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia, center_of_mass) -> tuple[float, np.ndarray, np.ndarray]:
     """(mass, centre of mass in the mesh frame, second moment about it) of a dynamic body
     from ``add_body``'s arguments, each checked and named."""
@@ -386,15 +377,10 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
             extent = float(np.ptp(mesh.vertices, axis=0).max())
             raise ValueError(f"{where}: the inertia of its mesh ({extent:.3g} m across) at mass {body_mass:.3g} kg is not a finite positive definite float64 matrix (it grows as the fifth power of the size); give mass and inertia, or rescale the scene")
         raise ValueError(f"{where}: inertia must be a finite, symmetric positive definite 3x3 matrix (kg m^2)")
-    per_mass = np.linalg.eigvalsh(0.5 * (inertia + inertia.T)) / body_mass
-    low, high = UNIT_INERTIA_RANGE
-    if not (low <= per_mass.min() and per_mass.max() <= high):
+    problem = unit_inertia_problem(np.linalg.eigvalsh(0.5 * (inertia + inertia.T)) / body_mass)
+    if problem is not None:
         what = f"the inertia of its mesh ({float(np.ptp(mesh.vertices, axis=0).max()):.3g} m across)" if computed else "inertia"
-        raise ValueError(
-            f"{where}: {what} over its mass {body_mass:.3g} kg has eigenvalues {per_mass.min():.3g} to {per_mass.max():.3g} m^2 (squared radii of gyration), "
-            f"outside [{low:g}, {high:g}] m^2, where the rotation prediction's cube of them is a float64 number; "
-            f"{'rescale the scene' if computed else 'check the inertia (kg m^2) and mass (kg)'}"
-        )
+        raise ValueError(f"{where}: {what} over its mass {body_mass:.3g} kg {problem}; {'rescale the scene' if computed else 'check the inertia (kg m^2) and mass (kg)'}")
     smallest = np.linalg.eigvalsh(second_moment).min()
     if smallest < -1e-12 * np.trace(inertia):
         raise ValueError(f"{where}: inertia violates the triangle inequality (not physical)")

@@ -33,7 +33,7 @@ import numpy as np
 import trimesh
 import warp as wp
 
-from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, SCALE_RANGE, check_time_step, checked_flag, is_real, is_whole
+from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, SCALE_RANGE, check_time_step, checked_flag, is_real, is_whole, UNIT_INERTIA_RANGE, unit_inertia_problem
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
@@ -531,11 +531,19 @@ class ImplicitSolver:
         checked = moment[dynamic_bodies]
         with np.errstate(invalid="ignore"):
             symmetric = np.isfinite(checked).all(axis=(1, 2)) & (np.abs(checked - checked.transpose(0, 2, 1)) <= 1e-9 * np.abs(checked).max(axis=(1, 2))[:, None, None]).all(axis=(1, 2))
-        positive = np.zeros(len(checked), dtype=bool)
-        positive[symmetric] = np.linalg.eigvalsh(checked[symmetric]).min(axis=1) > 0.0
-        bad = dynamic_bodies[~positive]
+        eigenvalues = np.zeros((len(checked), 3))
+        eigenvalues[symmetric] = np.linalg.eigvalsh(checked[symmetric])
+        bad = dynamic_bodies[~(eigenvalues.min(axis=1) > 0.0)]
         if bad.size:
             raise ValueError(f"model.body_unit_second_moment: body {model.body_names[bad[0]]!r} has {moment[bad[0]].tolist()}; a dynamic body's must be finite, symmetric and positive definite (m^2)")
+        # add_body's range, for a second moment changed since (1e120 failed as "rotation per
+        # step too large"); the inertia over the mass is tr(S) 1 - S.
+        unit_inertia = eigenvalues.sum(axis=1)[:, None] - eigenvalues
+        low, high = UNIT_INERTIA_RANGE
+        bad = np.flatnonzero((unit_inertia.min(axis=1) < low) | (unit_inertia.max(axis=1) > high))
+        if bad.size:
+            b = dynamic_bodies[bad[0]]
+            raise ValueError(f"model.body_unit_second_moment: body {model.body_names[b]!r}: its inertia over its mass {unit_inertia_problem(unit_inertia[bad[0]])}")
         self._unit_second_moment_trace = np.trace(moment, axis1=1, axis2=2)
         for name in _GAIN_ARRAYS:
             gains = read(name).reshape(model.num_bodies, -1)
