@@ -828,15 +828,25 @@ def test_bad_values_name_the_file_prim_and_attribute(tmp_path, edit, match):
         io.load_scene(path)
 
 
-def test_a_half_precision_orient_loads_within_its_rounding(tmp_path):
+@pytest.mark.parametrize(
+    ("precision", "quaternion", "expected"),
+    [
+        # 90 degrees about z as quath is of norm 0.99979.
+        (UsdGeom.XformOp.PrecisionHalf, Gf.Quath(0.5**0.5, 0, 0, 0.5**0.5), [0.0, 0.0, 0.5**0.5, 0.5**0.5]),
+        # Written to 4 or 5 decimals (norms 0.99999037, 1.000025): refused at a tolerance of 1e-6 (a review).
+        (UsdGeom.XformOp.PrecisionFloat, Gf.Quatf(0.7071, 0, 0, 0.7071), [0.0, 0.0, 0.5**0.5, 0.5**0.5]),
+        (UsdGeom.XformOp.PrecisionDouble, Gf.Quatd(0.9239, 0, 0, 0.3827), [0.0, 0.0, 0.3826834, 0.9238795]),
+    ],
+)
+def test_an_orient_rounded_off_unit_norm_loads_as_its_rotation(tmp_path, precision, quaternion, expected):
     """Orients off unit norm are refused (USD draws them as neither rotation), beyond the
-    rounding of the orient's precision: 90 degrees about z as quath is of norm 0.99979."""
-    path = write_physics_scene(tmp_path / "half.usda")
+    rounding of a half-precision quaternion or of one written to 4 decimals."""
+    path = write_physics_scene(tmp_path / "rounded.usda")
     stage = Usd.Stage.Open(str(path))
-    UsdGeom.Xformable(stage.GetPrimAtPath("/World/box")).AddOrientOp(UsdGeom.XformOp.PrecisionHalf).Set(Gf.Quath(0.5**0.5, 0, 0, 0.5**0.5))
+    UsdGeom.Xformable(stage.GetPrimAtPath("/World/box")).AddOrientOp(precision).Set(quaternion)
     stage.GetRootLayer().Save()
     pose = io.load_scene(path).body("box").pose
-    np.testing.assert_allclose(np.abs(pose[3:]), [0.0, 0.0, 0.5**0.5, 0.5**0.5], atol=1e-3)
+    np.testing.assert_allclose(np.abs(pose[3:]), expected, atol=1e-4)
 
 
 def test_unreadable_files_are_clear_errors(tmp_path):

@@ -569,7 +569,7 @@ def _shape_triangles(kind, prim, UsdGeom, source, desc=None) -> tuple[np.ndarray
     if size is None:
         raise ValueError(f"{where}: collider type {kind} is not supported (use a Mesh, Cube, Sphere, Capsule, Cylinder, Cone or Plane)")
     if "axis" in size:  # the parser's axis took any token as X
-        _axis_token(prim, "axis", where)
+        size["axis"] = _axis_token(prim, "axis", where)
     if kind == "CubeShape":
         m = trimesh.creation.box(extents=size["extents"])
     elif kind == "SphereShape":
@@ -664,18 +664,19 @@ def _cone(radius: float, height: float):
 
 
 def _align_axis(mesh, axis: str):
-    """trimesh round shapes run along z; UsdPhysics gives the axis as a token."""
-    axis = axis.split(".")[-1].upper()
-    if axis.endswith("X"):
+    """trimesh round shapes run along z; ``axis`` is the shape's checked token (``_axis_token``)."""
+    if axis == "X":
         mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
-    elif axis.endswith("Y"):
+    elif axis == "Y":
         mesh.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
     return mesh
 
 
-# A half-precision (quath) orient's rounding: a unit quaternion's norm moves by up to 2^-11
-# relative when each component is rounded to half (90 degrees about z, norm 0.99979).
-_HALF_QUATERNION_TOLERANCE = 1e-3
+# How far an orient's norm may be off 1 (it is then read as its rotation): a half-precision
+# (quath) quaternion's rounding moves the norm by up to 2^-11 relative (90 degrees about z,
+# norm 0.99979), and files write quaternions rounded to 4 or 5 decimals ((0.7071, 0, 0,
+# 0.7071), norm 0.99999; a review found them refused at the 1e-6 of localRot0/1).
+_ORIENT_NORM_TOLERANCE = 1e-3
 
 
 def _world_matrix(prim, UsdGeom, Usd, source: str):
@@ -696,8 +697,7 @@ def _world_matrix(prim, UsdGeom, Usd, source: str):
             # normalised rotation nor (except (0, 0, 0, 0), the identity) as any rotation the
             # loader would read back; a body oriented (0, 0, 0, 0) loaded unturned, silently.
             norm = float(np.linalg.norm(numbers))
-            tolerance = _HALF_QUATERNION_TOLERANCE if str(attr.GetTypeName()) == "quath" else QUATERNION_TOLERANCE
-            if not abs(norm - 1.0) <= tolerance:
+            if not abs(norm - 1.0) <= _ORIENT_NORM_TOLERANCE:
                 raise ValueError(f"{source}: prim {prim.GetPath()}: {attr.GetPath()} must be a unit quaternion, got {value} (norm {norm:.9g})")
         if numbers.shape == (4, 4) and not np.array_equal(numbers[:, 3], [0.0, 0.0, 0.0, 1.0]):
             raise ValueError(f"{source}: prim {prim.GetPath()}: {attr.GetPath()} is not an affine transform (its last column must be 0, 0, 0, 1), got {value}")
