@@ -768,6 +768,21 @@ def test_bad_cone_limits_are_refused():
         model_builder.finalize()
 
 
+
+@pytest.mark.parametrize("swing", [1.2, 1.25])
+def test_a_state_swung_onto_or_past_a_cone_limit_is_refused_naming_the_joint(swing):
+    """Found by a probe: a ball joint's start swing at or past its cone limit made the start's
+    energy infinite, and the step blamed dt, the inertia and gravity. A revolute coordinate
+    outside its limits was already refused by name."""
+    model = _hanging_rod("ball", axis=(0, 0, -1), cone_limit=1.2)
+    state = model.state(requires_grad=False)
+    q = model.articulation.retract(model.initial_q, np.array([0.0, swing, 0.0]))
+    state.body_q.assign(q)
+    state.body_q_prev.assign(q)
+    with pytest.raises(ValueError, match=rf"state_in.body_q: joint 'hinge' \(world -> rod\): swing {swing:g} rad is not strictly inside its cone limit 1.2 rad"):
+        wc.ImplicitSolver(model).step(state, model.state(requires_grad=False), None, 0.01)
+
+
 # --- ball-joint drives --------------------------------------------------------------------------
 
 
@@ -1327,18 +1342,24 @@ def test_limits_too_narrow_for_the_barrier_are_refused():
     """Found by a tester: limits of +-1e-200 rad (default margin 2e-201) were taken, and the
     step ended in a NaN: the limit barrier squares the distance to the limit within its
     margin, which underflows below 1e-150. The range (or cone limit) must leave a margin of
-    at least that; 1e-148 is taken."""
+    at least that, and a coordinate must start that far inside its limits (a hinge at 0 with
+    limits (-1e-200, 1) stayed at 0, its barrier's Hessian infinite; found by a review);
+    1e-148 is taken. A margin given too small is named as such (a first version blamed the
+    limits)."""
     b, a, _ = two_boxes()
-    with pytest.raises(ValueError, match=r"joint 'hinge': coordinate 0's limits \[-1e-200, 1e-200\]: its limit barrier's margin 2e-201 is below 1e-150"):
+    with pytest.raises(ValueError, match=r"joint 'hinge': coordinate 0's limits \[-1e-200, 1e-200\]: its limit barrier's default margin, a tenth of the range or cone limit, is 2e-201, below 1e-150"):
         b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), limits=(-1e-200, 1e-200), name="hinge")
-    with pytest.raises(ValueError, match=r"joint 'hinge': coordinate 0's limits \[-1.0, 1.0\]: its limit barrier's margin 1e-160 is below 1e-150"):
+    with pytest.raises(ValueError, match=r"joint 'hinge': coordinate 0's limits \[-1.0, 1.0\]: limit_margin 1e-160 is below 1e-150, where the barrier's square"):
         b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), limits=(-1.0, 1.0), limit_margin=1e-160, name="hinge")
-    with pytest.raises(ValueError, match=r"joint 'cone': cone_limit 1e-200: its limit barrier's margin 1e-201 is below 1e-150"):
+    with pytest.raises(ValueError, match=r"joint 'cone': cone_limit 1e-200: its limit barrier's default margin, .* is 1e-201, below 1e-150"):
         b.add_joint("ball", child=a, anchor=(0, 0, 1.2), cone_limit=1e-200, name="cone")
     b.add_joint("revolute", child=a, anchor=(0, 0, 1.2), axis=(0, 1, 0), limits=(-1e-148, 1e-148), name="hinge")
     model = _hanging_hinge([(-0.05, 0.15)])
     model.articulation.lower[:], model.articulation.upper[:] = -1e-200, 1e-200  # set after finalize
-    with pytest.raises(ValueError, match=r"model.articulation.lower, upper, limit_margin: 'hinge:0' has limits \[-1e-200, 1e-200\]: its limit barrier's margin 2e-201"):
+    with pytest.raises(ValueError, match=r"model.articulation.lower, upper, limit_margin: 'hinge:0' has limits \[-1e-200, 1e-200\]: its limit barrier's default margin, .* is 2e-201"):
+        wc.ImplicitSolver(model).step(model.state(), model.state(), None, 0.01)
+    model = _hanging_hinge([(-1e-200, 1.0)])
+    with pytest.raises(ValueError, match=r"state_in.joint_q: coordinate 'hinge:0' = 0 is within 1e-150 of its limits \(-1e-200, 1\), where the limit barrier's square of the distance underflows"):
         wc.ImplicitSolver(model).step(model.state(), model.state(), None, 0.01)
 
 

@@ -58,6 +58,7 @@ __all__ = [
     "Joint",
     "frame_in_body",
     "default_limit_margins",
+    "effective_limit_margins",
     "limit_margin_problem",
     "joint_limit_energy",
 ]
@@ -129,21 +130,28 @@ def default_limit_margins(span: np.ndarray) -> np.ndarray:
     return np.minimum(0.1 * span, 0.1)
 
 
-# Smallest limit barrier margin (rad or m): the barrier squares s - m and divides by s^2 (s,
-# the distance to the limit, below m), which underflow below SCALE_RANGE's 1e-150; limits of
-# +-1e-200 rad (default margin 2e-201) gave a NaN step.
+# Smallest limit barrier margin, and distance of a coordinate to its limit (rad or m): the
+# barrier squares s - m and divides by s^2 (s, the distance to the limit, below the margin
+# m), which underflow below SCALE_RANGE's 1e-150. Limits of +-1e-200 rad (default margin
+# 2e-201) gave a NaN step; a coordinate 1e-200 from a limit stayed there (the step refuses it).
 MIN_LIMIT_MARGIN = SCALE_RANGE[0]
 
 
-def limit_margin_problem(margin: float) -> str | None:
-    """Why a limit barrier's margin (given, or the default ``default_limit_margins``) is too
-    small for float64, or None."""
-    if margin < MIN_LIMIT_MARGIN:
-        return (
-            f"its limit barrier's margin {margin:g} is below {MIN_LIMIT_MARGIN:g} (the barrier squares the distance to the limit "
-            f"within it, which underflows; the default margin, a tenth of the range or cone limit, needs one of at least {10 * MIN_LIMIT_MARGIN:g})"
-        )
-    return None
+def effective_limit_margins(limit_margin: np.ndarray, span: np.ndarray) -> np.ndarray:
+    """The limit barriers' margins as the step uses them: ``limit_margin``, where NaN (the
+    default) ``default_limit_margins`` of the range or cone limit ``span``."""
+    return np.where(np.isnan(limit_margin), default_limit_margins(span), limit_margin)
+
+
+def limit_margin_problem(margin: float, *, given: bool) -> str | None:
+    """Why a limit barrier's margin (``given``, else the default ``default_limit_margins``)
+    is too small for float64, or None."""
+    if margin >= MIN_LIMIT_MARGIN:
+        return None
+    why = f"below {MIN_LIMIT_MARGIN:g}, where the barrier's square of the distance to the limit underflows"
+    if given:
+        return f"limit_margin {margin:g} is {why}"
+    return f"its limit barrier's default margin, a tenth of the range or cone limit, is {margin:g}, {why} (it needs a range of at least {10 * MIN_LIMIT_MARGIN:g})"
 
 
 def joint_limit_energy(q: np.ndarray, lower: np.ndarray, upper: np.ndarray, margin: np.ndarray, stiffness: np.ndarray):
@@ -423,7 +431,7 @@ class ArticulationModel:
                 return f"{label}: {self.coordinate_names[bad[0]]!r} has {float(values[bad[0]])!r}; a limited coordinate's must be positive and finite{default}"
         margins = self.limit_margins()
         for c in np.flatnonzero(limited):
-            problem = limit_margin_problem(float(margins[c]))
+            problem = limit_margin_problem(float(margins[c]), given=not np.isnan(self.limit_margin[c]))
             if problem is not None:
                 return f"lower, upper, limit_margin: {self.coordinate_names[c]!r} has limits [{float(self.lower[c])!r}, {float(self.upper[c])!r}]: {problem}"
         with np.errstate(invalid="ignore"):
@@ -436,7 +444,7 @@ class ArticulationModel:
     def limit_margins(self) -> np.ndarray:
         """(num_coordinates,) the limit barriers' margins as the step uses them: ``limit_margin``,
         where NaN (the default) a tenth of the current range, at most 0.1 rad or m."""
-        return np.where(np.isnan(self.limit_margin), default_limit_margins(self.upper - self.lower), self.limit_margin)
+        return effective_limit_margins(self.limit_margin, self.upper - self.lower)
 
     # --- construction ---------------------------------------------------------------------
 
@@ -576,11 +584,27 @@ class ArticulationModel:
             "limit": float(joint.cone_limit),
             "margin": float(joint.limit_margin[0]),
             "stiffness": float(joint.limit_stiffness[0]),
+            "label": f"joint {joint.name!r} ({self._link_names(joint)})",
         }
+        problem = self._swing_problem(cone, poses)
+        if problem is not None:
+            raise ValueError(f"{cone['label']}: initial {problem}")
+        return cone
+
+    def _swing_problem(self, cone: dict, poses: np.ndarray) -> str | None:
         angle = self._cone_angle(cone, poses)[0]
         if angle >= cone["limit"]:
-            raise ValueError(f"joint {joint.name!r} ({self._link_names(joint)}): initial swing {angle:.6g} rad is not strictly inside its cone limit {cone['limit']:.6g} rad")
-        return cone
+            return f"swing {angle:.6g} rad is not strictly inside its cone limit {cone['limit']:.6g} rad"
+        return None
+
+    def cone_problem(self, poses: np.ndarray) -> str | None:
+        """Why ``poses`` put a ball joint's swing on or past its cone limit, naming the joint,
+        or None (the limit's barrier is infinite there)."""
+        for cone in self.cones:
+            problem = self._swing_problem(cone, poses)
+            if problem is not None:
+                return f"{cone['label']}: {problem}"
+        return None
 
     @staticmethod
     def _cone_angle(cone: dict, poses: np.ndarray):

@@ -10,7 +10,7 @@ import warp as wp
 
 from ._runtime import resolve_device
 from ._validate import QUATERNION_TOLERANCE, SCALE_RANGE, check_barrier_support, check_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array, scale_problem, shown, unit_inertia_problem
-from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, connected_labels, default_limit_margins, frame_in_body, limit_margin_problem
+from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, connected_labels, default_limit_margins, effective_limit_margins, frame_in_body, limit_margin_problem
 from .contact import CENTRED_WEIGHTS, CONTACT_MODES, PRESSED_GAP, ContactModel
 from .leaf import float32_search
 from .rotation import pose_mul, quat_rotate
@@ -811,9 +811,9 @@ class ModelBuilder:
             if wide.size:
                 what = "the cone limit" if kind == "ball" else f"half the range of coordinate {int(wide[0])}"
                 raise ValueError(f"{where}: limit_margin {float(gains['limit_margin'][wide[0]])!r} exceeds {what}, {float(room[wide[0]])!r}")
-        margins = np.where(np.isnan(gains["limit_margin"]), default_limit_margins(span), gains["limit_margin"])
+        margins = effective_limit_margins(gains["limit_margin"], span)
         for c in np.flatnonzero(np.isfinite(lower) | np.isfinite(upper)) if kind != "ball" else range(limit_count):
-            problem = limit_margin_problem(float(margins[c]))
+            problem = limit_margin_problem(float(margins[c]), given=limit_margin is not None)
             if problem is not None:
                 what = f"cone_limit {probe.cone_limit!r}" if kind == "ball" else f"coordinate {int(c)}'s limits [{float(lower[c])!r}, {float(upper[c])!r}]"
                 raise ValueError(f"{where}: {what}: {problem}")

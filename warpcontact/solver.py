@@ -37,7 +37,7 @@ from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, SCALE_RANGE, check_
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
-from .articulation import connected_labels, joint_limit_energy
+from .articulation import MIN_LIMIT_MARGIN, connected_labels, joint_limit_energy
 from .builder import STEEP_BLEND_EPS, contact_setting_problem, gravity_problem, steep_blend, winding_numbers
 from .contact import PRESSED_GAP_HINT, UNSOLVED_HINT, ContactModel, LaggedFriction
 from .rotation import cross, normalized_poses, quat_from_matrix, quat_norm, quat_from_rotation_vector, quat_mul, quat_to_matrix, rigid_step_between, rigid_step_travel
@@ -896,6 +896,15 @@ class ImplicitSolver:
         if outside.size:
             i = outside[0]
             raise ValueError(f"state_in.joint_q: coordinate {art.coordinate_names[i]!r} = {coords[i]:.6g} is not strictly inside its limits ({art.lower[i]:.6g}, {art.upper[i]:.6g})")
+        # The limit barrier divides by the square of the distance to the limit, which
+        # underflows closer than this: a hinge at 0 with limits (-1e-200, 1) stayed at 0.
+        touching = np.flatnonzero((coords - art.lower < MIN_LIMIT_MARGIN) | (art.upper - coords < MIN_LIMIT_MARGIN))
+        if touching.size:
+            i = touching[0]
+            raise ValueError(
+                f"state_in.joint_q: coordinate {art.coordinate_names[i]!r} = {coords[i]:.6g} is within {MIN_LIMIT_MARGIN:g} of its limits "
+                f"({art.lower[i]:.6g}, {art.upper[i]:.6g}), where the limit barrier's square of the distance underflows; start it farther inside"
+            )
         supplied = None if control is None else control.joint_target
         if supplied is not None and not (isinstance(supplied, wp.array) and supplied.dtype == wp.float64):
             raise ValueError(f"control.joint_target: expected a float64 wp.array of {count} joint targets (use model.control()), got {_described(supplied)}")
@@ -971,6 +980,12 @@ class ImplicitSolver:
             # named an internal argument of the advancement bound.
             raise ValueError(f"model.gravity and dt: gravity {np.asarray(model.gravity, dtype=np.float64).tolist()} m/s^2 falls {fall:.3g} m in dt={dt} s, beyond the +-{MAX_COORDINATE:g} m of a body's coordinates; reduce dt or gravity")
         coords_now, joint_target = self._joint_arrays(state_in, state_out, control, q)
+        if self._articulation is not None and self._articulation.cones:
+            # A swing on or past its cone made the start's energy infinite, blamed on dt,
+            # inertia and gravity.
+            problem = self._articulation.cone_problem(q)
+            if problem is not None:
+                raise ValueError(f"state_in.body_q: {problem}")
         ball_target, ball_start = self._ball_arrays(control, q_now)
         dynamic = self._dynamic
         art = self._articulation
