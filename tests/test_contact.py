@@ -11,6 +11,7 @@ from helpers_rigid import fd_check, icosphere, box, identity_poses, quat
 import warp as wp
 
 import warpcontact as wc
+from warpcontact._validate import UNIT_INERTIA_RANGE
 
 
 # --- eps -> infinity limit is the brute-force sum ---------------------------------------------
@@ -1158,7 +1159,7 @@ def test_inertia_per_unit_mass_at_the_ends_of_its_range_steps():
     it is named with its size."""
     with pytest.raises(ValueError, match=r"body 'slab': the inertia of its mesh \(1e\+60 m across\) over its mass 1e\+180 kg has eigenvalues 1.67e\+119 .*; rescale the scene"):
         wc.ModelBuilder().add_box((1e60, 1e60, 1e60), density=1.0, name="slab")
-    for scale in (1e-99, 1e99):
+    for scale in UNIT_INERTIA_RANGE:
         b = wc.ModelBuilder()
         b.add_body(trimesh.creation.box(extents=(1.0, 1.0, 1.0)), mass=1.0, inertia=np.eye(3) * scale, name="crate")
         model = b.finalize()

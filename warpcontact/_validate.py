@@ -96,11 +96,20 @@ SCALE_RANGE = (1e-150, 1e150)
 UNIT_INERTIA_RANGE = (1e-100, 1e100)
 
 
+def unit_inertia_outside(eigenvalues) -> np.ndarray:
+    """Per row of (..., 3) ``eigenvalues`` (m^2) of inertias over masses, whether they leave
+    UNIT_INERTIA_RANGE by more than rounding: the step recomputes them from the second
+    moment, which rounds an inertia add_body took at 1e100 to just above it."""
+    low, high = UNIT_INERTIA_RANGE
+    eigenvalues = np.asarray(eigenvalues, dtype=np.float64)
+    return (eigenvalues.min(axis=-1) < low * (1.0 - 1e-9)) | (eigenvalues.max(axis=-1) > high * (1.0 + 1e-9))
+
+
 def unit_inertia_problem(eigenvalues) -> str | None:
     """Why a body whose inertia over its mass has ``eigenvalues`` (m^2) cannot be stepped, or None."""
     low, high = UNIT_INERTIA_RANGE
     eigenvalues = np.asarray(eigenvalues, dtype=np.float64)
-    if low <= eigenvalues.min() and eigenvalues.max() <= high:
+    if not unit_inertia_outside(eigenvalues):
         return None
     return (
         f"has eigenvalues {eigenvalues.min():.3g} to {eigenvalues.max():.3g} m^2 (squared radii of gyration), outside [{low:g}, {high:g}] m^2, "
@@ -157,15 +166,17 @@ def check_count(value, name: str) -> None:
         raise ValueError(f"{name}: must be a whole number from 1 to {MAX_COUNT}, got {value!r}")
 
 
+def beyond_coordinates(arr) -> tuple | None:
+    """The index of the first entry of ``arr`` beyond MAX_COORDINATE in magnitude, or None."""
+    big = np.abs(np.asarray(arr, dtype=np.float64)) > MAX_COORDINATE  # float32 against 1e150 warned
+    return tuple(int(i) for i in np.argwhere(big)[0]) if big.any() else None
+
+
 def check_coordinates(arr: np.ndarray, name: str) -> None:
     """ValueError naming ``name`` and the entry if any entry of ``arr`` exceeds MAX_COORDINATE in magnitude."""
-    big = np.abs(np.asarray(arr, dtype=np.float64)) > MAX_COORDINATE  # float32 against 1e150 warned
-    if big.any():
-        first = np.argwhere(big)[0]
-        raise ValueError(
-            f"{name}: {arr[tuple(first)]:g} at index {tuple(int(i) for i in first)} is beyond the +-{MAX_COORDINATE:g} m "
-            "that float64 distances between such points can represent"
-        )
+    first = beyond_coordinates(arr)
+    if first is not None:
+        raise ValueError(f"{name}: {arr[first]:g} at index {first} is beyond the +-{MAX_COORDINATE:g} m that float64 distances between such points can represent")
 
 
 def extent_problem(extent: float) -> str | None:

@@ -33,7 +33,7 @@ import numpy as np
 import trimesh
 import warp as wp
 
-from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, SCALE_RANGE, check_time_step, checked_flag, is_real, is_whole, UNIT_INERTIA_RANGE, unit_inertia_problem
+from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, beyond_coordinates, SCALE_RANGE, check_time_step, checked_flag, is_real, is_whole, unit_inertia_outside, unit_inertia_problem
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
@@ -539,8 +539,7 @@ class ImplicitSolver:
         # add_body's range, for a second moment changed since (1e120 failed as "rotation per
         # step too large"); the inertia over the mass is tr(S) 1 - S.
         unit_inertia = eigenvalues.sum(axis=1)[:, None] - eigenvalues
-        low, high = UNIT_INERTIA_RANGE
-        bad = np.flatnonzero((unit_inertia.min(axis=1) < low) | (unit_inertia.max(axis=1) > high))
+        bad = np.flatnonzero(unit_inertia_outside(unit_inertia))
         if bad.size:
             b = dynamic_bodies[bad[0]]
             raise ValueError(f"model.body_unit_second_moment: body {model.body_names[b]!r}: its inertia over its mass {unit_inertia_problem(unit_inertia[bad[0]])}")
@@ -964,9 +963,9 @@ class ImplicitSolver:
                 raise ValueError(f"{label}: contains non-finite values")
             # Checked here by name: beyond it the previous pose (a velocity of 1e300 m/s given
             # to set_body_velocity) was blamed on dt and the control's targets.
-            far = np.flatnonzero((np.abs(arr[:, :3]) > MAX_COORDINATE).any(axis=1))
-            if far.size:
-                b = int(far[0])
+            far = beyond_coordinates(arr[:, :3])
+            if far is not None:
+                b = far[0]
                 raise ValueError(f"{label}: body {model.body_names[b]!r} (index {b}) is at {arr[b, :3].tolist()}, beyond the +-{MAX_COORDINATE:g} m of a body's coordinates")
             _check_quaternion_norms(arr[:, 3:], np.ones(len(arr), dtype=bool), label, model.body_names)
         if control is not None:

@@ -48,7 +48,7 @@ import numpy as np
 import warp as wp
 
 from ._files import replace_file
-from ._validate import MAX_COORDINATE, MAX_FRAMES, is_positive_finite, is_real, is_whole, real_array
+from ._validate import MAX_COORDINATE, MAX_FRAMES, beyond_coordinates, is_positive_finite, is_real, is_whole, real_array
 from .bundle import BundleSettings, bundled_gradient
 from .io import target_problem
 from .kernels import task as task_kernels
@@ -780,9 +780,9 @@ class TaskProblem:
         if bad.size:  # an initial state's NaN was blamed on the scene's finite velocities
             row, column = (int(i) for i in bad[0])
             raise ValueError(f"values: row {row}, dof {self.dof_names[column]!r} is {float(values[row, column])!r}; decision variables must be finite")
-        far = np.argwhere(np.abs(values) > MAX_COORDINATE)
-        if far.size:  # 1e200 was blamed on control.body_target, an array the caller never sees
-            row, column = (int(i) for i in far[0])
+        far = beyond_coordinates(values)
+        if far is not None:  # 1e200 was blamed on control.body_target, an array the caller never sees
+            row, column = far
             raise ValueError(f"values: row {row}, dof {self.dof_names[column]!r} is {float(values[row, column])!r}, beyond the +-{MAX_COORDINATE:g} that the simulation's coordinates represent")
         start_state = self._state(*start)
         if self.kind == "initial_state" and not np.array_equal(np.asarray(start[0], dtype=np.float64)[self.body], self.base_pose):
