@@ -203,6 +203,10 @@ def test_trajectory_export_authors_its_first_frame_as_the_default_and_keeps_the_
     translate = UsdGeom.Xformable(stage.GetPrimAtPath("/World/box")).GetOrderedXformOps()[0]
     np.testing.assert_allclose(translate.Get(Usd.TimeCode.Default()), poses[0, 1, :3])
     np.testing.assert_allclose(translate.Get(3), poses[3, 1, :3])
+    # Loaded as a scene it was "no dynamic rigid bodies (apply PhysicsRigidBodyAPI ...)"
+    # (a probe): it holds no physics, and names the scene it came from.
+    with pytest.raises(ValueError, match=r"traj.usda: a trajectory written by warpcontact for viewing .*; load the scene it was simulated from \(.*a.usda\)"):
+        io.load_scene(tmp_path / "traj.usda")
     io.save_scene(scene, tmp_path / "saved.usda")
     assert io.load_scene(tmp_path / "saved.usda").up_axis == "Y"
 

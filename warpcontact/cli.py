@@ -502,7 +502,8 @@ def _plot_convergence(histories: dict, path: Path, *, title: str) -> bool:
     if longest:
         ax.set_xlim(0.5, longest + 0.5)
     ax.set_xlabel("optimiser iteration")
-    ax.set_ylabel("loss (linear: its values span less than a factor of 10)" if scale == "linear" else "loss")
+    # Short: the longer "its values span less than a factor of 10" was clipped at both ends.
+    ax.set_ylabel("loss (linear axis: spans < 10x)" if scale == "linear" else "loss")
     ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
     if histories:

@@ -981,6 +981,12 @@ def load_scene(path) -> Scene:
         listed = "; ".join(str(error).strip() for error in composition_errors[:3])
         more = f" (and {len(composition_errors) - 3} more)" if len(composition_errors) > 3 else ""
         raise ValueError(f"{source}: the stage does not compose: {listed}{more}")
+    exported = stage.GetRootLayer().customLayerData.get(_TRAJECTORY_MARK)
+    if exported is not None:
+        # It holds meshes and poses, no physics: "no dynamic rigid bodies (apply
+        # PhysicsRigidBodyAPI ...)" sent its reader to edit it.
+        origin = f" ({exported})" if exported else ""
+        raise ValueError(f"{source}: a trajectory written by warpcontact for viewing (meshes and time-sampled poses, no physics); load the scene it was simulated from{origin}")
     # Unauthored, USD's fallback applies: 0.01 (centimetres). A hand-written scene in metres
     # that leaves it out becomes a scene 100 times smaller, silently but for this warning.
     if not stage.HasAuthoredMetadata("metersPerUnit"):
@@ -2516,6 +2522,10 @@ def _write_warpcontact_body(prim, b: BodySpec, Sdf, Vt):
         prim.CreateAttribute(_NS + "group", Sdf.ValueTypeNames.Int).Set(int(b.group))
 
 
+# customLayerData key of a trajectory export; its value is the simulated scene's file ("" if none).
+_TRAJECTORY_MARK = "warpcontact:trajectoryOf"
+
+
 def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, overwrite: bool = False):
     """Write a simulated trajectory as a .usda for usdview.
 
@@ -2529,6 +2539,8 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
     Meshes are authored once per body; each body has one time-sampled translate and orient
     per frame; timeCodesPerSecond and framesPerSecond are both set; target positions are drawn
     as small green spheres under /World/targets (targets_1, ... where a body has that name).
+    The layer's customLayerData names the scene's file (``warpcontact:trajectoryOf``), and
+    ``load_scene`` refuses the export pointing to it.
     """
     Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
     _check_prim_names(scene.bodies, "body", reserved=(), Sdf=Sdf)
@@ -2561,6 +2573,7 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
 
     def write(tmp: Path):
         stage = _new_stage(Usd, UsdGeom, tmp, scene.up_axis)
+        stage.GetRootLayer().customLayerData = {_TRAJECTORY_MARK: str(scene.source or "")}
         stage.SetTimeCodesPerSecond(fps)
         stage.SetFramesPerSecond(fps)
         stage.SetStartTimeCode(0)
