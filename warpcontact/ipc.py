@@ -42,19 +42,18 @@ from ._validate import as_float64_array, check_barrier_support, check_coordinate
 # A step's arc is checked in chord pieces whose bulge stays below this fraction of dhat.
 ARC_BULGE = 1e-3
 MAX_ARC_PIECES = 64
-# The step bound's narrow phase is ipctk's additive CCD (Li et al. 2021, the advancement of
-# the IPC codebases), conservative like Tight-Inclusion (ipctk's default) but stepping by
-# lower bounds of each pair's distance, so its cost grows with how far a pair closes, not
-# with how exactly an impact must be located: Tight-Inclusion split intervals for seconds
-# over balls resting 1 mm above a table and stepped 1 mm down (3.7-6.8 s a query;
-# billiards_512 3.9-7.2 s a frame). Additive CCD's advancements are fractions of the current
-# gap, though: along a face sliding 1e-15 m above another it crawls into its cap, returning
-# a time near 0, and the step stalled. So a bound below ADDITIVE_CCD_ENOUGH is asked again
-# with ten times the cap; where it moved, the first stopped at its cap, and Tight-Inclusion
-# decides (the larger of the two conservative bounds wins).
+# The step bound's narrow phase runs two of ipctk's CCDs, each conservative: additive CCD
+# (Li et al. 2021, the advancement of the IPC codebases) first, which steps by lower bounds
+# of a pair's distance, so its cost grows with how far the pair closes, not with how exactly
+# the impact must be located; Tight-Inclusion (ipctk's default) only where that allows
+# less than ADDITIVE_CCD_ENOUGH of the step, taking the larger of the two bounds. Tight-
+# Inclusion alone split intervals for seconds over balls resting 1 mm above a table and
+# stepped 1 mm down (3.7-6.8 s a query; billiards_512 7.2 s a frame, 8 Newton iterations);
+# additive CCD alone crawls along a face sliding a gap of 1e-15 m above another (its steps
+# are fractions of that gap) until its cap returns a time near 0, and the step stalls.
 ADDITIVE_CCD_ENOUGH = 0.5
 # Advancements of one additive query: enough for a pair sliding a gap of 1/1000 of its
-# relative travel (a few ms a capped query).
+# relative travel (a few ms a capped query); below that Tight-Inclusion decides.
 ADDITIVE_CCD_MAX_ITERATIONS = 1_000
 # Interval splits of one Tight-Inclusion query, past which it returns its conservative time
 # of impact: ipctk's default (1e7) let a query between faces ~1e-16 m apart (a box sunk
@@ -131,7 +130,6 @@ class IpcContactModel:
         self._potential = ipctk.BarrierPotential(self.dhat, 1.0)
         self._ccd = ipctk.TightInclusionCCD(max_iterations=CCD_MAX_ITERATIONS)
         self._additive_ccd = ipctk.AdditiveCCD(max_iterations=ADDITIVE_CCD_MAX_ITERATIONS)
-        self._additive_ccd_longer = ipctk.AdditiveCCD(max_iterations=10 * ADDITIVE_CCD_MAX_ITERATIONS)
         self._world = self._local.copy()
         self._positions = np.zeros((self.num_bodies, 3))
         self._collisions = ipctk.NormalCollisions()
@@ -296,13 +294,9 @@ class IpcContactModel:
         """Largest fraction of the straight vertex paths ``start`` -> ``end`` with no collision."""
         query = self._ipctk.compute_collision_free_stepsize
         alpha = float(query(self._mesh, start, end, narrow_phase_ccd=self._additive_ccd))
-        if alpha >= ADDITIVE_CCD_ENOUGH:
-            return alpha
-        # Unmoved by a longer advancement, the bound is where additive CCD converged.
-        longer = float(query(self._mesh, start, end, narrow_phase_ccd=self._additive_ccd_longer))
-        if longer == alpha:
-            return alpha
-        return max(longer, float(query(self._mesh, start, end, narrow_phase_ccd=self._ccd)))
+        if alpha < ADDITIVE_CCD_ENOUGH:
+            alpha = max(alpha, float(query(self._mesh, start, end, narrow_phase_ccd=self._ccd)))
+        return alpha
 
     def advancement_frame(self) -> tuple[np.ndarray, np.ndarray]:
         """World vertices and body positions of the last ``evaluate`` (see ContactModel)."""
