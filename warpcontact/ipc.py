@@ -42,23 +42,11 @@ from ._validate import as_float64_array, check_barrier_support, check_coordinate
 # A step's arc is checked in chord pieces whose bulge stays below this fraction of dhat.
 ARC_BULGE = 1e-3
 MAX_ARC_PIECES = 64
-# The step bound's narrow phase runs two of ipctk's CCDs, each conservative: additive CCD
-# (Li et al. 2021, the advancement of the IPC codebases) first, which steps by lower bounds
-# of a pair's distance, so its cost grows with how far the pair closes, not with how exactly
-# the impact must be located; Tight-Inclusion (ipctk's default) only where that allows
-# less than ADDITIVE_CCD_ENOUGH of the step, taking the larger of the two bounds. Tight-
-# Inclusion alone split intervals for seconds over balls resting 1 mm above a table and
-# stepped 1 mm down (3.7-6.8 s a query; billiards_512 7.2 s a frame, 8 Newton iterations);
-# additive CCD alone crawls along a face sliding a gap of 1e-15 m above another (its steps
-# are fractions of that gap) until its cap returns a time near 0, and the step stalls.
-ADDITIVE_CCD_ENOUGH = 0.5
-# Advancements of one additive query: enough for a pair sliding a gap of 1/1000 of its
-# relative travel (a few ms a capped query); below that Tight-Inclusion decides.
-ADDITIVE_CCD_MAX_ITERATIONS = 1_000
-# Interval splits of one Tight-Inclusion query, past which it returns its conservative time
-# of impact: ipctk's default (1e7) let a query between faces ~1e-16 m apart (a box sunk
-# through a soft barrier) split for minutes and take 12 GB. Some ordinary queries reach it
-# too, and their shorter steps move trajectories in the last digits.
+# Interval splits of one continuous collision query (Tight-Inclusion CCD), past which it
+# returns its conservative time of impact: ipctk's default (1e7) let a query between faces
+# ~1e-16 m apart (a box sunk through a soft barrier) split for minutes and take 12 GB. Some
+# ordinary queries reach it too, and their shorter steps move trajectories in the last
+# digits (a ball 2 mm above the ground at stiffness 1e3: 2.8e-9 m).
 CCD_MAX_ITERATIONS = 100_000
 
 __all__ = ["IpcContactModel"]
@@ -129,7 +117,6 @@ class IpcContactModel:
         self._mesh.can_collide = ipctk.make_vertex_patches_filter(self._patches(exclude_pairs)[self._body_of])
         self._potential = ipctk.BarrierPotential(self.dhat, 1.0)
         self._ccd = ipctk.TightInclusionCCD(max_iterations=CCD_MAX_ITERATIONS)
-        self._additive_ccd = ipctk.AdditiveCCD(max_iterations=ADDITIVE_CCD_MAX_ITERATIONS)
         self._world = self._local.copy()
         self._positions = np.zeros((self.num_bodies, 3))
         self._collisions = ipctk.NormalCollisions()
@@ -290,14 +277,6 @@ class IpcContactModel:
         friction = float(lagged.friction.numpy()[0])
         return adj_q, contraction / friction, contraction / lagged.mu
 
-    def _collision_free_fraction(self, start: np.ndarray, end: np.ndarray) -> float:
-        """Largest fraction of the straight vertex paths ``start`` -> ``end`` with no collision."""
-        query = self._ipctk.compute_collision_free_stepsize
-        alpha = float(query(self._mesh, start, end, narrow_phase_ccd=self._additive_ccd))
-        if alpha < ADDITIVE_CCD_ENOUGH:
-            alpha = max(alpha, float(query(self._mesh, start, end, narrow_phase_ccd=self._ccd)))
-        return alpha
-
     def advancement_frame(self) -> tuple[np.ndarray, np.ndarray]:
         """World vertices and body positions of the last ``evaluate`` (see ContactModel)."""
         return self._world.copy(), self._positions.copy()
@@ -328,7 +307,7 @@ class IpcContactModel:
         start = world
         for piece in range(pieces):
             end = vertices_at((piece + 1) / pieces)
-            alpha = self._collision_free_fraction(start, end)
+            alpha = float(self._ipctk.compute_collision_free_stepsize(self._mesh, start, end, narrow_phase_ccd=self._ccd))
             if alpha < 1.0:
                 return fraction * (piece + alpha) / pieces
             start = end
