@@ -33,7 +33,7 @@ import numpy as np
 import trimesh
 import warp as wp
 
-from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, beyond_coordinates, SCALE_RANGE, check_time_step, checked_flag, is_real, is_whole, unit_inertia_outside, unit_inertia_problem
+from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, SCALE_RANGE, beyond_coordinates, check_time_step, checked_flag, is_real, is_whole, unit_inertia_outside, unit_inertia_problem
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
