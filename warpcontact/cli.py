@@ -2,6 +2,7 @@
 
 import argparse
 import contextlib
+import difflib
 import json
 import logging
 import os
@@ -177,7 +178,10 @@ def _resolve_scene_path(name: str) -> Path:
     from .scenes import SCENE_NAMES, shipped_scene
 
     if name not in SCENE_NAMES:
-        raise ValueError(f"{name!r}: not a .usda file and not a shipped scene (known: {', '.join(SCENE_NAMES)})")
+        # A misspelt name got the whole list and no hint, where a misspelt USD attribute gets one.
+        close = difflib.get_close_matches(name.lower(), SCENE_NAMES, n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise ValueError(f"{name!r}: not a .usda file and not a shipped scene (known: {', '.join(SCENE_NAMES)}){hint}")
     return shipped_scene(name)
 
 
