@@ -626,6 +626,26 @@ def test_simulate_interrupted_outside_the_step_keeps_its_frames(tmp_path, capsys
     assert Usd.Stage.Open(str(tmp_path / "trajectory.usda")).GetEndTimeCode() == 4
 
 
+def test_a_command_interrupted_before_it_writes_leaves_no_folder(tmp_path, capsys, monkeypatch):
+    """A probe: Ctrl-C while run started up (loading the scene) left the empty --out folder
+    it had made; the benches already removed theirs. A folder with anything in it stays."""
+    from warpcontact import io as wc_io
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(wc_io, "load_scene", interrupted)
+    for command in (["run", "push", "--quick"], ["simulate", "push", "--frames", "2"]):
+        out = tmp_path / command[0] / "new"
+        assert main([*command, "--out", str(out)]) == 130
+        assert not out.exists() and not out.parent.exists()
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("mine")
+    assert main(["run", "push", "--quick", "--out", str(kept)]) == 130
+    assert (kept / "notes.txt").read_text() == "mine"
+
+
 def test_simulate_interrupted_while_writing_keeps_every_frame(tmp_path, capsys, monkeypatch):
     """Ctrl-C after the last step, while the outputs were written, ended with "interrupted"
     and no outputs at all: every simulated frame was lost."""

@@ -960,8 +960,10 @@ def main(argv=None) -> int:
                 kept = f"; the rows finished before it are in {args.out}{removed}"
             else:
                 # It said the rows were kept when there were none, and left the folder it made.
-                _remove_empty(created)
                 kept = f"; no row was finished{removed}"
+        # Interrupted before it wrote anything (while it started up), a command left the
+        # folder it made; only folders still empty go.
+        _remove_empty(created)
         print(f"\ninterrupted{kept}", file=sys.stderr)
         return 130
     except FileExistsError as exc:
