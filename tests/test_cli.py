@@ -639,6 +639,16 @@ def test_a_command_interrupted_before_it_writes_leaves_no_folder(tmp_path, capsy
         out = tmp_path / command[0] / "new"
         assert main([*command, "--out", str(out)]) == 130
         assert not out.exists() and not out.parent.exists()
+    monkeypatch.undo()
+    from warpcontact.tasks import TaskProblem
+
+    # Interrupted in its first Adam iteration, before a checkpoint: run and compare catch it
+    # themselves (a review found the folder left there).
+    monkeypatch.setattr(TaskProblem, "optimize", interrupted)
+    for command in (["run", "push", "--quick"], ["compare", "push", "--quick", "--models", "gb"]):
+        out = tmp_path / command[0] / "early"
+        assert main([*command, "--out", str(out)]) == 130
+        assert not out.exists() and not out.parent.exists()
     kept = tmp_path / "kept"
     kept.mkdir()
     (kept / "notes.txt").write_text("mine")

@@ -1,5 +1,6 @@
 """USD import / export: hand-written UsdPhysics scenes, round trips, trajectories, errors."""
 
+import contextlib
 import re
 import warnings
 
@@ -207,6 +208,13 @@ def test_trajectory_export_authors_its_first_frame_as_the_default_and_keeps_the_
     # (a probe): it holds no physics, and names the scene it came from.
     with pytest.raises(ValueError, match=r"traj.usda: a trajectory written by warpcontact for viewing .*; load the scene it was simulated from \(.*a.usda\)"):
         io.load_scene(tmp_path / "traj.usda")
+    # Named absolute (a review: a scene loaded by a relative path was named relative to the
+    # folder it was loaded from).
+    with contextlib.chdir(tmp_path):
+        relative = io.load_scene("a.usda")
+        io.export_trajectory(relative, poses, tmp_path / "rel.usda")
+    with pytest.raises(ValueError, match=re.escape(f"load the scene it was simulated from ({tmp_path.resolve() / 'a.usda'})")):
+        io.load_scene(tmp_path / "rel.usda")
     io.save_scene(scene, tmp_path / "saved.usda")
     assert io.load_scene(tmp_path / "saved.usda").up_axis == "Y"
 

@@ -941,10 +941,15 @@ def main(argv=None) -> int:
                 if not getattr(args, "resume", False) or (out / CHECKPOINT_NAME).exists():
                     _refuse_earlier_results(out, args.outputs, args.overwrite)
             earlier = _earlier_files(args)
-            return args.func(args)
+            status = args.func(args)
         finally:
             if release is not None:
                 release()
+        if status == 130:
+            # Interrupted inside run or compare, which keep what they had: before their first
+            # checkpoint that was nothing, and the folder they were given stayed, empty.
+            _remove_empty(created)
+        return status
     except KeyboardInterrupt:
         # run, compare and simulate keep their own partial results; the benches save a row at a time.
         kept = ""

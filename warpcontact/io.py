@@ -2573,7 +2573,8 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
 
     def write(tmp: Path):
         stage = _new_stage(Usd, UsdGeom, tmp, scene.up_axis)
-        stage.GetRootLayer().customLayerData = {_TRAJECTORY_MARK: str(scene.source or "")}
+        # Absolute: a path as given is relative to the folder the scene was loaded from.
+        stage.GetRootLayer().customLayerData = {_TRAJECTORY_MARK: str(Path(scene.source).resolve()) if scene.source else ""}
         stage.SetTimeCodesPerSecond(fps)
         stage.SetFramesPerSecond(fps)
         stage.SetStartTimeCode(0)
