@@ -429,11 +429,13 @@ class ArticulationModel:
             if bad.size:
                 default = " (or NaN: the default)" if label == "limit_margin" else ""
                 return f"{label}: {self.coordinate_names[bad[0]]!r} has {float(values[bad[0]])!r}; a limited coordinate's must be positive and finite{default}"
+        # Checked every step: one comparison over the coordinates, the message for the first only.
         margins = self.limit_margins()
-        for c in np.flatnonzero(limited):
+        narrow = np.flatnonzero(limited & (margins < MIN_LIMIT_MARGIN))
+        if narrow.size:
+            c = narrow[0]
             problem = limit_margin_problem(float(margins[c]), given=not np.isnan(self.limit_margin[c]))
-            if problem is not None:
-                return f"lower, upper, limit_margin: {self.coordinate_names[c]!r} has limits [{float(self.lower[c])!r}, {float(self.upper[c])!r}]: {problem}"
+            return f"lower, upper, limit_margin: {self.coordinate_names[c]!r} has limits [{float(self.lower[c])!r}, {float(self.upper[c])!r}]: {problem}"
         with np.errstate(invalid="ignore"):
             wide = np.flatnonzero(self.limit_margin > 0.5 * (self.upper - self.lower))
         if wide.size:
