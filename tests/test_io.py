@@ -47,6 +47,15 @@ def write_physics_scene(path, *, meters=1.0, mass=None, joint=None, face_counts=
     return path
 
 
+def _append_ground_quad(stage, face, corners):
+    """Lists ``write_physics_scene``'s ground quad ``face`` again as a 17th face, its corner
+    indices passed through ``corners``."""
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/ground"))
+    indices = list(mesh.GetFaceVertexIndicesAttr().Get())
+    mesh.GetFaceVertexCountsAttr().Set(list(mesh.GetFaceVertexCountsAttr().Get()) + [4])
+    mesh.GetFaceVertexIndicesAttr().Set(indices + [int(i) for i in corners(np.array(indices[4 * face : 4 * face + 4]))])
+
+
 def _load_refused(stage, path, match):
     """Save ``stage`` (opened from ``path``) and check that loading it is refused with ``match``."""
     stage.GetRootLayer().Save()
@@ -652,6 +661,23 @@ def test_a_body_named_targets_keeps_its_trajectory_and_its_marker(tmp_path):
     assert stage.GetPrimAtPath("/World/targets_1/targets").IsA(UsdGeom.Sphere)
 
 
+def test_trajectory_export_keeps_a_static_body_moved_between_steps(tmp_path):
+    """A static body the caller moves between steps (a kinematic paddle) was written at its
+    first pose only: drawn still beside the box it pushed. One that stays put is written once."""
+    scene = io.load_scene(write_physics_scene(tmp_path / "a.usda"))
+    model, q = simulate(scene, 4)
+    poses = io.model_to_scene_poses(scene, model, q)
+    assert scene.bodies[0].static and scene.bodies[0].name == "ground"
+    io.export_trajectory(scene, poses, tmp_path / "still.usda")
+    stage = Usd.Stage.Open(str(tmp_path / "still.usda"))  # held: its prims live as long as it
+    assert UsdGeom.Xformable(stage.GetPrimAtPath("/World/ground")).GetOrderedXformOps()[0].GetTimeSamples() == []
+    poses[:, 0, 0] += 1e-3 * np.arange(len(poses))
+    io.export_trajectory(scene, poses, tmp_path / "moved.usda")
+    stage = Usd.Stage.Open(str(tmp_path / "moved.usda"))
+    moved = UsdGeom.Xformable(stage.GetPrimAtPath("/World/ground")).GetOrderedXformOps()[0]
+    np.testing.assert_allclose([moved.Get(frame)[0] for frame in range(len(poses))], poses[:, 0, 0], rtol=0, atol=1e-12)
+
+
 def test_trajectory_export_opens_with_time_samples(tmp_path):
     scene = io.load_scene(write_physics_scene(tmp_path / "a.usda"))
     scene.body("box").target_position = np.array([1.0, 0.0, 0.25])
@@ -822,6 +848,17 @@ def _author(path, edit):
         # 0.5) as 120 degrees about z (normalised: 90); both loaded without a word.
         (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).AddOrientOp().Set(Gf.Quatf(0, 0, 0, 0)), r"prim /World/box: /World/box.xformOp:orient must be a unit quaternion, got \(0, 0, 0, 0\) \(norm 0\)"),
         (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/ground")).AddOrientOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Quatd(0.5, 0, 0, 0.5)), r"prim /World/ground: /World/ground.xformOp:orient must be a unit quaternion, got \(0.5, 0, 0, 0.5\) \(norm 0.707106781\)"),
+        # A probe: a zero scale was blamed on the mesh ("faces 0 and 3 are the same triangle")
+        # or, on a Cube, on an open mesh; scales fine alone flatten once composed.
+        (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).AddScaleOp().Set(Gf.Vec3f(1, 1, 0)), r"prim /World/box: its world transform flattens it \(/World/box.xformOp:scale is \(1, 1, 0\)\); a scale must be non-zero on every axis"),
+        (lambda st: [UsdGeom.Xformable(st.GetPrimAtPath(path)).AddScaleOp().Set(Gf.Vec3f(1, 1e-7, 1)) for path in ("/World/box", "/World/box/shape")], r"prim /World/box/shape: its world transform flattens it \(its transform ops compose to a singular matrix\)"),
+        # A probe: a hole index beyond the faces was ignored and its face stayed solid.
+        (lambda st: UsdGeom.Mesh(st.GetPrimAtPath("/World/ground")).CreateHoleIndicesAttr([16]), r"prim /World/ground: holeIndices has 16, not a face index \(the mesh has faces 0 to 15\)"),
+        # A probe: a quad listed again from another corner, or reversed (two-sided), split
+        # along the other diagonal and escaped the repeated-triangle check: the ground pushed
+        # twice as hard.
+        (lambda st: _append_ground_quad(st, 1, lambda quad: quad[::-1]), r"prim /World/ground: faces 1 and 16 have the same 4 corners \(a polygon listed twice, or a two-sided copy\)"),
+        (lambda st: _append_ground_quad(st, 0, lambda quad: np.roll(quad, 1)), r"prim /World/ground: faces 0 and 16 have the same 4 corners"),
         # A projective matrix op had its last column dropped: the body sat metres off.
         (
             lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).AddTransformOp().Set(Gf.Matrix4d(1, 0, 0, 0.1, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1)),

@@ -502,8 +502,12 @@ def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
     if counts.sum() != len(indices) or (indices < 0).any() or (indices >= len(points)).any():
         raise ValueError(f"{where}: faceVertexIndices do not match faceVertexCounts and points")
     holes = np.asarray(mesh.GetHoleIndicesAttr().Get() or [], dtype=np.int64)
+    outside = np.flatnonzero((holes < 0) | (holes >= len(counts)))
+    if outside.size:  # a mistyped hole left its face solid, silently
+        raise ValueError(f"{where}: holeIndices has {holes[outside[0]]}, not a face index (the mesh has faces 0 to {len(counts) - 1})")
     kept = np.ones(len(counts), dtype=bool)
-    kept[holes[(holes >= 0) & (holes < len(counts))]] = False
+    kept[holes] = False
+    _refuse_repeated_polygons(points, counts, indices, kept, where)
     faces = _polygon_mesh_faces(points, counts, indices, kept, where)
     if not len(faces):
         raise ValueError(f"{where}: every face is a hole (holeIndices)")
@@ -516,6 +520,26 @@ def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
     if not (area2 > 0).any():
         raise ValueError(f"{where}: mesh is degenerate (every triangle has zero area)")
     return points, faces
+
+
+def _refuse_repeated_polygons(points: np.ndarray, counts: np.ndarray, indices: np.ndarray, kept: np.ndarray, where: str) -> None:
+    """Refuse a polygon listed twice (the same corners, by position, from any corner or in
+    either winding: a two-sided copy). Split along other diagonals its copies share no
+    triangle, which the meshes' own check (``sphere_tree``) compares, and the surface pushed
+    twice as hard (a box rested 0.156 mm over such a ground against 0.111 mm)."""
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    for count in np.unique(counts[kept & (counts > 3)]):
+        faces = np.flatnonzero(kept & (counts == count))
+        corners = points[indices[starts[faces, None] + np.arange(count)]]  # (nf, count, 3)
+        order = np.lexsort((corners[..., 2], corners[..., 1], corners[..., 0]), axis=-1)
+        keys = np.take_along_axis(corners, order[..., None], axis=1).reshape(len(faces), 3 * count)
+        _, first, repeats = np.unique(keys, axis=0, return_index=True, return_counts=True)
+        if repeats.max() > 1:
+            again = np.flatnonzero((keys == keys[first[np.argmax(repeats > 1)]]).all(axis=1))
+            raise ValueError(
+                f"{where}: faces {int(faces[again[0]])} and {int(faces[again[1]])} have the same {count} corners (a polygon listed twice, "
+                "or a two-sided copy); each copy would push in the contact potential: remove the repeats"
+            )
 
 
 def _polygon_mesh_faces(points: np.ndarray, counts: np.ndarray, indices: np.ndarray, kept: np.ndarray, where: str) -> np.ndarray:
@@ -677,6 +701,10 @@ def _align_axis(mesh, axis: str):
 # norm 0.99979), and files write quaternions rounded to 4 or 5 decimals ((0.7071, 0, 0,
 # 0.7071), norm 0.99999; a review found them refused at the 1e-6 of localRot0/1).
 _ORIENT_NORM_TOLERANCE = 1e-3
+# A transform whose smallest singular value is this fraction of its largest or less flattens
+# what it places: a collider under a scale of (1, 1, 0) was refused as a mesh of repeated
+# triangles, a Cube as an open mesh, and one under (1e-12, 1, 1) for its inertia.
+_FLAT_TRANSFORM = 1e-12
 
 
 def _world_matrix(prim, UsdGeom, Usd, source: str):
@@ -702,9 +730,30 @@ def _world_matrix(prim, UsdGeom, Usd, source: str):
         if numbers.shape == (4, 4) and not np.array_equal(numbers[:, 3], [0.0, 0.0, 0.0, 1.0]):
             raise ValueError(f"{source}: prim {prim.GetPath()}: {attr.GetPath()} is not an affine transform (its last column must be 0, 0, 0, 1), got {value}")
     matrix = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
-    if np.isfinite(np.array(matrix)).all():
-        return matrix
-    raise ValueError(f"{source}: prim {prim.GetPath()}: its world transform is not finite (its transform values overflow)")
+    if not np.isfinite(np.array(matrix)).all():
+        raise ValueError(f"{source}: prim {prim.GetPath()}: its world transform is not finite (its transform values overflow)")
+    if _flat(_linear_part(matrix)):
+        culprit = next((attr for attr in _transform_attributes(prim, UsdGeom) if _flat_op(attr, UsdGeom)), None)
+        blame = f"{culprit.GetPath()} is {culprit.Get()}" if culprit is not None else "its transform ops compose to a singular matrix"
+        raise ValueError(f"{source}: prim {prim.GetPath()}: its world transform flattens it ({blame}); a scale must be non-zero on every axis")
+    return matrix
+
+
+def _flat(linear: np.ndarray) -> bool:
+    """Whether a 3x3 linear map squashes some direction to nothing (``_FLAT_TRANSFORM``)."""
+    singular = np.linalg.svd(linear, compute_uv=False)
+    return bool(singular[-1] <= _FLAT_TRANSFORM * singular[0])
+
+
+def _flat_op(attr, UsdGeom) -> bool:
+    """Whether an xformOp attribute is a flattening scale or matrix op."""
+    kind, value = UsdGeom.XformOp(attr).GetOpType(), attr.Get()
+    if value is None or kind not in (UsdGeom.XformOp.TypeScale, UsdGeom.XformOp.TypeTransform):
+        return False
+    numbers = np.asarray(value, dtype=np.float64)
+    if kind == UsdGeom.XformOp.TypeScale:
+        return bool(np.abs(numbers).min() <= _FLAT_TRANSFORM * np.abs(numbers).max())
+    return _flat(numbers[:3, :3])
 
 
 def _linear_part(m) -> np.ndarray:
@@ -2537,7 +2586,7 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
         overwrite: replace an existing file.
 
     Meshes are authored once per body; each body has one time-sampled translate and orient
-    per frame; timeCodesPerSecond and framesPerSecond are both set; target positions are drawn
+    per frame (a static body only where its given poses change); timeCodesPerSecond and framesPerSecond are both set; target positions are drawn
     as small green spheres under /World/targets (targets_1, ... where a body has that name).
     The layer's customLayerData names the scene's file (``warpcontact:trajectoryOf``), and
     ``load_scene`` refuses the export pointing to it.
@@ -2585,7 +2634,9 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
             # The first frame is also the default, which readers without a time take.
             ops = _pose_ops(xform, UsdGeom)
             _set_pose_ops(xform, Gf, UsdGeom, poses[0, i], ops=ops)
-            if not b.static:
+            # A static body moved by the caller between steps moves here too (its motion was
+            # dropped: a paddle drawn still beside the box it pushed).
+            if not b.static or (poses[:, i] != poses[0, i]).any():
                 for frame in range(len(poses)):
                     _set_pose_ops(xform, Gf, UsdGeom, poses[frame, i], time=frame, ops=ops)
             if b.target_position is not None:
