@@ -170,7 +170,7 @@ def test_bench_frame_writes_results_and_plot(tmp_path):
         assert r["forward_seconds"] > 0 and r["contact_seconds"] > 0 and r["backward_seconds"] > 0
         assert min(r["frame_seconds"], r["frame_seconds_mean"]) > 0
         assert len(r["forward_seconds_per_frame"]) == 2 and r["forward_seconds_mean"] == pytest.approx(np.mean(r["forward_seconds_per_frame"]))
-        assert r["setup"] == "cue 0.02 m from ball00 at 1 m/s"
+        assert r["setup"] == "cue 0.02 m (bounding circles) from ball00 at 1 m/s"
     assert rows[2]["friction"] == 0.0 and rows[0]["eps"] == 0.5 and rows[1]["eps"] is None
     assert _csv_rows(tmp_path / "frame.csv") == 3
     assert (tmp_path / "frame.png").stat().st_size > 1000
@@ -465,6 +465,12 @@ def test_bench_accuracy_writes_results_and_plot(tmp_path):
         (["bench", "accuracy", "--tolerances", "1e-6", "1e300"], "--tolerances: must be a number in (0, 1), got 1e300"),
         (["bench", "accuracy", "--reference-tolerance", "1"], "--reference-tolerance: must be a number in (0, 1), got 1"),
         (["run", "push", "--out", ""], '--out: must name a folder ("." for the current one), got an empty name'),
+        # A probe (stop 57): checked by the model only when its row came, after earlier rows
+        # had replaced a previous run's; ipc's stiffness was named contact_stiffness.
+        (["bench", "contact", "--eps", "0.5", "1e200"], "--eps: must lie in [1e-150, 1e+150] (its square and inverse must be representable), got 1e200"),
+        (["bench", "accuracy", "--tolerance-eps", "1e200"], "--tolerance-eps: must lie in [1e-150, 1e+150]"),
+        (["bench", "frame", "--ipc-stiffness", "1e-200"], "--ipc-stiffness: must lie in [1e-150, 1e+150]"),
+        (["compare", "push", "--ipc-stiffness", "1e200"], "--ipc-stiffness: must lie in [1e-150, 1e+150]"),
     ],
 )
 def test_bad_arguments_exit_with_usage_error(argv, message, capsys):

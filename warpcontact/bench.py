@@ -844,7 +844,7 @@ def run_frame_benchmark(
                     "bodies": len(scene.bodies),
                     "time_step": scene.settings.time_step,
                     "contact_stiffness": scene.settings.contact_stiffness,
-                    "setup": f"{setup['striker']} {gap:g} m from {setup['struck']} at {speed:g} m/s",
+                    "setup": f"{setup['striker']} {gap:g} m (bounding circles) from {setup['struck']} at {speed:g} m/s",
                 }
                 if mode == "ipc" and not dev.is_cpu:
                     row = {**_empty_frame_row(mode), "error": f"skipped: ipc (ipctk) runs on the CPU only, not on {dev}"}
