@@ -162,6 +162,7 @@ def test_bench_frame_writes_results_and_plot(tmp_path):
     assert main(args) == 0
     data = json.loads((tmp_path / "frame.json").read_text())
     assert data["module_load_seconds"] >= 0 and data["frames"] == 2
+    assert data["host"].endswith(" logical cores") and data["host"] != "x86_64, 2 logical cores"  # the CPU's name (was "x86_64")
     rows = data["rows"]
     assert [(r["scene"], r["model"]) for r in rows] == [("tiny", "bsh"), ("tiny", "brute"), ("tiny", "ipc")]
     for r in rows:
@@ -174,6 +175,27 @@ def test_bench_frame_writes_results_and_plot(tmp_path):
     assert rows[2]["friction"] == 0.0 and rows[0]["eps"] == 0.5 and rows[1]["eps"] is None
     assert _csv_rows(tmp_path / "frame.csv") == 3
     assert (tmp_path / "frame.png").stat().st_size > 1000
+
+
+def test_benches_without_the_ipc_toolkit_skip_its_rows_or_say_how_to(tmp_path, capsys, monkeypatch):
+    """ipctk is an optional extra. Without it bench frame stopped at the first ipc row (the
+    default run lost every scene after the first), and bench contact's error did not say how
+    to run without it (a probe, stop 57)."""
+    from warpcontact import ipc
+
+    monkeypatch.setattr(ipc, "toolkit_problem", lambda: "the ipc baseline needs the IPC Toolkit: pip install 'warpcontact[ipc]' (test)")
+    tiny = str(_tiny_billiards(tmp_path))
+    assert main(["bench", "frame", "--scenes", tiny, tiny.replace("tiny", "tiny2"), "--models", "bsh", "ipc", "--frames", "1", "--warmup", "0", "--out", str(tmp_path / "f")]) == 2  # tiny2 missing
+    (tmp_path / "tiny2.usda").write_bytes((tmp_path / "tiny.usda").read_bytes())
+    assert main(["bench", "frame", "--scenes", tiny, str(tmp_path / "tiny2.usda"), "--models", "bsh", "ipc", "--frames", "1", "--warmup", "0", "--out", str(tmp_path / "f")]) == 0
+    rows = json.loads((tmp_path / "f" / "frame.json").read_text())["rows"]
+    assert [(r["scene"], r["model"]) for r in rows] == [("tiny", "bsh"), ("tiny", "ipc"), ("tiny2", "bsh"), ("tiny2", "ipc")]
+    assert rows[0]["error"] is None and rows[2]["error"] is None
+    assert rows[1]["error"] == rows[3]["error"] == "skipped: the ipc baseline needs the IPC Toolkit: pip install 'warpcontact[ipc]' (test)"
+    capsys.readouterr()
+    assert main(["bench", "contact", "--eps", "0.5", "--gaps", "0.1", "--subdivisions", "0", "--repeats", "1", "--out", str(tmp_path / "c")]) == 2
+    assert "pip install 'warpcontact[ipc]' (test); or leave out the ipc rows with --ipc-dhat 0" in capsys.readouterr().err
+    assert not (tmp_path / "c" / "contact.json").exists()
 
 
 def test_the_strike_is_set_up_across_the_stage_up_axis():
@@ -237,6 +259,13 @@ def test_bench_frame_reads_every_scene_before_timing_any(tmp_path, capsys):
     assert main(args) == 2
     assert "error: peer_billiards_512: " in capsys.readouterr().err
     assert not (tmp_path / "b" / "frame.json").exists()  # the first scene was not run
+    # Another size's ball in a file's place was timed under this size's name (a probe).
+    from warpcontact import bench
+
+    (tmp_path / "swapped").mkdir()
+    (tmp_path / "swapped" / "18.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")  # a tetrahedron
+    with pytest.raises(ValueError, match=r"peer_billiards_512: .*18.obj has 4 faces, a rack of 64 triangles, not 512"):
+        bench.frame_scene("peer_billiards_512", peer_meshes=tmp_path / "swapped")
 
 
 def _interrupt_second_timing(monkeypatch):
@@ -766,6 +795,13 @@ def test_shipped_scenes_are_found_from_any_folder(tmp_path, monkeypatch, capsys)
         cli._resolve_scene_path("zzzz")
     assert main(["bench", "frame", "--scenes", "push", "--scene-dir", str(tmp_path), "--frames", "1", "--out", str(tmp_path / "b")]) == 2
     assert f"{tmp_path / 'push.usda'} not found" in capsys.readouterr().err
+    # Any NAME.usda of the folder, as its help says (a probe: only the shipped names loaded).
+    from warpcontact import bench
+
+    (tmp_path / "custom.usda").write_bytes(shipped_scene("push").read_bytes())
+    assert [b.name for b in bench.frame_scene("custom", scene_dir=tmp_path).bodies] == ["ground", "box", "rod"]
+    with pytest.raises(ValueError, match=rf"'other' is not a scene name \(.*\), a NAME.usda in {re.escape(str(tmp_path))}, peer_billiards_T"):
+        bench.frame_scene("other", scene_dir=tmp_path)
 
 
 def test_simulate_reports_bad_scene_paths(tmp_path, capsys):

@@ -3,6 +3,7 @@
 import copy
 import csv
 import json
+import os
 import platform
 import time
 import warnings
@@ -11,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
+from . import ipc
 from ._files import json_ready, replace_file, replace_json
 from .contact import ContactModel
 from .hull import convex_hull_mesh
@@ -64,6 +66,19 @@ def optional_pyplot():
     return plt
 
 
+def _host() -> str:
+    """The CPU's model name where the system gives it (Linux: /proc/cpuinfo), with its
+    logical core count; else Python's processor or machine name (which on Linux is only
+    "x86_64": a probe)."""
+    name = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as info:
+            name = next((line.split(":", 1)[1].strip() for line in info if line.startswith("model name")), name)
+    except OSError:
+        pass
+    return f"{name}, {os.cpu_count() or 1} logical cores"
+
+
 def _write_results(out_dir: Path, name: str, device, repeats: int, fields: dict) -> dict:
     """Write out_dir/NAME.json with the common header (benchmark, device, host, date, repeats),
     and out_dir/NAME.csv with one line per entry of ``fields["rows"]`` when there is one."""
@@ -71,7 +86,7 @@ def _write_results(out_dir: Path, name: str, device, repeats: int, fields: dict)
         "benchmark": name,
         "device": str(device),
         "device_name": device.name,
-        "host": platform.processor() or platform.machine(),
+        "host": _host(),
         "date": time.strftime("%Y-%m-%d"),
         "repeats": repeats,
         **fields,
@@ -286,6 +301,9 @@ def run_contact_benchmark(
     matplotlib is installed, contact.png (time vs error).
     """
     dev = resolve_device(device)
+    missing = ipc.toolkit_problem() if ipc_dhat is not None and dev.is_cpu else None
+    if missing is not None:  # before any row replaces an earlier run's
+        raise ValueError(f"{missing}; or leave out the ipc rows with --ipc-dhat 0")
     rows = []
 
     def save():
@@ -484,7 +502,7 @@ def _peer_ball(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path = Path("../shared/peer-meshes")):
     """The ``Scene`` named by ``spec``.
 
-    ``spec`` is a scene name (``scene_dir``/NAME.usda, by default the shipped scene, when
+    ``spec`` is a scene name or any NAME of a ``scene_dir``/NAME.usda (a shipped name, by default the shipped scene, when
     usd-core is installed, otherwise built by ``warpcontact.scenes``), ``peer_billiards_T`` (billiards with the paper code
     base's balls, T in ``PEER_BALLS``, from ``peer_meshes``), a .usda path, or a .pkl path
     (a pickled ``Scene``, for machines without usd-core).
@@ -516,11 +534,18 @@ def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path =
         file = Path(peer_meshes) / PEER_BALLS[triangles]
         if not file.is_file():
             raise ValueError(f"{spec}: {file} not found (pass the peer-mesh folder)")
-        scene = benchmark_rack(*_peer_ball(file))
+        ball = _peer_ball(file)
+        if 16 * len(ball[1]) != triangles:  # another ball (or a tetrahedron) was timed as this size
+            raise ValueError(f"{spec}: {file} has {len(ball[1])} faces, a rack of {16 * len(ball[1])} triangles, not {triangles}")
+        scene = benchmark_rack(*ball)
         scene.source = spec
         return scene
+    own = None if scene_dir is None else Path(scene_dir) / f"{spec}.usda"
+    if own is not None and own.is_file() and spec not in SCENE_NAMES:
+        return io.load_scene(own)  # any NAME.usda of the folder, not only the shipped names
     if spec not in SCENE_NAMES:
-        raise ValueError(f"scene: {spec!r} is not a scene name ({', '.join(SCENE_NAMES)}), peer_billiards_T, .usda or .pkl")
+        where = f", a NAME.usda in {scene_dir}" if scene_dir is not None else ""
+        raise ValueError(f"scene: {spec!r} is not a scene name ({', '.join(SCENE_NAMES)}){where}, peer_billiards_T, .usda or .pkl")
     try:
         import pxr  # noqa: F401
     except ImportError:
@@ -830,6 +855,7 @@ def run_frame_benchmark(
     # bsh first: brute force above --brute-max-triangles is timed at bsh's solved poses (listed
     # after it, brute's rows were dropped without a word).
     models = sorted(dict.fromkeys(models), key=lambda mode: mode != "bsh")
+    ipc_missing = ipc.toolkit_problem() if "ipc" in models and dev.is_cpu else None
     try:
         for spec in scenes:
             solved = None  # (bsh Model, its solved poses) for contact-only rows
@@ -848,6 +874,9 @@ def run_frame_benchmark(
                 }
                 if mode == "ipc" and not dev.is_cpu:
                     row = {**_empty_frame_row(mode), "error": f"skipped: ipc (ipctk) runs on the CPU only, not on {dev}"}
+                elif mode == "ipc" and ipc_missing is not None:
+                    # The rows after it were lost: the run stopped at the first ipc row.
+                    row = {**_empty_frame_row(mode), "error": f"skipped: {ipc_missing}"}
                 elif mode == "brute" and dynamic > brute_max_triangles:
                     if dynamic > brute_eval_max_triangles or solved is None:
                         why = f"above --brute-eval-max-triangles {brute_eval_max_triangles}" if dynamic > brute_eval_max_triangles else "no bsh frames to evaluate at (bsh not in --models, or its frames failed)"

@@ -49,7 +49,22 @@ MAX_ARC_PIECES = 64
 # digits (a ball 2 mm above the ground at stiffness 1e3: 2.8e-9 m).
 CCD_MAX_ITERATIONS = 100_000
 
-__all__ = ["IpcContactModel"]
+__all__ = ["IpcContactModel", "toolkit_problem"]
+
+
+def toolkit_problem() -> str | None:
+    """Why the ipc baseline cannot run here (the IPC Toolkit, an optional extra, is not
+    installed), or None."""
+    try:
+        import ipctk  # noqa: F401
+        import scipy.sparse  # noqa: F401
+    except ImportError as exc:
+        # Ctrl-C inside an extension's initialisation surfaces as an ImportError ("initialization
+        # failed"): it was reported as a missing IPC Toolkit, and the interrupt lost.
+        if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):
+            raise KeyboardInterrupt from exc
+        return f"the ipc baseline needs the IPC Toolkit: pip install 'warpcontact[ipc]' ({exc})"
+    return None
 
 
 @dataclass(frozen=True)
@@ -84,15 +99,11 @@ class IpcContactModel:
     crawl_skips_friction_model = False
 
     def __init__(self, meshes, *, dhat: float = 1e-2, static=None, names=None, device="cpu", exclude_pairs=()):
-        try:
-            import ipctk
-            import scipy.sparse as sp
-        except ImportError as exc:
-            # Ctrl-C inside an extension's initialisation surfaces as an ImportError ("initialization
-            # failed"): it was reported as a missing IPC Toolkit, and the interrupt lost.
-            if isinstance(exc.__cause__ or exc.__context__, KeyboardInterrupt):
-                raise KeyboardInterrupt from exc
-            raise ValueError(f"the ipc baseline needs the IPC Toolkit: pip install 'warpcontact[ipc]' ({exc})") from None
+        problem = toolkit_problem()
+        if problem is not None:
+            raise ValueError(problem)
+        import ipctk
+        import scipy.sparse as sp
 
         if str(device) != "cpu":
             raise ValueError(f"device: the ipc baseline runs on the CPU only (ipctk), got {device!r}")
