@@ -661,6 +661,48 @@ def test_a_body_named_targets_keeps_its_trajectory_and_its_marker(tmp_path):
     assert stage.GetPrimAtPath("/World/targets_1/targets").IsA(UsdGeom.Sphere)
 
 
+def test_flat_transforms_and_repeated_polygons_refused_only_where_they_change_the_shape(tmp_path):
+    """The refusals of flattening transforms and repeated polygons (a probe, stop 57) keep
+    what loaded before (a review): a ground mesh in z = 0 under a scale of (2, 2, 0), an
+    infinite Plane under (1, 1, 0), a convexHull collider whose mesh repeats a polygon (its
+    hull is taken of the points). A copy whose corner is named twice in a row (read as the
+    quad) is still a copy."""
+    path = write_physics_scene(tmp_path / "a.usda")
+    stage = Usd.Stage.Open(str(path))
+    UsdGeom.Xformable(stage.GetPrimAtPath("/World/ground")).AddScaleOp().Set(Gf.Vec3f(2, 2, 0))
+    stage.GetRootLayer().Save()
+    ground = io.load_scene(path).body("ground")
+    np.testing.assert_allclose(np.ptp(ground.vertices, axis=0), [8.0, 8.0, 0.0])
+
+    stage = Usd.Stage.Open(str(write_physics_scene(tmp_path / "b.usda")))
+    plane = UsdGeom.Plane.Define(stage, "/World/floor")
+    UsdPhysics.CollisionAPI.Apply(plane.GetPrim())
+    plane.AddTranslateOp().Set(Gf.Vec3d(0, 0, -1))
+    plane.AddScaleOp().Set(Gf.Vec3f(1, 1, 0))
+    stage.GetRootLayer().Save()
+    assert "floor" in [b.name for b in io.load_scene(tmp_path / "b.usda").bodies]
+
+    stage = Usd.Stage.Open(str(write_physics_scene(tmp_path / "c.usda")))
+    lump = UsdGeom.Mesh.Define(stage, "/World/lump")  # a cube whose top is listed again, reversed
+    lump.CreatePointsAttr([(x, y, z) for z in (0.0, 1.0) for y in (3.0, 4.0) for x in (3.0, 4.0)])
+    cube_faces = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [1, 3, 7, 5], [3, 2, 6, 7], [2, 0, 4, 6]]
+    lump.CreateFaceVertexCountsAttr([4] * 7)
+    lump.CreateFaceVertexIndicesAttr([i for face in cube_faces + [cube_faces[1][::-1]] for i in face])
+    UsdPhysics.CollisionAPI.Apply(lump.GetPrim())
+    UsdPhysics.MeshCollisionAPI.Apply(lump.GetPrim()).CreateApproximationAttr("convexHull")
+    stage.GetRootLayer().Save()
+    assert len(io.load_scene(tmp_path / "c.usda").body("lump").faces) == 12
+    UsdPhysics.MeshCollisionAPI(lump.GetPrim()).GetApproximationAttr().Set("none")
+    _load_refused(stage, tmp_path / "c.usda", r"prim /World/lump: faces 1 and 6 have the same 4 corners")
+
+    stage = Usd.Stage.Open(str(write_physics_scene(tmp_path / "d.usda")))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/ground"))
+    indices = list(mesh.GetFaceVertexIndicesAttr().Get())
+    mesh.GetFaceVertexCountsAttr().Set(list(mesh.GetFaceVertexCountsAttr().Get()) + [5])
+    mesh.GetFaceVertexIndicesAttr().Set(indices + indices[4:8][::-1] + [indices[4]])
+    _load_refused(stage, tmp_path / "d.usda", r"prim /World/ground: faces 1 and 16 have the same 4 corners")
+
+
 def test_trajectory_export_keeps_a_static_body_moved_between_steps(tmp_path):
     """A static body the caller moves between steps (a kinematic paddle) was written at its
     first pose only: drawn still beside the box it pushed. One that stays put is written once."""
@@ -850,8 +892,9 @@ def _author(path, edit):
         (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/ground")).AddOrientOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Quatd(0.5, 0, 0, 0.5)), r"prim /World/ground: /World/ground.xformOp:orient must be a unit quaternion, got \(0.5, 0, 0, 0.5\) \(norm 0.707106781\)"),
         # A probe: a zero scale was blamed on the mesh ("faces 0 and 3 are the same triangle")
         # or, on a Cube, on an open mesh; scales fine alone flatten once composed.
-        (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).AddScaleOp().Set(Gf.Vec3f(1, 1, 0)), r"prim /World/box: its world transform flattens it \(/World/box.xformOp:scale is \(1, 1, 0\)\); a scale must be non-zero on every axis"),
-        (lambda st: [UsdGeom.Xformable(st.GetPrimAtPath(path)).AddScaleOp().Set(Gf.Vec3f(1, 1e-7, 1)) for path in ("/World/box", "/World/box/shape")], r"prim /World/box/shape: its world transform flattens it \(its transform ops compose to a singular matrix\)"),
+        (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).AddScaleOp().Set(Gf.Vec3f(1, 1, 0)), r"prim /World/box/shape: its world transform flattens it \(/World/box.xformOp:scale is \(1, 1, 0\)\); a scale must be non-zero on every axis"),
+        (lambda st: [UsdGeom.Xformable(st.GetPrimAtPath(path)).AddScaleOp().Set(Gf.Vec3f(1, 1e-7, 1)) for path in ("/World/box", "/World/box/shape")], r"prim /World/box/shape: its world transform flattens it \(its transform ops, none flat alone, compose to a singular matrix\)"),
+        (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).AddTransformOp().Set(Gf.Matrix4d(1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1)), r"prim /World/box/shape: its world transform flattens it \(/World/box.xformOp:transform is"),
         # A probe: a hole index beyond the faces was ignored and its face stayed solid.
         (lambda st: UsdGeom.Mesh(st.GetPrimAtPath("/World/ground")).CreateHoleIndicesAttr([16]), r"prim /World/ground: holeIndices has 16, not a face index \(the mesh has faces 0 to 15\)"),
         # A probe: a quad listed again from another corner, or reversed (two-sided), split

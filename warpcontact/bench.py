@@ -67,16 +67,17 @@ def optional_pyplot():
 
 
 def _host() -> str:
-    """The CPU's model name where the system gives it (Linux: /proc/cpuinfo), with its
-    logical core count; else Python's processor or machine name (which on Linux is only
-    "x86_64": a probe)."""
+    """The CPU's model name where the system gives it (Linux: /proc/cpuinfo), with the
+    logical cores this process may use; else Python's processor or machine name (which on
+    Linux is only "x86_64": a probe)."""
     name = platform.processor() or platform.machine()
     try:
         with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as info:
             name = next((line.split(":", 1)[1].strip() for line in info if line.startswith("model name")), name)
     except OSError:
         pass
-    return f"{name}, {os.cpu_count() or 1} logical cores"
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return f"{name}, {cores} logical cores"
 
 
 def _write_results(out_dir: Path, name: str, device, repeats: int, fields: dict) -> dict:
@@ -301,9 +302,10 @@ def run_contact_benchmark(
     matplotlib is installed, contact.png (time vs error).
     """
     dev = resolve_device(device)
-    missing = ipc.toolkit_problem() if ipc_dhat is not None and dev.is_cpu else None
+    with_ipc = ipc_dhat is not None and dev.is_cpu
+    missing = ipc.toolkit_problem() if with_ipc else None
     if missing is not None:  # before any row replaces an earlier run's
-        raise ValueError(f"{missing}; or leave out the ipc rows with --ipc-dhat 0")
+        raise ValueError(f"{missing}; or leave out the ipc rows (ipc_dhat=None; --ipc-dhat 0 on the command line)")
     rows = []
 
     def save():
@@ -311,7 +313,7 @@ def run_contact_benchmark(
 
     try:
         for scene in contact_benchmark_scenes(subdivisions=subdivisions, gaps=gaps):
-            if ipc_dhat is not None and dev.is_cpu:
+            if with_ipc:
                 rows.append(_ipc_contact_row(scene, ipc_dhat, repeats))
                 save()
             reference = None
@@ -508,7 +510,7 @@ def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path =
     (a pickled ``Scene``, for machines without usd-core).
     """
     from . import io
-    from .scenes import SCENE_NAMES, benchmark_rack, build_scene, shipped_scene
+    from .scenes import RACK_BALLS, SCENE_NAMES, benchmark_rack, build_scene, shipped_scene
 
     path = Path(spec)
     if path.suffix == ".pkl":
@@ -535,8 +537,8 @@ def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path =
         if not file.is_file():
             raise ValueError(f"{spec}: {file} not found (pass the peer-mesh folder)")
         ball = _peer_ball(file)
-        if 16 * len(ball[1]) != triangles:  # another ball (or a tetrahedron) was timed as this size
-            raise ValueError(f"{spec}: {file} has {len(ball[1])} faces, a rack of {16 * len(ball[1])} triangles, not {triangles}")
+        if (RACK_BALLS + 1) * len(ball[1]) != triangles:  # another ball (or a tetrahedron) was timed as this size
+            raise ValueError(f"{spec}: {file} has {len(ball[1])} faces, a rack of {(RACK_BALLS + 1) * len(ball[1])} triangles, not {triangles}")
         scene = benchmark_rack(*ball)
         scene.source = spec
         return scene

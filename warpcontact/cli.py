@@ -16,7 +16,8 @@ import numpy as np
 import warp as wp
 
 from ._files import hold_folder, replace_file, replace_files, replace_json
-from ._validate import MAX_COUNT, MAX_FRAMES, gap_problem, scale_problem
+from ._validate import MAX_COUNT, MAX_FRAMES, gap_problem
+from .builder import contact_setting_problem
 from .contact import CENTRED_WEIGHTS
 from .leaf import LEAF_PRECISIONS
 from .tasks import IPC_TASK_STIFFNESS, MODELS
@@ -722,16 +723,24 @@ _positive_float = _finite_number(zero=False)
 _non_negative_float = _finite_number(zero=True)
 
 
-def _model_scale(text: str) -> float:
-    """An argparse type: a positive number a model takes as a scale (eps, a stiffness), within
-    the range the model checks (``bench contact --eps 0.5 1e200`` wrote its 0.5 rows over an
-    earlier run's and then failed; ``compare --ipc-stiffness 1e200`` ran every other model
-    first and named contact_stiffness)."""
-    value = _positive_float(text)
-    problem = scale_problem(value, "")
-    if problem is not None:
-        raise argparse.ArgumentTypeError(f"{problem}, got {text}")
-    return value
+def _contact_setting(name: str):
+    """An argparse type: a value of the model's contact setting ``name`` (eps,
+    contact_stiffness), by the builder's rule, checked before any work (``bench contact --eps
+    0.5 1e200`` wrote its 0.5 rows over an earlier run's and then failed; ``compare
+    --ipc-stiffness 1e200`` ran every other model first and named contact_stiffness)."""
+
+    def parse(text: str) -> float:
+        value = _positive_float(text)
+        problem = contact_setting_problem(name, value)
+        if problem is not None:
+            raise argparse.ArgumentTypeError(f"{problem}, got {text}")
+        return value
+
+    return parse
+
+
+_eps = _contact_setting("eps")
+_stiffness = _contact_setting("contact_stiffness")
 
 
 def _model_list(text: str) -> list:
@@ -762,7 +771,7 @@ def _add_task_arguments(parser):
     )
     parser.add_argument(
         "--ipc-stiffness",
-        type=_model_scale,
+        type=_eps,
         default=IPC_TASK_STIFFNESS,
         help=f"barrier stiffness of the ipc model, in place of the scene's mu (sized for ours; far too soft for IPC's barrier); default {IPC_TASK_STIFFNESS:g}",
     )
@@ -832,7 +841,7 @@ def build_parser() -> argparse.ArgumentParser:
     _writes(leaf, "outputs/bench", "leaf.json", "leaf.csv")
     leaf.set_defaults(func=_bench_leaf, saves_rows=True)
     contact = bench_sub.add_parser("contact", help="BSH speed vs force error against brute force (eps sweep)")
-    contact.add_argument("--eps", type=_model_scale, nargs="+", default=[0.01, 0.1, 0.5, 1.0, 2.0, 10.0])
+    contact.add_argument("--eps", type=_eps, nargs="+", default=[0.01, 0.1, 0.5, 1.0, 2.0, 10.0])
     contact.add_argument("--gaps", type=_positive_float, nargs="+", default=[1e-3, 1e-2, 1e-1])
     contact.add_argument("--subdivisions", type=int, default=1, choices=range(0, 4))
     contact.add_argument("--repeats", type=_positive_int, default=3)
@@ -843,7 +852,7 @@ def build_parser() -> argparse.ArgumentParser:
     contact.set_defaults(func=_bench_contact, saves_rows=True)
     scaling = bench_sub.add_parser("scaling", help="contact cost against triangle count (16-ball rack)")
     scaling.add_argument("--points", type=_points_per_ball, nargs="+", default=[18, 42, 82, 196], help="points per ball (2N-4 faces)")
-    scaling.add_argument("--eps", type=_model_scale, default=0.5)
+    scaling.add_argument("--eps", type=_eps, default=0.5)
     scaling.add_argument("--brute-max-triangles", type=_non_negative_int, default=2560)
     scaling.add_argument("--repeats", type=_positive_int, default=3)
     scaling.add_argument("--device", default="cpu")
@@ -859,12 +868,12 @@ def build_parser() -> argparse.ArgumentParser:
     frame.add_argument("--models", nargs="+", choices=["bsh", "brute", "ipc"], default=["bsh", "brute", "ipc"])
     frame.add_argument("--frames", type=_frame_count, default=3, help="timed frames (medians over them)")
     frame.add_argument("--warmup", type=_non_negative_int, default=1, help="untimed frames first, from the same start")
-    frame.add_argument("--eps", type=_model_scale, default=None, help="BSH blend margin (default: each scene's)")
+    frame.add_argument("--eps", type=_eps, default=None, help="BSH blend margin (default: each scene's)")
     frame.add_argument("--gap", type=_positive_float, default=0.02, help="striker's start gap to the struck body (m), between their bounding circles across the up axis (their surfaces are farther apart)")
     frame.add_argument("--speed", type=_positive_float, default=1.0, help="striker's speed into it (m/s)")
     frame.add_argument("--brute-max-triangles", type=_non_negative_int, default=512, help="brute force runs whole frames up to this many dynamic triangles")
     frame.add_argument("--brute-eval-max-triangles", type=_non_negative_int, default=6208, help="above that, only its contact evaluation is timed, up to this many")
-    frame.add_argument("--ipc-stiffness", type=_model_scale, default=1e3, help="IPC barrier stiffness (replaces the scene's mu for ipc)")
+    frame.add_argument("--ipc-stiffness", type=_stiffness, default=1e3, help="IPC barrier stiffness (replaces the scene's mu for ipc)")
     frame.add_argument("--leaf-precision", choices=LEAF_PRECISIONS, default="float64", help="plane search precision of bsh and brute (ipc: float64)")
     frame.add_argument("--scene-dir", default=None, help="folder of NAME.usda scenes (default: the shipped scenes)")
     frame.add_argument("--peer-meshes", default="../shared/peer-meshes", help="folder of the paper code base's meshes (18.obj ... 196.obj)")
@@ -872,9 +881,9 @@ def build_parser() -> argparse.ArgumentParser:
     _writes(frame, "outputs/bench", "frame.json", "frame.csv", "frame.png")
     frame.set_defaults(func=_bench_frame, saves_rows=True)
     accuracy = bench_sub.add_parser("accuracy", help="time against error (eps, solver tolerance) on a small billiards case")
-    accuracy.add_argument("--eps", type=_model_scale, nargs="+", default=[0.25, 0.5, 1.0, 2.0, 4.0])
+    accuracy.add_argument("--eps", type=_eps, nargs="+", default=[0.25, 0.5, 1.0, 2.0, 4.0])
     accuracy.add_argument("--tolerances", type=_fraction, nargs="+", default=[1e-4, 1e-6, 1e-8], help="Newton tolerances swept at --tolerance-eps")
-    accuracy.add_argument("--tolerance-eps", type=_model_scale, default=0.5, help="eps of the tolerance and precision sweeps")
+    accuracy.add_argument("--tolerance-eps", type=_eps, default=0.5, help="eps of the tolerance and precision sweeps")
     accuracy.add_argument("--precisions", nargs="+", choices=LEAF_PRECISIONS, default=list(LEAF_PRECISIONS), help="leaf plane search precisions swept at --tolerance-eps")
     accuracy.add_argument("--reference-tolerance", type=_fraction, default=1e-12, help="Newton tolerance of the brute-force reference run")
     accuracy.add_argument("--frames", type=_frame_count, default=3)

@@ -99,6 +99,7 @@ from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
 from .leaf import LEAF_PRECISIONS
 from .rotation import normalized_poses, pose_mul, quat_conjugate, quat_from_matrix, quat_mul, quat_rotate, quat_to_matrix, rotation_vector_from_quat
+from .sphere_tree import repeated_corner_sets
 
 __all__ = [
     "BodySpec",
@@ -488,7 +489,7 @@ def _polygon_triangles(corners: np.ndarray) -> list | None:
     return triangles
 
 
-def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
+def _mesh_triangles(prim, UsdGeom, source, *, refuse_repeats: bool = True) -> tuple[np.ndarray, np.ndarray]:
     mesh = UsdGeom.Mesh(prim)
     points = np.asarray(mesh.GetPointsAttr().Get() or [], dtype=np.float64).reshape(-1, 3)
     counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
@@ -507,7 +508,8 @@ def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"{where}: holeIndices has {holes[outside[0]]}, not a face index (the mesh has faces 0 to {len(counts) - 1})")
     kept = np.ones(len(counts), dtype=bool)
     kept[holes] = False
-    _refuse_repeated_polygons(points, counts, indices, kept, where)
+    if refuse_repeats:
+        _refuse_repeated_polygons(points, counts, indices, kept, where)
     faces = _polygon_mesh_faces(points, counts, indices, kept, where)
     if not len(faces):
         raise ValueError(f"{where}: every face is a hole (holeIndices)")
@@ -524,20 +526,28 @@ def _mesh_triangles(prim, UsdGeom, source) -> tuple[np.ndarray, np.ndarray]:
 
 def _refuse_repeated_polygons(points: np.ndarray, counts: np.ndarray, indices: np.ndarray, kept: np.ndarray, where: str) -> None:
     """Refuse a polygon listed twice (the same corners, by position, from any corner or in
-    either winding: a two-sided copy). Split along other diagonals its copies share no
-    triangle, which the meshes' own check (``sphere_tree``) compares, and the surface pushed
-    twice as hard (a box rested 0.156 mm over such a ground against 0.111 mm)."""
+    either winding: a two-sided copy; a corner named twice in a row counts once, as in the
+    triangulation). Split along other diagonals its copies share no triangle, which the
+    meshes' own check (``sphere_tree``) compares, and the surface pushed twice as hard (a box
+    rested 0.156 mm over such a ground against 0.111 mm)."""
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    groups: dict[int, list] = {}  # corner count -> [(faces, corner indices)]
     for count in np.unique(counts[kept & (counts > 3)]):
         faces = np.flatnonzero(kept & (counts == count))
-        corners = points[indices[starts[faces, None] + np.arange(count)]]  # (nf, count, 3)
-        order = np.lexsort((corners[..., 2], corners[..., 1], corners[..., 0]), axis=-1)
-        keys = np.take_along_axis(corners, order[..., None], axis=1).reshape(len(faces), 3 * count)
-        _, first, repeats = np.unique(keys, axis=0, return_index=True, return_counts=True)
-        if repeats.max() > 1:
-            again = np.flatnonzero((keys == keys[first[np.argmax(repeats > 1)]]).all(axis=1))
+        corners = indices[starts[faces, None] + np.arange(count)]
+        named_twice = (corners == np.roll(corners, -1, axis=1)).any(axis=1)
+        groups.setdefault(int(count), []).append((faces[~named_twice], corners[~named_twice]))
+        for face, row in zip(faces[named_twice], corners[named_twice]):
+            row = row[row != np.roll(row, -1)]
+            if len(row) > 3:  # triangles are the meshes' own check's
+                groups.setdefault(len(row), []).append((face[None], row[None]))
+    for count, parts in groups.items():
+        faces = np.concatenate([f for f, _ in parts])
+        repeated = repeated_corner_sets(points[np.concatenate([c for _, c in parts])])
+        if repeated is not None:
+            first, second = sorted((int(faces[repeated[0]]), int(faces[repeated[1]])))
             raise ValueError(
-                f"{where}: faces {int(faces[again[0]])} and {int(faces[again[1]])} have the same {count} corners (a polygon listed twice, "
+                f"{where}: faces {first} and {second} have the same {count} corners (a polygon listed twice, "
                 "or a two-sided copy); each copy would push in the contact potential: remove the repeats"
             )
 
@@ -574,13 +584,15 @@ def _polygon_mesh_faces(points: np.ndarray, counts: np.ndarray, indices: np.ndar
     return np.concatenate(triangles).astype(np.int64).reshape(-1, 3)[order]
 
 
-def _shape_triangles(kind, prim, UsdGeom, source, desc=None) -> tuple[np.ndarray, np.ndarray]:
+def _shape_triangles(kind, prim, UsdGeom, source, desc=None, *, exact: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """A collider's triangles: with ``desc``, in UsdPhysics' description (its own-axis scale
     folded into the dimensions, meshScale for a Mesh); without, in its prim frame from its
-    unscaled attributes (for the exact path, ``_in_frame``)."""
+    unscaled attributes (for the exact path, ``_in_frame``). ``exact``: the triangles are
+    collided themselves (not replaced by a hull of the points), so a Mesh's repeated
+    polygons are refused."""
     where = f"{source}: prim {prim.GetPath()}"
     if kind == "MeshShape":
-        points, faces = _mesh_triangles(prim, UsdGeom, source)
+        points, faces = _mesh_triangles(prim, UsdGeom, source, refuse_repeats=exact)
         return (points if desc is None else points * np.asarray(desc.meshScale, dtype=np.float64)), faces
     for name in _READ_GEOMETRY:
         attr = prim.GetAttribute(name)
@@ -730,13 +742,9 @@ def _world_matrix(prim, UsdGeom, Usd, source: str):
         if numbers.shape == (4, 4) and not np.array_equal(numbers[:, 3], [0.0, 0.0, 0.0, 1.0]):
             raise ValueError(f"{source}: prim {prim.GetPath()}: {attr.GetPath()} is not an affine transform (its last column must be 0, 0, 0, 1), got {value}")
     matrix = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
-    if not np.isfinite(np.array(matrix)).all():
-        raise ValueError(f"{source}: prim {prim.GetPath()}: its world transform is not finite (its transform values overflow)")
-    if _flat(_linear_part(matrix)):
-        culprit = next((attr for attr in _transform_attributes(prim, UsdGeom) if _flat_op(attr, UsdGeom)), None)
-        blame = f"{culprit.GetPath()} is {culprit.Get()}" if culprit is not None else "its transform ops compose to a singular matrix"
-        raise ValueError(f"{source}: prim {prim.GetPath()}: its world transform flattens it ({blame}); a scale must be non-zero on every axis")
-    return matrix
+    if np.isfinite(np.array(matrix)).all():
+        return matrix
+    raise ValueError(f"{source}: prim {prim.GetPath()}: its world transform is not finite (its transform values overflow)")
 
 
 def _flat(linear: np.ndarray) -> bool:
@@ -745,15 +753,29 @@ def _flat(linear: np.ndarray) -> bool:
     return bool(singular[-1] <= _FLAT_TRANSFORM * singular[0])
 
 
+def _flattening_problem(prim, linear: np.ndarray, points: np.ndarray, UsdGeom) -> str | None:
+    """Why a collider's ``_flat`` world transform (``linear``, row vectors: x L) cannot place
+    its ``points`` (prim frame), or None: it squashes a direction along which they have
+    extent. A mesh already flat along it (a ground in z = 0 under a scale of (2, 2, 0)) loads
+    as before; an infinite Plane is never asked."""
+    rows = np.linalg.svd(linear)[0]
+    extent = float(np.ptp(points, axis=0).max())
+    if float(np.ptp(points @ rows[:, -1])) <= _FLAT_TRANSFORM * extent:
+        return None
+    culprit = next((attr for attr in _transform_attributes(prim, UsdGeom) if _flat_op(attr, UsdGeom)), None)
+    blame = f"{culprit.GetPath()} is {culprit.Get()}" if culprit is not None else "its transform ops, none flat alone, compose to a singular matrix"
+    return f"its world transform flattens it ({blame}); a scale must be non-zero on every axis the shape has extent along"
+
+
 def _flat_op(attr, UsdGeom) -> bool:
     """Whether an xformOp attribute is a flattening scale or matrix op."""
     kind, value = UsdGeom.XformOp(attr).GetOpType(), attr.Get()
     if value is None or kind not in (UsdGeom.XformOp.TypeScale, UsdGeom.XformOp.TypeTransform):
         return False
     numbers = np.asarray(value, dtype=np.float64)
-    if kind == UsdGeom.XformOp.TypeScale:
-        return bool(np.abs(numbers).min() <= _FLAT_TRANSFORM * np.abs(numbers).max())
-    return _flat(numbers[:3, :3])
+    if kind == UsdGeom.XformOp.TypeTransform:
+        return _flat(numbers[:3, :3])
+    return bool(np.abs(numbers).min() <= _FLAT_TRANSFORM * np.abs(numbers).max())
 
 
 def _linear_part(m) -> np.ndarray:
@@ -1206,6 +1228,11 @@ def load_scene(path) -> Scene:
             approximation = _approximation(kind, desc, prim, source)
             matrix = _world_matrix(prim, UsdGeom, Usd, source)
             linear = _linear_part(matrix)
+            # A zero scale was blamed on the shape: "repeated triangles", an open Cube.
+            problem = _flattening_problem(prim, linear, _shape_triangles(kind, prim, UsdGeom, source, exact=False)[0], UsdGeom) if _flat(linear) else None
+            if problem is not None:
+                raise ValueError(f"{source}: prim {prim_path}: {problem}")
+            exact = approximation != "convexHull"  # a hull is taken of the points alone
             owner_frame, owner_unscaled = body_frames[owner] if owner else (None, True)
             if adopted or not (_scaled_along_own_axes(linear) and np.linalg.det(linear) > 0 and owner_unscaled and (kind in ("CubeShape", "MeshShape") or _uniformly_scaled(linear))):
                 # UsdPhysics describes a collider by a rigid pose and a scale along its own axes,
@@ -1216,7 +1243,7 @@ def load_scene(path) -> Scene:
                 # of the ellipsoid USD draws). Its points are then moved by the full world
                 # matrix into the frame of its body (or its own); a mirroring matrix also
                 # reverses the triangles' winding, which keeps a closed mesh outward-oriented.
-                vertices, faces = _shape_triangles(kind, prim, UsdGeom, source)
+                vertices, faces = _shape_triangles(kind, prim, UsdGeom, source, exact=exact)
                 frame = owner_frame if owner else _frame(matrix)
                 vertices = _in_frame(vertices, matrix, frame) * meters
                 if np.linalg.det(linear) < 0:
@@ -1226,7 +1253,7 @@ def load_scene(path) -> Scene:
                 local_pose = frame.copy()
                 local_pose[:3] *= meters
             else:
-                vertices, faces = _shape_triangles(kind, prim, UsdGeom, source, desc)
+                vertices, faces = _shape_triangles(kind, prim, UsdGeom, source, desc, exact=exact)
                 # localPos / localRot place the collider in its rigid body's frame, or in the
                 # world for a collider without a rigid body (a static body of its own). Scale is
                 # already in the shape's dimensions (meshScale, radius, halfExtents).
@@ -2586,7 +2613,7 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
         overwrite: replace an existing file.
 
     Meshes are authored once per body; each body has one time-sampled translate and orient
-    per frame (a static body only where its given poses change); timeCodesPerSecond and framesPerSecond are both set; target positions are drawn
+    per frame (a static body is time-sampled only if its poses differ between frames); timeCodesPerSecond and framesPerSecond are both set; target positions are drawn
     as small green spheres under /World/targets (targets_1, ... where a body has that name).
     The layer's customLayerData names the scene's file (``warpcontact:trajectoryOf``), and
     ``load_scene`` refuses the export pointing to it.

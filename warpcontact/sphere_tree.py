@@ -275,19 +275,29 @@ def validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
     return positions, faces
 
 
+def repeated_corner_sets(corners: np.ndarray) -> tuple[int, int, int] | None:
+    """For polygons' corners (n, k, 3), the first two polygons with the same corner
+    positions (in any order or winding) and how many repeat an earlier one; None if none."""
+    if len(corners) < 2:
+        return None
+    order = np.lexsort((corners[..., 2], corners[..., 1], corners[..., 0]), axis=-1)
+    keys = np.take_along_axis(corners, order[..., None], axis=1).reshape(len(corners), -1)
+    _, first, counts = np.unique(keys, axis=0, return_index=True, return_counts=True)
+    if counts.max() == 1:
+        return None
+    again = np.flatnonzero((keys == keys[first[np.argmax(counts > 1)]]).all(axis=1))
+    return int(again[0]), int(again[1]), int((counts - 1).sum())
+
+
 def _refuse_repeated_faces(positions: np.ndarray, faces: np.ndarray, name: str) -> None:
     """Refuse a triangle listed twice (the same three corners, by index or by position, in
     any order or winding): each copy is a leaf of the potential, so the mesh pushed twice as
     hard there (a box rested 0.89 mm over a ground of doubled faces instead of 0.63 mm)."""
-    corners = positions[faces]  # (nf, 3 corners, 3)
-    order = np.lexsort((corners[..., 2], corners[..., 1], corners[..., 0]), axis=-1)
-    keys = np.take_along_axis(corners, order[..., None], axis=1).reshape(len(faces), 9)
-    _, first, counts = np.unique(keys, axis=0, return_index=True, return_counts=True)
-    if counts.max() > 1:
-        repeated = first[np.argmax(counts > 1)]
-        again = np.flatnonzero((keys == keys[repeated]).all(axis=1))
+    repeated = repeated_corner_sets(positions[faces])
+    if repeated is not None:
+        first, second, total = repeated
         raise ValueError(
-            f"mesh {name!r}: faces {int(again[0])} and {int(again[1])} are the same triangle ({int((counts - 1).sum())} repeated face(s) in all); "
+            f"mesh {name!r}: faces {first} and {second} are the same triangle ({total} repeated face(s) in all); "
             "each copy would push in the contact potential: remove the repeats (e.g. trimesh's update_faces(unique_faces()))"
         )
 
