@@ -703,6 +703,24 @@ def test_flat_transforms_and_repeated_polygons_refused_only_where_they_change_th
     _load_refused(stage, tmp_path / "d.usda", r"prim /World/ground: faces 1 and 16 have the same 4 corners")
 
 
+def test_a_plane_is_sized_by_the_faces_of_the_other_bodies_not_their_unused_points(tmp_path):
+    """A point no face used (1e6 m out) made the square standing in for a Plane 1e8 m across,
+    which moved how a box rested on it (a probe, stop 57)."""
+    sizes = []
+    for stray in (False, True):
+        stage = Usd.Stage.Open(str(write_physics_scene(tmp_path / f"p{stray}.usda")))
+        plane = UsdGeom.Plane.Define(stage, "/World/floor")
+        UsdPhysics.CollisionAPI.Apply(plane.GetPrim())
+        plane.AddTranslateOp().Set(Gf.Vec3d(0, 0, -1))
+        if stray:
+            mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/ground"))
+            mesh.GetPointsAttr().Set(list(mesh.GetPointsAttr().Get()) + [Gf.Vec3f(1e6, 0, 0)])
+        stage.GetRootLayer().Save()
+        sizes.append(np.ptp(io.load_scene(tmp_path / f"p{stray}.usda").body("floor").vertices, axis=0))
+    np.testing.assert_array_equal(sizes[1], sizes[0])
+    assert sizes[0].max() < 1e4  # 1e8 with the stray point counted
+
+
 def test_trajectory_export_keeps_a_static_body_moved_between_steps(tmp_path):
     """A static body the caller moves between steps (a kinematic paddle) was written at its
     first pose only: drawn still beside the box it pushed. One that stays put is written once."""

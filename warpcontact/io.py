@@ -967,12 +967,13 @@ _PLANE_AXES = {"X": (1, 2), "Y": (2, 0), "Z": (0, 1)}
 
 def _plane_body(path: str, frame: np.ndarray, axis: str, meters: float, others: list) -> BodySpec:
     """A static square standing in for the infinite Plane at ``path``: PLANE_SIZE_FACTOR times
-    the diagonal of the ``others``' bounding box (posed vertices), centred on their centre's
-    projection onto the plane, its triangles facing the plane's axis."""
+    the diagonal of the ``others``' bounding box (their faces' posed vertices: one point no
+    face used, 1e6 m out, made a ground 1e8 m across and moved how a box rested on it),
+    centred on their centre's projection onto the plane, its triangles facing the plane's axis."""
     pose = frame.copy()
     pose[:3] *= meters
     rotation = quat_to_matrix(pose[3:])
-    posed = np.concatenate([b.vertices @ quat_to_matrix(b.pose[3:]).T + b.pose[:3] for b in others if len(b.vertices)])
+    posed = np.concatenate([b.vertices[np.unique(b.faces)] @ quat_to_matrix(b.pose[3:]).T + b.pose[:3] for b in others if len(b.faces)])
     low, high = posed.min(axis=0), posed.max(axis=0)
     half = 0.5 * PLANE_SIZE_FACTOR * np.linalg.norm(high - low)
     centre = (0.5 * (low + high) - pose[:3]) @ rotation  # in the plane's frame
