@@ -101,6 +101,11 @@ def test_bench_strike_gaps_are_refused_where_positions_cannot_hold_them(capsys):
     for gap, message in ((1e-30, r"gap: 1e-30 m rounds to \S+ m beside"), (1e200, r"gap: 1e\+200 m puts the striker beyond")):
         with pytest.raises(ValueError, match=message):
             accuracy_scene(points_per_ball=8, gap=gap)
+    # A probe (stop 57): a speed whose step leaves the coordinates was blamed on state_in.body_q_prev.
+    from warpcontact import bench
+
+    with pytest.raises(ValueError, match=r"speed: 1e\+200 m/s moves the striker 4e\+198 m a step of 0.04 s, beyond the"):
+        bench.strike_setup(bench.frame_scene("push"), gap=0.02, speed=1e200)
     assert main(["bench", "frame", "--scenes", "peer_billiards_abc", "--frames", "1", "--out", "unused"]) == 2
     assert "peer_billiards_abc: peer billiards come in" in capsys.readouterr().err
 

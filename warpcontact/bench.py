@@ -602,6 +602,11 @@ def strike_setup(scene, *, gap: float, speed: float) -> dict:
         problem = f"{gap:g} m puts the striker beyond the +-{MAX_COORDINATE:g} m of a body's coordinates"
     if problem is not None:
         raise ValueError(f"gap: {problem}")
+    # A step's travel at it must stay a coordinate: 1e200 m/s was refused naming
+    # state_in.body_q_prev (a probe).
+    travel = speed * scene.settings.time_step
+    if not reach + gap + travel <= MAX_COORDINATE:
+        raise ValueError(f"speed: {speed:g} m/s moves the striker {travel:g} m a step of {scene.settings.time_step:g} s, beyond the +-{MAX_COORDINATE:g} m of a body's coordinates")
     if np.linalg.norm(offset) <= 1e-9 * reach:
         raise ValueError(f"{scene.source or '<scene>'}: the striker {striker_name!r} stands straight above or below {struck.name!r}: there is no horizontal direction to strike it along")
     direction = offset / np.linalg.norm(offset)
