@@ -771,7 +771,7 @@ def _add_task_arguments(parser):
     )
     parser.add_argument(
         "--ipc-stiffness",
-        type=_eps,
+        type=_stiffness,
         default=IPC_TASK_STIFFNESS,
         help=f"barrier stiffness of the ipc model, in place of the scene's mu (sized for ours; far too soft for IPC's barrier); default {IPC_TASK_STIFFNESS:g}",
     )
