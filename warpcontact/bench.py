@@ -2,6 +2,7 @@
 
 import copy
 import csv
+import functools
 import json
 import os
 import platform
@@ -66,6 +67,7 @@ def optional_pyplot():
     return plt
 
 
+@functools.cache  # written with every saved row: read once a process
 def _host() -> str:
     """The CPU's model name where the system gives it (Linux: /proc/cpuinfo), with the
     logical cores this process may use; else Python's processor or machine name (which on
