@@ -175,6 +175,16 @@ def test_centred_potential_rejects_negative_and_nan():
         wc.centered_potential(np.array([np.nan]))
 
 
+def test_centred_potential_refuses_distances_whose_derivatives_overflow():
+    # A finite value beside an infinite second derivative came back for r = 1e-150.
+    tiny = np.array([1e-3, 1e-150])
+    with pytest.raises(ValueError, match=r"r: 1e-150 m \(flat index 1\) is too small"):
+        wc.centered_potential(tiny, derivatives=True)
+    assert np.all(np.isfinite(wc.centered_potential(tiny)))  # the value alone is finite
+    v, d1, d2 = wc.centered_potential(np.array([1e-100, 0.0]), derivatives=True)
+    assert np.all(np.isfinite([v[0], d1[0], d2[0]])) and np.isinf(v[1]) and d1[1] == d2[1] == 0.0
+
+
 # --- Property A: barrier ---------------------------------------------------------------------
 
 

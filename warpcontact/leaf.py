@@ -201,14 +201,23 @@ def centered_potential(r, *, derivatives: bool = False, device="cpu"):
     """Centred potential P_c(r) = 12 (1 + r^-1/2)^2 of two cluster centres at distance r (m).
 
     Returns the values (same shape as ``r``), or ``(P_c, dP_c/dr, d2P_c/dr2)`` when
-    ``derivatives`` is set. r = 0 gives +inf; negative distances raise ValueError.
+    ``derivatives`` is set. r = 0 gives +inf; negative distances raise ValueError, and so
+    do, with ``derivatives``, distances so small (below ~5e-103 m) that a derivative
+    overflows float64 where the value does not.
     """
     derivatives = checked_flag(derivatives, "derivatives")
     arr = _scalar_input(r, "r")
     if (arr < 0).any():
         raise ValueError(f"r: distances must be >= 0, got {arr[arr < 0].flat[0]}")
     out = _evaluate_scalar_kernel(blend_kernels.centered_potential_kernel, arr, device)
-    return out if derivatives else out[0]
+    if not derivatives:
+        return out[0]
+    # A finite value beside an infinite derivative was returned for r = 1e-150 (a probe).
+    overflow = np.flatnonzero(((arr > 0) & ~(np.isfinite(out[1]) & np.isfinite(out[2]))).reshape(-1))
+    if overflow.size:
+        i = int(overflow[0])
+        raise ValueError(f"r: {arr.reshape(-1)[i]:g} m (flat index {i}) is too small for derivatives of the centred potential: d2P_c/dr2 ~ 24 r^-3 overflows float64 below ~5e-103 m")
+    return out
 
 
 def quintic_blend(s, *, derivatives: bool = False, device="cpu"):
