@@ -40,7 +40,8 @@ typo would otherwise fall back to the default silently).
 Primitive colliders are triangulated: Cube exactly (12 triangles), Sphere as an icosphere
 with ``SPHERE_SUBDIVISIONS`` = 2 (320 triangles), Capsule and Cylinder with 32 segments; use
 Mesh prims to control resolution; Cone with 32 segments; Capsule_1 and Cylinder_1 (two end
-radii) as the hull of their end spheres or rings. A static Plane (infinite) becomes a square of
+radii) as the hull of their end spheres or rings; a mass from density is the triangulated
+shape's (a Sphere's 3.4% below the sphere's). A static Plane (infinite) becomes a square of
 ``PLANE_SIZE_FACTOR`` times the other bodies' extent, centred under them. Polygons are fan-triangulated where convex and ear-clipped where not; self-intersecting ones are refused.
 Kinematic or disabled rigid bodies load as static bodies (an animated kinematic body is an
 error). Scales anywhere above a collider
