@@ -18,7 +18,7 @@ from warpcontact import cli, io
 from warpcontact.cli import main
 from warpcontact.kernels import task as task_kernels
 from warpcontact.kernels.state import quat_from_rotation_vector
-from warpcontact.tasks import TaskProblem, TaskSettings, adam
+from warpcontact.tasks import GENERIC_QUICK_HORIZON, TaskProblem, TaskSettings, adam
 
 
 def ball(radius=0.5):
@@ -584,6 +584,35 @@ def test_cli_compare_interrupted_keeps_and_plots_the_finished_models(tmp_path, c
     assert "interrupted during sdrs before any model finished: nothing written (compare.json, compare.png in" in captured.err
     assert "wrote" not in captured.out
     assert {name: (out / name).read_bytes() for name in earlier} == earlier
+
+
+def test_quick_preset_values_without_a_quick_horizon_are_an_error():
+    # The generic caps ran instead, at the task's learning rate, without a word.
+    scene = space_billiards()
+    scene.task.quick_receding_horizon, scene.task.quick_learning_rate = 32, 0.05
+    with pytest.raises(ValueError, match=r"warpcontact:task:quick:recedingHorizon, warpcontact:task:quick:learningRate are authored but warpcontact:task:quick:horizon is 0 \(none\)"):
+        TaskSettings.from_task(scene, quick=True)
+    assert TaskSettings.from_task(scene).horizon == scene.task.horizon  # without --quick the preset is not read
+    scene.task.quick_receding_horizon, scene.task.quick_learning_rate = 0, 0.0
+    assert TaskSettings.from_task(scene, quick=True).horizon <= GENERIC_QUICK_HORIZON  # no preset: the caps
+
+
+def test_an_authored_quick_value_out_of_range_is_not_called_a_partial_preset():
+    scene = space_billiards()
+    scene.task.quick_horizon, scene.task.quick_receding_horizon, scene.task.quick_iterations, scene.task.quick_learning_rate = 6, 4, 2, 0.1
+    scene.task.quick_receding_stride = 5
+    with pytest.raises(ValueError, match=r"quick:recedingStride must be .* got 5$"):
+        TaskSettings.from_task(scene, quick=True)
+
+
+def test_an_articulated_task_whose_window_covers_its_horizon_runs_as_one_window():
+    # Refused as receding control, while --quick (whose caps reset the window) ran it.
+    from warpcontact.scenes import build_scene
+
+    problem = TaskProblem(build_scene("ant_push"), settings=TaskSettings(horizon=3, receding_horizon=10, iterations=1, learning_rate=3e-2))
+    assert problem.settings.window == 3 and not problem.settings.receding
+    with pytest.raises(ValueError, match="receding-horizon control of articulated scenes is not supported"):
+        TaskProblem(build_scene("ant_push"), settings=TaskSettings(horizon=4, receding_horizon=2, iterations=1, learning_rate=3e-2))
 
 
 def test_a_partial_quick_preset_says_what_a_preset_is(tmp_path):

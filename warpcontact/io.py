@@ -20,7 +20,7 @@ warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``Body
         warpcontact:task:quick:horizon (int)      warpcontact:task:quick:recedingHorizon (int)
         warpcontact:task:quick:learningRate (double)  warpcontact:task:quick:iterations (int)
         warpcontact:task:quick:recedingStride (int)
-            (the ``--quick`` preset: minutes on a 2-core CPU; horizon 0 = no preset)
+            (the ``--quick`` preset: minutes on a 2-core CPU; horizon 0 = no preset, when no other quick value is authored)
         warpcontact:task:sampleLow (double[])     warpcontact:task:sampleHigh (double[])
             (per control DOF, in warpcontact:control:dofs order: the box that
             ``--init-samples`` draws initial-state controls from)

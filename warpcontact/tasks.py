@@ -50,7 +50,7 @@ import warp as wp
 from ._files import replace_file
 from ._validate import MAX_COORDINATE, MAX_FRAMES, beyond_coordinates, is_positive_finite, is_real, is_whole, real_array
 from .bundle import BundleSettings, bundled_gradient
-from .io import target_problem
+from .io import TaskSpec, target_problem
 from .kernels import task as task_kernels
 from .solver import ImplicitSolver, SolverError
 from .types import State, set_body_velocity
@@ -76,6 +76,13 @@ IPC_TASK_STIFFNESS = 1e5
 GENERIC_QUICK_HORIZON = 24
 GENERIC_QUICK_WINDOW = 8
 GENERIC_QUICK_ITERATIONS = 8
+
+
+# The --quick preset's attributes (warpcontact:task:quick:*) and the values a scene that
+# leaves one out reads.
+_QUICK_PRESET_ATTRIBUTES = {"horizon": "horizon", "receding_horizon": "recedingHorizon", "receding_stride": "recedingStride", "iterations": "iterations", "learning_rate": "learningRate"}
+_QUICK_PRESET_DEFAULTS = {field: getattr(TaskSpec(), f"quick_{field}") for field in _QUICK_PRESET_ATTRIBUTES}
+_QUICK_PRESET_HINT = "a --quick preset is warpcontact:task:quick:horizon, recedingHorizon, recedingStride, iterations and learningRate, authored together"
 
 
 @dataclass
@@ -121,6 +128,13 @@ class TaskSettings:
         Raises ValueError naming the attribute when a value is out of range.
         """
         t = scene.task
+        source = scene.source or "<scene>"
+        preset = {field: getattr(t, f"quick_{field}") for field in _QUICK_PRESET_DEFAULTS}
+        authored = [field for field, default in _QUICK_PRESET_DEFAULTS.items() if field != "horizon" and preset[field] != default]
+        if quick and not t.quick_horizon and authored:
+            # The generic caps ran instead, at the task's learning rate, without a word.
+            names = ", ".join(f"warpcontact:task:quick:{_QUICK_PRESET_ATTRIBUTES[field]}" for field in authored)
+            raise ValueError(f"{source}: {names} {'is' if len(authored) == 1 else 'are'} authored but warpcontact:task:quick:horizon is {t.quick_horizon} (none): {_QUICK_PRESET_HINT}, its horizon at least 1; remove them for the generic --quick caps")
         if quick and t.quick_horizon:
             settings = cls(t.quick_horizon, t.quick_receding_horizon, t.quick_iterations, t.quick_learning_rate, t.quick_receding_stride)
             prefix = "task:quick:"
@@ -138,7 +152,6 @@ class TaskSettings:
         iterations_name = f"warpcontact:{prefix}iterations"
         if iterations is not None:
             settings.iterations, iterations_name = iterations, "--iters"
-        source = scene.source or "<scene>"
         stride_name = f"warpcontact:{prefix}recedingStride"
         if receding_stride is not None:
             if not settings.receding:
@@ -155,17 +168,19 @@ class TaskSettings:
         failed = []
 
         def where(field):
-            failed.append(names.get(field, field))
-            return f"{source}: {failed[-1]}"
+            failed.append((field, names.get(field, field)))
+            return f"{source}: {failed[-1][1]}"
 
         try:
             settings.check(where)
         except ValueError as exc:
-            if prefix != "task:quick:" or failed[-1].startswith("--"):
+            field, name = failed[-1]
+            # A preset with some attributes left out read them as their defaults, and the
+            # error named an attribute the scene never authored; an authored value out of
+            # range is only that (the hint misled on a complete preset).
+            if prefix != "task:quick:" or name.startswith("--") or preset.get(field) != _QUICK_PRESET_DEFAULTS.get(field):
                 raise
-            # A preset with some attributes left out read them as 0, and the error named an
-            # attribute the scene never authored.
-            raise ValueError(f"{exc} (a --quick preset is warpcontact:task:quick:horizon, recedingHorizon, recedingStride, iterations and learningRate, authored together)") from None
+            raise ValueError(f"{exc} ({_QUICK_PRESET_HINT})") from None
         return settings
 
     def check(self, where=lambda field: f"settings.{field}") -> None:
@@ -709,7 +724,9 @@ class TaskProblem:
             # below the default final one (the learning rate) rose, refused only once the
             # descent began.
             self.bundle.sigmas(s.iterations - 1, s.learning_rate)
-        if self.model.articulation.num_coordinates and s.receding_horizon:
+        # A window at least the horizon is one window (``TaskSettings.receding``): refused, it
+        # ran under --quick, whose caps reset the window.
+        if self.model.articulation.num_coordinates and s.receding:
             raise ValueError(f"{source}: receding-horizon control of articulated scenes is not supported (set warpcontact:task:recedingHorizon to 0)")
         if self.kind != "pd_targets" and s.receding:
             # Only per-frame PD targets can be planned window by window; the run used to
