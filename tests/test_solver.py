@@ -1075,6 +1075,11 @@ def test_backtracking_lands_on_the_minimiser_of_a_quadratic_line():
     assert _backtrack_factor(1e-4, -0.02, 0.9801, 1.98, 1.0) == 0.1  # minimiser 0.01: at most a tenfold cut
     assert _backtrack_factor(0.0, -1.0, -0.4, -0.9, 1.0) == 0.5  # no interior minimiser: halve
     assert _backtrack_factor(0.0, -1.0, np.inf, None, 1.0) == 0.5  # contact at the trial
+    # Slopes near the float64 limit (a 1e300 PD gain): inf / inf inside the cubic printed
+    # numpy's RuntimeWarning with a source line into `warpcontact run`'s progress bar.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _backtrack_factor(0.0, -1.0, 1.0, 1e308, 1.0) == 0.5
 
 
 # --- gradients -----------------------------------------------------------------------------

@@ -341,15 +341,17 @@ def _backtrack_factor(value: float, slope: float, t_value: float, t_slope: float
     """
     if t_slope is None or not (np.isfinite(t_value) and np.isfinite(t_slope)):
         return 0.5
-    d1 = slope + t_slope - 3.0 * (t_value - value) / alpha
-    radicand = d1 * d1 - slope * t_slope
-    if radicand < 0.0:
-        return 0.5
-    d2 = np.sqrt(radicand)
-    denominator = t_slope - slope + 2.0 * d2
-    if denominator == 0.0:
-        return 0.5
-    fraction = 1.0 - (t_slope + d2 - d1) / denominator
+    # Overflowing terms (slopes near the float64 limit) end in the halving below, silently.
+    with np.errstate(over="ignore", invalid="ignore"):
+        d1 = slope + t_slope - 3.0 * (t_value - value) / alpha
+        radicand = d1 * d1 - slope * t_slope
+        if radicand < 0.0:
+            return 0.5
+        d2 = np.sqrt(radicand)
+        denominator = t_slope - slope + 2.0 * d2
+        if denominator == 0.0:
+            return 0.5
+        fraction = 1.0 - (t_slope + d2 - d1) / denominator
     return float(np.clip(fraction, 0.1, 0.5)) if np.isfinite(fraction) else 0.5
 
 
