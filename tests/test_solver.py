@@ -538,6 +538,20 @@ def test_a_body_set_exactly_on_a_support_is_refused_naming_both():
     assert q[-1, 1, 0] == pytest.approx(-9.8, abs=1e-3)
 
 
+def test_a_step_that_would_leave_bodies_touching_to_float64_fails_naming_the_stiffness():
+    """mu 1e-30 lets a box come to rest 4e-16 m above the ground: the step was accepted and
+    the next one refused its start ("start them farther apart"), so `simulate` wrote nothing."""
+    from warpcontact.scenes import build_scene
+
+    scene = build_scene("push")  # the box 1 mm above a two-triangle ground
+    scene.settings.contact_stiffness = 1e-30
+    with pytest.warns(UserWarning):
+        model = scene.build_model()
+    state = model.state(requires_grad=False)
+    with pytest.raises(wc.SolverError, match=r"the step's solution leaves bodies 'ground' and 'box' \S+ m apart, within the rounding .* contact stiffness \(mu 1e-30\)"):
+        wc.ImplicitSolver(model).step(state, model.state(requires_grad=False), None, 0.04)
+
+
 def test_a_tiny_friction_smoothing_does_not_freeze_a_falling_box():
     """At friction_smoothing 1e-12 m/s the friction's curvature made the box's fall a Newton
     step of 2.6e-10 m, under the tolerance: it hung 1 cm above the ground, step after step,

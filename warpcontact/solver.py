@@ -998,14 +998,11 @@ class ImplicitSolver:
             raise ValueError(f"state_in: bodies intersect or touch at the start of the step: {names}")
         # Gaps of a few units of roundoff: a box set exactly on a plate (z = half height + top,
         # 1.7e-17 m apart) took one Newton iteration a step and hardly moved, silently.
-        touching = np.flatnonzero(start.pair_separation <= _ROUNDING * self._length_scale)
-        # Unsolved pairs have their own error, below; ipc's separation is one global distance
-        # for every pair (it named the first pair, not the touching one) and its barrier
-        # refuses a zero distance itself.
-        if touching.size and not start.unsolved_pairs and isinstance(model.contact, ContactModel):
-            a, b = model.contact.body_pairs[touching[0]]
+        touching = self._touching_pair(start)
+        if touching is not None:
+            a, b, gap = touching
             raise ValueError(
-                f"state_in: bodies {model.body_names[a]!r} and {model.body_names[b]!r} start {start.pair_separation[touching[0]]:.3g} m apart, "
+                f"state_in: bodies {a!r} and {b!r} start {gap:.3g} m apart, "
                 "within the rounding of their coordinates (they touch to float64): start them farther apart (a resting gap is ~sqrt(100 mu / (m g)))"
             )
         friction = self._friction_frame(mu, friction_coefficient, dt)
@@ -1167,6 +1164,15 @@ class ImplicitSolver:
             # steps capped by a pressed pair's gap iterate on to here.
             raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden, converged_length=converged_length))
 
+        # A solution the next step would refuse as its start: a simulation ended there with
+        # "start them farther apart" and wrote none of its frames (mu 1e-30, a probe).
+        touching = self._touching_pair(contact)
+        if touching is not None:
+            a, b, gap = touching
+            raise SolverError(
+                f"the step's solution leaves bodies {a!r} and {b!r} {gap:.3g} m apart, within the rounding of their coordinates (they touch to float64), "
+                f"so no step could start from it: the contact stiffness (mu {mu:g}) is too small for these bodies' weight and size (a resting gap is ~sqrt(100 mu / (m g)))"
+            )
         # The friction adjoint needs the poses the friction terms saw: unit quaternions for the
         # static bodies too, whose user-given values (of any norm) go back into state_out.
         q_solved = q.copy()
@@ -1189,6 +1195,20 @@ class ImplicitSolver:
             friction.pairs if friction is not None else 0,
         )
         return self.last_step, lambda: self._backward_function(state_in, state_out, control, step_in, hess, jacobian, contact.grad, q, q_now, q_prev, (q_solved, q_start))
+
+    def _touching_pair(self, evaluation) -> tuple[str, str, float] | None:
+        """(name, name, separation) of the first body pair of an evaluation within the rounding
+        of the coordinates, or None. Unsolved pairs have their own error; ipc's separation is
+        one global distance for every pair (it named the first pair, not the touching one) and
+        its barrier refuses a zero distance itself."""
+        contact = self.model.contact
+        if evaluation.unsolved_pairs or not isinstance(contact, ContactModel):
+            return None
+        touching = np.flatnonzero(evaluation.pair_separation <= _ROUNDING * self._length_scale)
+        if not touching.size:
+            return None
+        a, b = contact.body_pairs[touching[0]]
+        return self.model.body_names[a], self.model.body_names[b], float(evaluation.pair_separation[touching[0]])
 
     def _warm_start(self, q, value, grad, hess, contact, coords, step_in):
         """Start Newton from the inertial prediction (``predict_kernel``: where each body would
