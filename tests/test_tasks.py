@@ -584,6 +584,13 @@ def test_cli_compare_interrupted_keeps_and_plots_the_finished_models(tmp_path, c
     assert "interrupted during sdrs before any model finished: nothing written (compare.json, compare.png in" in captured.err
     assert "wrote" not in captured.out
     assert {name: (out / name).read_bytes() for name in earlier} == earlier
+    # Stopped while its plot was drawn, the earlier run's compare.png stayed beside the new
+    # compare.json, and only "interrupted" was said.
+    interrupt_call(monkeypatch, cli, "_plot_convergence", 1)
+    assert main(["compare", str(scene_path), "--models", "sdrs", "--iters", "1", "--out", str(out), "--overwrite"]) == 130
+    assert list(json.loads((out / "compare.json").read_text())["models"]) == ["sdrs"]
+    assert not (out / "compare.png").exists()
+    assert "interrupted while drawing compare.png:" in capsys.readouterr().err
 
 
 def test_quick_preset_values_without_a_quick_horizon_are_an_error():

@@ -429,7 +429,14 @@ def _compare(args) -> int:
         print(f"\ninterrupted during {interrupted} before any model finished: nothing written{left}", file=sys.stderr)
         return 130
     ran = {m: r["loss_history"] for m, r in results.items() if "error" not in r}
-    plotted = _plot_convergence(ran, out / "compare.png", title=f"{t.name}: loss from the same initial guess")
+    # This comparison's plot or none: a Ctrl-C while it was drawn left an earlier run's
+    # compare.png beside this compare.json (a probe).
+    (out / "compare.png").unlink(missing_ok=True)
+    try:
+        plotted = _plot_convergence(ran, out / "compare.png", title=f"{t.name}: loss from the same initial guess")
+    except KeyboardInterrupt:
+        print(f"\ninterrupted while drawing compare.png: {out}/compare.json holds the finished models ({', '.join(results)}), without a plot", file=sys.stderr)
+        return 130
     print(f"{'model':>6} {'initial loss':>13} {'final loss':>13} {'success':>8} {'seconds':>8}")
     for model, r in results.items():
         if "error" in r:
