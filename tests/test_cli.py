@@ -182,6 +182,17 @@ def test_bench_frame_writes_results_and_plot(tmp_path):
     assert (tmp_path / "frame.png").stat().st_size > 1000
 
 
+def test_bench_frame_first_frame_counts_what_a_frame_counts(tmp_path, monkeypatch):
+    # first_frame_seconds added the timed contact evaluation that frame_seconds leaves out.
+    from warpcontact import bench
+
+    durations = iter([1.0, 10.0, 100.0] * 4)  # forward, contact evaluation, backward
+    monkeypatch.setattr(bench, "_timed", lambda fn, dev: (fn(), next(durations)))
+    assert main(["bench", "frame", "--scenes", str(_tiny_billiards(tmp_path)), "--models", "bsh", "--frames", "1", "--warmup", "1", "--out", str(tmp_path)]) == 0
+    row = json.loads((tmp_path / "frame.json").read_text())["rows"][0]
+    assert row["first_frame_seconds"] == row["frame_seconds"] == 101.0
+
+
 def test_benches_without_the_ipc_toolkit_skip_its_rows_or_say_how_to(tmp_path, capsys, monkeypatch):
     """ipctk is an optional extra. Without it bench frame stopped at the first ipc row (the
     default run lost every scene after the first), and bench contact's error did not say how

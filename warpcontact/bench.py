@@ -707,8 +707,10 @@ def _simulate_frames(scene, setup: dict, *, mode: str, frames: int, warmup: int,
 
     try:
         for _ in range(warmup):
-            _, _, _, times = frame(start)
-            first = first if first is not None else sum(times)
+            _, _, _, (t_forward, _, t_backward) = frame(start)
+            # A frame as frame_seconds counts one: forward and backward, not the extra
+            # contact evaluation (it was in, a probe at stop 57).
+            first = first if first is not None else t_forward + t_backward
         state = start
         for _ in range(frames):
             state, info, contact, (t_forward, t_contact, t_backward) = frame(state)
