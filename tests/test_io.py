@@ -2592,3 +2592,56 @@ def test_every_world_weld_of_a_body_is_checked(tmp_path):
         weld.CreateBody1Rel().SetTargets(["/World/box"])
         weld.CreateLocalPos0Attr(Gf.Vec3f(x, 0.0, 3.0))
     _load_refused(stage, path, "prim /World/wrong: the fixed joint's frames on /World/box and on the world disagree by 5 m")
+
+
+def _hinged_arm(**joint_options):
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.6))
+    arm = io.BodySpec("arm", "/World/arm", np.asarray(box.vertices), np.asarray(box.faces), np.array([0, 0, 1.0, 0, 0, 0, 1.0]), density=500.0)
+    options = {"axes": np.array([[0, 1.0, 0]])} | joint_options
+    hinge = io.JointSpec("h", "/World/joints/h", "revolute", options.pop("parent", None), options.pop("child", "arm"), np.array([0, 0, 1.3, 0, 0, 0, 1.0]), np.array([0, 0, 0.3, 0, 0, 0, 1.0]), **options)
+    return io.Scene(bodies=[arm], joints=[hinge])
+
+
+def test_scene_joint_gains_reach_the_model_as_given(tmp_path):
+    """A damper without a stiffness lost its kd in build_model (a save and load restored it),
+    and a scalar kp raised TypeError (a probe, stop 58)."""
+    damper = _hinged_arm(kd=np.array([5.0]))
+    assert damper.build_model().articulation.kd.tolist() == [5.0]
+    io.save_scene(damper, tmp_path / "kd.usda")
+    assert io.load_scene(tmp_path / "kd.usda").build_model().articulation.kd == pytest.approx([5.0], rel=1e-7)
+    scalar = _hinged_arm(kp=5.0, kd=1.0).build_model().articulation
+    assert scalar.kp.tolist() == [5.0] and scalar.kd.tolist() == [1.0]
+
+
+def test_scene_joint_naming_a_missing_body_is_an_error_naming_the_prim():
+    # It raised a bare KeyError 'Arm'.
+    for options, role, name in (({"child": "Arm"}, "child", "Arm"), ({"parent": "world"}, "parent", "world")):
+        with pytest.raises(ValueError, match=rf"prim /World/joints/h: joint 'h' names {role} body '{name}', which is not a body of the scene \(bodies: arm\)"):
+            _hinged_arm(**options).build_model()
+
+
+def test_scene_base_joint_takes_one_limit_pair_for_every_coordinate(tmp_path):
+    # One pair (nested or flat) crashed build_model (zip, unpacking) while save_scene took it.
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    cube = io.BodySpec("cube", "/World/cube", np.asarray(box.vertices), np.asarray(box.faces), np.array([0, 0, 1.0, 0, 0, 0, 1.0]), density=500.0)
+    identity = np.array([0, 0, 0, 0, 0, 0, 1.0])
+    for limits in ([(-1.0, 1.5)], (-1.0, 1.5)):
+        scene = io.Scene(bodies=[cube], gravity=np.zeros(3), joints=[io.JointSpec("b", "/World/joints/b", "base", None, "cube", identity, identity, dofs=("x", "z"), limits=limits)])
+        art = scene.build_model().articulation
+        io.save_scene(scene, tmp_path / "base.usda", overwrite=True)
+        loaded = io.load_scene(tmp_path / "base.usda").build_model().articulation
+        assert art.lower.tolist() == loaded.lower.tolist() == [-1.0, -2.0] and art.upper.tolist() == loaded.upper.tolist() == [1.5, 0.5]
+    bad = io.Scene(bodies=[cube], gravity=np.zeros(3), joints=[io.JointSpec("b", "/World/joints/b", "base", None, "cube", identity, identity, dofs=("x", "z"), limits=[(1.0, -1.0)])])
+    with pytest.raises(ValueError, match=r"prim /World/joints/b: joint 'b': limits must be 2 \(lower, upper\) pairs"):
+        bad.build_model()
+
+
+def test_save_scene_writes_a_scalar_linear_gain_for_every_axis(tmp_path):
+    # add_body reads a scalar kp_linear as all three axes; save_scene raised TypeError on it.
+    ball = trimesh.creation.icosphere(subdivisions=1, radius=0.5)
+    rod = io.BodySpec("rod", "/World/rod", np.asarray(ball.vertices), np.asarray(ball.faces), np.array([0, 0, 0, 0, 0, 0, 1.0]), density=100.0, kp_linear=400.0, kd_linear=60.0)
+    scene = io.Scene(bodies=[rod], gravity=np.zeros(3))
+    io.save_scene(scene, tmp_path / "kp.usda")
+    loaded = io.load_scene(tmp_path / "kp.usda").build_model()
+    assert loaded.body_kp_linear.numpy().tolist() == scene.build_model().body_kp_linear.numpy().tolist() == [[400.0] * 3]
+    assert loaded.body_kd_linear.numpy().tolist() == [[60.0] * 3]

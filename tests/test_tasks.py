@@ -1557,3 +1557,41 @@ def test_a_checkpoint_that_cannot_be_saved_is_named(tmp_path, monkeypatch):
     monkeypatch.setattr(tasks, "replace_file", full_disk)
     with pytest.raises(OSError, match=r"checkpoint.npz: saving the checkpoint failed \(No space left on device\); no earlier one was written"):
         tasks.TaskCheckpoint(tmp_path / "checkpoint.npz").save({}, {})
+
+
+def test_joint_sine_values_are_named_by_coordinate_and_wave_parameter():
+    """A joint_sine rollout's bad value was named by the dof of its column (the rows are the
+    coordinates), and past the last coordinate's column raised IndexError (a probe, stop 58)."""
+    from warpcontact.scenes import build_scene
+
+    problem = TaskProblem(build_scene("ant_push"))
+    values = problem.initial_values(1)
+    values[3, 0] = np.nan
+    with pytest.raises(ValueError, match=rf"values: row 3 \(coordinate '{problem.dof_names[3]}'\), column 0 \(the amplitude of sine wave 0\) is nan"):
+        problem.rollout(values, problem.start, 2)
+    values = problem.initial_values(1)
+    values[0, 11] = 1e200
+    with pytest.raises(ValueError, match=rf"values: row 0 \(coordinate '{problem.dof_names[0]}'\), column 11 \(the phase of sine wave 3\) is 1e\+200, beyond"):
+        problem.rollout(values, problem.start, 2)
+
+
+def test_a_problem_keeps_the_goals_it_was_built_with():
+    # A goal moved on the scene after construction reached only the executed trajectory's
+    # host loss: a receding run reported success at loss 0 beside a history of 2.48.
+    from warpcontact.scenes import build_scene
+
+    scene = build_scene("push")
+    problem = TaskProblem(scene, settings=TaskSettings(horizon=4, receding_horizon=2, iterations=1, learning_rate=0.1))
+    target = next(i for i, b in enumerate(scene.bodies) if b.target_position is not None)
+    scene.bodies[target].target_position = scene.bodies[target].pose[:3].copy()
+    result = problem.optimize()
+    assert result.final_loss == pytest.approx(problem.rollout(result.values, problem.start, 4, gradient=False)[0], rel=1e-12) and result.final_loss > 0
+
+
+def test_optimize_and_the_bundle_refuse_values_of_another_kind():
+    scene = space_billiards()
+    with pytest.raises(ValueError, match="bundle: expected a BundleSettings, got dict"):
+        TaskProblem(scene, model="gb", bundle={"samples": 2})
+    problem = TaskProblem(scene, settings=TaskSettings(horizon=2, receding_horizon=0, iterations=1, learning_rate=0.1))
+    with pytest.raises(ValueError, match="resume"):  # "no" resumed
+        problem.optimize(checkpoint=None, resume="no")

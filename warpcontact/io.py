@@ -270,6 +270,9 @@ class Scene:
                 raise ValueError(f"{self.source or '<scene>'}: prim {b.path}: {exc}") from None
         index = {b.name: i for i, b in enumerate(self.bodies)}
         for j in self.joints:
+            for role, name in (("child", j.child), ("parent", j.parent)):
+                if name is not None and name not in index:  # a bare KeyError
+                    raise ValueError(f"{self.source or '<scene>'}: prim {j.path}: joint {j.name!r} names {role} body {name!r}, which is not a body of the scene (bodies: {', '.join(index)})")
             if j.kind == "base" and set(j.dofs) & {"rx", "ry", "rz"}:
                 # A base joint turns the body about its centre of mass along world axes through
                 # it, and its translations are the centre's. A D6 anchor elsewhere would turn it
@@ -287,16 +290,21 @@ class Scene:
             options = {"dofs": j.dofs} if j.kind == "base" else {"parent_frame": j.parent_frame, "child_frame": j.child_frame, "axis": j.axes if len(j.axes) and (j.kind != "ball" or j.cone_limit is not None) else None}
             if j.cone_limit is not None:  # a ball joint's axis is its cone's, passed only with one
                 options["cone_limit"] = j.cone_limit
-            if len(j.kp):
-                options.update(kp=j.kp, kd=j.kd)
+            # Each gain as given (none: the builder's 0): a damper without a stiffness lost its
+            # kd here, which a save and load then restored, and a scalar kp raised TypeError.
+            options.update({label: gain for label, gain in (("kp", j.kp), ("kd", j.kd)) if np.size(gain)})
             limits, targets = j.limits, j.targets
             if j.kind == "base":
                 try:
                     start = _base_start_coordinates(j, self.bodies[index[j.child]].pose)
+                    # A base's coordinates start at 0; UsdPhysics' start where its frames put the
+                    # body. The builder's rule for the pairs (one pair served every coordinate
+                    # for the other joints, and crashed here).
+                    if limits is not None:
+                        lower, upper = coordinate_limits(limits, len(start), f"joint {j.name!r}")
+                        limits = np.column_stack((lower - start, upper - start))
                 except ValueError as exc:
                     raise ValueError(f"{self.source or '<scene>'}: prim {j.path}: {exc}") from None
-                # A base's coordinates start at 0; UsdPhysics' start where its frames put the body.
-                limits = None if limits is None else [(low - v, high - v) for (low, high), v in zip(limits, start, strict=True)]
                 targets = None if targets is None else targets - start
             if targets is not None:
                 options["target"] = targets
@@ -2590,8 +2598,9 @@ def _write_warpcontact_body(prim, b: BodySpec, Sdf, Vt):
         prim.CreateAttribute(_NS + "target:position", Sdf.ValueTypeNames.Double3).Set(tuple(map(float, b.target_position)))
         prim.CreateAttribute(_NS + "target:tolerance", Sdf.ValueTypeNames.Double).Set(float(b.target_tolerance))
     if np.any(b.kp_linear) or np.any(b.kd_linear) or b.kp_angular or b.kd_angular:
-        prim.CreateAttribute(_NS + "pd:kpLinear", Sdf.ValueTypeNames.Double3).Set(tuple(map(float, b.kp_linear)))
-        prim.CreateAttribute(_NS + "pd:kdLinear", Sdf.ValueTypeNames.Double3).Set(tuple(map(float, b.kd_linear)))
+        # A scalar gain serves all three axes, as add_body reads it (it raised TypeError here).
+        for name, gain, label in (("pd:kpLinear", b.kp_linear, "kp_linear"), ("pd:kdLinear", b.kd_linear, "kd_linear")):
+            prim.CreateAttribute(_NS + name, Sdf.ValueTypeNames.Double3).Set(tuple(map(float, _per_coordinate(gain, 3, label, f"body {b.name!r}"))))
         prim.CreateAttribute(_NS + "pd:kpAngular", Sdf.ValueTypeNames.Double).Set(float(b.kp_angular))
         prim.CreateAttribute(_NS + "pd:kdAngular", Sdf.ValueTypeNames.Double).Set(float(b.kd_angular))
     if b.control_dofs:

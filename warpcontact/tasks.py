@@ -48,7 +48,7 @@ import numpy as np
 import warp as wp
 
 from ._files import replace_file
-from ._validate import MAX_COORDINATE, MAX_FRAMES, beyond_coordinates, is_positive_finite, is_real, is_whole, real_array
+from ._validate import MAX_COORDINATE, MAX_FRAMES, beyond_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array
 from .bundle import BundleSettings, bundled_gradient
 from .io import TaskSpec, target_problem
 from .kernels import task as task_kernels
@@ -641,6 +641,9 @@ class TaskProblem:
         bundle: gradient-bundle settings of the ``"gb"`` model (default ``BundleSettings()``).
         ipc_stiffness: the ``"ipc"`` model's barrier stiffness, in place of the scene's mu.
 
+    The scene is read here, as ``build_model`` reads it: edits to it afterwards (targets,
+    bodies, settings) are not seen; make a new problem for them.
+
     Raises ValueError for scenes ``validate_task`` rejects, unknown models and a
     non-positive ``ipc_stiffness``.
     """
@@ -660,6 +663,8 @@ class TaskProblem:
         controlled, targets = validate_task(scene)
         if model not in MODELS:
             raise ValueError(f"model: {model!r} is not one of {MODELS}")
+        if bundle is not None and not isinstance(bundle, BundleSettings):  # a dict failed later, naming 'sigmas'
+            raise ValueError(f"bundle: expected a BundleSettings, got {type(bundle).__name__}")
         if bundle is not None and model != "gb":
             raise ValueError(f"bundle: only the gb model uses bundle settings, not {model!r}")
         if model in _BASELINE_CONTACT_MODE:
@@ -707,8 +712,13 @@ class TaskProblem:
             self.base_pose = self.model.initial_q[self.body].copy()
             self._dof_codes = wp.array([task_kernels.DOF_CODES[_coordinate(d, scene.up_axis)] for d in self.dof_names], dtype=wp.int32, device=device)
         self._target_body = wp.array(targets, dtype=wp.int32, device=device)
-        self._target_position = wp.array([scene.bodies[i].target_position for i in targets], dtype=wp.vec3d, device=device)
-        self._target_tolerance = wp.array([scene.bodies[i].target_tolerance for i in targets], dtype=wp.float64, device=device)
+        # Copies, as of construction, for the rollouts' loss kernel and the host's _loss_at: a
+        # goal moved on the scene afterwards reached only the host's, and a run reported
+        # success at loss 0 beside a history of 2.48 (a probe).
+        self._target_position_host = np.array([scene.bodies[i].target_position for i in targets], dtype=np.float64).reshape(-1, 3)
+        self._target_tolerance_host = np.array([scene.bodies[i].target_tolerance for i in targets], dtype=np.float64)
+        self._target_position = wp.array(self._target_position_host, dtype=wp.vec3d, device=device)
+        self._target_tolerance = wp.array(self._target_tolerance_host, dtype=wp.float64, device=device)
         self.targets = targets
         self._check_settings()
 
@@ -762,6 +772,15 @@ class TaskProblem:
         values[:, 1::3] = 2 * np.pi * np.arange(1, SINE_WAVES + 1)
         return values
 
+    def _value_name(self, row: int, column: int) -> str:
+        """What entry (row, column) of ``rollout``'s values is: a dof's value at a frame, or
+        (joint_sine, whose rows are the coordinates) a coordinate's wave parameter; a
+        joint_sine error named the dof of its column, and past the last one raised IndexError."""
+        if self.kind == "joint_sine":
+            wave, parameter = divmod(column, 3)
+            return f"row {row} (coordinate {self.dof_names[row]!r}), column {column} (the {('amplitude', 'frequency', 'phase')[parameter]} of sine wave {wave})"
+        return f"row {row}, dof {self.dof_names[column]!r}"
+
     def rollout(self, values: np.ndarray, start: tuple, frames: int, *, gradient: bool = True, timings: dict | None = None):
         """Simulate ``frames`` frames from ``start`` = (q, q_prev), each (nbodies, 7), under ``values``.
 
@@ -796,11 +815,11 @@ class TaskProblem:
         bad = np.argwhere(~np.isfinite(values))
         if bad.size:  # an initial state's NaN was blamed on the scene's finite velocities
             row, column = (int(i) for i in bad[0])
-            raise ValueError(f"values: row {row}, dof {self.dof_names[column]!r} is {float(values[row, column])!r}; decision variables must be finite")
+            raise ValueError(f"values: {self._value_name(row, column)} is {float(values[row, column])!r}; decision variables must be finite")
         far = beyond_coordinates(values)
         if far is not None:  # 1e200 was blamed on control.body_target, an array the caller never sees
             row, column = far
-            raise ValueError(f"values: row {row}, dof {self.dof_names[column]!r} is {float(values[row, column])!r}, beyond the +-{MAX_COORDINATE:g} that the simulation's coordinates represent")
+            raise ValueError(f"values: {self._value_name(row, column)} is {float(values[row, column])!r}, beyond the +-{MAX_COORDINATE:g} that the simulation's coordinates represent")
         start_state = self._state(*start)
         if self.kind == "initial_state" and not np.array_equal(np.asarray(start[0], dtype=np.float64)[self.body], self.base_pose):
             # The control places its body at the scene's pose plus its offsets: another pose
@@ -892,6 +911,8 @@ class TaskProblem:
                 be resumed instead of run again).
         """
         self._check_settings()
+        # resume="no" resumed (a probe).
+        resume, keep_checkpoint = checked_flag(resume, "resume"), checked_flag(keep_checkpoint, "keep_checkpoint")
         store = None if checkpoint is None else TaskCheckpoint(checkpoint)
         if store is None and resume:
             raise ValueError("resume: needs the checkpoint to resume from")
@@ -1111,7 +1132,6 @@ class TaskProblem:
 
     def _loss_at(self, q: np.ndarray) -> float:
         total = 0.0
-        for i in self.targets:
-            b = self.scene.bodies[i]
-            total += max(float(np.sum((q[i, :3] - b.target_position) ** 2)) - b.target_tolerance**2, 0.0)
+        for i, position, tolerance in zip(self.targets, self._target_position_host, self._target_tolerance_host):
+            total += max(float(np.sum((q[i, :3] - position) ** 2)) - float(tolerance) ** 2, 0.0)
         return total
