@@ -186,17 +186,17 @@ def _ray_windings(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray
     crossings of a ray from each point towards +z, and the points whose count rounding could
     decide (a crossing within ``_RAY_SLACK`` of an edge, a vertex or the point itself), which
     ``winding_numbers`` must settle. A grid over the xy-plane lists each triangle under the
-    cells its projection's bounding box covers, so a point meets only the triangles above and
-    below its cell: all of them (``winding_numbers``, points x triangles) took minutes for a
-    hollow ball of 40,960 faces."""
+    cells its projection's bounding box covers, so a point meets only the triangles listed in
+    its cell: all of them (``winding_numbers``, points x triangles) took minutes for a hollow
+    ball of 40,960 faces. Points go in batches of at most ``_WINDING_BATCH`` (point, triangle)
+    pairs; a grid that large (triangles spanning most of it) leaves every point unsure."""
     n = len(points)
     windings, unsure = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=bool)
     if not n or not len(triangles):
         return windings, unsure
     low, high = triangles.min(axis=1), triangles.max(axis=1)
     origin = low.min(axis=0)
-    extent = float(np.max(high.max(axis=0) - origin))
-    slack = _RAY_SLACK * extent
+    slack = _RAY_SLACK * float(np.max(high.max(axis=0) - origin))
     cells = max(1, int(np.sqrt(len(triangles))))
     size = (high.max(axis=0) - origin)[:2] / cells
     size = np.where(size > 0, size, 1.0)
@@ -204,25 +204,41 @@ def _ray_windings(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray
     def cell(xy):
         return np.clip(((xy - origin[:2]) / size).astype(np.int64), 0, cells - 1)
 
+    def spread(counts):
+        """Each entry's index within its group of ``counts``."""
+        return np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+
     first, last = cell(low[:, :2] - slack), cell(high[:, :2] + slack)
     span = last - first + 1
     count = span[:, 0] * span[:, 1]
+    if count.sum() > _WINDING_BATCH:
+        unsure[:] = True
+        return windings, unsure
     owner = np.repeat(np.arange(len(triangles)), count)
-    offset = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    ix = first[owner, 0] + offset % span[owner, 0]
-    iy = first[owner, 1] + offset // span[owner, 0]
-    key = ix * cells + iy
+    offset = spread(count)
+    key = (first[owner, 0] + offset % span[owner, 0]) * cells + first[owner, 1] + offset // span[owner, 0]
     order = np.argsort(key, kind="stable")
     listed, key = owner[order], key[order]
     starts = np.searchsorted(key, np.arange(cells * cells))
-    ends = np.searchsorted(key, np.arange(cells * cells), side="right")
     probe_cell = cell(points[:, :2])
     pk = probe_cell[:, 0] * cells + probe_cell[:, 1]
-    per = ends[pk] - starts[pk]
-    probe = np.repeat(np.arange(n), per)
-    tri = listed[np.repeat(starts[pk], per) + np.arange(per.sum()) - np.repeat(np.cumsum(per) - per, per)]
-    a, b, c = (triangles[tri, k] for k in range(3))
-    p = points[probe]
+    per = np.searchsorted(key, np.arange(cells * cells), side="right")[pk] - starts[pk]
+    bounds = np.searchsorted(np.cumsum(per), np.arange(0, per.sum(), _WINDING_BATCH), side="right")
+    for lo, hi in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [n]])):
+        if hi <= lo:
+            continue
+        probe = np.repeat(np.arange(lo, hi), per[lo:hi])
+        tri = listed[np.repeat(starts[pk[lo:hi]], per[lo:hi]) + spread(per[lo:hi])]
+        counted, doubtful = _ray_crossings(points[probe], triangles[tri], slack)
+        np.add.at(windings, probe, counted)
+        unsure[probe[doubtful]] = True
+    return windings, unsure
+
+
+def _ray_crossings(p: np.ndarray, triangles: np.ndarray, slack: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per (point, triangle) pair: the signed crossing (+1 out through an outward face, -1 in,
+    0 none) of the ray from the point towards +z, and whether rounding could decide it."""
+    a, b, c = (triangles[:, k] for k in range(3))
     area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
     edge = np.linalg.norm(np.stack([b - a, c - b, a - c], axis=1), axis=2).max(axis=1)
     flat = np.abs(area) <= _RAY_SLACK * edge * edge  # seen edge-on from the ray
@@ -231,19 +247,14 @@ def _ray_windings(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray
         v = ((c[:, 0] - p[:, 0]) * (a[:, 1] - p[:, 1]) - (c[:, 1] - p[:, 1]) * (a[:, 0] - p[:, 0])) / area
         w = 1.0 - u - v
         height = u * a[:, 2] + v * b[:, 2] + w * c[:, 2]
-    margin = _RAY_SLACK
-    inside = ~flat & (u > margin) & (v > margin) & (w > margin)
-    near_edge = ~flat & ~inside & (u > -margin) & (v > -margin) & (w > -margin)
+    inside = ~flat & (u > _RAY_SLACK) & (v > _RAY_SLACK) & (w > _RAY_SLACK)
+    near_edge = ~flat & ~inside & (u > -_RAY_SLACK) & (v > -_RAY_SLACK) & (w > -_RAY_SLACK)
     above = inside & (height > p[:, 2] + slack)
     level = inside & (np.abs(height - p[:, 2]) <= slack)
-    # A flat triangle the ray runs along counts nothing unless the ray lies in its plane's
-    # rounding: then the neighbours' crossings are not to be trusted either.
-    along = flat & (np.minimum(np.minimum(a[:, 0], b[:, 0]), c[:, 0]) - slack <= p[:, 0]) & (p[:, 0] <= np.maximum(np.maximum(a[:, 0], b[:, 0]), c[:, 0]) + slack) & (
-        np.minimum(np.minimum(a[:, 1], b[:, 1]), c[:, 1]) - slack <= p[:, 1]
-    ) & (p[:, 1] <= np.maximum(np.maximum(a[:, 1], b[:, 1]), c[:, 1]) + slack)
-    np.add.at(windings, probe[above], np.sign(area[above]).astype(np.int64))
-    unsure[probe[near_edge | level | along]] = True
-    return windings, unsure
+    # A triangle seen edge-on counts nothing, unless the ray may run in its plane: then its
+    # neighbours' crossings are not to be trusted either.
+    along = flat & np.all((triangles[:, :, :2].min(axis=1) - slack <= p[:, :2]) & (p[:, :2] <= triangles[:, :, :2].max(axis=1) + slack), axis=1)
+    return np.where(above, np.sign(area), 0.0).astype(np.int64), near_edge | level | along
 
 
 def _pieces(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
