@@ -204,3 +204,24 @@ def test_ctrl_c_while_ipctk_initialises_is_an_interrupt_not_a_missing_toolkit(mo
     monkeypatch.setitem(sys.modules, "ipctk", None)  # not installed: still the clear error
     with pytest.raises(ValueError, match=r"the ipc baseline needs the IPC Toolkit"):
         IpcContactModel([icosphere(0)] * 2)
+
+
+def test_ipc_bodies_pressed_closer_than_rounding_of_a_step_are_pushed_apart():
+    """One distance for every pair (the global least) kept the solver's check of pressed pairs
+    off for ipc: a box started 1e-12 m from another, pushed by 5e10 N, "converged" at its first
+    step and never moved (1e-11 m: "no convergence"). Close pairs now get their own distances."""
+    import warpcontact as wc
+
+    for gap in (1e-11, 1e-12):
+        b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e5, contact_mode="ipc")
+        b.add_box((0.3, 0.3, 0.3), density=100.0, name="left", pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+        b.add_box((0.3, 0.3, 0.3), density=100.0, name="right", pose=(0.3 + gap, 0.02, 0.0, 0.0, 0.0, 0.0, 1.0))
+        b.add_box((0.3, 0.3, 0.3), density=100.0, name="far", pose=(5.0, 0.02, 0.0, 0.0, 0.0, 0.0, 1.0))
+        model = b.finalize()
+        separation = model.contact.evaluate(model.initial_q).pair_separation
+        pairs = [tuple(p) for p in model.contact.body_pairs]
+        assert separation[pairs.index((0, 1))] == pytest.approx(gap, rel=1e-3) and separation[pairs.index((0, 2))] == model.contact.dhat
+        solver, states = wc.ImplicitSolver(model), [model.state() for _ in range(3)]
+        for t in range(2):
+            solver.step(states[t], states[t + 1], None, 0.02)
+        assert states[-1].body_q.numpy()[1, 0] - 0.3 > 1e-3  # pushed apart, as bsh does

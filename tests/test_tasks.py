@@ -509,6 +509,18 @@ def test_cli_run_accepts_baselines_and_seed(tmp_path):
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["model"] == "gb" and metrics["seed"] == 5
     assert metrics["bundle"] == {"samples": 4, "initial_sigma": None, "final_sigma": None, "seed": 5}
+    # One iteration draws no bundle: the counts were missing, not 0 (a probe, stop 58); and the
+    # contact mode run is recorded (gb: sdrs; "ours" runs the scene's own).
+    assert metrics["bundle_samples"] == metrics["bundle_samples_dropped"] == 0 and metrics["contact_mode"] == "sdrs"
+    assert main(["run", str(scene_path), "--iters", "1", "--out", str(tmp_path / "ours")]) == 0
+    assert json.loads((tmp_path / "ours" / "metrics.json").read_text())["contact_mode"] == "bsh"
+
+
+def test_ipc_stiffness_is_checked_by_name_for_every_model():
+    # 1e200 was named as contact_stiffness, and -1 passed for the models that do not use it.
+    for model, value in (("ipc", 1e200), ("sdrs", -1.0), ("ours", float("nan"))):
+        with pytest.raises(ValueError, match=r"^ipc_stiffness: must"):
+            TaskProblem(space_billiards(), model=model, ipc_stiffness=value)
 
 
 def test_cli_compare_writes_json_and_plot(tmp_path, capsys):

@@ -277,6 +277,8 @@ def _loss_text(loss) -> str:
 
 
 def _result_metrics(result) -> dict:
+    """A descent's results; its callers add the contact mode it ran ("ours" runs the scene's
+    own, which a scene may set to sdrs or ipc: the outputs did not say)."""
     return {
         **result.extra,  # first: the run's own results are never written over
         "loss_history": result.loss_history,
@@ -352,6 +354,7 @@ def _run(args) -> int:
         "init_samples": settings.initial_samples,
         **_settings_metrics(settings, args, [args.model]),
         **_result_metrics(result),
+        "contact_mode": problem.scene.settings.contact_mode,
     }
     # The checkpoint goes only once the results are written: an interrupted or failed
     # write is resumed (the finished descent replays its last state), not run again.
@@ -418,7 +421,7 @@ def _compare(args) -> int:
             results[model] = {"error": str(exc)}
         else:
             print()
-            results[model] = _result_metrics(result)
+            results[model] = {**_result_metrics(result), "contact_mode": problem.scene.settings.contact_mode}
         # Rewritten after every model, so an interrupted comparison keeps the finished ones.
         replace_json(out / "compare.json", payload)
     if not results:

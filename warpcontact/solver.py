@@ -437,7 +437,7 @@ class ImplicitSolver:
                 raise ValueError(f"model.{name}: expected a wp.array (as finalize makes it), got {_described(getattr(model, name))}")
         self._model_array_layout = {name: (getattr(model, name).dtype, getattr(model, name).shape) for name in _CHECKED_MODEL_ARRAYS}
         # The body pairs whose separation bounds cap a converged step (``_pressed``).
-        self._pair_bodies = np.asarray(model.contact.body_pairs).reshape(-1, 2) if isinstance(model.contact, ContactModel) else None
+        self._pair_bodies = np.asarray(model.contact.body_pairs).reshape(-1, 2)
         # Per body, tr of its second moment per unit mass (m^2): the size of the rotational
         # inertia term, which L computes as a difference of such terms (``_solve``); read with
         # the other parameters at every step (``_checked_model_parameters``).
@@ -559,11 +559,8 @@ class ImplicitSolver:
     def _pressed(self, travel: np.ndarray, evaluation, rounding_length: float) -> bool:
         """Whether a body's step ``travel`` (m) exceeds _CONVERGED_GAP_FRACTION of the
         separation bound of its closest pair at ``evaluation`` (and the coordinates'
-        ``rounding_length``); never for a contact model without per-pair bounds (ipc's one
-        distance also counts static pairs, which would hold every body to their gap). Asked
-        only of steps short enough to converge otherwise."""
-        if self._pair_bodies is None:
-            return False
+        ``rounding_length``; ipc's per pair where it matters, ``ipc.PAIR_DISTANCE_FRACTION``).
+        Asked only of steps short enough to converge otherwise."""
         a, b = self._pair_bodies.T
         limit = np.maximum(_CONVERGED_GAP_FRACTION * evaluation.pair_separation, rounding_length)
         return bool(np.any((travel[a] > limit) | (travel[b] > limit)))

@@ -49,6 +49,7 @@ import warp as wp
 
 from ._files import replace_file
 from ._validate import MAX_COORDINATE, MAX_FRAMES, beyond_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array
+from .builder import contact_setting_problem
 from .bundle import BundleSettings, bundled_gradient
 from .io import TaskSpec, target_problem
 from .kernels import task as task_kernels
@@ -644,8 +645,8 @@ class TaskProblem:
     The scene is read here, as ``build_model`` reads it: edits to it afterwards (targets,
     bodies, settings) are not seen; make a new problem for them.
 
-    Raises ValueError for scenes ``validate_task`` rejects, unknown models and a
-    non-positive ``ipc_stiffness``.
+    Raises ValueError for scenes ``validate_task`` rejects, unknown models and an
+    ``ipc_stiffness`` out of a contact stiffness's range (whatever the model).
     """
 
     def __init__(
@@ -667,11 +668,14 @@ class TaskProblem:
             raise ValueError(f"bundle: expected a BundleSettings, got {type(bundle).__name__}")
         if bundle is not None and model != "gb":
             raise ValueError(f"bundle: only the gb model uses bundle settings, not {model!r}")
+        # By the builder's rule for a stiffness, named, whatever the model: 1e200 was named as
+        # contact_stiffness, and -1 passed for the other models (a probe, stop 58).
+        problem = contact_setting_problem("contact_stiffness", ipc_stiffness)
+        if problem is not None:
+            raise ValueError(f"ipc_stiffness: {problem}, got {ipc_stiffness!r}")
         if model in _BASELINE_CONTACT_MODE:
             overrides = {"contact_mode": _BASELINE_CONTACT_MODE[model]}
             if model == "ipc":
-                if not is_positive_finite(ipc_stiffness):
-                    raise ValueError(f"ipc_stiffness: must be positive and finite, got {ipc_stiffness!r}")
                 overrides["contact_stiffness"] = ipc_stiffness
             scene = dataclasses.replace(scene, settings=dataclasses.replace(scene.settings, **overrides))
         self.scene = scene
@@ -931,7 +935,8 @@ class TaskProblem:
             if saved["rng"] is None:
                 raise ValueError(f"{store.path}: not a readable checkpoint (its rng is None, and the gb bundle needs its generator's state)")
             rng.bit_generator.state = saved["rng"]
-        extra = saved["extra"] if saved else ({"bundle": dataclasses.asdict(self.bundle)} if self.bundle else {})
+        # gb's sample counts from the start: a run that drew no bundle (--iters 1) wrote none.
+        extra = saved["extra"] if saved else ({"bundle": dataclasses.asdict(self.bundle), "bundle_samples": 0, "bundle_samples_dropped": 0} if self.bundle else {})
         if saved and self.bundle is not None and "bundle_samples" not in extra:
             # A checkpoint from before the sample counts: they start at this resume.
             extra["bundle_samples_counted_since_resume"] = True
