@@ -1407,6 +1407,8 @@ def test_an_animated_body_attribute_is_refused(tmp_path):
     ):
         path = write_physics_scene(tmp_path / f"{name.replace(':', '_')}.usda")
         stage = Usd.Stage.Open(str(path))
+        if name == "physics:mass":  # read only under MassAPI (without it: refused since stop 58)
+            UsdPhysics.MassAPI.Apply(stage.GetPrimAtPath("/World/box"))
         attr = stage.GetPrimAtPath("/World/box").CreateAttribute(name, type_name, custom=name.startswith("warpcontact"))
         attr.Set(default)
         stage.GetRootLayer().Save()
@@ -2021,6 +2023,8 @@ def test_a_value_authored_only_as_time_samples_is_refused(tmp_path, prim, attrib
     default density's 125 kg, a sampled velocity none, a sampled Cube size the fallback 2 m."""
     path = write_physics_scene(tmp_path / "sampled.usda")
     stage = Usd.Stage.Open(str(path))
+    if attribute == "physics:mass":  # read only under MassAPI (without it: refused since stop 58)
+        UsdPhysics.MassAPI.Apply(stage.GetPrimAtPath(prim))
     attr = stage.GetPrimAtPath(prim).GetAttribute(attribute) or stage.GetPrimAtPath(prim).CreateAttribute(attribute, kind)
     attr.Clear()
     attr.Set(value, 0.0)
@@ -2645,3 +2649,64 @@ def test_save_scene_writes_a_scalar_linear_gain_for_every_axis(tmp_path):
     loaded = io.load_scene(tmp_path / "kp.usda").build_model()
     assert loaded.body_kp_linear.numpy().tolist() == scene.build_model().body_kp_linear.numpy().tolist() == [[400.0] * 3]
     assert loaded.body_kd_linear.numpy().tolist() == [[60.0] * 3]
+
+
+def _box_stage(path, *, parent_rotation=None):
+    """A stage with a ground cube and a rigid body /World/box (or /World/rig/box under a
+    rotated Xform) with a 0.5 m Cube collider; returns (stage, box prim)."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, "Z")
+    UsdPhysics.Scene.Define(stage, "/World/physicsScene")
+    ground = UsdGeom.Cube.Define(stage, "/World/ground")
+    ground.CreateSizeAttr(1.0)
+    ground.AddTranslateOp().Set(Gf.Vec3d(0, 0, -0.5))
+    ground.AddScaleOp().Set(Gf.Vec3f(10, 10, 1))
+    UsdPhysics.CollisionAPI.Apply(ground.GetPrim())
+    if parent_rotation is None:
+        box = UsdGeom.Xform.Define(stage, "/World/box")
+        box.AddTranslateOp().Set(Gf.Vec3d(0, 0, 0.3))
+    else:
+        rig = UsdGeom.Xform.Define(stage, "/World/rig")
+        rig.AddRotateXYZOp().Set(Gf.Vec3f(*parent_rotation))
+        world = Gf.Matrix4d(1.0).SetTranslateOnly(Gf.Vec3d(0, 0, 0.3))
+        box = UsdGeom.Xform.Define(stage, "/World/rig/box")
+        box.AddTransformOp().Set(world * rig.ComputeLocalToWorldTransform(Usd.TimeCode.Default()).GetInverse())
+    UsdPhysics.RigidBodyAPI.Apply(box.GetPrim())
+    collider = UsdGeom.Cube.Define(stage, str(box.GetPrim().GetPath()) + "/geo/collider")
+    collider.CreateSizeAttr(0.5)
+    UsdPhysics.CollisionAPI.Apply(collider.GetPrim())
+    return stage, box.GetPrim()
+
+
+def test_mass_and_velocity_attributes_that_usd_physics_would_not_read_are_refused(tmp_path):
+    """Mass attributes without MassAPI applied, MassAPI on a grouping Xform, and a velocity on a
+    prim that is no body were ignored: the box weighed the default density's 125 kg for an
+    authored 7 kg, silently (a probe, stop 58)."""
+    stage, box = _box_stage(tmp_path / "noapi.usda")
+    box.CreateAttribute("physics:mass", Sdf.ValueTypeNames.Float).Set(7.0)
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/box: physics:mass authored without PhysicsMassAPI applied"):
+        io.load_scene(tmp_path / "noapi.usda")
+    stage, box = _box_stage(tmp_path / "group.usda")
+    UsdPhysics.MassAPI.Apply(stage.GetPrimAtPath("/World/box/geo")).CreateMassAttr(7.0)
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/box/geo: PhysicsMassAPI on a prim that is neither a rigid body nor a collider is not read"):
+        io.load_scene(tmp_path / "group.usda")
+    stage, box = _box_stage(tmp_path / "velocity.usda")
+    stage.GetPrimAtPath("/World/ground").CreateAttribute("physics:velocity", Sdf.ValueTypeNames.Vector3f).Set(Gf.Vec3f(3, 0, 0))
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"prim /World/ground: physics:velocity authored on a prim without PhysicsRigidBodyAPI"):
+        io.load_scene(tmp_path / "velocity.usda")
+    stage, box = _box_stage(tmp_path / "applied.usda")
+    UsdPhysics.MassAPI.Apply(box).CreateMassAttr(7.0)
+    stage.GetRootLayer().Save()
+    assert io.load_scene(tmp_path / "applied.usda").build_model().body_mass.numpy()[1] == pytest.approx(7.0)
+
+
+def test_a_matrix_op_within_rounding_of_affine_loads_where_usd_draws_it(tmp_path):
+    # world * parent^-1 (a reparented prim keeping its world pose) leaves 1 - 2e-16 in the last
+    # column: the stage was refused as "not an affine transform".
+    stage, box = _box_stage(tmp_path / "rig.usda", parent_rotation=(30, 40, 50))
+    stage.GetRootLayer().Save()
+    np.testing.assert_allclose(io.load_scene(tmp_path / "rig.usda").body("box").pose, [0, 0, 0.3, 0, 0, 0, 1], atol=1e-12)

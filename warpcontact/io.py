@@ -722,6 +722,8 @@ def _align_axis(mesh, axis: str):
 # norm 0.99979), and files write quaternions rounded to 4 or 5 decimals ((0.7071, 0, 0,
 # 0.7071), norm 0.99999; a review found them refused at the 1e-6 of localRot0/1).
 _ORIENT_NORM_TOLERANCE = 1e-3
+# A matrix op's last column may differ from (0, 0, 0, 1) by this much (rounding).
+_AFFINE_COLUMN_TOLERANCE = 1e-12
 # A transform whose smallest singular value is this fraction of its largest or less flattens
 # what it places: a collider under a scale of (1, 1, 0) was refused as a mesh of repeated
 # triangles, a Cube as an open mesh, and one under (1e-12, 1, 1) for its inertia.
@@ -748,7 +750,9 @@ def _world_matrix(prim, UsdGeom, Usd, source: str):
             norm = float(np.linalg.norm(numbers))
             if not abs(norm - 1.0) <= _ORIENT_NORM_TOLERANCE:
                 raise ValueError(f"{source}: prim {prim.GetPath()}: {attr.GetPath()} must be a unit quaternion, got {value} (norm {norm:.9g})")
-        if numbers.shape == (4, 4) and not np.array_equal(numbers[:, 3], [0.0, 0.0, 0.0, 1.0]):
+        # Within rounding of (0, 0, 0, 1): a matrix made by multiplying by an inverse (keeping
+        # a reparented prim's world pose) carries 1 - 2e-16 there, which USD draws 2e-16 away.
+        if numbers.shape == (4, 4) and not np.abs(numbers[:, 3] - [0.0, 0.0, 0.0, 1.0]).max() <= _AFFINE_COLUMN_TOLERANCE:
             raise ValueError(f"{source}: prim {prim.GetPath()}: {attr.GetPath()} is not an affine transform (its last column must be 0, 0, 0, 1), got {value}")
     matrix = UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(Usd.TimeCode.Default())
     if np.isfinite(np.array(matrix)).all():
@@ -1096,6 +1100,7 @@ def load_scene(path) -> Scene:
     descs = {str(k): list(zip(v[0], v[1])) for k, v in parsed.items()}
     _refuse_collision_filters(stage, UsdPhysics, Usd, source)
     _refuse_point_instanced_physics(stage, UsdGeom, UsdPhysics, Usd, source)
+    _refuse_unread_mass_and_velocity(stage, UsdPhysics, Usd, source)
     for kind in ("DistanceJoint", "CustomJoint"):
         for prim_path, _ in descs.get(kind, []):
             raise ValueError(f"{source}: prim {prim_path}: {kind} is not supported (supported: revolute, prismatic, spherical and D6 joints, and fixed joints to the world)")
@@ -1920,6 +1925,36 @@ def _warn_foreign_layer_units(stage, stage_units: dict, source: str) -> None:
                     "USD does not convert between them, so its prims are read in the stage's (scale or turn the prim that references it)",
                     stacklevel=3,
                 )
+
+
+# MassAPI's and RigidBodyAPI's attributes, which UsdPhysics reads only with the API applied.
+_MASS_API_ATTRIBUTES = ("physics:mass", "physics:density", "physics:centerOfMass", "physics:diagonalInertia", "physics:principalAxes")
+_RIGID_BODY_VELOCITIES = ("physics:velocity", "physics:angularVelocity")
+
+
+def _refuse_unread_mass_and_velocity(stage, UsdPhysics, Usd, source: str) -> None:
+    """MassAPI's attributes authored on a prim without the API, MassAPI on a prim that is
+    neither a rigid body nor a collider, and a velocity on a prim that is no rigid body are
+    refused, naming the prim: UsdPhysics reads none of them, and a body took its mass from the
+    default density (125 kg for an authored 7 kg, its centre of mass at the box's centre; a
+    probe at stop 58)."""
+    for prim in _all_prims(stage, Usd):
+        declared = set(prim.GetPrimDefinition().GetPropertyNames())
+
+        def unread(names):
+            # Authored, and declared by none of the prim's schemas (a physics material's own
+            # physics:density is read as the material's).
+            return [name for name in names if name not in declared and prim.GetAttribute(name) and prim.GetAttribute(name).HasAuthoredValue()]
+
+        body = prim.HasAPI(UsdPhysics.RigidBodyAPI)
+        mass = unread(_MASS_API_ATTRIBUTES)
+        if mass:
+            raise ValueError(f"{source}: prim {prim.GetPath()}: {', '.join(mass)} authored without PhysicsMassAPI applied, which UsdPhysics does not read; apply it (prepend apiSchemas = [\"PhysicsMassAPI\"]) or remove them")
+        if prim.HasAPI(UsdPhysics.MassAPI) and not (body or prim.HasAPI(UsdPhysics.CollisionAPI)):
+            raise ValueError(f"{source}: prim {prim.GetPath()}: PhysicsMassAPI on a prim that is neither a rigid body nor a collider is not read; move it to the body or to its collider")
+        velocity = unread(_RIGID_BODY_VELOCITIES)
+        if velocity:
+            raise ValueError(f"{source}: prim {prim.GetPath()}: {', '.join(velocity)} authored on a prim without PhysicsRigidBodyAPI, which UsdPhysics does not read; apply it to make the prim a body, or remove them")
 
 
 def _refuse_collision_filters(stage, UsdPhysics, Usd, source: str) -> None:
