@@ -1939,20 +1939,17 @@ def _refuse_unread_mass_and_velocity(stage, UsdPhysics, Usd, source: str) -> Non
     default density (125 kg for an authored 7 kg, its centre of mass at the box's centre; a
     probe at stop 58)."""
     for prim in _all_prims(stage, Usd):
-        declared = set(prim.GetPrimDefinition().GetPropertyNames())
-
-        def unread(names):
-            # Authored, and declared by none of the prim's schemas (a physics material's own
-            # physics:density is read as the material's).
-            return [name for name in names if name not in declared and prim.GetAttribute(name) and prim.GetAttribute(name).HasAuthoredValue()]
-
+        authored = [name for name in _MASS_API_ATTRIBUTES + _RIGID_BODY_VELOCITIES if prim.HasAttribute(name) and prim.GetAttribute(name).HasAuthoredValue()]
+        # Declared by none of the prim's schemas (a physics material's own physics:density is
+        # read as the material's).
+        declared = set(prim.GetPrimDefinition().GetPropertyNames()) if authored else set()
         body = prim.HasAPI(UsdPhysics.RigidBodyAPI)
-        mass = unread(_MASS_API_ATTRIBUTES)
+        mass = [name for name in authored if name in _MASS_API_ATTRIBUTES and name not in declared]
         if mass:
             raise ValueError(f"{source}: prim {prim.GetPath()}: {', '.join(mass)} authored without PhysicsMassAPI applied, which UsdPhysics does not read; apply it (prepend apiSchemas = [\"PhysicsMassAPI\"]) or remove them")
         if prim.HasAPI(UsdPhysics.MassAPI) and not (body or prim.HasAPI(UsdPhysics.CollisionAPI)):
             raise ValueError(f"{source}: prim {prim.GetPath()}: PhysicsMassAPI on a prim that is neither a rigid body nor a collider is not read; move it to the body or to its collider")
-        velocity = unread(_RIGID_BODY_VELOCITIES)
+        velocity = [name for name in authored if name in _RIGID_BODY_VELOCITIES and name not in declared]
         if velocity:
             raise ValueError(f"{source}: prim {prim.GetPath()}: {', '.join(velocity)} authored on a prim without PhysicsRigidBodyAPI, which UsdPhysics does not read; apply it to make the prim a body, or remove them")
 
