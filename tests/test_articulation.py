@@ -1380,3 +1380,24 @@ def test_ant_position_is_checked(position):
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
     with pytest.raises(ValueError, match=r"ant: position must be 2 finite numbers \(x, y; the feet stand at ground_height\)"):
         add_ant(b, position=position)
+
+
+def test_a_ball_joint_stalled_on_its_cone_is_not_blamed_on_a_contact():
+    """A stiff drive holding a ball joint on its cone's rim (a twist in its target) stalls
+    Newton (docs/architecture.md, "Measured"); the error blamed a pressed contact, with one
+    body and no contact, and told to start the bodies farther apart (a probe, stop 58)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    rod = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, -0.5, 0, 0, 0, 1), name="rod")
+    b.add_joint("ball", child=rod, anchor=(0, 0, 0), axis=(0, 0, 1), cone_limit=0.3, kp=3e3, kd=0.0, name="shoulder")
+    model = b.finalize()
+    art = model.articulation
+    q = art.retract(model.initial_q, np.array([0.1, 0.0, 0.0]))
+    state = model.state(requires_grad=False)
+    state.body_q.assign(q)
+    state.body_q_prev.assign(q)
+    control = model.control(requires_grad=False)
+    axis = np.array([1.0, 0.3, 0.2]) / np.linalg.norm([1.0, 0.3, 0.2])
+    control.ball_target.assign(wc.rotation.quat_mul(art.initial_ball_rotations, wc.rotation.quat_from_rotation_vector(2.5 * axis)))
+    with pytest.raises(wc.SolverError, match=r"a barrier pressed this close \(a joint's limit or cone, or a contact\)") as raised:
+        wc.ImplicitSolver(model, max_iterations=300).step(state, model.state(requires_grad=False), control, 0.01)
+    assert "farther apart" not in str(raised.value)

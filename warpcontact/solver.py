@@ -1432,11 +1432,19 @@ class ImplicitSolver:
         if hidden or pressed:
             values = np.abs(np.linalg.eigvalsh(hess)) if np.isfinite(hess).all() else np.array([np.nan])
             hidden_move = f"; eigenvalues floored at 1e-10 of the largest hid a move of {hidden:.1e} m" if hidden else ""
-            hint += (
-                f"; the Newton system's eigenvalue magnitudes span {values.min():.1e} .. {values.max():.1e}{hidden_move}: {pressed or 'contact'} "
-                "pressed this close is far stiffer than the bodies' inertia, beyond what float64 resolves; start the bodies farther apart, "
-                f"or, where their weight presses them this close, raise the contact stiffness ({PRESSED_GAP_HINT})"
-            )
+            span = f"; the Newton system's eigenvalue magnitudes span {values.min():.1e} .. {values.max():.1e}{hidden_move}: "
+            if pressed:
+                hint += (
+                    f"{span}{pressed} pressed this close is far stiffer than the bodies' inertia, beyond what float64 resolves; start the bodies farther apart, "
+                    f"or, where their weight presses them this close, raise the contact stiffness ({PRESSED_GAP_HINT})"
+                )
+            else:
+                # No pair is pressed: it blamed a contact where a drive held a ball joint on
+                # its cone's rim (a probe, stop 58).
+                hint += (
+                    f"{span}a barrier pressed this close (a joint's limit or cone, or a contact) is far stiffer than the bodies' inertia, beyond what "
+                    "float64 resolves; soften the drive or force that presses against it, or damp it (a drive's kd helps Newton along a cone's rim)"
+                )
         if unsolved.failed:
             pairs = ", ".join(f"{a} and {b}" for a, b in unsolved.pairs)
             hint += f"; {unsolved.failed} of {unsolved.trials} trial poses had unsolved leaf pairs (last: {pairs}): {UNSOLVED_HINT}"
