@@ -182,6 +182,27 @@ def test_bench_frame_writes_results_and_plot(tmp_path):
     assert (tmp_path / "frame.png").stat().st_size > 1000
 
 
+def test_a_bench_interrupted_between_its_json_and_csv_writes_both(tmp_path, monkeypatch, capsys):
+    # Ctrl-C right after a row's JSON left the CSV a row short (a probe, stop 58).
+    import os
+    import signal
+
+    from warpcontact import bench
+
+    real, calls = bench.replace_json, []
+
+    def interrupted_after(path, payload):
+        real(path, payload)
+        calls.append(1)
+        if len(calls) == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(bench, "replace_json", interrupted_after)
+    assert main(["bench", "scaling", "--points", "4", "5", "8", "--repeats", "1", "--brute-max-triangles", "0", "--out", str(tmp_path)]) == 130
+    rows = json.loads((tmp_path / "scaling.json").read_text())["rows"]
+    assert len(rows) == 2 and _csv_rows(tmp_path / "scaling.csv") == 2
+
+
 def test_bench_frame_first_frame_counts_what_a_frame_counts(tmp_path, monkeypatch):
     # first_frame_seconds added the timed contact evaluation that frame_seconds leaves out.
     from warpcontact import bench
@@ -474,6 +495,7 @@ def test_bench_accuracy_writes_results_and_plot(tmp_path):
     assert main(args) == 0
     data = json.loads((tmp_path / "accuracy.json").read_text())
     assert data["module_load_seconds"] >= 0
+    assert data["gap_m"] == 0.02 and data["speed_m_per_s"] == 1.0  # the strike, recorded nowhere before
     rows = data["rows"]
     assert [(r["sweep"], r["model"], r["eps"], r["tolerance"], r["leaf_precision"]) for r in rows] == [
         ("reference", "brute", None, 1e-12, "float64"),
@@ -548,6 +570,11 @@ def test_gaps_that_float64_positions_cannot_hold_are_refused_before_any_row(tmp_
         assert not (tmp_path / "c" / "contact.json").exists()
     assert main(["demo", "--gaps", "1.0", "1e-300", "--out", str(tmp_path / "d")]) == 2
     assert "error: --gaps: 1e-300 m rounds to 0 m beside 1 m of body" in capsys.readouterr().err
+    # Beyond the leaf planes' reach: refused before any gap, as bench contact does (it was
+    # "400 triangle pairs did not solve" after the finished gaps, an empty --out left behind).
+    assert main(["demo", "--subdivisions", "0", "--gaps", "1.0", "1e28", "--out", str(tmp_path / "d2")]) == 2
+    assert "error: --gaps: 1e+28 m is beyond the 1e+27 m up to which leaf planes are solved" in capsys.readouterr().err
+    assert not (tmp_path / "d2").exists()
 
 
 def test_bad_device_is_a_clear_error(tmp_path, capsys):
@@ -654,6 +681,22 @@ def test_simulate_writes_the_frames_before_a_failed_step(tmp_path, capsys, monke
     assert main(["simulate", "push", "--frames", "5", "--out", str(tmp_path / "first")]) == 1
     summary = json.loads((tmp_path / "first" / "summary.json").read_text())
     assert summary["frames"] == 0 and summary["newton_iterations_mean"] is None and summary["stopped"]["frame"] == 0
+    # A later step's ValueError (a state the simulation produced that a check refuses) lost
+    # every frame, exit 2 (a probe, stop 58); the first step's is the scene's, an error.
+    def refusing_third(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise ValueError("poses: 1e+150 at index (0, 0) is beyond the +-1e+150 m")
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(ImplicitSolver, "step", refusing_third)
+    calls.clear()
+    assert main(["simulate", "push", "--frames", "5", "--out", str(tmp_path / "later")]) == 1
+    assert json.loads((tmp_path / "later" / "summary.json").read_text())["stopped"] == {"frame": 2, "error": "poses: 1e+150 at index (0, 0) is beyond the +-1e+150 m"}
+    calls.clear()
+    calls.extend([1, 1])
+    assert main(["simulate", "push", "--frames", "5", "--out", str(tmp_path / "start")]) == 2
+    assert not (tmp_path / "start").exists()
 
 
 def test_simulate_interrupted_by_hand_writes_the_frames_it_simulated(tmp_path, capsys, monkeypatch):

@@ -4,7 +4,9 @@ import contextlib
 import json
 import os
 import shutil
+import signal
 import tempfile
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -145,3 +147,22 @@ def json_ready(value):
     if isinstance(value, float) and not np.isfinite(value):
         return None
     return value
+
+
+@contextlib.contextmanager
+def interrupts_held():
+    """Ctrl-C held back until the block ends, for writes of results already computed (an
+    interruption while ``simulate`` wrote its trajectory lost every simulated frame, and one
+    between a bench's JSON and CSV left them disagreeing). Yields a list that is not empty if
+    one came."""
+    came = []
+    # Only the main thread may set handlers (and only it gets SIGINT); a SIGINT the process
+    # ignores (a job started with & by a script) or handles its own way stays so.
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield came
+        return
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: came.append(signum))
+    try:
+        yield came
+    finally:
+        signal.signal(signal.SIGINT, previous)

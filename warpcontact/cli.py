@@ -1,22 +1,19 @@
 """Command-line entry point: ``warpcontact run | compare | list | simulate | demo | bench ...``."""
 
 import argparse
-import contextlib
 import difflib
 import json
 import logging
 import os
-import signal
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import warp as wp
 
-from ._files import hold_folder, replace_file, replace_files, replace_json
-from ._validate import MAX_COUNT, MAX_FRAMES, gap_problem
+from ._files import hold_folder, interrupts_held, replace_file, replace_files, replace_json
+from ._validate import MAX_COUNT, MAX_FRAMES
 from .builder import contact_setting_problem
 from .contact import CENTRED_WEIGHTS
 from .leaf import LEAF_PRECISIONS
@@ -31,7 +28,7 @@ CHECKPOINT_NAME = "checkpoint.npz"
 def _demo(args) -> int:
     import trimesh
 
-    from .leaf import triangle_pair_potential
+    from .leaf import leaf_gap_problem, triangle_pair_potential
 
     sphere = trimesh.creation.icosphere(subdivisions=args.subdivisions, radius=0.5)
     V = np.asarray(sphere.vertices, dtype=np.float64)
@@ -42,8 +39,8 @@ def _demo(args) -> int:
     print(f"Brute-force leaf potential between two icospheres ({nt} triangles each, {nt * nt} pairs), device {args.device}")
     print(f"{'gap [m]':>10} {'P':>16} {'net force on A [N/mu]':>24} {'Newton it (mean)':>17} {'seconds':>8}")
     for gap in args.gaps:
-        problem = gap_problem(gap, V[:, 2].max() - V[:, 2].min())
-        if problem is not None:  # it was reported as triangle pairs that did not solve
+        problem = leaf_gap_problem(gap, V[:, 2].max() - V[:, 2].min())
+        if problem is not None:  # it was reported as triangle pairs that did not solve, after the finished gaps
             raise ValueError(f"--gaps: {problem}")
     for gap in args.gaps:
         # Sphere B sits below A: A's lowest point is `gap` above B's highest point.
@@ -108,8 +105,12 @@ def _simulate(args) -> int:
             iterations.append(info.iterations)
             if (frame + 1) % max(1, frames // 10) == 0 or frame + 1 == frames:
                 print(f"  frame {frame + 1:4d}/{frames}  Newton iterations {info.iterations:3d}  min separation {info.min_separation:.2e} m")
-        except SolverError as exc:
-            # The frames before it are written: they are what one looks at to see why.
+        except (SolverError, ValueError) as exc:
+            # The frames before it are written: they are what one looks at to see why. A later
+            # step's ValueError is the simulation's, not the scene's (a state it produced that
+            # a check refuses): every frame was lost (a probe, stop 58).
+            if isinstance(exc, ValueError) and frame == 0:
+                raise
             stopped = {"frame": frame, "error": str(exc)}
             break
         except KeyboardInterrupt:
@@ -119,7 +120,7 @@ def _simulate(args) -> int:
             break
     seconds = time.perf_counter() - start
     # Held from the first read back: an interruption anywhere in the write lost every frame.
-    with _interrupts_held() as interrupted:
+    with interrupts_held() as interrupted:
         q = np.array(poses)
         targets = {
             b.name: {"target": b.target_position.tolist(), "final": q[-1, i, :3].tolist(), "distance": float(np.linalg.norm(q[-1, i, :3] - b.target_position))}
@@ -149,24 +150,6 @@ def _simulate(args) -> int:
         print("interrupted while the outputs were written: they were finished first and hold every frame", file=sys.stderr)
         return 130
     return 0
-
-
-@contextlib.contextmanager
-def _interrupts_held():
-    """Ctrl-C held back until the block ends, for writes of results already computed (an
-    interruption while ``simulate`` wrote its trajectory lost every simulated frame). Yields a
-    list that is not empty if one came."""
-    came = []
-    # Only the main thread may set handlers (and only it gets SIGINT); a SIGINT the process
-    # ignores (a job started with & by a script) or handles its own way stays so.
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-        yield came
-        return
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: came.append(signum))
-    try:
-        yield came
-    finally:
-        signal.signal(signal.SIGINT, previous)
 
 
 def _resolve_scene_path(name: str) -> Path:

@@ -8,7 +8,7 @@ import warp as wp
 from .kernels import blend as blend_kernels
 from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
-from ._validate import MIN_EXTENT, as_float64_array, check_barrier_support, check_coordinates, check_count, checked_flag, extent_problem
+from ._validate import MIN_EXTENT, as_float64_array, check_barrier_support, check_coordinates, check_count, checked_flag, extent_problem, gap_problem
 
 __all__ = [
     "LEAF_PRECISIONS",
@@ -174,6 +174,17 @@ def leaf_solve_buffers(a: np.ndarray, b: np.ndarray, columns: int) -> tuple:
 def leaf_solve_bytes_per_pair(columns: int) -> int:
     """The bytes ``leaf_solve_buffers`` takes per triangle pair."""
     return sum(wp.types.type_size_in_bytes(dtype) * int(np.prod(shape)) for dtype, shape in _leaf_solve_layout(columns))
+
+
+def leaf_gap_problem(gap: float, extent: float) -> str | None:
+    """Why surfaces ``gap`` (m) apart beside ``extent`` (m) of body are no gap a benchmark can
+    place and solve leaf planes across (``gap_problem``, and beyond ``MAX_LEAF_SEPARATION``),
+    or None: one rule for ``bench contact`` and ``demo``, whose gaps past it were reported
+    after the finished ones as triangle pairs that did not solve."""
+    problem = gap_problem(gap, extent)
+    if problem is None and gap > float(leaf_kernels.MAX_LEAF_SEPARATION):
+        problem = f"{gap:g} m is beyond the {float(leaf_kernels.MAX_LEAF_SEPARATION):g} m up to which leaf planes are solved"
+    return problem
 
 
 def _evaluate_scalar_kernel(kernel, x: np.ndarray, device):
