@@ -664,13 +664,16 @@ def test_simulate_writes_the_frames_before_a_failed_step(tmp_path, capsys, monke
 
     step, calls = ImplicitSolver.step, []
 
-    def failing_third(self, *args, **kwargs):
-        calls.append(1)
-        if len(calls) == 3:
-            raise SolverError("implicit step: no convergence after 500 Newton iterations")
-        return step(self, *args, **kwargs)
+    def third_fails(error):
+        def failing(self, *args, **kwargs):
+            calls.append(1)
+            if len(calls) == 3:
+                raise error
+            return step(self, *args, **kwargs)
 
-    monkeypatch.setattr(ImplicitSolver, "step", failing_third)
+        return failing
+
+    monkeypatch.setattr(ImplicitSolver, "step", third_fails(SolverError("implicit step: no convergence after 500 Newton iterations")))
     assert main(["simulate", "push", "--frames", "5", "--out", str(tmp_path)]) == 1
     assert "error: frame 2: implicit step: no convergence after 500 Newton iterations; the outputs hold the 2 frames before it" in capsys.readouterr().err
     summary = json.loads((tmp_path / "summary.json").read_text())
@@ -683,13 +686,7 @@ def test_simulate_writes_the_frames_before_a_failed_step(tmp_path, capsys, monke
     assert summary["frames"] == 0 and summary["newton_iterations_mean"] is None and summary["stopped"]["frame"] == 0
     # A later step's ValueError (a state the simulation produced that a check refuses) lost
     # every frame, exit 2 (a probe, stop 58); the first step's is the scene's, an error.
-    def refusing_third(self, *args, **kwargs):
-        calls.append(1)
-        if len(calls) == 3:
-            raise ValueError("poses: 1e+150 at index (0, 0) is beyond the +-1e+150 m")
-        return step(self, *args, **kwargs)
-
-    monkeypatch.setattr(ImplicitSolver, "step", refusing_third)
+    monkeypatch.setattr(ImplicitSolver, "step", third_fails(ValueError("poses: 1e+150 at index (0, 0) is beyond the +-1e+150 m")))
     calls.clear()
     assert main(["simulate", "push", "--frames", "5", "--out", str(tmp_path / "later")]) == 1
     assert json.loads((tmp_path / "later" / "summary.json").read_text())["stopped"] == {"frame": 2, "error": "poses: 1e+150 at index (0, 0) is beyond the +-1e+150 m"}
