@@ -140,8 +140,10 @@ def test_bench_contact_pair_stands_at_the_surface_gap(subdivisions):
 
 def test_bench_scaling_writes_results(tmp_path):
     assert main(["bench", "scaling", "--points", "8", "12", "--repeats", "1", "--out", str(tmp_path)]) == 0
-    rows = json.loads((tmp_path / "scaling.json").read_text())["rows"]
+    data = json.loads((tmp_path / "scaling.json").read_text())
+    rows = data["rows"]
     assert [(r["triangles"], r["mode"]) for r in rows] == [(192, "bsh"), (192, "brute"), (320, "bsh"), (320, "brute")]
+    assert data["brute_max_triangles"] == 2560  # what explains missing brute rows (recorded nowhere before)
     assert all(r["median_seconds"] > 0 for r in rows)
     assert (tmp_path / "scaling.png").stat().st_size > 1000
 
@@ -552,6 +554,8 @@ def test_bench_accuracy_writes_results_and_plot(tmp_path):
         (["bench", "accuracy", "--tolerance-eps", "1e200"], "--tolerance-eps: must lie in [1e-150, 1e+150]"),
         (["bench", "frame", "--ipc-stiffness", "1e-200"], "--ipc-stiffness: must lie in [1e-150, 1e+150]"),
         (["compare", "push", "--ipc-stiffness", "1e200"], "--ipc-stiffness: must lie in [1e-150, 1e+150]"),
+        # A probe (stop 58): refused inside ipc, naming "dhat".
+        (["bench", "contact", "--ipc-dhat", "1e7"], "--ipc-dhat: must be 0 or a distance of at most 1e+06 m, got 1e7"),
     ],
 )
 def test_bad_arguments_exit_with_usage_error(argv, message, capsys):

@@ -13,7 +13,7 @@ import numpy as np
 import warp as wp
 
 from ._files import hold_folder, interrupts_held, replace_file, replace_files, replace_json
-from ._validate import MAX_COUNT, MAX_FRAMES
+from ._validate import MAX_BARRIER_SUPPORT, MAX_COUNT, MAX_FRAMES
 from .builder import contact_setting_problem
 from .contact import CENTRED_WEIGHTS
 from .leaf import LEAF_PRECISIONS
@@ -736,6 +736,15 @@ _eps = _contact_setting("eps")
 _stiffness = _contact_setting("contact_stiffness")
 
 
+def _ipc_dhat(text: str) -> float:
+    """An argparse type: an IPC barrier support (m) by ipc's rule, or 0 (no ipc rows); above
+    1e6 m it was refused inside ipc naming "dhat" (a probe, stop 58)."""
+    value = _non_negative_float(text)
+    if value > MAX_BARRIER_SUPPORT:
+        raise argparse.ArgumentTypeError(f"must be 0 or a distance of at most {MAX_BARRIER_SUPPORT:g} m, got {text}")
+    return value
+
+
 def _model_list(text: str) -> list:
     models = [m.strip() for m in text.split(",") if m.strip()]
     unknown = [m for m in models if m not in MODELS]
@@ -838,7 +847,7 @@ def build_parser() -> argparse.ArgumentParser:
     contact.add_argument("--gaps", type=_positive_float, nargs="+", default=[1e-3, 1e-2, 1e-1])
     contact.add_argument("--subdivisions", type=int, default=1, choices=range(0, 4))
     contact.add_argument("--repeats", type=_positive_int, default=3)
-    contact.add_argument("--ipc-dhat", type=_non_negative_float, default=1e-2, help="IPC Toolkit barrier support (m) for the side-by-side ipc rows (CPU); 0 skips them")
+    contact.add_argument("--ipc-dhat", type=_ipc_dhat, default=1e-2, help="IPC Toolkit barrier support (m) for the side-by-side ipc rows (CPU); 0 skips them")
     contact.add_argument("--centred-weights", nargs="+", choices=CENTRED_WEIGHTS, default=["paper"], help="centred-term weights of the bsh rows (docs/architecture.md, 'Centred weights')")
     contact.add_argument("--device", default="cpu")
     _writes(contact, "outputs/bench", "contact.json", "contact.csv", "contact.png")
