@@ -2189,7 +2189,7 @@ _SETTING_ATTRIBUTES = {
     "frictionSmoothing": ("friction_smoothing", _number),
     "contactMode": ("contact_mode", _text),
 }
-_TASK_ATTRIBUTES = {
+TASK_ATTRIBUTES = {
     "task:name": ("name", _text),
     "task:control": ("control", _text),
     "task:horizon": ("horizon", _whole),
@@ -2211,7 +2211,7 @@ _BODY_ATTRIBUTES = {
     "control:dofs": ("control_dofs", _strings),
     "group": ("group", _whole),
 }
-_SCENE_PRIM_NAMES = (*_SETTING_ATTRIBUTES, *_TASK_ATTRIBUTES, "task:sampleLow", "task:sampleHigh")
+_SCENE_PRIM_NAMES = (*_SETTING_ATTRIBUTES, *TASK_ATTRIBUTES, "task:sampleLow", "task:sampleHigh")
 _BODY_PRIM_NAMES = (*_BODY_ATTRIBUTES, "target:position", "target:tolerance")
 
 
@@ -2242,7 +2242,7 @@ def _check_namespace(stage, scene_prim, body_paths, Usd, source: str):
 def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: str):
     _read_casts(prim, settings, _SETTING_ATTRIBUTES, source)
     _check_settings(settings, f"{source}: prim {prim.GetPath()}")
-    _read_casts(prim, task, _TASK_ATTRIBUTES, source)
+    _read_casts(prim, task, TASK_ATTRIBUTES, source)
     for attr_name, field_name in (("task:sampleLow", "sample_low"), ("task:sampleHigh", "sample_high")):
         value = _cast_attr(prim, attr_name, _numbers, source)
         if value is not None:

@@ -51,7 +51,7 @@ from ._files import replace_file
 from ._validate import MAX_COORDINATE, MAX_FRAMES, beyond_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array
 from .builder import contact_setting_problem
 from .bundle import BundleSettings, bundled_gradient
-from .io import TaskSpec, target_problem
+from .io import TASK_ATTRIBUTES, TaskSpec, target_problem
 from .kernels import task as task_kernels
 from .solver import ImplicitSolver, SolverError
 from .types import State, set_body_velocity
@@ -79,9 +79,9 @@ GENERIC_QUICK_WINDOW = 8
 GENERIC_QUICK_ITERATIONS = 8
 
 
-# The --quick preset's attributes (warpcontact:task:quick:*) and the values a scene that
-# leaves one out reads.
-_QUICK_PRESET_ATTRIBUTES = {"horizon": "horizon", "receding_horizon": "recedingHorizon", "receding_stride": "recedingStride", "iterations": "iterations", "learning_rate": "learningRate"}
+# The --quick preset's attributes (warpcontact:task:quick:*, as io reads them) by settings
+# field, and the values a scene that leaves one out reads.
+_QUICK_PRESET_ATTRIBUTES = {field.removeprefix("quick_"): name.removeprefix("task:quick:") for name, (field, _) in TASK_ATTRIBUTES.items() if field.startswith("quick_")}
 _QUICK_PRESET_DEFAULTS = {field: getattr(TaskSpec(), f"quick_{field}") for field in _QUICK_PRESET_ATTRIBUTES}
 _QUICK_PRESET_HINT = "a --quick preset is warpcontact:task:quick:horizon, recedingHorizon, recedingStride, iterations and learningRate, authored together"
 
