@@ -259,9 +259,9 @@ def _loss_text(loss) -> str:
     return "n/a" if loss is None else f"{loss:.6g}"
 
 
-def _result_metrics(result) -> dict:
-    """A descent's results; its callers add the contact mode it ran ("ours" runs the scene's
-    own, which a scene may set to sdrs or ipc: the outputs did not say)."""
+def _result_metrics(result, problem) -> dict:
+    """A descent's results and the contact mode its ``TaskProblem`` ran ("ours" runs the
+    scene's own, which a scene may set to sdrs or ipc: the outputs did not say)."""
     return {
         **result.extra,  # first: the run's own results are never written over
         "loss_history": result.loss_history,
@@ -270,6 +270,7 @@ def _result_metrics(result) -> dict:
         "success": result.success,
         "seconds": result.seconds,
         "iterations": result.iterations,
+        "contact_mode": problem.scene.settings.contact_mode,
     }
 
 
@@ -336,8 +337,7 @@ def _run(args) -> int:
         "quick": bool(args.quick),
         "init_samples": settings.initial_samples,
         **_settings_metrics(settings, args, [args.model]),
-        **_result_metrics(result),
-        "contact_mode": problem.scene.settings.contact_mode,
+        **_result_metrics(result, problem),
     }
     # The checkpoint goes only once the results are written: an interrupted or failed
     # write is resumed (the finished descent replays its last state), not run again.
@@ -404,7 +404,7 @@ def _compare(args) -> int:
             results[model] = {"error": str(exc)}
         else:
             print()
-            results[model] = {**_result_metrics(result), "contact_mode": problem.scene.settings.contact_mode}
+            results[model] = _result_metrics(result, problem)
         # Rewritten after every model, so an interrupted comparison keeps the finished ones.
         replace_json(out / "compare.json", payload)
     if not results:
