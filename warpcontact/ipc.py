@@ -116,6 +116,7 @@ class IpcContactModel:
         self.num_bodies = len(meshes)
         self.dhat = float(dhat)
         self.body_pairs = contact_body_pairs(self.static, exclude_pairs)
+        self._pair_index = {(int(a), int(b)): k for k, (a, b) in enumerate(self.body_pairs)}  # (a, b) -> row, for _pair_separations
         self.hessian_bodies, self._hessian_slot = hessian_slots(self.static)
         vertices, faces, body_of = [], [], []
         offset = 0
@@ -182,13 +183,12 @@ class IpcContactModel:
         solver's check of pressed pairs was off for ipc, and a box started 1e-12 m from
         another "converged" at its first step and stayed, pushed by 5e10 N (a probe, stop 58)."""
         separation = np.full(len(self.body_pairs), self.dhat)
-        index = {(int(a), int(b)): k for k, (a, b) in enumerate(self.body_pairs)}
         E, F = self._mesh.edges, self._mesh.faces
         for group in (collisions.vv_collisions, collisions.ev_collisions, collisions.ee_collisions, collisions.fv_collisions):
             for collision in group:
                 ids = np.asarray(collision.vertex_ids(E, F))
                 bodies = np.unique(self._body_of[ids[ids >= 0]])
-                k = index.get((int(bodies[0]), int(bodies[-1])))
+                k = self._pair_index.get((int(bodies[0]), int(bodies[-1])))
                 if k is not None:
                     separation[k] = min(separation[k], float(collision.compute_distance(collision.dof(V, E, F))) ** 0.5)
         return separation

@@ -1195,9 +1195,10 @@ class ImplicitSolver:
 
     def _touching_pair(self, evaluation) -> tuple[str, str, float] | None:
         """(name, name, separation) of the first body pair of an evaluation within the rounding
-        of the coordinates, or None. Unsolved pairs have their own error; ipc's separation is
-        one global distance for every pair (it named the first pair, not the touching one) and
-        its barrier refuses a zero distance itself."""
+        of the coordinates, or None. Unsolved pairs have their own error; ipc's barrier refuses
+        a zero distance itself (and its separations are its pairs' own only below
+        ``ipc.PAIR_DISTANCE_FRACTION`` of dhat: above it one global distance, which named the
+        first pair, not the touching one)."""
         contact = self.model.contact
         if evaluation.unsolved_pairs or not isinstance(contact, ContactModel):
             return None
