@@ -786,9 +786,7 @@ def _flat_op(attr, UsdGeom) -> bool:
     if value is None or kind not in (UsdGeom.XformOp.TypeScale, UsdGeom.XformOp.TypeTransform):
         return False
     numbers = np.asarray(value, dtype=np.float64)
-    if kind == UsdGeom.XformOp.TypeTransform:
-        return _flat(numbers[:3, :3])
-    return bool(np.abs(numbers).min() <= _FLAT_TRANSFORM * np.abs(numbers).max())
+    return _flat(numbers[:3, :3] if kind == UsdGeom.XformOp.TypeTransform else np.diag(numbers))
 
 
 def _linear_part(m) -> np.ndarray:
