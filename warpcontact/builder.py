@@ -357,7 +357,7 @@ def _closure_hint(mesh: trimesh.Trimesh) -> str:
         return f" (its {len(mesh.vertices)} vertices merge into {len(merged.vertices)} of a closed mesh: merge coincident vertices first, e.g. trimesh's merge_vertices())"
     # A closed, outward solid whose pieces meet along an edge (two cubes sharing one) was
     # refused without a word of why (a probe, stop 58).
-    edges, counts = np.unique(np.sort(mesh.edges, axis=1), axis=0, return_counts=True)
+    edges, counts = np.unique(mesh.edges_sorted, axis=0, return_counts=True)
     shared = np.flatnonzero(counts > 2)
     if shared.size:
         a, b = (int(v) for v in edges[shared[0]])
