@@ -508,10 +508,11 @@ def _peer_ball(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path = Path("../shared/peer-meshes")):
     """The ``Scene`` named by ``spec``.
 
-    ``spec`` is a scene name or any NAME of a ``scene_dir``/NAME.usda (a shipped name, by default the shipped scene, when
-    usd-core is installed, otherwise built by ``warpcontact.scenes``), ``peer_billiards_T`` (billiards with the paper code
-    base's balls, T in ``PEER_BALLS``, from ``peer_meshes``), a .usda path, or a .pkl path
-    (a pickled ``Scene``, for machines without usd-core).
+    ``spec`` is a shipped scene name (the shipped scene, or ``scene_dir``/NAME.usda, when usd-core
+    is installed, otherwise built by ``warpcontact.scenes``), any other NAME of a
+    ``scene_dir``/NAME.usda, ``peer_billiards_T`` (billiards with the paper code base's balls, T
+    in ``PEER_BALLS``, from ``peer_meshes``), a .usda path, or a .pkl path (a pickled ``Scene``,
+    for machines without usd-core).
     """
     from . import io
     from .scenes import RACK_BALLS, SCENE_NAMES, benchmark_rack, build_scene, shipped_scene
@@ -546,10 +547,10 @@ def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path =
         scene = benchmark_rack(*ball)
         scene.source = spec
         return scene
-    own = None if scene_dir is None else Path(scene_dir) / f"{spec}.usda"
-    if own is not None and own.is_file() and spec not in SCENE_NAMES:
-        return io.load_scene(own)  # any NAME.usda of the folder, not only the shipped names
     if spec not in SCENE_NAMES:
+        own = None if scene_dir is None else Path(scene_dir) / f"{spec}.usda"
+        if own is not None and own.is_file():
+            return io.load_scene(own)  # any NAME.usda of the folder, not only the shipped names
         where = f", a NAME.usda in {scene_dir}" if scene_dir is not None else ""
         raise ValueError(f"scene: {spec!r} is not a scene name ({', '.join(SCENE_NAMES)}){where}, peer_billiards_T, .usda or .pkl")
     try:
