@@ -642,8 +642,9 @@ class TaskProblem:
         bundle: gradient-bundle settings of the ``"gb"`` model (default ``BundleSettings()``).
         ipc_stiffness: the ``"ipc"`` model's barrier stiffness, in place of the scene's mu.
 
-    The scene is read here, as ``build_model`` reads it: edits to it afterwards (targets,
-    bodies, settings) are not seen; make a new problem for them.
+    The model, the start and the targets' goals are taken from the scene here: edit the scene
+    before making the problem (a goal moved afterwards would not be the loss's, while the
+    checkpoints' fingerprint and the initial-sample box, read at ``optimize``, would see it).
 
     Raises ValueError for scenes ``validate_task`` rejects, unknown models and an
     ``ipc_stiffness`` out of a contact stiffness's range (whatever the model).
