@@ -583,6 +583,23 @@ def _fmt(value, spec: str) -> str:
     return "-" if value is None else format(value, spec)
 
 
+# bench frame's default scenes. The paper code base's meshes are not shipped: a plain `bench
+# frame` failed on every install without them (a probe), so their rack joins the defaults only
+# where the --peer-meshes folder holds its ball; named in --scenes, a missing mesh is an error.
+_FRAME_SCENES = ("billiards_512", "billiards_1280", "billiards_2560", "billiards_6208", "gather_bunny")
+_PEER_FRAME_SCENE = "peer_billiards_6208"
+
+
+def _default_frame_scenes(peer_meshes: Path) -> tuple[list[str], str | None]:
+    """bench frame's scenes when --scenes is not given, and a note when the peer rack is left out."""
+    from .bench import PEER_BALLS
+
+    ball = peer_meshes / PEER_BALLS[int(_PEER_FRAME_SCENE.rsplit("_", 1)[1])]
+    if ball.is_file():
+        return [*_FRAME_SCENES, _PEER_FRAME_SCENE], None
+    return list(_FRAME_SCENES), f"note: {_PEER_FRAME_SCENE} left out of the default scenes: {ball} not found (pass --peer-meshes DIR, the paper code base's meshes)"
+
+
 def _bench_frame(args) -> int:
     from .bench import run_frame_benchmark
 
@@ -600,8 +617,13 @@ def _bench_frame(args) -> int:
             flush=True,
         )
 
+    scenes = args.scenes
+    if scenes is None:
+        scenes, left_out = _default_frame_scenes(Path(args.peer_meshes))
+        if left_out:
+            print(left_out, flush=True)
     rows = run_frame_benchmark(
-        scenes=args.scenes,
+        scenes=scenes,
         models=args.models,
         frames=args.frames,
         warmup=args.warmup,
@@ -864,8 +886,9 @@ def build_parser() -> argparse.ArgumentParser:
     frame.add_argument(
         "--scenes",
         nargs="+",
-        default=["billiards_512", "billiards_1280", "billiards_2560", "billiards_6208", "gather_bunny", "peer_billiards_6208"],
-        help="scene names, peer_billiards_T (T in 512 1472 3008 4544 6208), .usda or pickled-Scene .pkl paths",
+        default=None,
+        help=f"scene names, peer_billiards_T (T in 512 1472 3008 4544 6208), .usda or pickled-Scene .pkl paths (default: {' '.join(_FRAME_SCENES)}, "
+        f"and {_PEER_FRAME_SCENE} where --peer-meshes holds its meshes)",
     )
     frame.add_argument("--models", nargs="+", choices=["bsh", "brute", "ipc"], default=["bsh", "brute", "ipc"])
     frame.add_argument("--frames", type=_frame_count, default=3, help="timed frames (medians over them)")
