@@ -587,14 +587,15 @@ def _fmt(value, spec: str) -> str:
 # frame` failed on every install without them (a probe), so their rack joins the defaults only
 # where the --peer-meshes folder holds its ball; named in --scenes, a missing mesh is an error.
 _FRAME_SCENES = ("billiards_512", "billiards_1280", "billiards_2560", "billiards_6208", "gather_bunny")
-_PEER_FRAME_SCENE = "peer_billiards_6208"
+_PEER_FRAME_TRIANGLES = 6208
+_PEER_FRAME_SCENE = f"peer_billiards_{_PEER_FRAME_TRIANGLES}"
 
 
 def _default_frame_scenes(peer_meshes: Path) -> tuple[list[str], str | None]:
     """bench frame's scenes when --scenes is not given, and a note when the peer rack is left out."""
     from .bench import PEER_BALLS
 
-    ball = peer_meshes / PEER_BALLS[int(_PEER_FRAME_SCENE.rsplit("_", 1)[1])]
+    ball = peer_meshes / PEER_BALLS[_PEER_FRAME_TRIANGLES]
     if ball.is_file():
         return [*_FRAME_SCENES, _PEER_FRAME_SCENE], None
     return list(_FRAME_SCENES), f"note: {_PEER_FRAME_SCENE} left out of the default scenes: {ball} not found (pass --peer-meshes DIR, the paper code base's meshes)"
