@@ -100,6 +100,42 @@ def test_reduced_gradient_and_hessian_match_finite_differences():
     assert np.abs(fd_hess - (hess - curvature)).max() > 1e-2 * np.abs(hess).max()
 
 
+def test_free_bodies_beside_joints_take_the_per_body_arithmetic_bit_for_bit():
+    """Free bodies in a scene with joints elsewhere ("loose" bodies) are retracted and
+    reduced together, not body by body and through dense products by their identity block
+    (one hinge made a step over 16 free boxes 1.7x slower, a probe): the same poses, Jacobian
+    and gradient, bit for bit, as the per-body loops, which the chain's bodies still take,
+    and the same Hessian to BLAS's rounding of sums over fewer rows."""
+    import copy
+
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    base = b.add_box((0.4, 0.3, 0.1), mass=2.0, pose=(0, 0, 1.0, 0, 0, 0, 1), name="base")
+    l1 = b.add_box((0.3, 0.06, 0.06), mass=0.5, pose=(0.42, 0, 1.0, 0, 0, 0, 1), name="l1")
+    b.add_joint("base", child=base, dofs=("x", "y", "z", "rz"))
+    b.add_joint("ball", child=l1, parent=base, anchor=(0.23, 0, 1.0))
+    for i in range(5):
+        b.add_box((0.2, 0.2, 0.2), density=300.0, pose=(2.0 + 0.5 * i, 0.3 * i, 0.5, 0, 0, 0, 1), name=f"box{i}")
+    b.add_body((np.array([[-9, -9, 0], [9, -9, 0], [0, 9, 0.0]]), np.array([[0, 1, 2]])), static=True, name="ground")
+    model = b.finalize()
+    art = model.articulation
+    assert list(art._loose_bodies) == [model.body_names.index(f"box{i}") for i in range(5)]
+    loops = copy.copy(art)
+    loops._loose_bodies, loops._loose_joints, loops._moved_bodies = np.zeros(0, dtype=np.int64), frozenset(), art.dynamic_bodies
+    rng = np.random.default_rng(4)
+    q = art.retract(model.initial_q, 0.3 * rng.standard_normal(art.num_dofs))
+    assert np.array_equal(q, loops.retract(model.initial_q, 0.3 * np.random.default_rng(4).standard_normal(art.num_dofs)))
+    step = rng.standard_normal(art.num_dofs)
+    assert np.array_equal(art.retract(q, step), loops.retract(q, step))
+    grad = rng.standard_normal(6 * model.num_bodies)
+    hess = rng.standard_normal((6 * 7, 6 * 7))
+    hess = hess + hess.T
+    (J, reduced_grad, reduced_hess), (J_loops, grad_loops, hess_loops) = art.reduce(q, grad, hess), loops.reduce(q, grad, hess)
+    assert np.array_equal(J, J_loops) and np.array_equal(reduced_grad, grad_loops)
+    assert np.abs(reduced_hess - hess_loops).max() <= 4 * np.finfo(float).eps * np.abs(hess_loops).max()
+    loose = art._loose_dofs.reshape(-1)
+    assert np.array_equal(reduced_hess[np.ix_(loose, loose)], hess_loops[np.ix_(loose, loose)])
+
+
 def test_free_bodies_have_identity_coordinates():
     b = wc.ModelBuilder()
     b.add_box((1, 1, 1), density=1.0, pose=(0, 0, 2, 0, 0, 0, 1))

@@ -377,6 +377,22 @@ class ArticulationModel:
         # boolean mask per body took time and memory cubic in a chain's length (45 MB at
         # 512 links).
         self._same_group = [_same_group_pairs(self.dof_group[dofs]) for dofs in self.body_dofs]
+        # Bodies that only their own free joint moves and that move no other body: the free
+        # bodies of a scene with joints elsewhere. Their rows of J are the identity over their
+        # six DOFs, so retract, the Jacobian and the reduction take them together, not body by
+        # body and through dense products (one hinge elsewhere made a step over 16 free boxes
+        # 1.7x slower, the reduction cubic in them: 61 ms at 128; a probe, 2026-11-27).
+        parents = {joint.parent for joint in self.joints}
+        loose = [b for b in self.dynamic_bodies if self.joints[self.body_joint[b]].kind == "free" and b not in parents]
+        self._loose_bodies = np.array(loose, dtype=np.int64)
+        self._loose_joints = frozenset(int(self.body_joint[b]) for b in loose)
+        self._loose_dofs = np.array([self.joint_dofs[self.body_joint[b]] for b in loose], dtype=np.int64).reshape(-1, 6)
+        self._moved_bodies = np.setdiff1d(self.dynamic_bodies, self._loose_bodies)
+        dynamic_index = np.full(n, -1, dtype=np.int64)
+        dynamic_index[~static] = np.arange(int((~static).sum()))
+        self._loose_rows = (6 * dynamic_index[self._loose_bodies][:, None] + np.arange(6)).reshape(-1)
+        self._joined_rows = np.setdiff1d(np.arange(6 * int((~static).sum())), self._loose_rows)
+        self._joined_dofs = np.setdiff1d(np.arange(self.num_dofs), self._loose_dofs.reshape(-1))
         self.cones = [self._cone(j, joint, poses) for j, joint in enumerate(self.joints) if joint.kind == "ball" and np.isfinite(joint.cone_limit)]
         balls = [(j, joint) for j, joint in enumerate(self.joints) if joint.kind == "ball"]
         self.num_ball_joints = len(balls)
@@ -830,13 +846,48 @@ class ArticulationModel:
         increment (zero rows for static bodies)."""
         J, C = self._jacobian_and_curvature(poses, grad.reshape(-1, 6))
         moving = J[self._hessian_rows]
-        return J, J.T @ grad, moving.T @ hess @ moving + C
+        if not len(self._loose_bodies):
+            return J, J.T @ grad, moving.T @ hess @ moving + C
+        # The loose bodies' block of J is the identity (their rows in DOF order), and no other
+        # block couples them: J^T H J from H's blocks, without products by the identity. The
+        # same sums over fewer rows: BLAS may round them differently (1 ulp in 8 of 1,369
+        # entries on a random H), while the shipped Ant-Push rollouts hash unchanged.
+        joined, loose = self._joined_rows, self._loose_rows
+        joined_dofs, loose_dofs = self._joined_dofs, self._loose_dofs.reshape(-1)
+        moved = moving[np.ix_(joined, joined_dofs)]
+        reduced = np.empty((self.num_dofs, self.num_dofs))
+        reduced[np.ix_(joined_dofs, joined_dofs)] = moved.T @ hess[np.ix_(joined, joined)] @ moved
+        across = moved.T @ hess[np.ix_(joined, loose)]
+        reduced[np.ix_(joined_dofs, loose_dofs)] = across
+        reduced[np.ix_(loose_dofs, joined_dofs)] = across.T
+        reduced[np.ix_(loose_dofs, loose_dofs)] = hess[np.ix_(loose, loose)]
+        return J, J.T @ grad, reduced + C
 
     def _jacobian_and_curvature(self, poses, grad):
         axes, points = self.twists(poses)
         J = np.zeros((6 * self.num_bodies, self.num_dofs))
         C = np.zeros((self.num_dofs, self.num_dofs))
-        for b in self.dynamic_bodies:
+        loose = self._loose_bodies
+        if len(loose):
+            # Body by body below, for all loose bodies at once: the same products.
+            dofs = self._loose_dofs
+            a = axes[dofs]
+            rotating = (self.dof_kind[dofs] != PRISMATIC)[..., None]
+            omega = np.where(rotating, a, 0.0)
+            velocity = np.where(rotating, cross(a, poses[loose, None, :3] - points[dofs]), a)
+            rows = 6 * loose[:, None] + np.arange(3)
+            J[rows[:, :, None], dofs[:, None, :]] = np.swapaxes(velocity, 1, 2)
+            J[(rows + 3)[:, :, None], dofs[:, None, :]] = np.swapaxes(omega, 1, 2)
+            M = cross(grad[loose, None, :3], omega) @ np.swapaxes(velocity, 1, 2)
+            N = 0.5 * cross(grad[loose, None, 3:], omega) @ np.swapaxes(omega, 1, 2)
+            upper = np.triu(M + N, 1)
+            diagonal = np.zeros_like(M)
+            diagonal[:, range(6), range(6)] = M[:, range(6), range(6)]
+            block = upper + np.swapaxes(upper, 1, 2) + diagonal
+            same_rows, same_columns = self._same_group[loose[0]]
+            block[:, same_rows, same_columns] = (0.5 * (M + np.swapaxes(M, 1, 2)))[:, same_rows, same_columns]
+            C[dofs[:, :, None], dofs[:, None, :]] += block
+        for b in self._moved_bodies:
             dofs, omega, velocity = self._body_columns(b, poses[b, :3], axes, points)
             J[6 * b : 6 * b + 3, dofs] = velocity.T
             J[6 * b + 3 : 6 * b + 6, dofs] = omega.T
@@ -867,7 +918,28 @@ class ArticulationModel:
         motion_q[:, 3] = 1.0
         motion_t = np.zeros((self.num_bodies, 3))
         out = poses.copy()
+        loose = self._loose_bodies
+        if len(loose):
+            # The loop's free joint for all loose bodies at once, in its order: the three
+            # translations, then the turn about the centre (no parent: G starts at identity).
+            dofs = self._loose_dofs
+            identity = np.zeros((len(loose), 4))
+            identity[:, 3] = 1.0
+            gq, gt = identity, np.zeros((len(loose), 3))
+            for k in range(3):
+                gt = gt + quat_rotate(gq, axes[dofs[:, k]] * step[dofs[:, k], None])
+                gq = quat_mul(gq, identity)
+            group = dofs[:, 3:]
+            eq = quat_from_rotation_vector(np.einsum("kji,kj->ki", axes[group], step[group]))
+            centre = points[dofs[:, 3]]
+            gt = gt + quat_rotate(gq, centre - quat_rotate(eq, centre))
+            gq = quat_mul(gq, eq)
+            out[loose, :3] = quat_rotate(gq, poses[loose, :3]) + gt
+            q = quat_mul(gq, poses[loose, 3:])
+            out[loose, 3:] = q / np.array([np.linalg.norm(row) for row in q])[:, None]
         for j, joint in enumerate(self.joints):
+            if j in self._loose_joints:
+                continue
             b = joint.child
             if joint.parent >= 0:
                 gq, gt = motion_q[joint.parent].copy(), motion_t[joint.parent].copy()
