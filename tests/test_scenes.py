@@ -234,3 +234,18 @@ def test_unknown_scene_is_a_clear_error():
 def test_mesh_helpers_name_a_bad_argument(call, match):
     with pytest.raises(ValueError, match=match):
         call()
+
+
+def test_scenes_compare_equal_field_by_field_with_their_arrays():
+    """``==`` on a Scene raised "the truth value of an array is ambiguous" (its numpy fields):
+    a scene and its pickled copy now compare equal, and any changed array makes them differ."""
+    import pickle
+
+    scene = scenes.build_scene("push")
+    copy = pickle.loads(pickle.dumps(scene))
+    assert scene == copy and not scene != copy and scene == scenes.build_scene("push")
+    copy.bodies[1].pose = copy.bodies[1].pose + 1e-9
+    assert scene != copy and scene.bodies[0] == copy.bodies[0] and scene.bodies[1] != copy.bodies[1]
+    assert scene != "push"
+    with pytest.raises(TypeError):
+        hash(scene)

@@ -86,6 +86,7 @@ import re
 import shutil
 import warnings
 from collections import Counter
+import dataclasses
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -168,8 +169,32 @@ class TaskSpec:
     sample_high: tuple = ()
 
 
-@dataclass
-class BodySpec:
+def _specs_equal(a, b) -> bool:
+    """Field-by-field equality of scene specs whose fields hold numpy arrays (the dataclass
+    ``==`` compared them with ``==`` and raised "the truth value of an array is ambiguous"
+    for a scene against its pickled copy, a probe): arrays equal in shape and values, lists
+    and tuples item by item."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and np.array_equal(a, b)
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return type(a) is type(b) and len(a) == len(b) and all(_specs_equal(x, y) for x, y in zip(a, b, strict=True))
+    if dataclasses.is_dataclass(a) and not isinstance(a, type):
+        return type(a) is type(b) and all(_specs_equal(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a))
+    return bool(a == b)
+
+
+class _ArrayFieldEquality:
+    """``==`` for the scene dataclasses that hold numpy arrays (``_specs_equal``); unhashable,
+    as the dataclass ``==`` left them."""
+
+    def __eq__(self, other):
+        return _specs_equal(self, other) if type(other) is type(self) else NotImplemented
+
+    __hash__ = None
+
+
+@dataclass(eq=False)
+class BodySpec(_ArrayFieldEquality):
     """One rigid body: triangle mesh in the body's prim frame and its physical data."""
 
     name: str
@@ -194,8 +219,8 @@ class BodySpec:
     group: int = -1
 
 
-@dataclass
-class JointSpec:
+@dataclass(eq=False)
+class JointSpec(_ArrayFieldEquality):
     """One joint: frames in the parent's and child's prim frames (the world's for parent None),
     axes in the joint frame, per-coordinate limits (rad or m) and PD gains (SI, per radian;
     ball joints: one kp and one kd on the relative rotation)."""
@@ -216,8 +241,8 @@ class JointSpec:
     targets: np.ndarray | None = None  # per coordinate, drive target positions (rad or m); None: the initial ones
 
 
-@dataclass
-class Scene:
+@dataclass(eq=False)
+class Scene(_ArrayFieldEquality):
     """A complete task scene: bodies, joints, gravity, settings and task metadata."""
 
     bodies: list
