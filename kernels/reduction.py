@@ -528,6 +528,20 @@ def top_level_kernel(
     receives the body pairs in the same order either way."""
     seed, group = wp.tid()
     pair = seed_body_pair[seed]
+    if entries_per_thread == RECORD_ENTRIES:
+        # A whole body pair in one thread: its entries in the same order, but only those that
+        # reach a total. Walking all 157 to drop a static body's and the records' empty lower
+        # triangle made this sum 7x the far terms it adds beside many static bodies (a probe).
+        _add_top_level_entry(seed, 0, pair, targets, total_value_out, total_grad_out, total_hess_out)
+        for i in range(12):
+            if targets.body_dynamic[pair[i / 6]] != 0:
+                _add_top_level_entry(seed, 1 + i, pair, targets, total_value_out, total_grad_out, total_hess_out)
+        for i in range(12):
+            if targets.hessian_slot[pair[i / 6]] >= 0:
+                for j in range(i, 12):
+                    if targets.hessian_slot[pair[j / 6]] >= 0:
+                        _add_top_level_entry(seed, 13 + 12 * i + j, pair, targets, total_value_out, total_grad_out, total_hess_out)
+        return
     first_entry = group * entries_per_thread
     for entry in range(first_entry, wp.min(first_entry + entries_per_thread, RECORD_ENTRIES)):
         _add_top_level_entry(seed, entry, pair, targets, total_value_out, total_grad_out, total_hess_out)
