@@ -981,3 +981,24 @@ def test_bench_module_load_time_covers_the_traversal_round_kernels(monkeypatch):
     for budget in (traversal.HOST_SIZED_VISIT_BUDGET, traversal.SYNC_FREE_VISIT_BUDGET):
         assert traversal.traverse_round_kernel(budget).module.name in names
     assert "warpcontact.kernels.leaf" in names
+
+
+def test_bench_library_runners_refuse_bad_settings_before_any_row(tmp_path):
+    """The CLI checks eps, ipc_dhat and ipc_stiffness when it parses; called from Python, the
+    runners failed only when the bad value's row came, after the rows before it had replaced
+    an earlier run's files (a probe, stop 58)."""
+    from warpcontact import bench
+
+    earlier = tmp_path / "contact.json"
+    earlier.write_text('{"earlier": true}')
+    calls = [
+        ("eps: must be positive and finite, got -1.0", lambda: bench.run_contact_benchmark(eps_values=[0.5, -1.0], gaps=[1e-2], subdivisions=0, repeats=1, device="cpu", out_dir=tmp_path, ipc_dhat=None)),
+        ("ipc_dhat: must be a positive finite distance", lambda: bench.run_contact_benchmark(eps_values=[0.5], gaps=[1e-2], subdivisions=0, repeats=1, device="cpu", out_dir=tmp_path, ipc_dhat=-1.0)),
+        ("eps: must be positive and finite, got -1.0", lambda: bench.run_scaling_benchmark(points_per_ball=[12], eps=-1.0, brute_max_triangles=0, repeats=1, device="cpu", out_dir=tmp_path)),
+        ("ipc_stiffness: must lie in", lambda: bench.run_frame_benchmark(scenes=["billiards_512"], models=["ipc"], frames=1, warmup=0, ipc_stiffness=1e300, device="cpu", out_dir=tmp_path)),
+        ("eps: must be positive and finite, got nan", lambda: bench.run_accuracy_benchmark(eps_values=[float("nan")], device="cpu", out_dir=tmp_path)),
+    ]
+    for message, call in calls:
+        with pytest.raises(ValueError, match=message):
+            call()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["contact.json"] and earlier.read_text() == '{"earlier": true}'

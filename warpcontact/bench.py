@@ -19,7 +19,8 @@ from .contact import ContactModel
 from .hull import convex_hull_mesh
 from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
-from ._validate import MAX_COORDINATE, gap_problem
+from ._validate import MAX_COORDINATE, check_barrier_support, gap_problem
+from .builder import contact_setting_problem
 from .leaf import DEFAULT_MAX_ITERATIONS, LEAF_PRECISIONS, float32_search, leaf_gap_problem, leaf_solve_buffers, leaf_solve_bytes_per_pair
 from .rotation import quat_rotate
 
@@ -153,6 +154,22 @@ def _relative_errors(approx: np.ndarray, reference: np.ndarray) -> tuple[float, 
     r = reference.reshape(reference.shape[0], -1)
     err = np.linalg.norm(a - r, axis=1) / np.maximum(np.linalg.norm(r, axis=1), np.finfo(float).tiny)
     return (float(np.median(err)), float(err.max())) if err.size else (0.0, 0.0)
+
+
+def _check_settings(*, eps_values=(), ipc_dhat=None, ipc_stiffness=None) -> None:
+    """ValueError naming the first bad eps, IPC barrier support or stiffness, before any work:
+    the CLI checks them when it parses, but a library caller's bad value failed only when its
+    row came, after the rows before it had replaced an earlier run's files (a probe, stop 58)."""
+    for eps in eps_values:
+        problem = None if eps is None else contact_setting_problem("eps", eps)
+        if problem is not None:
+            raise ValueError(f"eps: {problem}, got {eps!r}")
+    if ipc_dhat is not None:
+        check_barrier_support(ipc_dhat, "ipc_dhat")
+    if ipc_stiffness is not None:
+        problem = contact_setting_problem("contact_stiffness", ipc_stiffness)
+        if problem is not None:
+            raise ValueError(f"ipc_stiffness: {problem}, got {ipc_stiffness!r}")
 
 
 def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, seed: int = 0, precisions=("float64",)) -> dict:
@@ -304,6 +321,7 @@ def run_contact_benchmark(
     fields are None (a different potential). Writes contact.json, contact.csv and, when
     matplotlib is installed, contact.png (time vs error).
     """
+    _check_settings(eps_values=eps_values, ipc_dhat=ipc_dhat)
     dev = resolve_device(device)
     with_ipc = ipc_dhat is not None and dev.is_cpu
     missing = ipc.toolkit_problem() if with_ipc else None
@@ -418,6 +436,7 @@ def run_scaling_benchmark(*, points_per_ball, eps: float, brute_max_triangles: i
     """
     from .scenes import fibonacci_ball
 
+    _check_settings(eps_values=(eps,))
     dev = resolve_device(device)
     rows = []
     try:
@@ -845,6 +864,7 @@ def run_frame_benchmark(
     ``leaf_precision`` is the plane search precision of bsh and brute (ipc: float64).
     """
     float32_search(leaf_precision)
+    _check_settings(eps_values=(eps,), ipc_stiffness=ipc_stiffness)
     dev = resolve_device(device)
     module_seconds = _load_kernel_modules(dev)
     rows: list[dict] = []
@@ -1039,6 +1059,7 @@ def run_accuracy_benchmark(
     """
     from .solver import SolverError
 
+    _check_settings(eps_values=(*eps_values, eps))
     dev = resolve_device(device)
     accuracy_scene(balls=balls, points_per_ball=points_per_ball, gap=gap, speed=speed)  # its errors before any work
     module_seconds = _load_kernel_modules(dev)  # so the first configuration's times exclude compilation
