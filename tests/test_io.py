@@ -633,6 +633,86 @@ def Xform "World"
 """)
     with pytest.raises(ValueError, match="prim /World/Boxes: a PointInstancer of rigid bodies or colliders"):
         io.load_scene(tmp_path / "instancer.usda")
+    # Prototypes under an ``over`` or ``class`` container, or inside an instanceable reference,
+    # are drawn as well, but the default traversal skipped them: their bodies were dropped
+    # silently (a probe, stop 59).
+    instancer = (tmp_path / "instancer.usda").read_text()
+    for specifier in ("over", "class"):
+        (tmp_path / f"{specifier}.usda").write_text(instancer.replace('def Scope "Protos"', f'{specifier} Scope "Protos"'))
+        with pytest.raises(ValueError, match=r"prim /World/Boxes: a PointInstancer of rigid bodies or colliders \(/World/Boxes/Protos/Box\)"):
+            io.load_scene(tmp_path / f"{specifier}.usda")
+    (tmp_path / "crate.usda").write_text(_METRE_STAGE + _CRATE)
+    (tmp_path / "referenced.usda").write_text(_METRE_STAGE + _REFERENCED_INSTANCER)
+    with pytest.raises(ValueError, match=r"prim /World/Boxes: a PointInstancer of rigid bodies or colliders \(/World/Boxes/Protos/Box/Body\)"):
+        io.load_scene(tmp_path / "referenced.usda")
+
+
+_CRATE = """
+def Xform "Crate"
+{
+    def Xform "Body" (prepend apiSchemas = ["PhysicsRigidBodyAPI"])
+    {
+        def Cube "g" (prepend apiSchemas = ["PhysicsCollisionAPI"])
+        {
+            double size = 0.5
+        }
+    }
+}
+"""
+
+_REFERENCED_INSTANCER = """
+def Xform "World"
+{
+    def PointInstancer "Boxes"
+    {
+        point3f[] positions = [(0, 0, 1), (2, 0, 1)]
+        int[] protoIndices = [0, 0]
+        rel prototypes = </World/Boxes/Protos/Box>
+        def Scope "Protos"
+        {
+            def Xform "Box" (instanceable = true
+                references = @crate.usda@</Crate>)
+            {
+            }
+        }
+    }
+}
+"""
+
+_LAYOUT_ASSET = """
+def Xform "World"
+{
+    def Cube "ground" (prepend apiSchemas = ["PhysicsCollisionAPI"])
+    {
+        double size = 1
+        double3 xformOp:translate = (0, 0, -0.5)
+        double3 xformOp:scale = (10, 10, 1)
+        uniform token[] xformOpOrder = ["xformOp:translate", "xformOp:scale"]
+    }
+    def Cube "box" (prepend apiSchemas = ["PhysicsRigidBodyAPI", "PhysicsCollisionAPI"])
+    {
+        double size = 0.2
+        double3 xformOp:translate = (0, 0, 0.1)
+        uniform token[] xformOpOrder = ["xformOp:translate"]
+    }
+}
+"""
+
+
+def test_time_samples_in_a_stronger_layer_than_the_default_are_refused(tmp_path):
+    """A layout layer placing an asset's body by one time sample: USD shows the sample at every
+    time code, while the load read the weaker layer's default, which no viewer shows (the box
+    loaded at the asset's origin, silently; a probe, stop 59). Samples beside a default in the
+    same layer keep their meaning: the default is the initial state."""
+    (tmp_path / "asset.usda").write_text(_METRE_STAGE + _LAYOUT_ASSET)
+    layout = '#usda 1.0\n(\n    metersPerUnit = 1\n    upAxis = "Z"\n    subLayers = [@./asset.usda@]\n)\n'
+    layout += 'over "World"\n{\n    over "box"\n    {\n        double3 xformOp:translate.timeSamples = {\n            1: (3, 0, 0.1),\n        }\n    }\n}\n'
+    (tmp_path / "layout.usda").write_text(layout)
+    with pytest.raises(ValueError, match=r"prim /World/box: /World/box.xformOp:translate has time samples in .*layout.usda, which override at every time code its default in the weaker .*asset.usda"):
+        io.load_scene(tmp_path / "layout.usda")
+    same = _LAYOUT_ASSET.replace("double3 xformOp:translate = (0, 0, 0.1)", "double3 xformOp:translate = (0, 0, 0.1)\n        double3 xformOp:translate.timeSamples = {1: (3, 0, 0.1)}")
+    (tmp_path / "same.usda").write_text(_METRE_STAGE + same)
+    assert np.array_equal(io.load_scene(tmp_path / "same.usda").body("box").pose, [0, 0, 0.1, 0, 0, 0, 1])
 
 
 def test_a_static_body_in_a_contact_group_keeps_it_through_save(tmp_path):

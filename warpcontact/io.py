@@ -881,11 +881,26 @@ def _refuse_animated(animated: list, what: str, where: str, hint: str = "") -> N
 
 
 def _require_default_value(attr, Usd, where: str) -> None:
-    """Refuse an attribute that is animated but has no default value (``where`` names it)."""
-    if _varies(attr) and attr.GetResolveInfo(Usd.TimeCode.Default()).GetSource() != Usd.ResolveInfoSourceDefault:
+    """Refuse an attribute that is animated but has no default value, or whose time samples
+    are authored in a stronger layer than its default (``where`` names it): USD then shows
+    the samples at every time code, and the default the load reads is one no viewer shows (a
+    layout layer placing an asset's box by one time sample loaded it at the asset's default,
+    silently; a probe, stop 59)."""
+    if not _varies(attr):
+        return
+    if attr.GetResolveInfo(Usd.TimeCode.Default()).GetSource() != Usd.ResolveInfoSourceDefault:
         raise ValueError(
             f"{where}: {attr.GetPath()} is animated (time samples or a spline) but has no default value; the initial "
             "state is read at the default time (author the first frame's value as the default)"
+        )
+    stack = attr.GetPropertyStack(Usd.TimeCode.Default())
+    sampled = next((i for i, spec in enumerate(stack) if spec.layer.GetNumTimeSamplesForPath(spec.path)), None)
+    default = next((i for i, spec in enumerate(stack) if spec.HasDefaultValue()), None)
+    if sampled is not None and default is not None and sampled < default:
+        raise ValueError(
+            f"{where}: {attr.GetPath()} has time samples in {stack[sampled].layer.identifier}, which override at every time "
+            f"code its default in the weaker {stack[default].layer.identifier}; the initial state is read at the default "
+            "time (author the first frame's value as the default in the stronger layer, or remove the samples)"
         )
 
 
@@ -2013,7 +2028,10 @@ def _refuse_point_instanced_physics(stage, UsdGeom, UsdPhysics, Usd, source: str
         if not prim.IsA(UsdGeom.PointInstancer):
             continue
         for target in UsdGeom.PointInstancer(prim).GetPrototypesRel().GetTargets():
-            for proto in Usd.PrimRange(stage.GetPrimAtPath(target)):
+            # Every prim under the prototype: also those under an ``over`` or ``class`` container
+            # and inside instanceable references, which the default traversal skips (their
+            # instances were dropped silently; a probe, stop 59).
+            for proto in Usd.PrimRange(stage.GetPrimAtPath(target), Usd.TraverseInstanceProxies(Usd.PrimAllPrimsPredicate)):
                 if proto.HasAPI(UsdPhysics.RigidBodyAPI) or proto.HasAPI(UsdPhysics.CollisionAPI):
                     raise ValueError(
                         f"{source}: prim {prim.GetPath()}: a PointInstancer of rigid bodies or colliders ({proto.GetPath()}) is not "
