@@ -367,12 +367,20 @@ def test_interrupted_benches_keep_their_finished_rows(tmp_path, capsys, monkeypa
     restart = _interrupt_second_timing(monkeypatch)
     assert main(["bench", "scaling", "--points", "8", "12", "--repeats", "1", "--out", str(tmp_path)]) == 130
     assert f"interrupted; the rows finished before it are in {tmp_path}" in capsys.readouterr().err
-    (row,) = json.loads((tmp_path / "scaling.json").read_text())["rows"]
+    interrupted = json.loads((tmp_path / "scaling.json").read_text())
+    (row,) = interrupted["rows"]
     assert row["mode"] == "bsh" and row["triangles"] == 16 * 12 and _csv_rows(tmp_path / "scaling.csv") == 1
+    # A stopped run's file says so: it read like a finished one's (a probe, stop 58).
+    assert interrupted["complete"] is False
     restart()
     args = ["bench", "contact", "--eps", "0.5", "--gaps", "0.1", "--subdivisions", "0", "--repeats", "1", "--ipc-dhat", "0", "--out", str(tmp_path)]
     assert main(args) == 130
-    assert [r["mode"] for r in json.loads((tmp_path / "contact.json").read_text())["rows"]] == ["brute"]
+    stopped = json.loads((tmp_path / "contact.json").read_text())
+    assert [r["mode"] for r in stopped["rows"]] == ["brute"] and stopped["complete"] is False
+    monkeypatch.undo()
+    assert main([*args, "--overwrite"]) == 0
+    finished = json.loads((tmp_path / "contact.json").read_text())
+    assert [r["mode"] for r in finished["rows"]] == ["brute", "bsh"] * 2 and finished["complete"] is True  # two scenes
 
 
 def test_an_overwriting_bench_interrupted_before_its_first_row_leaves_no_earlier_rows(tmp_path, capsys, monkeypatch):

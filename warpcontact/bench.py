@@ -83,9 +83,11 @@ def _host() -> str:
     return f"{name}, {cores} logical cores"
 
 
-def _write_results(out_dir: Path, name: str, device, repeats: int, fields: dict) -> dict:
-    """Write out_dir/NAME.json with the common header (benchmark, device, host, date, repeats),
-    and out_dir/NAME.csv with one line per entry of ``fields["rows"]`` when there is one."""
+def _write_results(out_dir: Path, name: str, device, repeats: int, fields: dict, *, complete: bool = False) -> dict:
+    """Write out_dir/NAME.json with the common header (benchmark, device, host, date, repeats,
+    and ``complete``: False while rows are still to come, so that the files of a run stopped
+    early say so; a stop-58 probe found them indistinguishable from a finished run's), and
+    out_dir/NAME.csv with one line per entry of ``fields["rows"]`` when there is one."""
     payload = {
         "benchmark": name,
         "device": str(device),
@@ -93,6 +95,7 @@ def _write_results(out_dir: Path, name: str, device, repeats: int, fields: dict)
         "host": _host(),
         "date": time.strftime("%Y-%m-%d"),
         "repeats": repeats,
+        "complete": complete,
         **fields,
     }
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -230,7 +233,7 @@ def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, s
                     row[f"{name}_error_max"] = worst
             rows.append(row)
             _write_results(out_dir, "leaf", dev, repeats, {**header, "rows": rows})
-    return _write_results(out_dir, "leaf", dev, repeats, {**header, "rows": rows})
+    return _write_results(out_dir, "leaf", dev, repeats, {**header, "rows": rows}, complete=True)
 
 
 def _icosphere(subdivisions: int, radius: float):
@@ -329,8 +332,8 @@ def run_contact_benchmark(
         raise ValueError(f"{missing}; or leave out the ipc rows (ipc_dhat=None; --ipc-dhat 0 on the command line)")
     rows = []
 
-    def save():
-        _write_results(out_dir, "contact", dev, repeats, {"rows": rows})
+    def save(*, complete=False):
+        _write_results(out_dir, "contact", dev, repeats, {"rows": rows}, complete=complete)
 
     try:
         for scene in contact_benchmark_scenes(subdivisions=subdivisions, gaps=gaps):
@@ -365,6 +368,7 @@ def run_contact_benchmark(
                     }
                 )
                 save()
+        save(complete=True)
     finally:
         _plot_at_end(out_dir / "contact.png", _plot_contact_benchmark, rows)
     return rows
@@ -464,6 +468,7 @@ def run_scaling_benchmark(*, points_per_ball, eps: float, brute_max_triangles: i
                 )
                 # The cap explains the missing brute rows (recorded nowhere before stop 58).
                 _write_results(out_dir, "scaling", dev, repeats, {"brute_max_triangles": brute_max_triangles, "rows": rows})
+        _write_results(out_dir, "scaling", dev, repeats, {"brute_max_triangles": brute_max_triangles, "rows": rows}, complete=True)
     finally:
         _plot_at_end(out_dir / "scaling.png", _plot_scaling, rows)
     return rows
@@ -877,8 +882,8 @@ def run_frame_benchmark(
         "paper_frame_seconds": PAPER_FRAME_SECONDS,
     }
 
-    def save():
-        _write_results(out_dir, "frame", dev, frames, {**header, "rows": rows})
+    def save(*, complete=False):
+        _write_results(out_dir, "frame", dev, frames, {**header, "rows": rows}, complete=complete)
 
     # Every scene is read before any is timed: a bad name or a missing peer-mesh folder used
     # to end the default run after hours of the scenes before it.
@@ -930,8 +935,7 @@ def run_frame_benchmark(
                 save()
     finally:
         _plot_at_end(out_dir / "frame.png", _plot_frame_benchmark, rows)
-    if not rows:
-        save()
+    save(complete=True)
     return rows
 
 
@@ -1127,6 +1131,7 @@ def run_accuracy_benchmark(
                 "gradient_relative_error": float(np.linalg.norm(grad - g_ref) / np.linalg.norm(g_ref)) if np.linalg.norm(g_ref) > 0 else None,
                 "error": None,
             })
+        _write_results(out_dir, "accuracy", dev, 1, {**header, "rows": rows}, complete=True)
     finally:
         _plot_at_end(out_dir / "accuracy.png", _plot_accuracy, rows)
     return rows
