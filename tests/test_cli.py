@@ -1010,3 +1010,13 @@ def test_bench_library_runners_refuse_bad_settings_before_any_row(tmp_path):
         with pytest.raises(ValueError, match=message):
             call()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["contact.json"] and earlier.read_text() == '{"earlier": true}'
+
+
+def test_bench_sweeps_measure_a_value_given_twice_once(tmp_path):
+    """``--eps 0.5 0.5`` measured and wrote 0.5 twice (a probe, stop 58)."""
+    args = ["bench", "contact", "--eps", "0.5", "0.5", "--gaps", "0.1", "0.1", "--subdivisions", "0", "--repeats", "1", "--ipc-dhat", "0", "--out", str(tmp_path / "c")]
+    assert main(args) == 0
+    rows = json.loads((tmp_path / "c" / "contact.json").read_text())["rows"]
+    assert [(r["scene"], r["mode"]) for r in rows] == [("two_icospheres", "brute"), ("two_icospheres", "bsh"), ("rack16", "brute"), ("rack16", "bsh")]
+    assert main(["bench", "scaling", "--points", "8", "8", "--repeats", "1", "--out", str(tmp_path / "s")]) == 0
+    assert [r["mode"] for r in json.loads((tmp_path / "s" / "scaling.json").read_text())["rows"]] == ["bsh", "brute"]

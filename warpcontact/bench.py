@@ -159,6 +159,12 @@ def _relative_errors(approx: np.ndarray, reference: np.ndarray) -> tuple[float, 
     return (float(np.median(err)), float(err.max())) if err.size else (0.0, 0.0)
 
 
+def _distinct(values) -> list:
+    """The values of a sweep, each once, in order: a value given twice was measured and
+    written twice (``--eps 0.5 0.5``, a probe at stop 58)."""
+    return list(dict.fromkeys(values))
+
+
 def _check_settings(*, eps_values=(), ipc_dhat=None, ipc_stiffness=None) -> None:
     """ValueError naming the first bad eps, IPC barrier support or stiffness, before any work:
     the CLI checks them when it parses, but a library caller's bad value failed only when its
@@ -180,6 +186,7 @@ def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, s
     search precision; rows after the first also give their errors against the first
     (float64 unless asked otherwise) on the same pairs. Writes leaf.json and leaf.csv."""
     dev = resolve_device(device)
+    precisions = _distinct(precisions)
     flags = [float32_search(p) for p in precisions]
     A, B = leaf_benchmark_pairs(num_pairs, seed=seed)
     with wp.ScopedDevice(dev):
@@ -324,6 +331,7 @@ def run_contact_benchmark(
     fields are None (a different potential). Writes contact.json, contact.csv and, when
     matplotlib is installed, contact.png (time vs error).
     """
+    eps_values, gaps, centred_weights = _distinct(eps_values), _distinct(gaps), _distinct(centred_weights)
     _check_settings(eps_values=eps_values, ipc_dhat=ipc_dhat)
     dev = resolve_device(device)
     with_ipc = ipc_dhat is not None and dev.is_cpu
@@ -440,6 +448,7 @@ def run_scaling_benchmark(*, points_per_ball, eps: float, brute_max_triangles: i
     """
     from .scenes import fibonacci_ball
 
+    points_per_ball = _distinct(points_per_ball)
     _check_settings(eps_values=(eps,))
     dev = resolve_device(device)
     rows = []
@@ -1063,6 +1072,7 @@ def run_accuracy_benchmark(
     """
     from .solver import SolverError
 
+    eps_values, tolerances, precisions = _distinct(eps_values), _distinct(tolerances), _distinct(precisions)
     _check_settings(eps_values=(*eps_values, eps))
     dev = resolve_device(device)
     accuracy_scene(balls=balls, points_per_ball=points_per_ball, gap=gap, speed=speed)  # its errors before any work
