@@ -387,7 +387,7 @@ class ArticulationModel:
         self._loose_bodies = np.array(loose, dtype=np.int64)
         self._loose_joints = frozenset(int(self.body_joint[b]) for b in loose)
         self._loose_dofs = np.array([self.joint_dofs[self.body_joint[b]] for b in loose], dtype=np.int64).reshape(-1, 6)
-        self._moved_bodies = np.setdiff1d(self.dynamic_bodies, self._loose_bodies)
+        self._joined_bodies = np.setdiff1d(self.dynamic_bodies, self._loose_bodies)
         dynamic_index = np.full(n, -1, dtype=np.int64)
         dynamic_index[~static] = np.arange(int((~static).sum()))
         self._loose_rows = (6 * dynamic_index[self._loose_bodies][:, None] + np.arange(6)).reshape(-1)
@@ -887,7 +887,7 @@ class ArticulationModel:
             same_rows, same_columns = self._same_group[loose[0]]
             block[:, same_rows, same_columns] = (0.5 * (M + np.swapaxes(M, 1, 2)))[:, same_rows, same_columns]
             C[dofs[:, :, None], dofs[:, None, :]] += block
-        for b in self._moved_bodies:
+        for b in self._joined_bodies:
             dofs, omega, velocity = self._body_columns(b, poses[b, :3], axes, points)
             J[6 * b : 6 * b + 3, dofs] = velocity.T
             J[6 * b + 3 : 6 * b + 6, dofs] = omega.T

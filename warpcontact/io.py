@@ -80,13 +80,13 @@ negative one means Earth's gravity, as UsdPhysics specifies).
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import os
 import re
 import shutil
 import warnings
 from collections import Counter
-import dataclasses
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
