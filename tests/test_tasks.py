@@ -441,19 +441,27 @@ def test_receding_windows_execute_their_first_frames_and_hold_the_last_planned_a
     def recording(values, start, frames, **kwargs):
         if frames == 5:  # the trivial plan's rollout, for the initial loss
             return rollout(values, start, frames, **kwargs)
-        if frames == 2 and (not windows or len(windows[-1]) == 2):
+        if not windows or len(windows[-1]) == 2:  # two iterations a window
             windows.append([])
         loss, grad, trajectory = rollout(values, start, frames, **kwargs)
         windows[-1].append((np.array(values), start[0].copy(), trajectory))
         return loss, grad, trajectory
 
+    reported = []
     problem.rollout = recording
-    result = problem.optimize()
+    result = problem.optimize(progress=lambda done, total, loss: reported.append(loss))
     assert len(windows) == -(-5 // stride) and np.abs(result.values).max() > 0
     assert result.trajectory.shape[0] == 6
+    # A window ends at the horizon: the last one at frame 4 (stride 1) plans one frame, not
+    # two past the task's end (a probe, stop 59).
+    starts = range(0, 5, stride)
+    assert [len(attempts[0][0]) for attempts in windows] == [min(2, 5 - t) for t in starts]
     for (first_guess, _, _), _ in windows[1:]:
-        np.testing.assert_array_equal(first_guess[1], first_guess[0])
+        if len(first_guess) == 2:
+            np.testing.assert_array_equal(first_guess[1], first_guess[0])
     assert any(np.abs(first_guess).max() > 0 for (first_guess, _, _), _ in windows[1:])
+    # Progress reports each window's kept plan, and the last one's is the task's final loss.
+    assert reported[-1] == result.final_loss
     # Each window starts where the previous one's executed frames ended.
     frame = 0
     for w, attempts in enumerate(windows):

@@ -990,7 +990,8 @@ class TaskProblem:
         (its fingerprint matched, so the file was altered)."""
         s = self.settings
         receding = saved["receding"]
-        rows = s.window if receding else (1 if self.kind == "initial_state" else s.horizon)
+        # A receding window ends at the horizon (``_receding``).
+        rows = min(s.window, max(s.horizon - saved.get("frame", 0), 1)) if receding else (1 if self.kind == "initial_state" else s.horizon)
         shape = self.initial_values(rows).shape
         expected = {"values": shape, "best_values": shape}
         if receding:
@@ -1030,8 +1031,12 @@ class TaskProblem:
         while t < s.horizon:
             # The state at the window's start: the last two executed frames.
             current = (executed[-1], executed[-2]) if len(executed) > 1 else self.start
-            values = plan[t : t + window].copy()
-            objective = objective_at(current, window, resume)
+            # A window ends at the horizon at the latest: the task's loss is measured there, and
+            # the last windows optimised the bodies' state after it (a plan better at frame 32
+            # was kept over one better at the horizon's frame 20; a probe, stop 59).
+            frames = min(window, s.horizon - t)
+            values = plan[t : t + frames].copy()
+            objective = objective_at(current, frames, resume)
             save = saver(objective, frame=t, plan=plan, executed=np.array(executed))
             try:
                 best = _descend(objective, values, s, history, progress, total=s.horizon, resume=resume, save=save, stalled=_stall_note(extra, frame=t))
@@ -1044,16 +1049,18 @@ class TaskProblem:
                 stopped = {"frame": t, "error": str(exc)}
                 break
             resume = None
-            plan[t : t + window] = best[1]
+            plan[t : t + frames] = best[1]
             # The rows entering the next window hold the last planned action; zero would
             # send the body's target back to its start pose at the end of every window.
-            plan[t + window : t + window + stride] = best[1][-1]
+            plan[t + frames : t + frames + stride] = best[1][-1]
             # The applied actions' frames are the best window rollout's first frames.
             applied = min(stride, s.horizon - t)
             executed.extend(best[2][1 : applied + 1])
             t += applied
             if progress:
-                progress(t, s.horizon, history[-1])
+                # The kept plan's window loss (the last iterate's, which the descent may have
+                # discarded for a better one, was shown).
+                progress(t, s.horizon, best[0])
         trajectory = np.array(executed)
         final = self._loss_at(trajectory[-1])
         initial_loss = self._trivial_loss(len(executed) - 1, extra)
