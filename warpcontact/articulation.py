@@ -840,8 +840,9 @@ class ArticulationModel:
         return self._jacobian_and_curvature(poses, grad)[1]
 
     def reduce(self, poses: np.ndarray, grad: np.ndarray, hess: np.ndarray):
-        """(J, J^T g, J^T H J + C) for a rigid-coordinate gradient (6 nbodies,) and a Hessian
-        over the non-static bodies (6 ndynamic, 6 ndynamic), as the contact models give them;
+        """(J, J^T g, J^T H J + C) for a rigid-coordinate gradient (6 nbodies,) and a symmetric
+        Hessian over the non-static bodies (6 ndynamic, 6 ndynamic), as the contact models give
+        them (with loose bodies, one off-diagonal block is the other's transpose);
         J (6 nbodies, m) holds the rigid coordinates (dp, dtheta) of each body per DOF
         increment (zero rows for static bodies)."""
         J, C = self._jacobian_and_curvature(poses, grad.reshape(-1, 6))
