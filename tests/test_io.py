@@ -642,7 +642,9 @@ def Xform "World"
         with pytest.raises(ValueError, match=r"prim /World/Boxes: a PointInstancer of rigid bodies or colliders \(/World/Boxes/Protos/Box\)"):
             io.load_scene(tmp_path / f"{specifier}.usda")
     (tmp_path / "crate.usda").write_text(_METRE_STAGE + _CRATE)
-    (tmp_path / "referenced.usda").write_text(_METRE_STAGE + _REFERENCED_INSTANCER)
+    # An instanceable reference's local children are ignored: the prototype holds the crate only.
+    referenced = instancer.replace('def Xform "Box" (prepend apiSchemas = ["PhysicsRigidBodyAPI"])', 'def Xform "Box" (instanceable = true\n references = @crate.usda@</Crate>)')
+    (tmp_path / "referenced.usda").write_text(referenced)
     with pytest.raises(ValueError, match=r"prim /World/Boxes: a PointInstancer of rigid bodies or colliders \(/World/Boxes/Protos/Box/Body\)"):
         io.load_scene(tmp_path / "referenced.usda")
 
@@ -655,25 +657,6 @@ def Xform "Crate"
         def Cube "g" (prepend apiSchemas = ["PhysicsCollisionAPI"])
         {
             double size = 0.5
-        }
-    }
-}
-"""
-
-_REFERENCED_INSTANCER = """
-def Xform "World"
-{
-    def PointInstancer "Boxes"
-    {
-        point3f[] positions = [(0, 0, 1), (2, 0, 1)]
-        int[] protoIndices = [0, 0]
-        rel prototypes = </World/Boxes/Protos/Box>
-        def Scope "Protos"
-        {
-            def Xform "Box" (instanceable = true
-                references = @crate.usda@</Crate>)
-            {
-            }
         }
     }
 }
