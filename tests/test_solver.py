@@ -517,6 +517,36 @@ def test_a_box_that_tunnels_past_a_large_plate_is_refused():
         wc.ImplicitSolver(model).step(first, model.state(requires_grad=False), None, 0.04)
 
 
+def test_a_box_that_tunnels_through_an_open_ground_is_refused_and_a_leg_sliding_on_it_is_not():
+    """A static open body (two triangles) has no centre of its own to follow: the other
+    body's centre crossing it tells a pass-through (the box thrown through it, refused),
+    and a leg sliding on it with its joints turning is no longer refused where the replayed
+    joint path dipped its tip below the ground (an ant gait at dt 0.02, which completes at
+    dt 0.01 with the leg's centre never below 0.150 m; a probe, stop 59)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-8, friction=0.3)
+    b.add_body((np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]]), np.array([[0, 1, 2], [0, 2, 3]])), static=True, name="ground")
+    b.add_box((0.3, 0.3, 0.3), density=500.0, name="box", pose=(0.0, 0.0, 0.6, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    first = model.state(requires_grad=False)
+    wc.set_body_velocity(first, wp.array([[0.0, 0.0, 0.0], [28.0, 0.0, -21.0]], dtype=wp.vec3d), wp.zeros(2, dtype=wp.vec3d), 0.04)
+    with pytest.raises(wc.SolverError, match=r"'box''s centre of mass crosses 'ground''s surface"):
+        wc.ImplicitSolver(model).step(first, model.state(requires_grad=False), None, 0.04)
+    from warpcontact.io import load_scene
+    from warpcontact.scenes import shipped_scene
+    from warpcontact.tasks import TaskProblem
+
+    problem = TaskProblem(load_scene(shipped_scene("ant_push")))
+    rng = np.random.default_rng(207)
+    values = problem.initial_values(1)
+    for wave in range(4):
+        values[:, 3 * wave] = rng.uniform(-1.5, 1.5, 12)
+        values[:, 3 * wave + 1] = 2 * np.pi * rng.uniform(0.2, 4, 12)
+        values[:, 3 * wave + 2] = rng.uniform(0, 2 * np.pi, 12)
+    _, _, trajectory = problem.rollout(values, problem.start, 40, gradient=False)
+    leg = problem.model.body_names.index("ant_lower2")
+    assert trajectory[:, leg, 2].min() > 0.14
+
+
 def test_a_body_set_exactly_on_a_support_is_refused_naming_both():
     """z = half height + the plate's top leaves ~1e-17 m: the box took one Newton iteration a
     step and hardly moved (0.04 m instead of 0.2 m in five steps, turning a fifth as far)."""
