@@ -452,6 +452,11 @@ def run_scaling_benchmark(*, points_per_ball, eps: float, brute_max_triangles: i
     _check_settings(eps_values=(eps,))
     dev = resolve_device(device)
     rows = []
+
+    def save(*, complete=False):
+        # The cap explains the missing brute rows (recorded nowhere before stop 58).
+        _write_results(out_dir, "scaling", dev, repeats, {"brute_max_triangles": brute_max_triangles, "rows": rows}, complete=complete)
+
     try:
         for n in points_per_ball:
             ball = fibonacci_ball(n)
@@ -475,9 +480,8 @@ def run_scaling_benchmark(*, points_per_ball, eps: float, brute_max_triangles: i
                         "num_leaf": result.num_leaf,
                     }
                 )
-                # The cap explains the missing brute rows (recorded nowhere before stop 58).
-                _write_results(out_dir, "scaling", dev, repeats, {"brute_max_triangles": brute_max_triangles, "rows": rows})
-        _write_results(out_dir, "scaling", dev, repeats, {"brute_max_triangles": brute_max_triangles, "rows": rows}, complete=True)
+                save()
+        save(complete=True)
     finally:
         _plot_at_end(out_dir / "scaling.png", _plot_scaling, rows)
     return rows
@@ -1097,11 +1101,14 @@ def run_accuracy_benchmark(
         "reference": f"brute force, tolerance {reference_tolerance:g}",
     }
 
+    def save(*, complete=False):
+        _write_results(out_dir, "accuracy", dev, 1, {**header, "rows": rows}, complete=complete)
+
     def finish(row):
         rows.append(row)
         if progress:
             progress(row)
-        _write_results(out_dir, "accuracy", dev, 1, {**header, "rows": rows})
+        save()
 
     try:
         for sweep, mode, e, tol, precision in configs:
@@ -1141,7 +1148,7 @@ def run_accuracy_benchmark(
                 "gradient_relative_error": float(np.linalg.norm(grad - g_ref) / np.linalg.norm(g_ref)) if np.linalg.norm(g_ref) > 0 else None,
                 "error": None,
             })
-        _write_results(out_dir, "accuracy", dev, 1, {**header, "rows": rows}, complete=True)
+        save(complete=True)
     finally:
         _plot_at_end(out_dir / "accuracy.png", _plot_accuracy, rows)
     return rows
