@@ -83,7 +83,7 @@ GENERIC_QUICK_ITERATIONS = 8
 # field, and the values a scene that leaves one out reads.
 _QUICK_PRESET_ATTRIBUTES = {field.removeprefix("quick_"): name.removeprefix("task:quick:") for name, (field, _) in TASK_ATTRIBUTES.items() if field.startswith("quick_")}
 _QUICK_PRESET_DEFAULTS = {field: getattr(TaskSpec(), f"quick_{field}") for field in _QUICK_PRESET_ATTRIBUTES}
-_QUICK_PRESET_HINT = "a --quick preset is warpcontact:task:quick:horizon, recedingHorizon, recedingStride, iterations and learningRate, authored together"
+_QUICK_PRESET_HINT = f"a --quick preset is warpcontact:task:quick:{', '.join(list(_QUICK_PRESET_ATTRIBUTES.values())[:-1])} and {list(_QUICK_PRESET_ATTRIBUTES.values())[-1]}, authored together"
 
 
 @dataclass
