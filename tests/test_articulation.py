@@ -120,7 +120,7 @@ def test_free_bodies_beside_joints_take_the_per_body_arithmetic_bit_for_bit():
     art = model.articulation
     assert list(art._loose_bodies) == [model.body_names.index(f"box{i}") for i in range(5)]
     loops = copy.copy(art)
-    loops._loose_bodies, loops._loose_joints, loops._joined_bodies = np.zeros(0, dtype=np.int64), frozenset(), art.dynamic_bodies
+    loops._loose_bodies, loops._joined_joints, loops._joined_bodies = np.zeros(0, dtype=np.int64), list(range(len(art.joints))), art.dynamic_bodies
     rng = np.random.default_rng(4)
     q = art.retract(model.initial_q, 0.3 * rng.standard_normal(art.num_dofs))
     assert np.array_equal(q, loops.retract(model.initial_q, 0.3 * np.random.default_rng(4).standard_normal(art.num_dofs)))

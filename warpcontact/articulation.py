@@ -385,13 +385,12 @@ class ArticulationModel:
         parents = {joint.parent for joint in self.joints}
         loose = [b for b in self.dynamic_bodies if self.joints[self.body_joint[b]].kind == "free" and b not in parents]
         self._loose_bodies = np.array(loose, dtype=np.int64)
-        self._loose_joints = frozenset(int(self.body_joint[b]) for b in loose)
         self._loose_dofs = np.array([self.joint_dofs[self.body_joint[b]] for b in loose], dtype=np.int64).reshape(-1, 6)
         self._joined_bodies = np.setdiff1d(self.dynamic_bodies, self._loose_bodies)
-        dynamic_index = np.full(n, -1, dtype=np.int64)
-        dynamic_index[~static] = np.arange(int((~static).sum()))
-        self._loose_rows = (6 * dynamic_index[self._loose_bodies][:, None] + np.arange(6)).reshape(-1)
-        self._joined_rows = np.setdiff1d(np.arange(6 * int((~static).sum())), self._loose_rows)
+        # Their rows, and the others', of the Hessian over the non-static bodies.
+        loose_rows = np.isin(self._hessian_rows // 6, self._loose_bodies)
+        self._loose_rows, self._joined_rows = np.flatnonzero(loose_rows), np.flatnonzero(~loose_rows)
+        self._joined_joints = [j for j in range(len(self.joints)) if self.joints[j].child not in self._loose_bodies]
         self._joined_dofs = np.setdiff1d(np.arange(self.num_dofs), self._loose_dofs.reshape(-1))
         self.cones = [self._cone(j, joint, poses) for j, joint in enumerate(self.joints) if joint.kind == "ball" and np.isfinite(joint.cone_limit)]
         balls = [(j, joint) for j, joint in enumerate(self.joints) if joint.kind == "ball"]
@@ -827,13 +826,32 @@ class ArticulationModel:
         points = quat_rotate(poses[owner, 3:], self.dof_point_local) + poses[owner, :3]
         return axes, points
 
-    def _body_columns(self, b: int, p: np.ndarray, axes: np.ndarray, points: np.ndarray):
-        dofs = self.body_dofs[b]
+    def _columns(self, dofs: np.ndarray, p: np.ndarray, axes: np.ndarray, points: np.ndarray):
+        """The angular and linear velocity (omega, v) per unit increment of each of a body's
+        ``dofs`` (its chain's, (n,); or a stack of bodies', (k, n), with ``p`` (k, 1, 3)) for
+        the body's centre at ``p``."""
         a = axes[dofs]
-        rotating = (self.dof_kind[dofs] != PRISMATIC)[:, None]
+        rotating = (self.dof_kind[dofs] != PRISMATIC)[..., None]
         omega = np.where(rotating, a, 0.0)
         velocity = np.where(rotating, cross(a, p - points[dofs]), a)
-        return dofs, omega, velocity
+        return omega, velocity
+
+    @staticmethod
+    def _curvature_block(g_p, g_w, omega, velocity, same) -> np.ndarray:
+        """A body's block of C over its chain's DOFs (or a stack of them) for its rigid
+        gradient (g_p, g_w): g_p . (a_k x v_l) = (g_p x a_k) . v_l, zero rows for prismatic k
+        via omega, 1/2 g_w . (omega_k x omega_l), symmetrised inside an exponential group
+        (``same``: its (rows, columns))."""
+        M = cross(g_p, omega) @ np.swapaxes(velocity, -1, -2)
+        N = 0.5 * cross(g_w, omega) @ np.swapaxes(omega, -1, -2)
+        upper = np.triu(M + N, 1)
+        diagonal = np.zeros_like(M)
+        index = range(M.shape[-1])
+        diagonal[..., index, index] = M[..., index, index]
+        block = upper + np.swapaxes(upper, -1, -2) + diagonal
+        rows, columns = same
+        block[..., rows, columns] = (0.5 * (M + np.swapaxes(M, -1, -2)))[..., rows, columns]
+        return block
 
     def curvature(self, poses: np.ndarray, grad: np.ndarray) -> np.ndarray:
         """sum_i g_i . d2(p_i, theta_i)/d delta2 (m, m) for a rigid gradient ``grad`` (nbodies, 6)."""
@@ -846,8 +864,8 @@ class ArticulationModel:
         J (6 nbodies, m) holds the rigid coordinates (dp, dtheta) of each body per DOF
         increment (zero rows for static bodies)."""
         J, C = self._jacobian_and_curvature(poses, grad.reshape(-1, 6))
-        moving = J[self._hessian_rows]
         if not len(self._loose_bodies):
+            moving = J[self._hessian_rows]
             return J, J.T @ grad, moving.T @ hess @ moving + C
         # The loose bodies' block of J is the identity (their rows in DOF order), and no other
         # block couples them: J^T H J from H's blocks, without products by the identity. The
@@ -855,7 +873,7 @@ class ArticulationModel:
         # entries on a random H), while the shipped Ant-Push rollouts hash unchanged.
         joined, loose = self._joined_rows, self._loose_rows
         joined_dofs, loose_dofs = self._joined_dofs, self._loose_dofs.reshape(-1)
-        moved = moving[np.ix_(joined, joined_dofs)]
+        moved = J[np.ix_(self._hessian_rows[joined], joined_dofs)]
         reduced = np.empty((self.num_dofs, self.num_dofs))
         reduced[np.ix_(joined_dofs, joined_dofs)] = moved.T @ hess[np.ix_(joined, joined)] @ moved
         across = moved.T @ hess[np.ix_(joined, loose)]
@@ -870,38 +888,20 @@ class ArticulationModel:
         C = np.zeros((self.num_dofs, self.num_dofs))
         loose = self._loose_bodies
         if len(loose):
-            # Body by body below, for all loose bodies at once: the same products.
+            # All loose bodies at once, with the products the joined bodies take one by one
+            # (each loose chain is its free joint's six DOFs, one exponential group).
             dofs = self._loose_dofs
-            a = axes[dofs]
-            rotating = (self.dof_kind[dofs] != PRISMATIC)[..., None]
-            omega = np.where(rotating, a, 0.0)
-            velocity = np.where(rotating, cross(a, poses[loose, None, :3] - points[dofs]), a)
+            omega, velocity = self._columns(dofs, poses[loose, None, :3], axes, points)
             rows = 6 * loose[:, None] + np.arange(3)
             J[rows[:, :, None], dofs[:, None, :]] = np.swapaxes(velocity, 1, 2)
             J[(rows + 3)[:, :, None], dofs[:, None, :]] = np.swapaxes(omega, 1, 2)
-            M = cross(grad[loose, None, :3], omega) @ np.swapaxes(velocity, 1, 2)
-            N = 0.5 * cross(grad[loose, None, 3:], omega) @ np.swapaxes(omega, 1, 2)
-            upper = np.triu(M + N, 1)
-            diagonal = np.zeros_like(M)
-            diagonal[:, range(6), range(6)] = M[:, range(6), range(6)]
-            block = upper + np.swapaxes(upper, 1, 2) + diagonal
-            same_rows, same_columns = self._same_group[loose[0]]
-            block[:, same_rows, same_columns] = (0.5 * (M + np.swapaxes(M, 1, 2)))[:, same_rows, same_columns]
-            C[dofs[:, :, None], dofs[:, None, :]] += block
+            C[dofs[:, :, None], dofs[:, None, :]] += self._curvature_block(grad[loose, None, :3], grad[loose, None, 3:], omega, velocity, self._same_group[loose[0]])
         for b in self._joined_bodies:
-            dofs, omega, velocity = self._body_columns(b, poses[b, :3], axes, points)
+            dofs = self.body_dofs[b]
+            omega, velocity = self._columns(dofs, poses[b, :3], axes, points)
             J[6 * b : 6 * b + 3, dofs] = velocity.T
             J[6 * b + 3 : 6 * b + 6, dofs] = omega.T
-            g_p, g_w = grad[b, :3], grad[b, 3:]
-            # g_p . (a_k x v_l) = (g_p x a_k) . v_l; zero rows for prismatic k via omega
-            M = cross(g_p, omega) @ velocity.T
-            N = 0.5 * cross(g_w, omega) @ omega.T
-            U = M + N
-            block = np.triu(U, 1)
-            block = block + block.T + np.diag(np.diag(M))
-            same = self._same_group[b]
-            block[same] = (0.5 * (M + M.T))[same]
-            C[np.ix_(dofs, dofs)] += block
+            C[np.ix_(dofs, dofs)] += self._curvature_block(grad[b, :3], grad[b, 3:], omega, velocity, self._same_group[b])
         return J, C
 
     def swing_bounds(self, step: np.ndarray) -> np.ndarray:
@@ -923,24 +923,21 @@ class ArticulationModel:
         if len(loose):
             # The loop's free joint for all loose bodies at once, in its order: the three
             # translations, then the turn about the centre (no parent: G starts at identity).
+            # G stays the identity until the turn, and rotating by it or composing with it
+            # changes no number: the translations add up, then the turn's shift of the centre.
             dofs = self._loose_dofs
-            identity = np.zeros((len(loose), 4))
-            identity[:, 3] = 1.0
-            gq, gt = identity, np.zeros((len(loose), 3))
+            gt = np.zeros((len(loose), 3))
             for k in range(3):
-                gt = gt + quat_rotate(gq, axes[dofs[:, k]] * step[dofs[:, k], None])
-                gq = quat_mul(gq, identity)
+                gt = gt + axes[dofs[:, k]] * step[dofs[:, k], None]
             group = dofs[:, 3:]
-            eq = quat_from_rotation_vector(np.einsum("kji,kj->ki", axes[group], step[group]))
+            gq = quat_from_rotation_vector(np.einsum("kji,kj->ki", axes[group], step[group]))
             centre = points[dofs[:, 3]]
-            gt = gt + quat_rotate(gq, centre - quat_rotate(eq, centre))
-            gq = quat_mul(gq, eq)
+            gt = gt + (centre - quat_rotate(gq, centre))
             out[loose, :3] = quat_rotate(gq, poses[loose, :3]) + gt
             q = quat_mul(gq, poses[loose, 3:])
             out[loose, 3:] = q / np.array([np.linalg.norm(row) for row in q])[:, None]
-        for j, joint in enumerate(self.joints):
-            if j in self._loose_joints:
-                continue
+        for j in self._joined_joints:
+            joint = self.joints[j]
             b = joint.child
             if joint.parent >= 0:
                 gq, gt = motion_q[joint.parent].copy(), motion_t[joint.parent].copy()
