@@ -20,7 +20,7 @@ from .hull import convex_hull_mesh
 from .kernels import leaf as leaf_kernels
 from ._runtime import resolve_device
 from ._validate import MAX_COORDINATE, check_barrier_support, gap_problem
-from .builder import contact_setting_problem
+from .builder import check_contact_setting
 from .leaf import DEFAULT_MAX_ITERATIONS, LEAF_PRECISIONS, float32_search, leaf_gap_problem, leaf_solve_buffers, leaf_solve_bytes_per_pair
 from .rotation import quat_rotate
 
@@ -32,6 +32,7 @@ __all__ = [
     "run_scaling_benchmark",
     "PAPER_FRAME_SECONDS",
     "PEER_BALLS",
+    "peer_ball_path",
     "frame_scene",
     "strike_setup",
     "run_frame_benchmark",
@@ -170,15 +171,12 @@ def _check_settings(*, eps_values=(), ipc_dhat=None, ipc_stiffness=None) -> None
     the CLI checks them when it parses, but a library caller's bad value failed only when its
     row came, after the rows before it had replaced an earlier run's files (a probe, stop 58)."""
     for eps in eps_values:
-        problem = None if eps is None else contact_setting_problem("eps", eps)
-        if problem is not None:
-            raise ValueError(f"eps: {problem}, got {eps!r}")
+        if eps is not None:
+            check_contact_setting("eps", eps)
     if ipc_dhat is not None:
         check_barrier_support(ipc_dhat, "ipc_dhat")
     if ipc_stiffness is not None:
-        problem = contact_setting_problem("contact_stiffness", ipc_stiffness)
-        if problem is not None:
-            raise ValueError(f"ipc_stiffness: {problem}, got {ipc_stiffness!r}")
+        check_contact_setting("contact_stiffness", ipc_stiffness, "ipc_stiffness")
 
 
 def run_leaf_benchmark(*, num_pairs: int, repeats: int, device, out_dir: Path, seed: int = 0, precisions=("float64",)) -> dict:
@@ -523,6 +521,11 @@ PAPER_FRAME_SECONDS = {
 PEER_BALLS = {512: "18.obj", 1472: "48.obj", 3008: "96.obj", 4544: "144.obj", 6208: "196.obj"}
 
 
+def peer_ball_path(triangles: int, peer_meshes: Path) -> Path:
+    """The file of the paper code base's ball whose 16-ball rack has ``triangles`` triangles."""
+    return Path(peer_meshes) / PEER_BALLS[triangles]
+
+
 def _peer_ball(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """A peer ball mesh, centred, with its faces re-oriented outward.
 
@@ -575,7 +578,7 @@ def frame_scene(spec: str, *, scene_dir: Path | None = None, peer_meshes: Path =
         triangles = int(count) if count.isdigit() else None  # int("abc") was the whole message
         if triangles not in PEER_BALLS:
             raise ValueError(f"{spec}: peer billiards come in {sorted(PEER_BALLS)} triangles")
-        file = Path(peer_meshes) / PEER_BALLS[triangles]
+        file = peer_ball_path(triangles, peer_meshes)
         if not file.is_file():
             raise ValueError(f"{spec}: {file} not found (pass the peer-mesh folder)")
         ball = _peer_ball(file)
@@ -900,13 +903,13 @@ def run_frame_benchmark(
 
     # Every scene is read before any is timed: a bad name or a missing peer-mesh folder used
     # to end the default run after hours of the scenes before it.
-    scenes = list(dict.fromkeys(scenes))  # a scene named twice was timed twice, as models no longer are
+    scenes = _distinct(scenes)  # a scene named twice was timed twice, as models no longer are
     built = {spec: frame_scene(spec, scene_dir=scene_dir, peer_meshes=peer_meshes) for spec in scenes}
     # and set up for its strike, once (a scene without a striker failed after the others' timing)
     setups = {spec: strike_setup(scene, gap=gap, speed=speed) for spec, scene in built.items()}
     # bsh first: brute force above --brute-max-triangles is timed at bsh's solved poses (listed
     # after it, brute's rows were dropped without a word).
-    models = sorted(dict.fromkeys(models), key=lambda mode: mode != "bsh")
+    models = sorted(_distinct(models), key=lambda mode: mode != "bsh")
     ipc_missing = ipc.toolkit_problem() if "ipc" in models and dev.is_cpu else None
     try:
         for spec in scenes:

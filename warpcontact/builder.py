@@ -78,6 +78,14 @@ def contact_setting_problem(name: str, value: float) -> str | None:
     return scale_problem(value, _SETTING_UNITS[name]) if is_positive_finite(value) else "must be positive and finite"
 
 
+def check_contact_setting(name: str, value, label: str | None = None) -> None:
+    """ValueError ``label: <problem>, got <value>`` (label defaults to ``name``) unless
+    ``value`` is admissible for the contact setting ``name`` (``contact_setting_problem``)."""
+    problem = contact_setting_problem(name, value)
+    if problem is not None:
+        raise ValueError(f"{label or name}: {problem}, got {value!r}")
+
+
 def gravity_problem(value) -> str | None:
     """Why ``value`` is not a gravitational acceleration (m/s^2), or None: 3 finite numbers,
     none beyond SCALE_RANGE's bound (1e300 made the step's free fall overflow)."""

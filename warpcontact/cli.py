@@ -13,7 +13,7 @@ import numpy as np
 import warp as wp
 
 from ._files import hold_folder, interrupts_held, replace_file, replace_files, replace_json
-from ._validate import MAX_BARRIER_SUPPORT, MAX_COUNT, MAX_FRAMES
+from ._validate import MAX_BARRIER_SUPPORT, MAX_COUNT, MAX_FRAMES, check_barrier_support
 from .builder import contact_setting_problem
 from .contact import CENTRED_WEIGHTS
 from .leaf import LEAF_PRECISIONS
@@ -595,9 +595,9 @@ _PEER_FRAME_SCENE = f"peer_billiards_{_PEER_FRAME_TRIANGLES}"
 
 def _default_frame_scenes(peer_meshes: Path) -> tuple[list[str], str | None]:
     """bench frame's scenes when --scenes is not given, and a note when the peer rack is left out."""
-    from .bench import PEER_BALLS
+    from .bench import peer_ball_path
 
-    ball = peer_meshes / PEER_BALLS[_PEER_FRAME_TRIANGLES]
+    ball = peer_ball_path(_PEER_FRAME_TRIANGLES, peer_meshes)
     if ball.is_file():
         return [*_FRAME_SCENES, _PEER_FRAME_SCENE], None
     return list(_FRAME_SCENES), f"note: {_PEER_FRAME_SCENE} left out of the default scenes: {ball} not found (pass --peer-meshes DIR, the paper code base's meshes)"
@@ -765,8 +765,11 @@ def _ipc_dhat(text: str) -> float:
     """An argparse type: an IPC barrier support (m) by ipc's rule, or 0 (no ipc rows); above
     1e6 m it was refused inside ipc naming "dhat" (a probe, stop 58)."""
     value = _non_negative_float(text)
-    if value > MAX_BARRIER_SUPPORT:
-        raise argparse.ArgumentTypeError(f"must be 0 or a distance of at most {MAX_BARRIER_SUPPORT:g} m, got {text}")
+    try:
+        if value:
+            check_barrier_support(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be 0 or a distance of at most {MAX_BARRIER_SUPPORT:g} m, got {text}") from None
     return value
 
 
