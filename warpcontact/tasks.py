@@ -49,7 +49,7 @@ import warp as wp
 
 from ._files import replace_file
 from ._validate import MAX_COORDINATE, MAX_FRAMES, beyond_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array
-from .builder import contact_setting_problem
+from .builder import check_contact_setting
 from .bundle import BundleSettings, bundled_gradient
 from .io import TASK_ATTRIBUTES, TaskSpec, target_problem
 from .kernels import task as task_kernels
@@ -112,6 +112,13 @@ class TaskSettings:
     def receding(self) -> bool:
         """Whether the horizon is planned in receding windows shorter than it (else one window)."""
         return self.window < self.horizon
+
+    def window_at(self, frame: int) -> int:
+        """Frames of the window planned at ``frame``: the window, ending at the horizon at the
+        latest, where the task's loss is measured (the last windows optimised the bodies'
+        state after it, and kept a plan better at frame 32 over one better at the horizon's
+        frame 20; a probe, stop 59)."""
+        return min(self.window, self.horizon - frame)
 
     @classmethod
     def from_task(cls, scene, *, quick: bool = False, iterations: int | None = None, receding_stride: int | None = None) -> TaskSettings:
@@ -671,9 +678,7 @@ class TaskProblem:
             raise ValueError(f"bundle: only the gb model uses bundle settings, not {model!r}")
         # By the builder's rule for a stiffness, named, whatever the model: 1e200 was named as
         # contact_stiffness, and -1 passed for the other models (a probe, stop 58).
-        problem = contact_setting_problem("contact_stiffness", ipc_stiffness)
-        if problem is not None:
-            raise ValueError(f"ipc_stiffness: {problem}, got {ipc_stiffness!r}")
+        check_contact_setting("contact_stiffness", ipc_stiffness, "ipc_stiffness")
         if model in _BASELINE_CONTACT_MODE:
             overrides = {"contact_mode": _BASELINE_CONTACT_MODE[model]}
             if model == "ipc":
@@ -990,8 +995,8 @@ class TaskProblem:
         (its fingerprint matched, so the file was altered)."""
         s = self.settings
         receding = saved["receding"]
-        # A receding window ends at the horizon (``_receding``).
-        rows = min(s.window, max(s.horizon - saved.get("frame", 0), 1)) if receding else (1 if self.kind == "initial_state" else s.horizon)
+        # A frame past the horizon is refused below, by name.
+        rows = s.window_at(min(saved.get("frame", 0), s.horizon - 1)) if receding else (1 if self.kind == "initial_state" else s.horizon)
         shape = self.initial_values(rows).shape
         expected = {"values": shape, "best_values": shape}
         if receding:
@@ -1025,16 +1030,15 @@ class TaskProblem:
         if saved:
             t, plan, executed = saved["frame"], saved["plan"], list(saved["executed"])
         else:
+            # Since windows end at the horizon the ``window`` rows past it are never read; kept,
+            # as checkpoints hold the plan at this shape.
             t, plan, executed = 0, np.zeros((s.horizon + window + stride, len(self.dof_names))), [q0]
         resume = saved
         stopped = None
         while t < s.horizon:
             # The state at the window's start: the last two executed frames.
             current = (executed[-1], executed[-2]) if len(executed) > 1 else self.start
-            # A window ends at the horizon at the latest: the task's loss is measured there, and
-            # the last windows optimised the bodies' state after it (a plan better at frame 32
-            # was kept over one better at the horizon's frame 20; a probe, stop 59).
-            frames = min(window, s.horizon - t)
+            frames = s.window_at(t)
             values = plan[t : t + frames].copy()
             objective = objective_at(current, frames, resume)
             save = saver(objective, frame=t, plan=plan, executed=np.array(executed))
