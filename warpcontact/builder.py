@@ -227,10 +227,11 @@ def _ray_windings(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray
     key = (first[owner, 0] + offset % span[owner, 0]) * cells + first[owner, 1] + offset // span[owner, 0]
     order = np.argsort(key, kind="stable")
     listed, key = owner[order], key[order]
-    starts = np.searchsorted(key, np.arange(cells * cells))
+    listed_per_cell = np.bincount(key, minlength=cells * cells)
+    starts = np.cumsum(listed_per_cell) - listed_per_cell
     probe_cell = cell(points[:, :2])
     pk = probe_cell[:, 0] * cells + probe_cell[:, 1]
-    per = np.searchsorted(key, np.arange(cells * cells), side="right")[pk] - starts[pk]
+    per = listed_per_cell[pk]
     bounds = np.searchsorted(np.cumsum(per), np.arange(0, per.sum(), _WINDING_BATCH), side="right")
     for lo, hi in zip(np.concatenate([[0], bounds]), np.concatenate([bounds, [n]])):
         if hi <= lo:
