@@ -489,6 +489,31 @@ def test_values_of_another_type_than_their_schema_are_refused(tmp_path, size_typ
     np.testing.assert_allclose(np.ptp(scene.body("box").vertices, axis=0), 0.5)
 
 
+@pytest.mark.parametrize(
+    "op, name, match",
+    [
+        ("float xformOp:scale = 2", "xformOp:scale", r"prim /World/box: xformOp:scale is written as float, but a transform op of type scale takes double3 or float3 or half3"),
+        ("double xformOp:rotateXYZ = 30", "xformOp:rotateXYZ", r"prim /World/box: xformOp:rotateXYZ is written as double, but a transform op of type rotateXYZ"),
+        ("float4 xformOp:orient = (0.7071068, 0, 0, 0.7071068)", "xformOp:orient", r"prim /World/box: xformOp:orient is written as float4, but a transform op of type orient takes quatd"),
+        ("double3 xformOp:spin = (0, 0, 1)", "xformOp:spin", r"prim /World/box: xformOpOrder names 'xformOp:spin', which is not a transform op USD knows"),
+    ],
+    ids=["scalar-scale", "scalar-rotate", "float4-orient", "unknown-op"],
+)
+def test_transform_ops_of_another_type_than_their_kind_are_refused(tmp_path, op, name, match):
+    """Found by a probe: a scale written as a scalar (``float xformOp:scale = 2``) made
+    UsdPhysics' parser raise a raw pxr.Tf.ErrorException naming neither the file nor the prim
+    (a traceback from the CLI), and an orient written as float4 composed as the identity, so
+    the box loaded unturned, silently."""
+    text = _TYPED_STAGE.replace("SIZE_TYPE", "double").replace("GRAVITY_TYPE", "float")
+    text = text.replace('double3 xformOp:translate = (0, 0, 1)\n        uniform token[] xformOpOrder = ["xformOp:translate"]', f'double3 xformOp:translate = (0, 0, 1)\n        {op}\n        uniform token[] xformOpOrder = ["xformOp:translate", "{name}"]')
+    assert op in text
+    (tmp_path / "scene.usda").write_text(text)
+    with pytest.raises(ValueError, match=re.escape(str(tmp_path / "scene.usda")) + ": " + match):
+        io.load_scene(tmp_path / "scene.usda")
+    (tmp_path / "fixed.usda").write_text(text.replace(op, "quatf xformOp:orient = (0.7071068, 0, 0, 0.7071068)").replace(name, "xformOp:orient"))
+    np.testing.assert_allclose(io.load_scene(tmp_path / "fixed.usda").body("box").pose[3:], [0, 0, 0.7071068, 0.7071068], atol=1e-6)
+
+
 @pytest.mark.parametrize("physics_scene", [True, False], ids=["scene", "no-scene"])
 def test_an_up_axis_other_than_y_or_z_is_refused(tmp_path, physics_scene):
     """Found by a probe: upAxis "X" loaded with gravity along -X beside a PhysicsScene and

@@ -1134,6 +1134,7 @@ def load_scene(path) -> Scene:
         raise ValueError(f"{source}: upAxis must be \"Y\" or \"Z\", got {str(up)!r}")
     _warn_foreign_layer_units(stage, {"metersPerUnit": meters, "kilogramsPerUnit": kilograms, "upAxis": up}, source)
     _refuse_mistyped_schema_attributes(stage, Usd, source)
+    _refuse_mistyped_xform_ops(stage, Sdf, Usd, UsdGeom, source)
     parsed = _load_physics(stage, UsdPhysics)
     descs = {str(k): list(zip(v[0], v[1])) for k, v in parsed.items()}
     _refuse_collision_filters(stage, UsdPhysics, Usd, source)
@@ -1925,6 +1926,43 @@ def _refuse_mistyped_schema_attributes(stage, Usd, source: str) -> None:
                     raise ValueError(
                         f"{source}: prim {prim.GetPath()}: {attr.GetName()} is written as {spec.typeName} but its schema declares {expected}; "
                         f"USD would ignore the value and use the default (write it as {expected})"
+                    )
+
+
+# The value types an xformOp of each kind takes (any precision; role names count as their type).
+_XFORM_OP_VALUE_TYPES = {
+    **dict.fromkeys(("translate", "scale", "rotateXYZ", "rotateXZY", "rotateYXZ", "rotateYZX", "rotateZXY", "rotateZYX"), ("double3", "float3", "half3")),
+    **dict.fromkeys(("translateX", "translateY", "translateZ", "scaleX", "scaleY", "scaleZ", "rotateX", "rotateY", "rotateZ"), ("double", "float", "half")),
+    "orient": ("quatd", "quatf", "quath"),
+    "transform": ("matrix4d",),
+}
+
+
+def _refuse_mistyped_xform_ops(stage, Sdf, Usd, UsdGeom, source: str) -> None:
+    """ValueError naming the prim and op when an ``xformOpOrder`` names an op USD does not
+    know, or an op whose value has another type than its kind takes (``float xformOp:scale =
+    2``, ``double xformOp:rotateXYZ = 30``): UsdPhysics' parser raised a raw pxr error naming
+    neither the file nor the prim, and an orient written as ``float4`` composed as the
+    identity, silently (a probe)."""
+    for prim in _all_prims(stage, Usd):
+        if not prim.IsA(UsdGeom.Xformable):
+            continue
+        for token in UsdGeom.Xformable(prim).GetXformOpOrderAttr().Get() or []:
+            if token == "!resetXformStack!":
+                continue
+            name = token[len("!invert!") :] if token.startswith("!invert!") else token
+            parts = name.split(":")
+            allowed = _XFORM_OP_VALUE_TYPES.get(parts[1]) if len(parts) >= 2 and parts[0] == "xformOp" else None
+            if allowed is None:
+                raise ValueError(f"{source}: prim {prim.GetPath()}: xformOpOrder names {token!r}, which is not a transform op USD knows ({', '.join(_XFORM_OP_VALUE_TYPES)})")
+            attr = prim.GetAttribute(name)
+            if not attr:
+                continue  # USD warns and skips it, as its readers do
+            for spec in attr.GetPropertyStack(Usd.TimeCode.Default()):
+                if spec.typeName.type not in [Sdf.ValueTypeNames.Find(t).type for t in allowed]:
+                    raise ValueError(
+                        f"{source}: prim {prim.GetPath()}: {name} is written as {spec.typeName}, but a transform op of type {parts[1]} takes "
+                        f"{' or '.join(allowed)} (USD would not apply it; a raw pxr error or no transform at all)"
                     )
 
 
