@@ -75,6 +75,23 @@ def test_forces_smaller_than_the_tolerance_a_step_still_act():
     assert vz == pytest.approx(2.0 - 9.81 * steps * dt, abs=1e-6)
 
 
+def test_a_far_dynamic_body_does_not_switch_off_another_body_s_forces():
+    """Newton's converged length was the rounding of the scene's largest dynamic coordinate: a
+    second box 10 km away made a box's whole step at dt 1e-6 (gravity's 1e-11 m, far above
+    the rounding of its own coordinates) "converged" at its first iteration, and it never fell
+    (its vertical velocity stayed 2.0 m/s). Each body's step is now held to its own rounding."""
+    dt, steps = 1e-6, 100
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    b.add_box((0.4, 0.4, 0.4), density=500.0, name="box", pose=(0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
+    b.add_box((0.4, 0.4, 0.4), density=500.0, name="far", pose=(1e4, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    first = model.state(requires_grad=False)
+    wc.set_body_velocity(first, wp.array([[1.0, 0.0, 2.0], [0.0, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(2, dtype=wp.vec3d), dt)
+    q, _ = rollout(model, steps, dt, first=first)
+    vz = (q[-1, 0, 2] - q[-2, 0, 2]) / dt
+    assert vz == pytest.approx(2.0 - 9.81 * steps * dt, abs=1e-6)
+
+
 def test_a_far_static_body_does_not_loosen_a_small_body_s_tolerance():
     """The tolerance scales with the largest body radius, static bodies included: a 1,000 km
     slab far below made a 1 cm box's tolerance 70 um, and its friction stopped acting (it slid

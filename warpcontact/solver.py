@@ -137,7 +137,7 @@ _CONVERGED_ACCELERATION = 1e-5
 # across which the barrier's force changes by twice as much.
 _CONVERGED_GAP_FRACTION = 1e-2
 # 16 units of float64 roundoff, relative. A Newton step cannot resolve a position more finely
-# than its coordinates' rounding: steps below this times the largest dynamic coordinate count
+# than its coordinates' rounding: a body's steps below this times its largest coordinate count
 # as converged (a lone 1 cm box 50 km up took Newton steps of 0.2 ulp against a tolerance of
 # 6e-13 m and failed after 500 iterations).
 _ROUNDING = 16.0 * np.finfo(np.float64).eps
@@ -556,14 +556,14 @@ class ImplicitSolver:
             raise ValueError(f"model.articulation.{problem}")
         return mu, friction, mass
 
-    def _pressed(self, travel: np.ndarray, evaluation, rounding_length: float) -> bool:
+    def _pressed(self, travel: np.ndarray, evaluation, rounding_length: np.ndarray) -> bool:
         """Whether a body's step ``travel`` (m) exceeds _CONVERGED_GAP_FRACTION of the
-        separation bound of its closest pair at ``evaluation`` (and the coordinates'
-        ``rounding_length``; ipc's per pair where it matters, ``ipc.PAIR_DISTANCE_FRACTION``).
+        separation bound of its closest pair at ``evaluation`` (and its coordinates'
+        ``rounding_length``, per body; ipc's per pair where it matters, ``ipc.PAIR_DISTANCE_FRACTION``).
         Asked only of steps short enough to converge otherwise."""
         a, b = self._pair_bodies.T
-        limit = np.maximum(_CONVERGED_GAP_FRACTION * evaluation.pair_separation, rounding_length)
-        return bool(np.any((travel[a] > limit) | (travel[b] > limit)))
+        limit = _CONVERGED_GAP_FRACTION * evaluation.pair_separation
+        return bool(np.any((travel[a] > np.maximum(limit, rounding_length[a])) | (travel[b] > np.maximum(limit, rounding_length[b]))))
 
     def _friction_frame(self, mu: float, friction: float, dt: float) -> "LaggedFriction | None":
         """Lagged friction data at the configuration the contact model evaluated last (q^t);
@@ -1100,17 +1100,21 @@ class ImplicitSolver:
                 direction = self._friction_exact_direction(q, grad, hess, direction, friction)
                 full, travel = self._step_travel(direction)
                 step_length = float(travel.max())
-            rounding_length = _ROUNDING * float(np.abs(q[dynamic, :3]).max(initial=0.0))
-            converged_length = max(converged_step, rounding_length)
+            # Per body, from its own coordinates: from the largest dynamic coordinate of the scene,
+            # a second box 10 km away made a box's whole step at dt 1e-6 (gravity's 1e-11 m)
+            # "converged" at its first iteration, and the box never fell.
+            rounding_length = _ROUNDING * np.abs(q[:, :3]).max(axis=1)
+            converged_length = np.maximum(converged_step, rounding_length)
             # A step the saddle-free floor made short is no convergence (_saddle_free_direction).
-            hidden = 0.0 if floored is None else float(self._step_travel(floored, None if art is None else jacobian)[1].max())
+            hidden_travel = np.zeros(len(travel)) if floored is None else self._step_travel(floored, None if art is None else jacobian)[1]
+            hidden = float(hidden_travel.max())
             # Beside a 1/x barrier Newton's step is about half the gap, however unbalanced the
             # force: a box started 4e-11 m above another "converged" at its first step of 2e-11
             # m, pressed by 2e17 N, and stayed there. So no body's step may exceed a fraction
             # of its closest pair's separation (its own: one pressed pair held every body of a
             # scene to its gap).
-            if step_length <= converged_length and not self._pressed(travel, contact, rounding_length):
-                if hidden > converged_length:
+            if np.all(travel <= converged_length) and not self._pressed(travel, contact, rounding_length):
+                if np.any(hidden_travel > converged_length):
                     raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden, converged_length=converged_length))
                 converged = True
                 break
@@ -1151,7 +1155,7 @@ class ImplicitSolver:
                     break
                 alpha *= _backtrack_factor(value, -decrement, t_value, None if t_grad is None else float(t_grad @ direction), alpha)
             if not accepted:
-                if step_length <= rounding_step and hidden <= converged_length:
+                if step_length <= rounding_step and np.all(hidden_travel <= converged_length):
                     converged = True  # stalled at the rounding floor of L
                     break
                 raise SolverError(self._diagnostics("line search failed", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden, converged_length=converged_length))
@@ -1420,8 +1424,10 @@ class ImplicitSolver:
         chord, t = hit
         return float(s[chord] + t / _PASS_THROUGH_CHORDS)
 
-    def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray, q_start: np.ndarray, dt: float, unsolved: "_UnsolvedTrials", hess: np.ndarray, evaluation, *, hidden: float = 0.0, converged_length: float) -> str:
+    def _diagnostics(self, what: str, iterations: int, step_length: float, value: float, travel: np.ndarray, q_start: np.ndarray, dt: float, unsolved: "_UnsolvedTrials", hess: np.ndarray, evaluation, *, hidden: float = 0.0, converged_length) -> str:
         worst = np.argsort(-travel)[:3]
+        # Per body: the length the body moving most had to fall below.
+        converged_length = float(np.broadcast_to(converged_length, travel.shape)[worst[0]]) if len(travel) else float(np.max(converged_length))
         names = self.model.body_names
         bodies = ", ".join(f"{names[i]} ({travel[i]:.3e} m)" for i in worst if travel[i] > 0)
         # A body that coasts, or falls, several of its radii in one step (a 1 um cube falls
