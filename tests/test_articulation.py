@@ -1052,8 +1052,26 @@ def test_bad_ball_drives_are_refused():
     with pytest.raises(ValueError, match="ball joint 'shoulder' has norm 1.1; expected a unit quaternion"):
         solver.step(state, model.state(), control, 0.01)
     control.ball_target = wp.array(np.array([[0.0, np.nan, 0.0, 1.0]]), dtype=wp.quatd)
-    with pytest.raises(ValueError, match="control.ball_target: contains non-finite values"):
+    with pytest.raises(ValueError, match=r"control.ball_target: the target of ball joint 'shoulder' is \[0.0, nan, 0.0, 1.0\]; expected a finite unit quaternion"):
         solver.step(state, model.state(), control, 0.01)
+
+
+def test_non_finite_joint_targets_and_coordinates_are_refused_naming_the_coordinate():
+    """Found by a probe: a NaN in control.joint_target (one of the ant's 16) said only
+    "expected 16 finite joint targets", and a NaN in state_in.joint_q "contains non-finite
+    values", naming neither the coordinate nor the value, where a body target's names its body."""
+    model, state = pendulum(links=2, kp=50.0)
+    solver = wc.ImplicitSolver(model)
+    control = model.control(requires_grad=False)
+    control.joint_target.assign(np.array([0.1, np.nan]))
+    with pytest.raises(ValueError, match=r"control.joint_target: the target of coordinate 'hinge1:0' is nan; expected 2 finite joint targets"):
+        solver.step(state, model.state(requires_grad=False), control, 0.01)
+    control.joint_target = wp.array([0.1, 0.2, 0.3], dtype=wp.float64)
+    with pytest.raises(ValueError, match=r"control.joint_target: expected 2 finite joint targets, got shape \(3,\)"):
+        solver.step(state, model.state(requires_grad=False), control, 0.01)
+    state.joint_q.assign(np.array([np.inf, 0.0]))
+    with pytest.raises(ValueError, match=r"state_in.joint_q: coordinate 'hinge0:0' is inf; expected finite values"):
+        solver.step(state, model.state(requires_grad=False), None, 0.01)
 
 
 def test_base_joint_settings_follow_the_dofs_as_given():

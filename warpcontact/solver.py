@@ -880,9 +880,11 @@ class ImplicitSolver:
             if not isinstance(arr, wp.array) or arr.shape != (count,) or arr.dtype != wp.float64:
                 raise ValueError(f"{label}: expected a float64 wp.array of the model's {count} joint coordinates (use model.state())")
         coords = state_in.joint_q.numpy()
-        if not np.isfinite(coords).all():
-            raise ValueError("state_in.joint_q: contains non-finite values")
         art = self._articulation
+        bad = np.flatnonzero(~np.isfinite(coords))
+        if bad.size:
+            # Named like a body target's: "contains non-finite values" named no coordinate.
+            raise ValueError(f"state_in.joint_q: coordinate {art.coordinate_names[bad[0]]!r} is {float(coords[bad[0]])!r}; expected finite values")
         # The state holds each configuration twice; the step reads the poses for contact and
         # the coordinates for drives and limits, so they must agree. The check (~0.3 ms a joint)
         # is skipped for what this solver's last step wrote, which agrees by construction.
@@ -907,8 +909,11 @@ class ImplicitSolver:
         if supplied is not None and not (isinstance(supplied, wp.array) and supplied.dtype == wp.float64):
             raise ValueError(f"control.joint_target: expected a float64 wp.array of {count} joint targets (use model.control()), got {_described(supplied)}")
         target = coords if supplied is None else supplied.numpy()
-        if target.shape != (count,) or not np.isfinite(target).all():
-            raise ValueError(f"control.joint_target: expected {count} finite joint targets")
+        if target.shape != (count,):
+            raise ValueError(f"control.joint_target: expected {count} finite joint targets, got shape {target.shape}")
+        bad = np.flatnonzero(~np.isfinite(target))
+        if bad.size:
+            raise ValueError(f"control.joint_target: the target of coordinate {art.coordinate_names[bad[0]]!r} is {float(target[bad[0]])!r}; expected {count} finite joint targets")
         return coords, target
 
     def _ball_arrays(self, control: Control | None, poses: np.ndarray):
@@ -922,8 +927,9 @@ class ImplicitSolver:
         if not isinstance(supplied, wp.array) or supplied.dtype != wp.quatd or supplied.shape != (count,):
             raise ValueError(f"control.ball_target: expected a wp.array of {count} wp.quatd (x, y, z, w), one per ball joint {art.ball_joint_names} (use model.control()), got {_described(supplied)}")
         target = supplied.numpy()
-        if not np.isfinite(target).all():
-            raise ValueError("control.ball_target: contains non-finite values")
+        bad = np.flatnonzero(~np.isfinite(target).all(axis=1))
+        if bad.size:
+            raise ValueError(f"control.ball_target: the target of ball joint {art.ball_joint_names[bad[0]]!r} is {target[bad[0]].tolist()}; expected a finite unit quaternion")
         norms = np.linalg.norm(target, axis=1)
         bad = np.flatnonzero(np.abs(norms - 1.0) > QUATERNION_TOLERANCE)
         if bad.size:
