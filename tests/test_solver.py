@@ -1436,6 +1436,12 @@ def test_bad_input_raises_before_writing_state():
     with pytest.raises(ValueError, match=r"state_in.body_q: body 'right' \(index 1\) has a zero rotation quaternion"):
         solver.step(s0, s1, None, 0.01)
     np.testing.assert_array_equal(s1.body_q.numpy(), before)
+    # A non-finite pose named no body ("contains non-finite values").
+    q[1, 3:] = [0.0, 0.0, 0.0, 1.0]
+    q[1, 2] = np.inf
+    s0.body_q.assign(q)
+    with pytest.raises(ValueError, match=r"state_in.body_q: body 'right' \(index 1\) has pose \[.*, inf, 0.0, 0.0, 0.0, 1.0\]; expected finite values"):
+        solver.step(s0, s1, None, 0.01)
     # Any norm the kernels can square is normalised; beyond it a previous rotation of norm
     # 1e160 was read as another rotation and the step ran on (found by a probe).
     for name, scale in (("body_q", 1e160), ("body_q_prev", 1e160), ("body_q_prev", 1e-160)):

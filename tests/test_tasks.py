@@ -355,7 +355,8 @@ def test_a_rollout_from_a_non_finite_start_names_it():
     problem = TaskProblem(space_billiards(), settings=TaskSettings(horizon=2, receding_horizon=0, iterations=1, learning_rate=0.1))
     q, q_prev = (np.array(a) for a in problem.start)
     q[0, 0] = np.nan
-    with pytest.raises(ValueError, match="start q: contains non-finite values"):
+    name = problem.model.body_names[0]
+    with pytest.raises(ValueError, match=rf"start q: body '{name}' \(index 0\) has pose \[nan, "):
         problem.rollout(problem.initial_values(1), (q, q_prev), 2)
 
 

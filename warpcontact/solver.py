@@ -964,8 +964,10 @@ class ImplicitSolver:
         q_now = self._readback.read("body_q").copy()
         q_prev = self._readback.read("body_q_prev").copy()
         for label, arr in (("state_in.body_q", q_now), ("state_in.body_q_prev", q_prev)):
-            if not np.isfinite(arr).all():
-                raise ValueError(f"{label}: contains non-finite values")
+            bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+            if bad.size:
+                b = bad[0]
+                raise ValueError(f"{label}: body {model.body_names[b]!r} (index {b}) has pose {arr[b].tolist()}; expected finite values")
             # Checked here by name: beyond it the previous pose (a velocity of 1e300 m/s given
             # to set_body_velocity) was blamed on dt and the control's targets.
             far = beyond_coordinates(arr[:, :3])

@@ -762,9 +762,11 @@ class TaskProblem:
             if np.shape(poses) != shape:
                 # Warp's assign copies what it is given: two poses of three left the third as it was.
                 raise ValueError(f"{label}: expected {shape} poses (px, py, pz, qx, qy, qz, qw), one per body, got shape {np.shape(poses)}")
-            if not np.isfinite(poses).all():
+            bad = np.flatnonzero(~np.isfinite(poses).all(axis=1))
+            if bad.size:
                 # It was blamed on zero velocities ("velocities give a non-finite previous pose").
-                raise ValueError(f"{label}: contains non-finite values")
+                b = bad[0]
+                raise ValueError(f"{label}: body {self.model.body_names[b]!r} (index {b}) has pose {np.asarray(poses[b]).tolist()}; expected finite values")
         if self.model.num_joint_coordinates and not (np.array_equal(q, self.start[0]) and np.array_equal(q_prev, self.start[1])):
             # Its joint coordinates would stay the initial ones while the poses moved (the
             # solver refuses such a state); base coordinates cannot be recovered from poses.
