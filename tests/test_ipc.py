@@ -225,3 +225,33 @@ def test_ipc_bodies_pressed_closer_than_rounding_of_a_step_are_pushed_apart():
         for t in range(2):
             solver.step(states[t], states[t + 1], None, 0.02)
         assert states[-1].body_q.numpy()[1, 0] - 0.3 > 1e-3  # pushed apart, as bsh does
+
+
+def test_the_solver_interface_checks_as_the_contact_model_s_does():
+    """Found by a probe: before any evaluate, friction_frame found 0 pairs and
+    advancement_limit returned 0 (every body's mesh at the origin); friction_terms at a NaN
+    pose gave a NaN value, at a row short an IndexError; a static body's step row was taken."""
+    import warp as wp
+
+    model = IpcContactModel([icosphere(1), icosphere(1)], dhat=0.1, static=[True, False], names=["ground", "ball"])
+    friction = wp.array([0.5], dtype=wp.float64, device="cpu")
+    with pytest.raises(RuntimeError, match="friction_frame: uses the collisions and vertices of the last evaluate"):
+        model.friction_frame(1.0, friction, 1e-4)
+    with pytest.raises(RuntimeError, match="advancement_limit: uses"):
+        model.advancement_limit(np.array([[0, 0, 0, 0, 0, 0], [0, 0, -1.0, 0, 0, 0]]))
+    with pytest.raises(RuntimeError, match="advancement_frame: uses"):
+        model.advancement_frame()
+    poses = identity_poses([[0, 0, 0], [1.05, 0, 0]])
+    model.evaluate(poses)
+    lagged = model.friction_frame(1.0, friction, 1e-4)
+    assert lagged.pairs > 0
+    nan = poses.copy()
+    nan[1, 0] = np.nan
+    with pytest.raises(ValueError, match="poses: non-finite value nan"):
+        model.friction_terms(lagged, poses=nan)
+    with pytest.raises(ValueError, match="poses: expected 2 rows"):
+        model.friction_terms(lagged, poses=poses[1:])
+    assert model.friction_terms(lagged, poses=poses)[0] == model.friction_terms(lagged)[0]
+    with pytest.raises(ValueError, match="static body 'ground' \\(row 0\\) has a non-zero row"):
+        model.advancement_limit(np.array([[0.1, 0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0.0]]))
+    assert model.advancement_limit(np.array([[0, 0, 0, 0, 0, 0], [-0.1, 0, 0, 0, 0, 0.0]])) < 1.0

@@ -248,6 +248,20 @@ def as_float64_array(value, name: str, *, trailing_shape: tuple[int, ...] = (), 
     return arr
 
 
+def validated_step(step, names, static: np.ndarray) -> np.ndarray:
+    """(len(names), 6) float64 rigid-coordinate step (dp, dtheta) of a contact model's
+    ``advancement_limit``; ValueError naming the argument, or the static body whose row is
+    not zero (such a row was taken, and cut a bound no static body can cut)."""
+    step = as_float64_array(step, "step", trailing_shape=(6,))
+    check_coordinates(step, "step")
+    if step.shape[0] != len(names):
+        raise ValueError(f"step: expected {len(names)} rows, got {step.shape[0]}")
+    moved = np.flatnonzero(static & (step != 0.0).any(axis=1))
+    if moved.size:
+        raise ValueError(f"step: static body {names[moved[0]]!r} (row {moved[0]}) has a non-zero row {step[moved[0]].tolist()}; static bodies do not move in a step")
+    return step
+
+
 def validated_poses(poses, names, *, normalize: bool = True) -> np.ndarray:
     """(len(names), 7) float64 poses (px, py, pz, qx, qy, qz, qw) with quaternions within
     QUATERNION_TOLERANCE of unit norm, normalised unless ``normalize`` is False; ValueError

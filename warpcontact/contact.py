@@ -33,7 +33,7 @@ from .kernels import reduction as reduction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels import traversal as traversal_kernels
 from ._runtime import HostReadback, LaunchCache, host_buffer, resolve_device, run_concurrently
-from ._validate import QUATERNION_TOLERANCE, as_float64_array, check_barrier_support, check_coordinates, check_count, checked_flag, is_positive_finite, is_real, is_whole, scale_problem, validated_poses
+from ._validate import QUATERNION_TOLERANCE, check_barrier_support, check_count, checked_flag, is_positive_finite, is_real, is_whole, scale_problem, validated_poses, validated_step
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus, float32_search
 from .rotation import rigid_step_travel
 from .sphere_tree import SphereTree, tree_of_validated_mesh, validated_mesh
@@ -933,13 +933,7 @@ class ContactModel:
             step: (nbodies, 6) rigid-coordinate step (dp, dtheta); zero rows for static bodies.
             frame: bound from the configuration of an ``advancement_frame()`` instead.
         """
-        step = as_float64_array(step, "step", trailing_shape=(6,))
-        check_coordinates(step, "step")
-        if step.shape[0] != self.num_bodies:
-            raise ValueError(f"step: expected {self.num_bodies} rows, got {step.shape[0]}")
-        moved = np.flatnonzero(self.static & (step != 0.0).any(axis=1))
-        if moved.size:  # it was taken, and halved a bound no static body can cut
-            raise ValueError(f"step: static body {self.names[moved[0]]!r} (row {moved[0]}) has a non-zero row {step[moved[0]].tolist()}; static bodies do not move in a step")
+        step = validated_step(step, self.names, self.static)
         if not (is_real(fraction) and 0 < fraction < 1):
             raise ValueError(f"fraction: must be a number in (0, 1), got {fraction!r}")
         if frame is None:

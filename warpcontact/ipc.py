@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from .articulation import connected_labels
 from .contact import ContactEvaluation, LaggedFriction, check_friction_arguments, checked_bodies, contact_body_pairs, hessian_slots
 from .rotation import cross, quat_from_rotation_vector, quat_to_matrix, skew
-from ._validate import as_float64_array, check_barrier_support, check_coordinates, checked_flag, validated_poses
+from ._validate import check_barrier_support, checked_flag, validated_poses, validated_step
 
 # A step's arc is checked in chord pieces whose bulge stays below this fraction of dhat.
 ARC_BULGE = 1e-3
@@ -135,6 +135,14 @@ class IpcContactModel:
         self._world = self._local.copy()
         self._positions = np.zeros((self.num_bodies, 3))
         self._collisions = ipctk.NormalCollisions()
+        # Whether evaluate has run: before it, the world vertices are the bodies' meshes all at
+        # the origin (friction_frame found 0 pairs there and advancement_limit returned 0, silently).
+        self._evaluated = False
+
+    def _require_evaluation(self, what: str):
+        """RuntimeError, as ``ContactModel``'s, when no ``evaluate`` has set the configuration."""
+        if not self._evaluated:
+            raise RuntimeError(f"{what}: uses the collisions and vertices of the last evaluate(poses), and the model holds none (call evaluate at the configuration the step starts from)")
 
     def _patches(self, exclude_pairs) -> np.ndarray:
         """Patch id per body: ipctk's filter only separates patches, so bodies joined by
@@ -162,6 +170,7 @@ class IpcContactModel:
         ipctk = self._ipctk
         V = self._world_vertices(poses)
         self._world, self._positions = V, poses[:, :3].copy()
+        self._evaluated = True
         n = self.num_bodies
         if ipctk.has_intersections(self._mesh, V):
             pairs = [(self.names[a], self.names[b]) for a, b in self.body_pairs if self._pair_intersects(V, a, b)]
@@ -258,6 +267,7 @@ class IpcContactModel:
         """IPC's lagged friction at the last evaluated configuration (a step's q^t): ipctk's
         tangential collisions of the collisions active there (module docstring)."""
         check_friction_arguments(mu, friction, slip_smoothing)
+        self._require_evaluation("friction_frame")
         ipctk = self._ipctk
         normal_potential = ipctk.BarrierPotential(self.dhat, float(mu))
         collisions = ipctk.TangentialCollisions()
@@ -270,6 +280,11 @@ class IpcContactModel:
         rigid coordinates at the last evaluated poses, or at ``poses`` (see
         ``ContactModel.friction_terms``)."""
         data = lagged.data
+        if poses is None:
+            self._require_evaluation("friction_terms")
+        else:
+            # ContactModel's rules, the poses kept to the last bit (a NaN gave a NaN value, a row short an IndexError).
+            poses = validated_poses(poses, self.names, normalize=False)
         if not lagged.pairs:
             m = 6 * len(self.hessian_bodies)
             return 0.0, np.zeros(6 * self.num_bodies), np.zeros((m, m))
@@ -314,16 +329,16 @@ class IpcContactModel:
 
     def advancement_frame(self) -> tuple[np.ndarray, np.ndarray]:
         """World vertices and body positions of the last ``evaluate`` (see ContactModel)."""
+        self._require_evaluation("advancement_frame")
         return self._world.copy(), self._positions.copy()
 
     def advancement_limit(self, step, *, fraction: float = 0.9, frame: tuple | None = None) -> float:
         """Largest alpha in (0, 1] with no collision along the step, from the last evaluated
         configuration or ``frame`` (ipctk CCD along chords of the bodies' arcs, times
         ``fraction`` when limiting)."""
-        step = as_float64_array(step, "step", trailing_shape=(6,))
-        check_coordinates(step, "step")
-        if step.shape[0] != self.num_bodies:
-            raise ValueError(f"step: expected {self.num_bodies} rows, got {step.shape[0]}")
+        step = validated_step(step, self.names, self.static)
+        if frame is None:
+            self._require_evaluation("advancement_limit")
         world, positions = frame if frame is not None else (self._world, self._positions)
         offsets = world - positions[self._body_of]
         # ipctk's CCD follows straight vertex paths, and a step turns each body along an arc
