@@ -865,6 +865,26 @@ def test_commands_check_their_output_folder_before_any_work(tmp_path, capsys, ar
     assert main(argv + ["--out", str(out), "--overwrite"]) == 0
 
 
+@pytest.mark.parametrize(
+    "argv, earlier",
+    [
+        (["simulate", "billiards", "--frames", "1"], ("metrics.json", "trajectory.usda", "convergence.png")),
+        (["run", "push", "--quick", "--iters", "1"], ("trajectory.usda", "summary.json")),
+    ],
+)
+def test_overwriting_a_shared_name_does_not_mix_two_commands_results(tmp_path, capsys, argv, earlier):
+    """run and simulate both write trajectory.usda: a simulate --overwrite into a run's
+    folder replaced it and left the run's metrics.json and convergence.png beside another
+    scene's trajectory (a run, simulate's summary.json)."""
+    for name in earlier:
+        (tmp_path / name).write_text(f"earlier {name}")
+    assert main(argv + ["--out", str(tmp_path), "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'trajectory.usda'} belongs with" in err and "choose another --out" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(earlier)
+    assert all((tmp_path / name).read_text() == f"earlier {name}" for name in earlier)
+
+
 @pytest.mark.parametrize("command", [["run", "--quick", "--iters", "1"], ["simulate", "--frames", "1"]])
 def test_a_scene_that_is_one_of_the_outputs_is_refused(tmp_path, monkeypatch, capsys, command):
     """A scene saved as OUT/trajectory.usda was called "an earlier run's results", and with
@@ -1020,3 +1040,13 @@ def test_bench_sweeps_measure_a_value_given_twice_once(tmp_path):
     assert [(r["scene"], r["mode"]) for r in rows] == [("two_icospheres", "brute"), ("two_icospheres", "bsh"), ("rack16", "brute"), ("rack16", "bsh")]
     assert main(["bench", "scaling", "--points", "8", "8", "--repeats", "1", "--out", str(tmp_path / "s")]) == 0
     assert [r["mode"] for r in json.loads((tmp_path / "s" / "scaling.json").read_text())["rows"]] == ["bsh", "brute"]
+
+
+def test_python_dash_m_runs_the_command():
+    """``python -m warpcontact`` said the package cannot be executed directly (a probe)."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "warpcontact", "list"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "push" in done.stdout and "billiards" in done.stdout

@@ -538,7 +538,7 @@ def test_cli_compare_writes_json_and_plot(tmp_path, capsys):
     out = tmp_path / "cmp"
     assert main(["compare", str(scene_path), "--models", "ours,sdrs,gb", "--iters", "2", "--quick", "--seed", "3", "--out", str(out)]) == 0
     data = json.loads((out / "compare.json").read_text())
-    assert list(data["models"]) == ["ours", "sdrs", "gb"]
+    assert list(data["models"]) == ["ours", "sdrs", "gb"] and data["complete"] is True
     assert data["task"] == "space_billiards" and data["seed"] == 3 and data["iterations_per_window"] == 2
     for result in data["models"].values():
         for key in ("loss_history", "initial_loss", "final_loss", "success", "seconds"):
@@ -593,7 +593,9 @@ def test_cli_compare_interrupted_keeps_and_plots_the_finished_models(tmp_path, c
     interrupt_call(monkeypatch, TaskProblem, "optimize", 2)
     out = tmp_path / "cmp"
     assert main(["compare", str(scene_path), "--models", "ours,sdrs,gb", "--iters", "1", "--out", str(out)]) == 130
-    assert list(json.loads((out / "compare.json").read_text())["models"]) == ["ours"]
+    stopped = json.loads((out / "compare.json").read_text())
+    # It read as a finished comparison of ours alone (the benches' JSON say "complete").
+    assert list(stopped["models"]) == ["ours"] and stopped["complete"] is False
     assert (out / "compare.png").is_file()
     assert "interrupted during sdrs: the models before it are in" in capsys.readouterr().err
     # Stopped during the first model, an earlier comparison's compare.json was announced as
@@ -1332,7 +1334,11 @@ def _rewritten(path, **changes):
         ("meta without a fingerprint", r"not a complete checkpoint \(missing fingerprint\)"),
         ("encryption flag", r"not a readable checkpoint \(strong encryption"),
         ("values reshaped", r"checkpoint array 'values' has shape \(7, 5\), expected \(2, 2\) for this problem"),
-        ("fingerprint a list", r"not a readable checkpoint \(its fingerprint is \[\], expected a JSON object\)"),
+        ("fingerprint a list", r"not a readable checkpoint \(its fingerprint is \[\], expected a JSON object of the task, model and settings\)"),
+        # A probe: the description of a checkpoint found without --resume was a KeyError
+        # traceback, and a stall that was text a TypeError once the results were written.
+        ("fingerprint empty", r"not a readable checkpoint \(its fingerprint is \{\}, expected a JSON object of the task, model and settings\)"),
+        ("stalled text", r"not a readable checkpoint \(its extra is \{'stalled': 'x'\}, expected .*, its stalled a list of objects with iteration and error\)"),
         ("iteration 3.5", r"not a readable checkpoint \(its iteration is 3.5, expected a whole number >= 0\)"),
         ("iteration -5", r"not a readable checkpoint \(its iteration is -5, expected a whole number >= 0\)"),
         ("iteration 10**6", r"checkpoint iteration 1000000 is past this problem's 3"),
@@ -1389,7 +1395,7 @@ def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path, damage, messa
             meta["extra"] = {"success": True, "final_loss": 0.0}
             _rewritten(checkpoint, meta=meta)
         else:
-            key, value = {"fingerprint a list": ("fingerprint", []), "iteration 3.5": ("iteration", 3.5), "iteration -5": ("iteration", -5),
+            key, value = {"fingerprint a list": ("fingerprint", []), "fingerprint empty": ("fingerprint", {}), "stalled text": ("extra", {"stalled": "x"}), "iteration 3.5": ("iteration", 3.5), "iteration -5": ("iteration", -5),
                           "iteration 10**6": ("iteration", 10**6), "adam_t text": ("adam_t", "x"), "seconds text": ("seconds", "x"),
                           "rng text": ("rng", "x"), "bundle_calls -3": ("bundle_calls", -3)}[damage]
             meta[key] = value

@@ -23,6 +23,9 @@ __all__ = ["main"]
 
 # The file in a run's output folder that keeps its progress (``tasks.TaskCheckpoint``).
 CHECKPOINT_NAME = "checkpoint.npz"
+# The results of run and simulate, which share trajectory.usda (``_refuse_mixed_results``).
+RUN_OUTPUTS = ("metrics.json", "trajectory.usda", "convergence.png")
+SIMULATE_OUTPUTS = ("trajectory.usda", "summary.json")
 
 
 def _demo(args) -> int:
@@ -230,6 +233,18 @@ def _refuse_input_among_outputs(args, out: Path):
             raise ValueError(f"{given}: the input scene is this command's output {outputs[resolved]} in {out}, which it would replace; choose another --out")
 
 
+def _refuse_mixed_results(out: Path, names: tuple):
+    """ValueError when a file this command replaces belongs with another command's results
+    in OUT: run and simulate both write trajectory.usda, and a simulate --overwrite into a
+    run's folder left the run's metrics.json and convergence.png beside another trajectory
+    (a run, simulate's summary.json), without a word."""
+    for others in (RUN_OUTPUTS, SIMULATE_OUTPUTS):
+        shared = [name for name in others if name in names and (out / name).exists()]
+        companions = [name for name in others if name not in names and (out / name).exists()]
+        if shared and companions:
+            raise ValueError(f"{out / shared[0]} belongs with {', '.join(companions)} in {out}, another command's results, which would be left beside this command's {shared[0]}; remove them or choose another --out")
+
+
 def _refuse_unwritable_names(out: Path, names: tuple):
     """ValueError when an output's name in OUT is taken by a folder (or anything but a file),
     found before the work rather than when its results are written."""
@@ -387,6 +402,7 @@ def _compare(args) -> int:
         "init_samples": settings.initial_samples,
         "frictionless": bool(args.frictionless),
         **_settings_metrics(settings, args, args.models),
+        "complete": False,
         "models": results,
     }
     interrupted = None
@@ -407,7 +423,10 @@ def _compare(args) -> int:
         else:
             print()
             results[model] = _result_metrics(result, problem)
-        # Rewritten after every model, so an interrupted comparison keeps the finished ones.
+        # Rewritten after every model, so an interrupted comparison keeps the finished ones;
+        # "complete" is false until every model is in (one stopped after its first model read
+        # as a finished comparison of that model alone, as the benches' results did).
+        payload["complete"] = len(results) == len(args.models)
         replace_json(out / "compare.json", payload)
     if not results:
         # Stopped during the first model: an earlier comparison's compare.json was announced
@@ -835,7 +854,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="optimise a task by gradient descent through the simulator")
     _add_task_arguments(run)
-    _writes(run, "outputs/run", "metrics.json", "trajectory.usda", "convergence.png")
+    _writes(run, "outputs/run", *RUN_OUTPUTS)
     run.add_argument("--model", default="ours", choices=MODELS)
     run.add_argument(
         "--resume",
@@ -858,7 +877,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("scene", help="a shipped scene's name (warpcontact list) or a .usda scene")
     simulate.add_argument("--frames", type=_frame_count, default=None, help="default: the scene's warpcontact:frames")
     simulate.add_argument("--device", default="cpu")
-    _writes(simulate, "outputs/simulate", "trajectory.usda", "summary.json")
+    _writes(simulate, "outputs/simulate", *SIMULATE_OUTPUTS)
     simulate.set_defaults(func=_simulate)
 
     bench = sub.add_parser("bench", help="benchmarks writing JSON results")
@@ -992,6 +1011,7 @@ def main(argv=None) -> int:
                 _refuse_input_among_outputs(args, out)
                 if not getattr(args, "resume", False) or (out / CHECKPOINT_NAME).exists():
                     _refuse_earlier_results(out, args.outputs, args.overwrite)
+                    _refuse_mixed_results(out, args.outputs)
             earlier = _earlier_files(args)
             status = args.func(args)
         finally:

@@ -406,9 +406,21 @@ def _damaged_checkpoint_entry(state: dict) -> str | None:
             return False
         return True
 
+    def fingerprint(value):
+        # What ``TaskCheckpoint.describe`` reads, for the messages of a run that finds one: a
+        # fingerprint without them was a KeyError traceback.
+        settings = value.get("settings") if isinstance(value, dict) else None
+        return isinstance(settings, dict) and is_whole(settings.get("horizon")) and isinstance(value.get("task"), str) and isinstance(value.get("model"), str)
+
+    def extra(value):
+        # The stalls that run reports after writing its results (a string there was a TypeError
+        # traceback once metrics.json held it).
+        stalls = value.get("stalled", []) if isinstance(value, dict) else None
+        return isinstance(stalls, list) and set(value) <= set(_CHECKPOINT_EXTRA_KEYS) and all(isinstance(s, dict) and {"iteration", "error"} <= set(s) for s in stalls)
+
     rules = {
-        "fingerprint": (lambda v: isinstance(v, dict), "a JSON object"),
-        "extra": (lambda v: isinstance(v, dict) and set(v) <= set(_CHECKPOINT_EXTRA_KEYS), f"a JSON object of at most {', '.join(_CHECKPOINT_EXTRA_KEYS)}"),
+        "fingerprint": (fingerprint, "a JSON object of the task, model and settings"),
+        "extra": (extra, f"a JSON object of at most {', '.join(_CHECKPOINT_EXTRA_KEYS)}, its stalled a list of objects with iteration and error"),
         "receding": (lambda v: isinstance(v, bool), "true or false"),
         "iteration": (count, "a whole number >= 0"),
         "adam_t": (count, "a whole number >= 0"),
