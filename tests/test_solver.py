@@ -1306,6 +1306,47 @@ def test_a_recorded_step_s_backward_uses_the_parameters_it_stepped_with():
         np.testing.assert_array_equal(changed, kept)
 
 
+def test_arrays_replaced_between_recorded_steps_get_their_own_steps_gradients():
+    """A step's backward wrote into the control and model arrays held when tape.backward ran:
+    with a target array and a friction coefficient array given to each step in turn (one
+    Control, model.friction replaced), the last ones got the sum of every step's adjoints
+    and the others none (a probe: 0, 0, 0, -0.786 against -0.201, -0.233, -0.214, -0.138)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), friction=0.3)
+    b.add_box((4.0, 4.0, 0.2), static=True, name="table", pose=(0, 0, -0.1, 0, 0, 0, 1))
+    b.add_box((0.3, 0.3, 0.3), density=500.0, name="pusher", pose=(0, 0, 0.151, 0, 0, 0, 1), kp_linear=(2000.0, 2000.0, 0.0), kd_linear=(50.0, 50.0, 0.0))
+    model = b.finalize()
+    solver = wc.ImplicitSolver(model)
+    targets = np.stack([model.initial_q] * 2)
+    targets[:, 1, 0] += [0.05, 0.1]
+    friction = np.array([0.3, 0.6])
+
+    def rollout(targets, friction):
+        target_arrays = [wp.array(q, dtype=wp.transformd, requires_grad=True) for q in targets]
+        friction_arrays = [wp.array([f], dtype=wp.float64, requires_grad=True) for f in friction]
+        states, control = [model.state() for _ in range(3)], model.control()
+        loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+        tape = wp.Tape()
+        with tape:
+            for t in range(2):
+                control.body_target, model.friction = target_arrays[t], friction_arrays[t]
+                solver.step(states[t], states[t + 1], control, 0.04)
+            wp.launch(_pose_x_loss, dim=1, inputs=[states[-1].body_q, 1], outputs=[loss])
+        tape.backward(loss)
+        return loss.numpy()[0], [a.grad.numpy()[1, 0] for a in target_arrays], [a.grad.numpy()[0] for a in friction_arrays]
+
+    _, target_grads, friction_grads = rollout(targets, friction)
+    for t in range(2):
+        e = np.zeros_like(targets)
+        e[t, 1, 0] = 1.0
+        assert_close(target_grads[t], central(lambda h: rollout(targets + h * e, friction)[0], 0.0, 1e-6))
+        assert_close(friction_grads[t], central(lambda h: rollout(targets, friction + h * np.eye(2)[t])[0], 0.0, 1e-6))
+
+
+@wp.kernel
+def _pose_x_loss(q: wp.array(dtype=wp.transformd), body: int, loss: wp.array(dtype=wp.float64)):
+    loss[0] = wp.transform_get_translation(q[body])[0]
+
+
 def test_tape_gradients_with_friction_match_finite_differences():
     """Friction's lagged normal force and normal depend on q^t: their derivatives must be exact."""
     sim = Collision(steps=20, tolerance=1e-13)
@@ -2071,6 +2112,31 @@ def test_a_taped_step_refuses_a_control_rewritten_since_an_earlier_recorded_step
             solver.step(states[2], states[3], control, 0.01)
 
 
+def test_a_taped_step_takes_its_start_poses_as_its_control_s_targets():
+    """Control(body_target=state_in.body_q) holds the bodies where the step starts, as
+    control=None does; from the second recorded step on it was refused as a control "whose
+    values changed", the state's array having been noted by the step that wrote it."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.3, 0.3, 0.3), density=500.0, name="driven", kp_linear=100.0, kd_linear=10.0)
+    model = b.finalize()
+    solver = wc.ImplicitSolver(model)
+
+    def gradient(hold_with_control):
+        states = [model.state() for _ in range(4)]
+        velocity = wp.array([[1.0, 0.5, 0.0]], dtype=wp.vec3d, requires_grad=True)
+        tape = wp.Tape()
+        with tape:
+            wc.set_body_velocity(states[0], velocity, wp.zeros(1, dtype=wp.vec3d), 0.04)
+            for t in range(3):
+                solver.step(states[t], states[t + 1], wc.Control(body_target=states[t].body_q) if hold_with_control else None, 0.04)
+        tape.backward(grads={states[-1].body_q: wp.array([[1.0, 2.0, 0.0, 0.0, 0.0, 0.0, 0.0]], dtype=wp.transformd)})
+        return velocity.grad.numpy()
+
+    held = gradient(False)
+    assert np.abs(held).max() > 0
+    np.testing.assert_allclose(gradient(True), held, rtol=1e-12)
+
+
 @pytest.mark.parametrize("name", ["body_kp_linear", "body_kd_angular", "body_unit_second_moment"])
 def test_a_taped_step_refuses_a_gradient_of_a_model_array_it_does_not_differentiate(name):
     """A PD gain with requires_grad set kept a zero gradient through the tape."""
@@ -2277,6 +2343,36 @@ def test_states_sharing_arrays_are_refused_and_alternating_states_work():
         solver.step(one, other, None, dt)
         solver.step(other, one, None, dt)
     np.testing.assert_allclose(one.body_q.numpy()[0, 0], 4 * dt, rtol=1e-9)
+
+
+def test_a_refused_set_body_velocity_leaves_the_state_and_the_tape_as_they_were():
+    """Its non-finite check came after its launch: the state kept the non-finite previous
+    pose, and the launch stayed on the tape, whose backward then made the start pose's
+    gradient NaN after a corrected call (a probe's rollout caught the ValueError and went on)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_box((0.5, 0.5, 0.5), density=100.0)
+    model = b.finalize()
+    states = [model.state(), model.state()]
+    before = states[0].body_q_prev.numpy().copy()
+    velocity = wp.array([[1.0, 0.0, 0.0]], dtype=wp.vec3d, requires_grad=True)
+    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        with pytest.raises(ValueError, match="its velocities give a non-finite previous pose"):
+            wc.set_body_velocity(states[0], velocity, wp.array([[np.nan, 0.0, 0.0]], dtype=wp.vec3d, requires_grad=True), 0.04)
+        np.testing.assert_array_equal(states[0].body_q_prev.numpy(), before)
+        assert not tape.launches
+        wc.set_body_velocity(states[0], velocity, wp.zeros(1, dtype=wp.vec3d, requires_grad=True), 0.04)
+        wc.ImplicitSolver(model).step(states[0], states[1], None, 0.04)
+        wp.launch(_first_body_x_loss, dim=1, inputs=[states[1].body_q], outputs=[loss])
+    tape.backward(loss)
+    assert np.isfinite(states[0].body_q.grad.numpy()).all()
+    np.testing.assert_allclose(velocity.grad.numpy()[0], [0.04, 0.0, 0.0], rtol=1e-9, atol=1e-15)
+
+
+@wp.kernel
+def _first_body_x_loss(q: wp.array(dtype=wp.transformd), loss: wp.array(dtype=wp.float64)):
+    loss[0] = wp.transform_get_translation(q[0])[0]
 
 
 def test_set_body_velocity_refuses_half_a_turn_a_step():

@@ -856,9 +856,10 @@ class ImplicitSolver:
                     "this step's adjoints; make a new State for every time step (model.state()) while recording"
                 )
         # A control shared by several recorded steps gets the sum of their adjoints: right for
-        # a target held constant, but not for one rewritten in place between steps.
+        # a target held constant, but not for one rewritten in place between steps. A state's
+        # array (noted None) as a target, the poses a step starts from, was refused as changed.
         for label, array in _taped_control_arrays(control):
-            if id(array) in noted and not np.array_equal(_host(noted[id(array)]), array.numpy()):
+            if noted.get(id(array)) is not None and not np.array_equal(_host(noted[id(array)]), array.numpy()):
                 raise ValueError(
                     f"{label}: its values changed since an earlier step recorded on this wp.Tape used it, and its gradient "
                     "would add up both steps' adjoints; make a new Control for every time step (model.control()) while recording"
@@ -1515,6 +1516,13 @@ class ImplicitSolver:
         dynamic = self._dynamic
         art = self._articulation
         hess = hess.copy()
+        # The arrays this step read and wrote, bound now: a Control, State or model array
+        # replaced between taped steps (one target or friction array per step) sent every
+        # step's adjoint into the array held when tape.backward ran (the earlier arrays' gradients
+        # zero, the last one's their sum).
+        state_in, state_out = dataclasses.replace(state_in), dataclasses.replace(state_out)
+        control = None if control is None else dataclasses.replace(control)
+        parameters = {name: getattr(model, name) for name in _DIFFERENTIATED_MODEL_ARRAYS}
         # The model's masses, gains and friction coefficient as they were in this step: changed
         # between two taped steps, the first step's backward read the new values (gradients off
         # by 2.6x the gradient itself).
@@ -1531,7 +1539,7 @@ class ImplicitSolver:
             predicted_position = wp.clone(self._predicted_position)
             predicted_rotation = wp.clone(self._predicted_rotation)
             sensitivity = wp.clone(self._prediction_sensitivity)
-        arrays = [array for _, array in self._taped_state_arrays(state_in, state_out)] + [getattr(model, name) for name in _DIFFERENTIATED_MODEL_ARRAYS if getattr(model, name).requires_grad]
+        arrays = [array for _, array in self._taped_state_arrays(state_in, state_out)] + [array for array in parameters.values() if array.requires_grad]
         arrays += [array for _, array in _taped_control_arrays(control)]
         joints = art is not None and art.num_coordinates > 0
         if joints:
@@ -1581,12 +1589,12 @@ class ImplicitSolver:
                 if friction is not None and friction.pairs:
                     adj_q, adj_friction, adj_mu = model.contact.friction_adjoint(friction, *friction_poses, lam_full.reshape(n, 6))
                     adj_now.assign(adj_now.numpy() + adj_q)
-                    _accumulate(model.friction, adj_friction)
+                    _accumulate(parameters["friction"], adj_friction)
                     mu_adj += adj_mu
                 elif step_in.friction_rate is not None and step_in.friction_rate.pairs:
                     # At coefficient 0 the step has no friction: only its coefficient moves it.
                     _, adj_friction, _ = model.contact.friction_adjoint(step_in.friction_rate, *friction_poses, lam_full.reshape(n, 6))
-                    _accumulate(model.friction, adj_friction)
+                    _accumulate(parameters["friction"], adj_friction)
                 if balls:
                     target_adj, start_adj = art.ball_drive_adjoint(q_next, q_now, lam_reduced, step_in.ball_target, dt, target_is_start=ball_target_is_start, gains=ball_gains)
                     adj_now.assign(adj_now.numpy() + start_adj)
@@ -1599,8 +1607,8 @@ class ImplicitSolver:
                 target_grad = state_in.body_q.grad if control is None else control.body_target.grad if control.body_target.requires_grad else None
                 if target_grad is not None:
                     wp.launch(dynamics_kernels.rigid_adjoint_to_pose_kernel, dim=n, inputs=[target_arr, adj_target], outputs=[target_grad])
-                _accumulate(model.body_mass, adj_mass.numpy())
-                _accumulate(model.contact_stiffness, mu_adj)
+                _accumulate(parameters["body_mass"], adj_mass.numpy())
+                _accumulate(parameters["contact_stiffness"], mu_adj)
                 # state_out.body_q_prev is a copy of state_in.body_q; static bodies stay put.
                 passthrough = state_out.body_q_prev.grad.numpy().copy()  # a view on a CPU: never the state's own
                 static_adj = out_adj.numpy()

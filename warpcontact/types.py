@@ -19,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from ._validate import check_time_step, checked_flag
+from ._runtime import paused_tape
 from .articulation import ArticulationModel
 from .contact import ContactModel
 from .kernels import state as state_kernels
@@ -210,18 +211,19 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
             f"angular_velocity: {body(b)} turns {turn[b]:.4g} rad in one step of {dt:g} s ({turn[b] / dt:.4g} rad/s); a state's two "
             f"poses can only represent turns below pi a step, so reduce dt below {np.pi / (turn[b] / dt):.3g} s"
         )
-    wp.launch(
-        state_kernels.previous_pose_from_velocity_kernel,
-        dim=n,
-        inputs=[state.body_q, linear_velocity, angular_velocity, float(dt)],
-        outputs=[state.body_q_prev],
-        device=state.body_q.device,
-    )
+    inputs = [state.body_q, linear_velocity, angular_velocity, float(dt)]
+    # Checked in a scratch array off the tape first: refused after writing the state, a call
+    # left its non-finite poses in body_q_prev and its launch on an active wp.Tape, whose
+    # backward then made the start poses' gradient NaN.
+    with paused_tape():
+        previous = wp.empty_like(state.body_q_prev, requires_grad=False)
+        wp.launch(state_kernels.previous_pose_from_velocity_kernel, dim=n, inputs=inputs, outputs=[previous], device=state.body_q.device)
     # One read back per call (once per rollout): a NaN or overflowing velocity would reach
     # the solver only as "state_in.body_q_prev: contains non-finite values".
-    bad = np.flatnonzero(~np.isfinite(state.body_q_prev.numpy()).all(axis=1))
+    bad = np.flatnonzero(~np.isfinite(previous.numpy()).all(axis=1))
     if bad.size:
         raise ValueError(
             f"linear_velocity, angular_velocity: {body(bad[0])}: its velocities give a non-finite previous pose "
             f"(linear {linear_velocity.numpy()[bad[0]].tolist()} m/s, angular {angular_velocity.numpy()[bad[0]].tolist()} rad/s)"
         )
+    wp.launch(state_kernels.previous_pose_from_velocity_kernel, dim=n, inputs=inputs, outputs=[state.body_q_prev], device=state.body_q.device)
