@@ -248,6 +248,15 @@ def as_float64_array(value, name: str, *, trailing_shape: tuple[int, ...] = (), 
     return arr
 
 
+def check_finite_poses(poses: np.ndarray, label: str, names) -> None:
+    """ValueError naming ``label``, the first body (by name and index) whose row of ``poses``
+    is not finite, and its pose ("contains non-finite values" named none)."""
+    bad = np.flatnonzero(~np.isfinite(poses).all(axis=1))
+    if bad.size:
+        b = bad[0]
+        raise ValueError(f"{label}: body {names[b]!r} (index {b}) has pose {np.asarray(poses[b]).tolist()}; expected finite values")
+
+
 def validated_step(step, names, static: np.ndarray) -> np.ndarray:
     """(len(names), 6) float64 rigid-coordinate step (dp, dtheta) of a contact model's
     ``advancement_limit``; ValueError naming the argument, or the static body whose row is

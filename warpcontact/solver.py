@@ -33,7 +33,7 @@ import numpy as np
 import trimesh
 import warp as wp
 
-from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, SCALE_RANGE, beyond_coordinates, check_time_step, checked_flag, is_real, is_whole, unit_inertia_outside, unit_inertia_problem
+from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, SCALE_RANGE, beyond_coordinates, check_finite_poses, check_time_step, checked_flag, is_real, is_whole, unit_inertia_outside, unit_inertia_problem
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
@@ -965,10 +965,7 @@ class ImplicitSolver:
         q_now = self._readback.read("body_q").copy()
         q_prev = self._readback.read("body_q_prev").copy()
         for label, arr in (("state_in.body_q", q_now), ("state_in.body_q_prev", q_prev)):
-            bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
-            if bad.size:
-                b = bad[0]
-                raise ValueError(f"{label}: body {model.body_names[b]!r} (index {b}) has pose {arr[b].tolist()}; expected finite values")
+            check_finite_poses(arr, label, model.body_names)
             # Checked here by name: beyond it the previous pose (a velocity of 1e300 m/s given
             # to set_body_velocity) was blamed on dt and the control's targets.
             far = beyond_coordinates(arr[:, :3])

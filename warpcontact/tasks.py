@@ -48,7 +48,7 @@ import numpy as np
 import warp as wp
 
 from ._files import replace_file
-from ._validate import MAX_COORDINATE, MAX_FRAMES, beyond_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array
+from ._validate import MAX_COORDINATE, MAX_FRAMES, beyond_coordinates, check_finite_poses, checked_flag, is_positive_finite, is_real, is_whole, real_array
 from .builder import check_contact_setting
 from .bundle import BundleSettings, bundled_gradient
 from .io import TASK_ATTRIBUTES, TaskSpec, target_problem
@@ -774,11 +774,8 @@ class TaskProblem:
             if np.shape(poses) != shape:
                 # Warp's assign copies what it is given: two poses of three left the third as it was.
                 raise ValueError(f"{label}: expected {shape} poses (px, py, pz, qx, qy, qz, qw), one per body, got shape {np.shape(poses)}")
-            bad = np.flatnonzero(~np.isfinite(poses).all(axis=1))
-            if bad.size:
-                # It was blamed on zero velocities ("velocities give a non-finite previous pose").
-                b = bad[0]
-                raise ValueError(f"{label}: body {self.model.body_names[b]!r} (index {b}) has pose {np.asarray(poses[b]).tolist()}; expected finite values")
+            # It was blamed on zero velocities ("velocities give a non-finite previous pose").
+            check_finite_poses(np.asarray(poses, dtype=np.float64), label, self.model.body_names)
         if self.model.num_joint_coordinates and not (np.array_equal(q, self.start[0]) and np.array_equal(q_prev, self.start[1])):
             # Its joint coordinates would stay the initial ones while the poses moved (the
             # solver refuses such a state); base coordinates cannot be recovered from poses.
