@@ -1127,6 +1127,10 @@ def test_a_resumed_run_keeps_results_another_command_wrote_since_its_checkpoint(
     assert main([*argv, "--resume"]) == 2
     assert "trajectory.usda holds an earlier run's results (use --overwrite)" in capsys.readouterr().err
     assert (out / "trajectory.usda").read_bytes() == simulated
+    # Replacing it would leave the simulate's summary.json beside the run's trajectory.
+    assert main([*argv, "--resume", "--overwrite"]) == 2
+    assert "belongs with summary.json" in capsys.readouterr().err
+    (out / "summary.json").unlink()
     assert main([*argv, "--resume", "--overwrite"]) == 0
 
 
