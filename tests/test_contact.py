@@ -765,6 +765,24 @@ def test_pair_separation_is_a_lower_bound_on_surface_distance():
     assert hit.pair_separation[0] == 0.0
 
 
+def test_blend_margin_thinner_than_float64_resolves_is_refused():
+    """Found by a probe scanning paths across blend shells: eps 1e-17 was taken (SCALE_RANGE
+    goes down to 1e-150), but (1 + eps) d1 rounds to d1, so no node pair was ever blended and
+    the potential jumped from the children's sum to the centred term where the root centres
+    crossed d1 (two unit boxes: 212.06 -> 29.13). The thinnest accepted margin still blends."""
+    boxes = [box((1.0, 1.0, 1.0)), box((1.0, 1.0, 1.0))]
+    for eps in (1e-17, 1e-13):
+        with pytest.raises(ValueError, match=r"eps: must be at least 1e-12: a thinner blend shell"):
+            wc.ContactModel(boxes, eps=eps)
+        with pytest.raises(ValueError, match=r"eps: must be at least 1e-12"):
+            wc.ModelBuilder(eps=eps)
+    model = wc.ContactModel(boxes, eps=1e-12)
+    d1 = model.trees[0].radii[0] + model.trees[1].radii[0]
+    values = [model.evaluate(identity_poses([[0, 0, 0], [x, 0, 0]])).value for x in (d1 * (1 - 1e-15), d1 * (1 + 1e-15))]
+    assert abs(values[1] - values[0]) < 1e-3 * values[0]
+    assert model.term_lists(identity_poses([[0, 0, 0], [d1 * (1 + 1e-13), 0, 0]])).blend.shape[0] > 0
+
+
 @pytest.mark.parametrize("weight", wc.CENTRED_WEIGHTS)
 def test_blend_zone_terms_push_apart(weight):
     """Root pair inside its blend shell (d1 < r < d2): the single blended term still pushes apart.

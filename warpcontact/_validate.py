@@ -9,10 +9,12 @@ __all__ = [
     "MAX_COORDINATE",
     "MAX_COUNT",
     "MAX_FRAMES",
+    "MIN_BLEND_EPS",
     "MIN_EXTENT",
     "QUATERNION_TOLERANCE",
     "SCALE_RANGE",
     "as_float64_array",
+    "blend_eps_problem",
     "check_barrier_support",
     "check_coordinates",
     "check_count",
@@ -115,6 +117,22 @@ def unit_inertia_problem(eigenvalues) -> str | None:
         f"has eigenvalues {eigenvalues.min():.3g} to {eigenvalues.max():.3g} m^2 (squared radii of gyration), outside [{low:g}, {high:g}] m^2, "
         "where the rotation prediction's cube of them is a float64 number"
     )
+
+
+# Smallest blend margin eps of P_BSH: the shell d1 < r < (1 + eps) d1 must span many float64
+# steps of the centre distance r. Below ~1.1e-16 (1 + eps) d1 rounds to d1, no node pair is
+# ever blended, and the potential jumps by S - P_c where a centre distance crosses d1 (two unit
+# boxes at eps 1e-17: 212.06 -> 29.13, force 27.5 -> 3.25, a probe); just above, phi moves by
+# ~0.2 per rounding step of r. At 1e-12 the shell is ~4,500 steps of r wide.
+MIN_BLEND_EPS = 1e-12
+
+
+def blend_eps_problem(eps) -> str | None:
+    """Why ``eps``, a blend margin inside SCALE_RANGE, is too thin for float64 to blend across
+    (``MIN_BLEND_EPS``), or None."""
+    if float(eps) < MIN_BLEND_EPS:
+        return f"must be at least {MIN_BLEND_EPS:g}: a thinner blend shell (1 + eps) d1 is not resolved in float64, and the potential jumps where a node pair crosses it"
+    return None
 
 
 def scale_problem(value, unit: str) -> str | None:

@@ -9,7 +9,7 @@ import trimesh
 import warp as wp
 
 from ._runtime import resolve_device
-from ._validate import QUATERNION_TOLERANCE, SCALE_RANGE, check_barrier_support, check_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array, scale_problem, shown, unit_inertia_problem
+from ._validate import QUATERNION_TOLERANCE, SCALE_RANGE, blend_eps_problem, check_barrier_support, check_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array, scale_problem, shown, unit_inertia_problem
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, connected_labels, default_limit_margins, effective_limit_margins, frame_in_body, limit_margin_problem
 from .contact import CENTRED_WEIGHTS, CONTACT_MODES, PRESSED_GAP, ContactModel
 from .leaf import float32_search
@@ -75,7 +75,10 @@ def contact_setting_problem(name: str, value: float) -> str | None:
         if not (np.isfinite(value) and value >= 0):
             return "must be >= 0 and finite"
         return None if value == 0 else scale_problem(value, "")
-    return scale_problem(value, _SETTING_UNITS[name]) if is_positive_finite(value) else "must be positive and finite"
+    if not is_positive_finite(value):
+        return "must be positive and finite"
+    problem = scale_problem(value, _SETTING_UNITS[name])
+    return blend_eps_problem(value) if problem is None and name == "eps" else problem
 
 
 def check_contact_setting(name: str, value, label: str | None = None) -> None:

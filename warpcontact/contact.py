@@ -33,7 +33,7 @@ from .kernels import reduction as reduction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels import traversal as traversal_kernels
 from ._runtime import HostReadback, LaunchCache, host_buffer, resolve_device, run_concurrently
-from ._validate import QUATERNION_TOLERANCE, check_barrier_support, check_count, checked_flag, is_positive_finite, is_real, is_whole, scale_problem, validated_poses, validated_step
+from ._validate import QUATERNION_TOLERANCE, blend_eps_problem, check_barrier_support, check_count, checked_flag, is_positive_finite, is_real, is_whole, scale_problem, validated_poses, validated_step
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus, float32_search
 from .rotation import rigid_step_travel
 from .sphere_tree import SphereTree, tree_of_validated_mesh, validated_mesh
@@ -377,7 +377,7 @@ class ContactModel:
             raise ValueError(f"centred_weight: {centred_weight!r} is not one of {CENTRED_WEIGHTS}")
         if not is_positive_finite(eps):
             raise ValueError(f"eps: must be a positive finite number, got {eps!r}")
-        problem = scale_problem(eps, "")
+        problem = scale_problem(eps, "") or blend_eps_problem(eps)
         if problem is not None:  # the builder's range, for a ContactModel made directly
             raise ValueError(f"eps: {problem}, got {eps!r}")
         check_barrier_support(dhat)
