@@ -482,6 +482,21 @@ def test_bench_frame_refuses_bad_pickles_and_strikerless_scenes_before_timing(tm
     assert not (tmp_path / "c" / "frame.json").exists()  # nothing was timed
 
 
+def test_frame_plot_draws_the_papers_points_at_the_papers_triangle_counts(tmp_path, monkeypatch):
+    """The paper's Gather-Bunny frame costs were drawn at our 2,702 triangles, not its 2,784."""
+    from warpcontact import bench
+
+    plt = bench.optional_pyplot()
+    if plt is None:
+        pytest.skip("matplotlib not installed")
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)  # keep the figure to read it
+    row = {"model": "bsh", "scene": "gather_bunny", "triangles": 2702, "contact_seconds": 0.1, "forward_seconds": 1.0, "backward_seconds": 0.1}
+    assert bench._plot_frame_benchmark([row], tmp_path / "frame.png")
+    (line,) = [line for line in figures[0].axes[0].get_lines() if line.get_label() == "paper bsh (CPU)"]
+    assert dict(zip(line.get_xdata(), line.get_ydata())) == {512: 0.6, 6208: 3.18, 2784: 3.89}
+
+
 def test_a_failing_plot_does_not_hide_an_interruption(tmp_path, capsys, monkeypatch):
     """The plot is drawn in a finally: an error there (a zero gradient's missing cosine) replaced
     Ctrl-C with a traceback."""

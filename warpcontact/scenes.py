@@ -419,6 +419,9 @@ def _gather(seed: int = 2, *, bunny: bool = False) -> Scene:
         v, f, (volume, com, inertia) = bunny_mesh()
         density = 200.0
         mass = volume * density
+        # The goal is where a resting bunny's centre of mass can be: the cubes' 0.15 m put it
+        # 5 cm above every bunny's, a height no push reaches.
+        goal = (np.array([0.0, 0.0, com[2] - v[:, 2].min()]), 0.8)
 
         def factory(i, xy):
             return _body(
