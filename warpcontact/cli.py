@@ -810,7 +810,7 @@ def _add_task_arguments(parser):
         help="frames executed per receding window, at most the window (receding-window tasks only; default: the scene's; the paper's settings execute 1)",
     )
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--quick", action="store_true", help="short horizons and few iterations (minutes on a CPU)")
+    parser.add_argument("--quick", action="store_true", help="the scene's quick preset (warpcontact:task:quick:*), else the task's settings capped at 24 frames, windows of 8 and 8 iterations (minutes on a CPU)")
     parser.add_argument("--seed", type=_seed, default=0, help="seed of the gb model's samples and of --init-samples")
     parser.add_argument(
         "--init-samples",
