@@ -64,6 +64,8 @@ UNSOLVED_HINT = (
 )
 
 _MAX_TRAVERSAL_ATTEMPTS = 8
+# Body pairs whose walks the starting task lists can hand on in full (``_upload_model``).
+_START_BUSY_PAIRS = 64
 # Evaluations with fewer leaf terms than this per chunk are not split (``term_chunks``).
 _MIN_CHUNK_LEAF_TERMS = 1024
 # Relative cost of a leaf, far and blend term on a CPU (measured at 6,208 triangles), by
@@ -512,7 +514,10 @@ class ContactModel:
             # would take 1.1 GB for the 7,140 far terms they need apart.
             per_pair = 8 * max(t.num_triangles for t in trees)
             self._reserve_lists(far=per_pair + 16 * len(self.body_pairs), blend=per_pair, leaf=per_pair)
-            self._reserve_tasks(3 * self._visit_budget * max(1, len(self.body_pairs)))
+            # Nor are tasks: round 0 reads the root tasks, and only a body pair whose walk outlasts
+            # one visit budget hands any on (3 x budget + 1 at most). Reserved per body pair,
+            # 1,000 boxes 3 m apart took 48M tasks (1.9 GB, 5 s to zero) for the 17k a round needed.
+            self._reserve_tasks((3 * self._visit_budget + 1) * min(max(1, len(self.body_pairs)), _START_BUSY_PAIRS))
 
     def _set_brute_leaf_list(self):
         rows = []
