@@ -219,7 +219,7 @@ def set_body_velocity(state: State, linear_velocity: wp.array, angular_velocity:
         previous = wp.empty_like(state.body_q_prev, requires_grad=False)
         wp.launch(state_kernels.previous_pose_from_velocity_kernel, dim=n, inputs=inputs, outputs=[previous], device=state.body_q.device)
     # One read back per call (once per rollout): a NaN or overflowing velocity would reach
-    # the solver only as "state_in.body_q_prev: contains non-finite values".
+    # the solver only as a non-finite state_in.body_q_prev, blaming no velocity.
     bad = np.flatnonzero(~np.isfinite(previous.numpy()).all(axis=1))
     if bad.size:
         raise ValueError(
