@@ -2592,3 +2592,30 @@ def test_a_fast_slide_does_not_spin_a_small_box_up():
     q, _ = rollout(pushed, 15, dt, first=first)
     spin = np.abs(np.diff(np.unwrap(yaw(q[:, 1])))) / dt
     assert spin.max() < 0.5, spin
+
+
+def test_friction_of_a_common_turn_off_its_axis_is_zero():
+    """Both bodies' material points sit at one place, so any common rigid motion is no slip:
+    a plate and a box resting 0.3 m off its centre, turned together up to 0.5 rad about an
+    axis through neither (and moved), feel no friction. A prototype that linearised each
+    body's turn in the world frame (dp + phi x r) charged such a turn of 0.02 rad full Coulomb
+    friction, which the earlier test (a box on the turn's axis) did not see."""
+    from warpcontact.rotation import quat_mul, quat_to_matrix
+
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-6, friction=0.5)
+    b.add_box((1.0, 1.0, 0.05), mass=50.0, name="plate", pose=(0, 0, 0, 0, 0, 0, 1))
+    b.add_box((0.3, 0.3, 0.3), density=500.0, name="box", pose=(0.3, 0, 0.1755, 0, 0, 0, 1))
+    model = b.finalize()
+    contact = model.contact
+    q0 = model.state(requires_grad=False).body_q.numpy().copy()
+    contact.evaluate(q0)
+    lagged = contact.friction_frame(1e-6, model.friction, model.friction_smoothing * 0.01)
+    assert lagged.pairs > 0
+    centre = np.array([0.1, -0.05, 0.0])
+    for angle, axis in ((0.02, (0.0, 0.0, 1.0)), (0.5, (0.0, 0.0, 1.0)), (0.1, (1.0, 0.0, 0.0))):
+        turn = np.array([*(np.sin(angle / 2) * np.array(axis)), np.cos(angle / 2)])
+        q1 = q0.copy()
+        q1[:, :3] = (q0[:, :3] - centre) @ quat_to_matrix(turn).T + centre + np.array([0.01, 0.02, 0.0])
+        q1[:, 3:] = quat_mul(turn, q0[:, 3:])
+        value, grad, _ = contact.friction_terms(lagged, poses=q1)
+        assert value == 0.0 and np.abs(grad).max() < 1e-6, (angle, value, np.abs(grad).max())
