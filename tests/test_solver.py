@@ -824,6 +824,26 @@ def test_a_ball_glancing_round_another_is_not_refused_and_a_sphere_shot_through_
             wc.ImplicitSolver(model).step(first, model.state(requires_grad=False), None, dt)
 
 
+def test_a_ball_pressing_on_a_slab_it_sets_spinning_is_not_refused():
+    """Found by a probe: a 0.1 m ball at 20 m/s (dt 0.01) striking a 0.1 m thick slab off
+    its centre sets it spinning 70-100 degrees in the step, and the step was refused as the
+    ball passing through the slab ("their centres come 0.14 m apart ... inside both
+    bodies"), though the ball stays on the slab's face (0.149 m from its centre in its frame,
+    as in 16 sub-steps): the straight motion in world axes cuts the arc the face swings
+    through. A box wall struck so at 20 m/s stopped at its third step."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), friction=0.5)
+    b.add_box((0.1, 0.2, 0.2), density=500.0, name="slab", pose=(0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 1.0))
+    b.add_sphere(0.1, subdivisions=2, density=2000.0, name="ball", pose=(-0.16, -0.08, 0.5, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    first, out = model.state(requires_grad=False), model.state(requires_grad=False)
+    wc.set_body_velocity(first, wp.array([[0.0, 0.0, 0.0], [20.0, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(2, dtype=wp.vec3d), 0.01)
+    wc.ImplicitSolver(model).step(first, out, None, 0.01)
+    q = out.body_q.numpy()
+    ball = wc.rotation.quat_to_matrix(q[0, 3:]).T @ (q[1, :3] - q[0, :3])
+    assert ball[0] < -0.14 and abs(ball[1]) < 0.1  # on the face it struck
+    assert np.degrees(2.0 * np.arccos(abs(q[0, 6]))) > 45.0  # the slab spins
+
+
 def test_a_ball_falling_inside_a_closed_box_is_not_refused_and_leaving_it_is():
     """Found by a probe: a body inside a closed one is the model of a ball in a closed box
     (docs/architecture.md, "A body inside another"), but the pass-through check took the box
