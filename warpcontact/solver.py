@@ -198,6 +198,17 @@ def _segments_cross_triangles(start: np.ndarray, end: np.ndarray, triangles: np.
     return int(first[0]), float(t[first[0], first[1]])
 
 
+def _closest_on_chords(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where each chord of a polyline ``points`` (k + 1, ..., 3) comes closest to the origin:
+    the fraction along the chord (unclipped), the distance there (k, ...), and the chords'
+    squared lengths (k, ...)."""
+    start, closing = points[:-1], points[1:] - points[:-1]
+    length2 = np.einsum("...j,...j->...", closing, closing)
+    fraction = -np.einsum("...j,...j->...", start, closing) / np.where(length2 > 0.0, length2, 1.0)
+    distance = np.linalg.norm(start + np.clip(fraction, 0.0, 1.0)[..., None] * closing, axis=-1)
+    return fraction, distance, length2
+
+
 def _described(value) -> str:
     """What a wrong argument is, for an error message: a wp.array's dtype and shape, else its type."""
     return f"{value.dtype.__name__} array of shape {value.shape}" if isinstance(value, wp.array) else type(value).__name__
@@ -1309,12 +1320,9 @@ class ImplicitSolver:
         centres = path(np.linspace(0.0, 1.0, chords + 1))[:, :, :3] if chords > 1 else np.stack([q_from[:, :3], q_to[:, :3]])
         relative = centres[:, b] - centres[:, a]  # (chords + 1, pairs, 3)
         # Each chord of the centres' relative path, and where it comes closest to zero.
-        start, closing = relative[:-1], relative[1:] - relative[:-1]
-        length2 = np.einsum("kij,kij->ki", closing, closing)
+        chord_fraction, chord_distance, length2 = _closest_on_chords(relative)
         travel = np.sqrt(length2).sum(axis=0)
         moving = travel > _PASS_THROUGH_TRAVEL * np.minimum(radius[a], radius[b])
-        chord_fraction = -np.einsum("kij,kij->ki", start, closing) / np.where(length2 > 0.0, length2, 1.0)
-        chord_distance = np.linalg.norm(start + np.clip(chord_fraction, 0.0, 1.0)[..., None] * closing, axis=2)
         nearest = chord_distance.argmin(axis=0)
         pair = np.arange(len(a))
         fraction = (nearest + np.clip(chord_fraction[nearest, pair], 0.0, 1.0)) / chords if chords > 1 else chord_fraction[0]
@@ -1389,14 +1397,7 @@ class ImplicitSolver:
         straight motion in world axes cuts the arc the face swings through by its sagitta."""
         poses = path(np.linspace(0.0, 1.0, chords + 1))[:, [a, b]]
         relative = poses[:, 1, :3] - poses[:, 0, :3]
-        closest = 0.0
-        for k in (0, 1):
-            local = np.einsum("kji,kj->ki", quat_to_matrix(poses[:, k, 3:]), relative)
-            start, closing = local[:-1], local[1:] - local[:-1]
-            length2 = np.einsum("ki,ki->k", closing, closing)
-            f = np.clip(-np.einsum("ki,ki->k", start, closing) / np.where(length2 > 0.0, length2, 1.0), 0.0, 1.0)
-            closest = max(closest, float(np.linalg.norm(start + f[:, None] * closing, axis=1).min()))
-        return closest
+        return max(float(_closest_on_chords(np.einsum("kji,kj->ki", quat_to_matrix(poses[:, k, 3:]), relative))[1].min()) for k in (0, 1))
 
     def _crossing_geometry(self, body: int) -> "_CrossingGeometry":
         """What the pass-through check reads of a body (``_CrossingGeometry``), made once."""
