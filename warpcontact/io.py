@@ -1944,6 +1944,7 @@ def _refuse_mistyped_xform_ops(stage, Sdf, Usd, UsdGeom, source: str) -> None:
     2``, ``double xformOp:rotateXYZ = 30``): UsdPhysics' parser raised a raw pxr error naming
     neither the file nor the prim, and an orient written as ``float4`` composed as the
     identity, silently (a probe)."""
+    value_types = {kind: [Sdf.ValueTypeNames.Find(t).type for t in names] for kind, names in _XFORM_OP_VALUE_TYPES.items()}
     for prim in _all_prims(stage, Usd):
         if not prim.IsA(UsdGeom.Xformable):
             continue
@@ -1959,7 +1960,7 @@ def _refuse_mistyped_xform_ops(stage, Sdf, Usd, UsdGeom, source: str) -> None:
             if not attr:
                 continue  # USD warns and skips it, as its readers do
             for spec in attr.GetPropertyStack(Usd.TimeCode.Default()):
-                if spec.typeName.type not in [Sdf.ValueTypeNames.Find(t).type for t in allowed]:
+                if spec.typeName.type not in value_types[parts[1]]:
                     raise ValueError(
                         f"{source}: prim {prim.GetPath()}: {name} is written as {spec.typeName}, but a transform op of type {parts[1]} takes "
                         f"{' or '.join(allowed)} (USD would not apply it; a raw pxr error or no transform at all)"
