@@ -1001,6 +1001,12 @@ def _author(path, edit):
         (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).AddScaleOp().Set(Gf.Vec3f(1, 1, 0)), r"prim /World/box/shape: its world transform flattens it \(/World/box.xformOp:scale is \(1, 1, 0\)\); a scale must be non-zero on every axis"),
         (lambda st: [UsdGeom.Xformable(st.GetPrimAtPath(path)).AddScaleOp().Set(Gf.Vec3f(1, 1e-7, 1)) for path in ("/World/box", "/World/box/shape")], r"prim /World/box/shape: its world transform flattens it \(its transform ops, none flat alone, compose to a singular matrix\)"),
         (lambda st: UsdGeom.Xformable(st.GetPrimAtPath("/World/box")).AddTransformOp().Set(Gf.Matrix4d(1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1)), r"prim /World/box/shape: its world transform flattens it \(/World/box.xformOp:transform is"),
+        # A probe: a value block on a UsdPhysics attribute (USD's "use the fallback") was read
+        # as leftover memory by UsdPhysics' parser: gravity along a random direction each run.
+        (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("physics:gravityMagnitude", Sdf.ValueTypeNames.Float).Block(), r"prim /World/physicsScene: physics:gravityMagnitude is blocked \(authored as None\), which UsdPhysics' parser does not reliably read as its fallback; author the value instead \(the fallback is -inf\)"),
+        (lambda st: UsdPhysics.RigidBodyAPI(st.GetPrimAtPath("/World/box")).CreateAngularVelocityAttr().Block(), r"prim /World/box: physics:angularVelocity is blocked \(authored as None\)"),
+        # A probe: a negative face count that kept the counts' sum right was an IndexError.
+        (lambda st: UsdGeom.Mesh(st.GetPrimAtPath("/World/ground")).GetFaceVertexCountsAttr().Set([4] * 14 + [8, 4, -4]), r"prim /World/ground: face 16 has -4 vertices; cannot be triangulated"),
         # A probe: a hole index beyond the faces was ignored and its face stayed solid.
         (lambda st: UsdGeom.Mesh(st.GetPrimAtPath("/World/ground")).CreateHoleIndicesAttr([16]), r"prim /World/ground: holeIndices has 16, not a face index \(the mesh has faces 0 to 15\)"),
         # A probe: a quad listed again from another corner, or reversed (two-sided), split
@@ -1454,9 +1460,10 @@ def test_an_animated_kinematic_body_or_static_collider_is_refused(tmp_path):
     io.load_scene(path)
     ground = UsdGeom.Xformable(stage.GetPrimAtPath("/World/ground"))
     ground.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, 0.0))
-    ground.GetOrderedXformOps()[0].Set(Gf.Vec3d(0.0, 0.0, 0.0), 0.0)  # one constant sample, as exporters write: no motion
-    stage.GetRootLayer().Save()
-    io.load_scene(path)
+    for time in (0.0, 1.0, 2.0):  # samples that repeat the default, as exporters baking every frame write: no motion
+        ground.GetOrderedXformOps()[0].Set(Gf.Vec3d(0.0, 0.0, 0.0), time)
+        stage.GetRootLayer().Save()
+        io.load_scene(path)  # three samples were refused (a probe)
     ground.GetOrderedXformOps()[0].Set(Gf.Vec3d(3.0, 0.0, 0.0), 50.0)
     _load_refused(stage, path, r"prim /World/ground: a static collider moved by time-sampled transforms is not supported")
 
@@ -1499,6 +1506,8 @@ def test_an_animated_body_attribute_is_refused(tmp_path):
             UsdPhysics.MassAPI.Apply(stage.GetPrimAtPath("/World/box"))
         attr = stage.GetPrimAtPath("/World/box").CreateAttribute(name, type_name, custom=name.startswith("warpcontact"))
         attr.Set(default)
+        for time in (0.0, 50.0):  # samples repeating the default are no animation
+            attr.Set(default, time)
         stage.GetRootLayer().Save()
         io.load_scene(path)
         attr.Set(sample, 100.0)

@@ -534,6 +534,11 @@ def _mesh_triangles(prim, UsdGeom, source, *, refuse_repeats: bool = True) -> tu
     if not np.isfinite(points).all():
         bad = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
         raise ValueError(f"{where}: point {bad} is not finite")
+    short = np.flatnonzero(counts < 3)
+    if len(short):
+        # Before the sums: a negative count could balance them and index out of the mesh.
+        f = int(short[0])
+        raise ValueError(f"{where}: face {f} has {counts[f]} vertices; cannot be triangulated")
     if counts.sum() != len(indices) or (indices < 0).any() or (indices >= len(points)).any():
         raise ValueError(f"{where}: faceVertexIndices do not match faceVertexCounts and points")
     holes = np.asarray(mesh.GetHoleIndicesAttr().Get() or [], dtype=np.int64)
@@ -590,10 +595,6 @@ def _polygon_mesh_faces(points: np.ndarray, counts: np.ndarray, indices: np.ndar
     """Triangles (nt, 3) of a mesh's polygons (those ``kept``: holes are not), face by face
     in order. Triangles and strictly convex quads, the common polygons, are split at once
     (one face at a time, 229k triangles took 2.9 s and a 90,000-quad ground 25 s)."""
-    short = np.flatnonzero(counts < 3)
-    if len(short):
-        f = int(short[0])
-        raise ValueError(f"{where}: face {f} has {counts[f]} vertices; cannot be triangulated")
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     left = kept.copy()
     single = np.flatnonzero(left & (counts == 3))
@@ -942,11 +943,11 @@ def _animated(prim, UsdGeom) -> bool:
 
 
 def _moves(attr) -> bool:
-    """Whether an attribute takes more than one value over time."""
-    if attr.ValueMightBeTimeVarying():
-        return True
-    samples = attr.GetTimeSamples()
-    return len(samples) == 1 and attr.Get(samples[0]) != attr.Get()
+    """Whether an attribute takes another value over time than the one loads read (its
+    default): samples that all repeat it, as exporters baking every frame write, are no
+    motion (three such samples were refused as moving)."""
+    default = attr.Get()
+    return any(attr.Get(time) != default for time in attr.GetTimeSamples())
 
 
 def _polar_factor(linear: np.ndarray) -> np.ndarray:
@@ -1133,7 +1134,7 @@ def load_scene(path) -> Scene:
         # whether the stage had a PhysicsScene, and a trajectory labelled Z-up.
         raise ValueError(f"{source}: upAxis must be \"Y\" or \"Z\", got {str(up)!r}")
     _warn_foreign_layer_units(stage, {"metersPerUnit": meters, "kilogramsPerUnit": kilograms, "upAxis": up}, source)
-    _refuse_mistyped_schema_attributes(stage, Usd, source)
+    _refuse_unreadable_schema_attributes(stage, Usd, source)
     _refuse_mistyped_xform_ops(stage, Sdf, Usd, UsdGeom, source)
     parsed = _load_physics(stage, UsdPhysics)
     descs = {str(k): list(zip(v[0], v[1])) for k, v in parsed.items()}
@@ -1908,18 +1909,26 @@ def _all_prims(stage, Usd):
     return stage.Traverse(Usd.TraverseInstanceProxies())
 
 
-def _refuse_mistyped_schema_attributes(stage, Usd, source: str) -> None:
+def _refuse_unreadable_schema_attributes(stage, Usd, source: str) -> None:
     """ValueError naming the prim and attribute when a value is written with another type than
     its schema declares (a Cube's ``float size``, ``double physics:gravityMagnitude``): USD's
     readers, UsdPhysics' parser among them, then ignore it silently and use the schema's
     default (a 0.5 m cube loaded as a 2 m one, a joint's limits and drive gains dropped). Role
-    names do not count (``float3`` for ``point3f`` reads as the same value)."""
+    names do not count (``float3`` for ``point3f`` reads as the same value). Also when a
+    UsdPhysics attribute's value is blocked (``= None``): the parser then reads whatever its
+    memory held (gravity along a different random direction each run, a joint's open side
+    limited at 90 degrees), not the schema's fallback."""
     for prim in _all_prims(stage, Usd):
         definition = prim.GetPrimDefinition()
         for attr in prim.GetAuthoredAttributes():
             declared = definition.GetAttributeDefinition(attr.GetName())
             if not declared:
                 continue  # not a schema attribute: read, and checked, by this module if at all
+            if "physics:" in attr.GetName() and attr.GetResolveInfo().ValueIsBlocked():
+                raise ValueError(
+                    f"{source}: prim {prim.GetPath()}: {attr.GetName()} is blocked (authored as None), which UsdPhysics' parser does not reliably read as "
+                    f"its fallback; author the value instead (the fallback is {declared.GetFallbackValue()})"
+                )
             expected = declared.GetTypeName()
             for spec in attr.GetPropertyStack(Usd.TimeCode.Default()):
                 if spec.typeName.type != expected.type:
