@@ -1385,6 +1385,30 @@ def test_physics_materials_give_density_and_friction_or_are_refused(tmp_path):
     assert io.load_scene(path).settings.friction == pytest.approx(0.3)  # the scene's own coefficient wins
 
 
+def test_the_physics_scene_material_is_the_default_and_a_partial_binding_warns(tmp_path):
+    """Found by a probe: a material bound to the PhysicsScene (PhysX's default material) was
+    ignored (friction 0, the default density), and a material bound to the ground alone set
+    the friction of every contact without a word."""
+    path = write_physics_scene(tmp_path / "default_material.usda", drop_height=3.0)
+    stage = Usd.Stage.Open(str(path))
+    _bind_physics_material(stage, "/World/physicsScene", "/World/rubber", density=3000.0, dynamicFriction=0.8)
+    stage.GetRootLayer().Save()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scene = io.load_scene(path)
+    assert scene.settings.friction == pytest.approx(0.8)
+    assert scene.build_model().body_mass.numpy()[1] == pytest.approx(3000.0 * 0.5**3)
+    _bind_physics_material(stage, "/World/ground", "/World/floor", dynamicFriction=0.8)
+    stage.GetRootLayer().Save()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert io.load_scene(path).settings.friction == pytest.approx(0.8)  # the box takes the scene's material: every collider has one
+    stage.GetPrimAtPath("/World/physicsScene").GetRelationship("material:binding:physics").ClearTargets(True)
+    stage.GetRootLayer().Save()
+    with pytest.warns(UserWarning, match=r"prim /World/box/shape binds no physics material giving dynamicFriction, but others do: the scene's one coefficient, 0.8, holds for their contacts too"):
+        assert io.load_scene(path).settings.friction == pytest.approx(0.8)
+
+
 def test_colliders_of_one_body_with_different_material_densities_are_refused(tmp_path):
     path = write_physics_scene(tmp_path / "mixed.usda", drop_height=3.0)
     stage = Usd.Stage.Open(str(path))

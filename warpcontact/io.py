@@ -59,8 +59,9 @@ convexHull collides the hull of the mesh's points; boundingSphere and boundingCu
 code; a body or collider transform animated (time samples or a spline) without a default value is an error,
 as are bodies or colliders under a PointInstancer and physics:startsAsleep.
 Bound physics materials give density (per body) and dynamicFriction (the scene's one
-coefficient, unless warpcontact:friction is authored); values that differ where one is
-needed are errors, as are per-collider MassAPI properties beyond a single collider's
+coefficient, unless warpcontact:friction is authored; a collider without a material takes
+the PhysicsScene's, and one with none beside others with one is warned about); values that
+differ where one is needed are errors, as are per-collider MassAPI properties beyond a single collider's
 mass or density; mass properties authored at UsdPhysics' "not specified" values (a mass,
 density or inertia of 0, a centre of mass of -inf) are read as not specified. Collision filters (FilteredPairsAPI, CollisionGroup filtering) are errors.
 PhysX schema attributes are not read; non-zero PhysX body damping and material restitution
@@ -1272,7 +1273,7 @@ def load_scene(path) -> Scene:
             animated = [attr for attr in prim.GetAttributes() if attr.GetName() in _READ_GEOMETRY and _moves(attr)]
             animated += [attr for attr in _transform_attributes(prim, UsdGeom) if owner and attr not in body_attributes and _moves(attr)]
             _refuse_animated(animated, "a collider's shape and its place on its body are", f"{source}: prim {prim_path}")
-            collider_materials[str(prim_path)] = _bound_physics_materials(stage, prim, desc)
+            collider_materials[str(prim_path)] = _bound_physics_materials(stage, prim, desc, scene_prim)
             if kind == "PlaneShape":
                 if owner:
                     raise ValueError(f"{source}: prim {prim_path}: a Plane collider is infinite; it cannot belong to rigid body {owner}")
@@ -2054,17 +2055,21 @@ def _refuse_collision_filters(stage, UsdPhysics, Usd, source: str) -> None:
                 raise ValueError(f"{source}: prim {prim.GetPath()}: collision-group filtering is not supported (every body pair interacts); remove physics:filteredGroups")
 
 
-def _bound_physics_materials(stage, prim, desc) -> list:
+def _bound_physics_materials(stage, prim, desc, scene_prim) -> list:
     """A collider's physics materials: those the UsdPhysics parser lists (per GeomSubset too),
     and the one UsdShade binds to it for the physics purpose, which it may inherit from an
     ancestor (the parser lists a material only for prims with MaterialBindingAPI: a body's
-    binding was ignored by its colliders)."""
+    binding was ignored by its colliders); without any, the scene's default, the material
+    bound to the PhysicsScene (PhysX's convention; it was ignored, a probe)."""
     from pxr import UsdShade
 
     materials = [stage.GetPrimAtPath(m) for m in desc.materials]
     bound, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial("physics")
     if bound and bound.GetPrim() not in materials:
         materials.append(bound.GetPrim())
+    if not materials and scene_prim is not None:
+        default, _ = UsdShade.MaterialBindingAPI(scene_prim).ComputeBoundMaterial("physics")
+        materials = [default.GetPrim()] if default else []
     return materials
 
 
@@ -2133,8 +2138,8 @@ def _read_material_friction(collider_materials, scene_prim, settings: Simulation
     coefficient, unless ``warpcontact:friction`` is authored (it was ignored: 0.9 on every
     collider simulated without friction). Different values are refused: one coefficient
     holds for all contacts."""
-    values = {path: _material_value(materials, "dynamicFriction", UsdPhysics, f"{source}: prim {path}") for path, materials in collider_materials.items()}
-    values = {path: value for path, value in values.items() if value is not None}
+    every = {path: _material_value(materials, "dynamicFriction", UsdPhysics, f"{source}: prim {path}") for path, materials in collider_materials.items()}
+    values = {path: value for path, value in every.items() if value is not None}
     if not values:
         return
     authored = scene_prim is not None and scene_prim.GetAttribute("warpcontact:friction").HasAuthoredValue()
@@ -2147,6 +2152,15 @@ def _read_material_friction(collider_materials, scene_prim, settings: Simulation
     problem = contact_setting_problem("friction", friction)
     if problem:
         raise ValueError(f"{source}: physics material dynamicFriction: {problem}, got {friction}")
+    unbound = [path for path, value in every.items() if value is None]
+    if unbound:
+        # Their contacts among themselves took the bound coefficient without a word.
+        others = f" and {len(unbound) - 1} more colliders bind" if len(unbound) > 1 else " binds"
+        warnings.warn(
+            f"{source}: prim {unbound[0]}{others} no physics material giving dynamicFriction, but others do: the scene's one coefficient, "
+            f"{friction:.6g}, holds for their contacts too; bind a default material to the PhysicsScene or author warpcontact:friction to say so",
+            stacklevel=3,
+        )
     settings.friction = friction
 
 
