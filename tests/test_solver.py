@@ -524,6 +524,37 @@ def _box_thrown_at_a_plate(velocity, *, start=(0.0, 0.0, 0.6)):
     return model, first
 
 
+def test_a_model_stepped_from_another_thread_meanwhile_is_refused():
+    """Found by a probe: two solvers of one model stepped from two threads read each other's
+    last evaluation; one raised an error naming an internal function, the other's trajectory
+    moved by 2.5e-9 m. A step now holds the model, and a second thread is refused at once,
+    its state_out untouched."""
+    import threading
+
+    model, first = _box_thrown_at_a_plate((0.0, 0.0, 0.0))
+    out = model.state(requires_grad=False)
+    before = out.body_q.numpy().copy()
+    holding, release = threading.Event(), threading.Event()
+
+    def other_step():
+        with model.step_lock:  # where another thread's step holds it
+            holding.set()
+            release.wait(60.0)
+
+    thread = threading.Thread(target=other_step)
+    thread.start()
+    holding.wait(60.0)
+    try:
+        with pytest.raises(RuntimeError, match=r"model: another thread is stepping this model; a Model serves one thread at a time .*build one model per thread"):
+            wc.ImplicitSolver(model).step(first, out, None, 0.04)
+    finally:
+        release.set()
+        thread.join()
+    assert np.array_equal(out.body_q.numpy(), before)
+    wc.ImplicitSolver(model).step(first, out, None, 0.04)  # released: steps again
+    assert not model.step_lock.locked()
+
+
 def test_a_box_that_tunnels_past_a_large_plate_is_refused():
     """At 35 m/s (1.4 m a step) the iterates led the box around the plate's edge to below it;
     the check tested only where the centres come closest, 26% of the step, with the box

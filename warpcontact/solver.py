@@ -829,10 +829,17 @@ class ImplicitSolver:
         contact_stiffness and friction may have requires_grad set (ValueError before anything
         is written).
         """
-        with paused_tape() as tape:
-            if tape is not None:
-                self._check_taped_step(tape, state_in, state_out, control)
-            info, record = self._solve(state_in, state_out, control, dt, taped=tape is not None)
+        if not self.model.step_lock.acquire(blocking=False):
+            # Two threads stepping one model: one failed naming an internal function, the
+            # other's trajectory moved by 2.5e-9 m (a probe).
+            raise RuntimeError("model: another thread is stepping this model; a Model serves one thread at a time (its contact model keeps each step's evaluations): build one model per thread")
+        try:
+            with paused_tape() as tape:
+                if tape is not None:
+                    self._check_taped_step(tape, state_in, state_out, control)
+                info, record = self._solve(state_in, state_out, control, dt, taped=tape is not None)
+        finally:
+            self.model.step_lock.release()
         if tape is not None:
             backward, arrays, control_values = record()
             tape.record_func(backward, arrays)

@@ -13,6 +13,7 @@ Poses are Warp transforms (px, py, pz, qx, qy, qz, qw) of each body's centre-of-
 in metres. Arrays that users optimise are allocated with ``requires_grad=True``.
 """
 
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -106,6 +107,9 @@ class Model:
     initial_q: np.ndarray
     articulation: ArticulationModel
     device: object = field(default=None)
+    # Held by a step: the contact model keeps its last evaluation (term lists, separating
+    # planes) for the step's later calls, so two threads stepping one model read each other's.
+    step_lock: threading.Lock = field(default_factory=threading.Lock, init=False, repr=False, compare=False)
 
     @property
     def num_bodies(self) -> int:
