@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdShade
+from pxr import Gf, Sdf, Ts, Usd, UsdGeom, UsdPhysics, UsdShade
 
 import warpcontact as wc
 from warpcontact import io
@@ -1489,6 +1489,18 @@ def test_an_animated_kinematic_body_or_static_collider_is_refused(tmp_path):
         stage.GetRootLayer().Save()
         io.load_scene(path)  # three samples were refused (a probe)
     ground.GetOrderedXformOps()[0].Set(Gf.Vec3d(3.0, 0.0, 0.0), 50.0)
+    _load_refused(stage, path, r"prim /World/ground: a static collider moved by time-sampled transforms is not supported")
+    ground.GetOrderedXformOps()[0].GetAttr().Clear()
+    ground.GetOrderedXformOps()[0].Set(Gf.Vec3d(0.0, 0.0, 0.0))
+    slide = ground.AddTranslateXOp(opSuffix="slide")
+    slide.Set(0.0)
+    spline = Ts.Spline()
+    for time, value in ((0.0, 0.0), (10.0, 3.0)):
+        knot = Ts.Knot()
+        knot.SetTime(time)
+        knot.SetValue(value)
+        spline.SetKnot(knot)
+    slide.GetAttr().SetSpline(spline)  # a spline has no time samples, and a default here
     _load_refused(stage, path, r"prim /World/ground: a static collider moved by time-sampled transforms is not supported")
 
 

@@ -946,9 +946,13 @@ def _animated(prim, UsdGeom) -> bool:
 def _moves(attr) -> bool:
     """Whether an attribute takes another value over time than the one loads read (its
     default): samples that all repeat it, as exporters baking every frame write, are no
-    motion (three such samples were refused as moving)."""
+    motion (three such samples were refused as moving). A spline has no samples to compare:
+    it moves."""
+    samples = attr.GetTimeSamples()
+    if not samples:
+        return attr.ValueMightBeTimeVarying()
     default = attr.Get()
-    return any(attr.Get(time) != default for time in attr.GetTimeSamples())
+    return any(attr.Get(time) != default for time in samples)
 
 
 def _polar_factor(linear: np.ndarray) -> np.ndarray:
