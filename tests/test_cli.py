@@ -179,6 +179,8 @@ def test_bench_frame_writes_results_and_plot(tmp_path):
         assert min(r["frame_seconds"], r["frame_seconds_mean"]) > 0
         assert len(r["forward_seconds_per_frame"]) == 2 and r["forward_seconds_mean"] == pytest.approx(np.mean(r["forward_seconds_per_frame"]))
         assert r["setup"] == "cue 0.02 m (bounding circles) from ball00 at 1 m/s"
+        assert len(r["direction"]) == 3 and np.linalg.norm(r["direction"]) == pytest.approx(1.0)  # documented, never written (a probe, stop 61)
+    assert rows[2]["contact_stiffness"] == 1e3 and rows[0]["contact_stiffness"] == rows[1]["contact_stiffness"] != 1e3
     assert rows[2]["friction"] == 0.0 and rows[0]["eps"] == 0.5 and rows[1]["eps"] is None
     assert _csv_rows(tmp_path / "frame.csv") == 3
     assert (tmp_path / "frame.png").stat().st_size > 1000
@@ -231,6 +233,7 @@ def test_benches_without_the_ipc_toolkit_skip_its_rows_or_say_how_to(tmp_path, c
     assert [(r["scene"], r["model"]) for r in rows] == [("tiny", "bsh"), ("tiny", "ipc"), ("tiny2", "bsh"), ("tiny2", "ipc")]
     assert rows[0]["error"] is None and rows[2]["error"] is None
     assert rows[1]["error"] == rows[3]["error"] == "skipped: the ipc baseline needs the IPC Toolkit: pip install 'warpcontact[ipc]' (test)"
+    assert rows[1]["contact_stiffness"] == 1e3  # the scene's mu, which ipc never runs with (a probe, stop 61)
     capsys.readouterr()
     assert main(["bench", "contact", "--eps", "0.5", "--gaps", "0.1", "--subdivisions", "0", "--repeats", "1", "--out", str(tmp_path / "c")]) == 2
     assert "pip install 'warpcontact[ipc]' (test); or leave out the ipc rows (ipc_dhat=None; --ipc-dhat 0 on the command line)" in capsys.readouterr().err

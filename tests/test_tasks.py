@@ -706,6 +706,23 @@ def test_cli_task_errors_are_clear(tmp_path, capsys, command):
         os.chmod(locked, 0o700)
 
 
+def test_a_folder_the_file_system_refuses_is_named_not_its_lock_file(tmp_path, monkeypatch):
+    """Found by a probe: as root, os.access passes /sys/kernel, and the lock file's
+    PermissionError was the message ("[Errno 13] Permission denied: '.../.warpcontact-lock'")."""
+    from warpcontact import _files
+
+    real_open = os.open
+
+    def refusing_open(path, *args, **kwargs):
+        if str(path).endswith(_files.LOCK_NAME):
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr(_files.os, "open", refusing_open)
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(tmp_path))}: output folder is not writable \(Permission denied\)$"):
+        _files.hold_folder(tmp_path)
+
+
 def test_cli_stride_reaches_the_settings_and_is_checked_against_the_window(tmp_path, capsys):
     assert main(["run", "push", "--stride", "49", "--out", str(tmp_path)]) == 2
     assert "--stride must be a whole number >= 1 and at most the window (48), got 49" in capsys.readouterr().err

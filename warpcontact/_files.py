@@ -53,6 +53,10 @@ def hold_folder(folder):
             except FileNotFoundError:  # released meanwhile
                 continue
             left_behind = True
+        except OSError as exc:
+            # Root passes os.access where the file system still refuses (/sys): the error
+            # named this lock file, not the folder the user gave.
+            raise ValueError(f"{folder}: output folder is not writable ({exc.strerror or exc})") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

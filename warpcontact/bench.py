@@ -927,8 +927,10 @@ def run_frame_benchmark(
                     "all_triangles": total,
                     "bodies": len(scene.bodies),
                     "time_step": scene.settings.time_step,
-                    "contact_stiffness": scene.settings.contact_stiffness,
+                    # A skipped ipc row said the scene's mu, which ipc never runs with.
+                    "contact_stiffness": ipc_stiffness if mode == "ipc" else scene.settings.contact_stiffness,
                     "setup": f"{setup['striker']} {gap:g} m (bounding circles) from {setup['struck']} at {speed:g} m/s",
+                    "direction": setup["direction"],
                 }
                 if mode == "ipc" and not dev.is_cpu:
                     row = {**_empty_frame_row(mode), "error": f"skipped: ipc (ipctk) runs on the CPU only, not on {dev}"}
