@@ -883,6 +883,48 @@ def test_cli_init_samples_round_trip_the_box_and_record_the_draws(tmp_path, caps
     assert "need warpcontact:task:sampleLow" in capsys.readouterr().err
 
 
+def test_an_initial_state_rollout_holds_pd_bodies_at_their_targets_as_simulate_does():
+    """Found by a probe: an initial_state rollout stepped without a control, so a PD-driven
+    body's spring followed the body (only its damping acted) and the run optimised other
+    physics than `simulate` showed (a held ball at x 0.7353 against 0.6876 after 4 frames)."""
+    scene = space_billiards()
+    held = scene.bodies[1]
+    held.kp_linear, held.kd_linear = np.full(3, 400.0), np.full(3, 20.0)
+    held.linear_velocity = np.array([2.0, 0.0, 0.0])
+    problem = TaskProblem(scene)
+    _, _, trajectory = problem.rollout(problem.initial_values(1), problem.start, 4, gradient=False)
+    model = scene.build_model()
+    solver = wc.ImplicitSolver(model)
+    states = [model.state(requires_grad=False)]
+    linear, angular = scene.initial_velocities()
+    wc.set_body_velocity(states[0], wp.array(linear, dtype=wp.vec3d), wp.array(angular, dtype=wp.vec3d), scene.settings.time_step)
+    for _ in range(4):
+        states.append(model.state(requires_grad=False))
+        solver.step(states[-2], states[-1], model.control(requires_grad=False), scene.settings.time_step)
+    np.testing.assert_array_equal(trajectory[-1], states[-1].body_q.numpy())
+    free = states[0]
+    for _ in range(4):  # the springs following their bodies, as the rollout stepped before
+        following = model.state(requires_grad=False)
+        solver.step(free, following, None, scene.settings.time_step)
+        free = following
+    assert following.body_q.numpy()[1, 0] - trajectory[-1][1, 0] > 0.01
+
+
+def test_an_initial_state_control_on_a_jointed_body_is_refused():
+    """Found by a probe: its velocities moved nothing (the joints' coordinates did not follow)
+    and its offsets failed every rollout with an internal 'joint anchors apart' message."""
+    from warpcontact.scenes import build_scene
+    from warpcontact.tasks import validate_task
+
+    scene = build_scene("ant_push")
+    leg = next(b for b in scene.bodies if any(b.name == j.child and j.parent is not None for j in scene.joints))
+    joint = next(j for j in scene.joints if leg.name in (j.child, j.parent))
+    scene.task.control = "initial_state"
+    leg.control_dofs = ("vx", "vy")
+    with pytest.raises(ValueError, match=rf"prim {re.escape(leg.path)}: warpcontact:control:dofs: an initial_state control sets a free body's start pose and velocity, but joint {re.escape(joint.path)} links {leg.name!r}"):
+        validate_task(scene)
+
+
 def _pd_space_billiards():
     """space_billiards with the cue driven by PD targets in x, y (a receding-horizon task)."""
     scene = space_billiards()

@@ -567,7 +567,8 @@ def validate_task(scene) -> tuple:
     position that is not 3 finite numbers or a tolerance that is negative or not finite, no
     or several controlled bodies, a static target or controlled body, an unknown control
     kind, or control dofs that are unknown, repeated, (for PD targets) velocities or
-    coordinates without PD stiffness, or given to a joint_sine task.
+    coordinates without PD stiffness, given to a joint_sine task, or (initial_state) on a
+    body a joint links.
     """
     source = scene.source or "<scene>"
     task = scene.task
@@ -585,7 +586,16 @@ def validate_task(scene) -> tuple:
     if task.control != "joint_sine" and len(controlled) != 1:
         raise ValueError(f"{source}: expected exactly one body with warpcontact:control:dofs, found {len(controlled)}")
     if controlled:
-        _check_control_dofs(scene.bodies[controlled[0]], task.control, source, scene.up_axis)
+        body = scene.bodies[controlled[0]]
+        _check_control_dofs(body, task.control, source, scene.up_axis)
+        joint = next((j for j in scene.joints if body.name in (j.child, j.parent)), None) if task.control == "initial_state" else None
+        if joint is not None:
+            # Its velocities moved nothing (the joints' coordinates did not follow) and its
+            # offsets pulled the joint apart at every step of Adam (a probe).
+            raise ValueError(
+                f"{source}: prim {body.path}: warpcontact:control:dofs: an initial_state control sets a free body's start pose and velocity, "
+                f"but joint {joint.path} links {body.name!r} and its coordinates would not follow; control a body without joints (or drive the joints: joint_sine)"
+            )
     targets = [i for i, b in enumerate(scene.bodies) if b.target_position is not None]
     if not targets:
         raise ValueError(f"{source}: no target bodies (warpcontact:target:position)")
@@ -849,7 +859,10 @@ class TaskProblem:
         values_arr = wp.array(values, dtype=wp.float64, device=device, requires_grad=True)
         # The solver writes every output state's poses; only the start needs filling.
         states = [start_state] + [self.model.state() for _ in range(frames)]
-        controls = [self.model.control() for _ in range(frames)] if self.kind != "initial_state" else [None] * frames
+        # Every kind holds PD-driven bodies at the scene's targets, as `simulate` does: an
+        # initial_state rollout without a control let each spring follow its body (only its
+        # damping acted), so a run optimised other physics than `simulate` showed (a probe).
+        controls = [self.model.control(requires_grad=self.kind != "initial_state") for _ in range(frames)]
         loss = wp.zeros(1, dtype=wp.float64, device=device, requires_grad=True)
         tape = wp.Tape()
         base = wp.transformd(*map(float, self.base_pose)) if self.kind != "joint_sine" else None
