@@ -408,7 +408,9 @@ class ImplicitSolver:
             over whole runs of frames the friction evaluations it adds cost less than the
             iterations they save (on a GPU's impact frames alone, about as much;
             docs/architecture.md, "Friction-exact Newton steps"). Either way the step
-            converges to the same solution, within ``tolerance``.
+            converges to a minimiser of the same L, within ``tolerance``; where a
+            contact-rich step's L has several nearby minima, the two paths can end in
+            different ones (docs/architecture.md, "Known limits").
     """
 
     def __init__(
