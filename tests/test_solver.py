@@ -2095,6 +2095,42 @@ def test_builder_names_an_inside_out_mesh_for_density_and_for_a_mass_without_ine
         wc.ModelBuilder().add_body(inside_out, mass=1.0, name="inverted")
 
 
+def test_builder_names_a_flipped_face_a_hole_and_a_flat_face_on_an_edge():
+    """A probe at stop 61: a face wound the other way and a missing face got no cause, and a
+    stray zero-area triangle along an edge was blamed on pieces meeting there."""
+    flipped = _BOX.faces.copy()
+    flipped[2] = flipped[2, ::-1]
+    with pytest.raises(ValueError, match=r"'flipped': mass from density needs .* \(faces \d+ and \d+ both run from vertex \d+ to vertex \d+: one of them is wound the other way round; invert it\)"):
+        wc.ModelBuilder().add_body((_BOX.vertices, flipped), density=1.0, name="flipped")
+    with pytest.raises(ValueError, match=r"'holed': mass from density needs .* \(the edge between vertices \d+ and \d+ borders face \d+ alone, 3 such open edge\(s\) in all: a hole or a T-junction"):
+        wc.ModelBuilder().add_body((_BOX.vertices, _BOX.faces[1:]), density=1.0, name="holed")
+    a, b = _BOX.faces[0, :2]
+    midpoint = (_BOX.vertices[a] + _BOX.vertices[b]) / 2.0
+    stray = (np.vstack([_BOX.vertices, midpoint]), np.vstack([_BOX.faces, [[a, len(_BOX.vertices), b]]]))
+    with pytest.raises(ValueError, match=rf"'stray': mass from density needs .* \(face 12 has no area, its corners on a line, and lies on the edge between vertices {min(a, b)} and {max(a, b)}, which 3 faces then share: remove such faces\)"):
+        wc.ModelBuilder().add_body(stray, density=1.0, name="stray")
+
+
+def test_a_float32_rounded_t_junction_sliver_does_not_push_a_body():
+    """A probe at stop 61: the float64 rounding bound kept a T-junction's closing sliver whose
+    corners float32 had rounded off their line (twice its area 6.8e-10 m^2 on a 0.2 m box's
+    edge), and it pushed the box sideways like a second copy of the edge."""
+    vertices = np.asarray(_BOX.vertices, dtype=np.float64)
+    bottom = np.flatnonzero(np.isclose(vertices[:, 2], vertices[:, 2].min()))
+    a, b = bottom[0], next(k for k in bottom[1:] if np.count_nonzero(vertices[k] != vertices[bottom[0]]) == 1)
+    turn = np.array([[np.cos(0.7), -np.sin(0.7), 0.0], [np.sin(0.7), np.cos(0.7), 0.0], [0.0, 0.0, 1.0]])
+    middle = (vertices[a] + vertices[b]) / 2.0
+    rounded = (np.vstack([vertices, middle]) @ turn.T).astype(np.float32).astype(np.float64) @ turn
+    sliver = np.array([[a, len(vertices), b]])
+    rounded_corners = rounded[sliver[0]]
+    assert np.linalg.norm(np.cross(rounded_corners[1] - rounded_corners[0], rounded_corners[2] - rounded_corners[0])) > 1e-12 * 0.5**2  # kept by the old bound
+    builder = wc.ModelBuilder()
+    builder.add_body((rounded, np.vstack([_BOX.faces, sliver])), mass=1.0, inertia=np.eye(3), name="box")
+    clean = wc.ModelBuilder()
+    clean.add_body((rounded[:-1], _BOX.faces), mass=1.0, inertia=np.eye(3), name="box")
+    assert [t.num_triangles for t in builder.finalize().contact.trees] == [t.num_triangles for t in clean.finalize().contact.trees] == [12]
+
+
 def test_a_taped_step_names_a_state_without_gradient_arrays():
     """Warp's record_func used to fail after the step was written, printing the array."""
     model, _ = _cube_shot_at_a_resting_cube(1.0)

@@ -369,11 +369,32 @@ def _closure_hint(mesh: trimesh.Trimesh) -> str:
         return f" (its {len(mesh.vertices)} vertices merge into {len(merged.vertices)} of a closed mesh: merge coincident vertices first, e.g. trimesh's merge_vertices())"
     # A closed, outward solid whose pieces meet along an edge (two cubes sharing one) was
     # refused without a word of why (a probe, stop 58).
-    edges, counts = np.unique(mesh.edges_sorted, axis=0, return_counts=True)
+    edges, inverse, counts = np.unique(mesh.edges_sorted, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
     shared = np.flatnonzero(counts > 2)
     if shared.size:
         a, b = (int(v) for v in edges[shared[0]])
+        # A stray flat face along an edge was blamed on the pieces meeting there (a probe).
+        on_edge = mesh.edges_face[inverse == shared[0]]
+        corners = mesh.vertices[mesh.faces[on_edge]]
+        twice_area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+        longest = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
+        flat = on_edge[twice_area <= flat_twice_area(longest, np.abs(mesh.vertices).max())]
+        if flat.size:
+            return f" (face {int(flat[0])} has no area, its corners on a line, and lies on the edge between vertices {a} and {b}, which {int(counts[shared[0]])} faces then share: remove such faces)"
         return f" (the edge between vertices {a} and {b} is shared by {int(counts[shared[0]])} faces, {shared.size} such edge(s) in all: a surface closes a volume where every edge has two faces; split the pieces apart there)"
+    # A face wound the other way, a hole, a T-junction: refused without a word of why (a probe).
+    open_edges = np.flatnonzero(counts == 1)
+    if open_edges.size:
+        a, b = (int(v) for v in edges[open_edges[0]])
+        face = int(mesh.edges_face[np.flatnonzero(inverse == open_edges[0])[0]])
+        return f" (the edge between vertices {a} and {b} borders face {face} alone, {open_edges.size} such open edge(s) in all: a hole or a T-junction, where a closed surface has two faces on every edge)"
+    directed, directed_counts = np.unique(mesh.edges, axis=0, return_counts=True)
+    twice = np.flatnonzero(directed_counts > 1)
+    if twice.size:
+        a, b = (int(v) for v in directed[twice[0]])
+        faces = mesh.edges_face[np.flatnonzero((mesh.edges[:, 0] == a) & (mesh.edges[:, 1] == b))]
+        return f" (faces {int(faces[0])} and {int(faces[1])} both run from vertex {a} to vertex {b}: one of them is wound the other way round; invert it)"
     return ""
 
 
@@ -398,9 +419,13 @@ _FLAT_TRIANGLE = 1e-12
 def flat_twice_area(edge, coordinate):
     """Twice the area below which a triangle of longest edge ``edge`` (m), among coordinates
     up to ``coordinate`` (m) in magnitude, is flat: 1e-12 of its edge squared, or what rounding
-    its corners' coordinates makes of a straight corner (a 1 mm polygon 100 m from the
-    origin: 1e-11 of its edge squared). One rule for meshes and for the polygons of USD faces."""
-    return np.maximum(_FLAT_TRIANGLE * np.square(edge), 64.0 * np.finfo(np.float64).eps * np.asarray(coordinate) * edge)
+    its corners' coordinates to float32 makes of a straight corner, 8 float32 epsilons of the
+    largest coordinate times the edge (USD stores points, and STL files vertices, in float32:
+    a 0.2 m box's T-junction exported through a turned frame closed with a sliver of twice
+    the area 6.8e-10 m^2, which the float64 rounding's bound took for a triangle, and each
+    leaf pair counted it as one more copy of its edge; a probe). One rule for meshes and for
+    the polygons of USD faces."""
+    return np.maximum(_FLAT_TRIANGLE * np.square(edge), 8.0 * float(np.finfo(np.float32).eps) * np.asarray(coordinate) * edge)
 
 
 def _contact_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
