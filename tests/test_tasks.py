@@ -883,6 +883,22 @@ def test_cli_init_samples_round_trip_the_box_and_record_the_draws(tmp_path, caps
     assert "need warpcontact:task:sampleLow" in capsys.readouterr().err
 
 
+def _simulated(scene, frames: int, *, held: bool) -> np.ndarray:
+    """The final poses of ``scene`` stepped frame by frame from its authored velocities, with
+    the model's control (PD targets at the scene's poses, as `simulate` steps) when ``held``,
+    else without one."""
+    model = scene.build_model()
+    solver = wc.ImplicitSolver(model)
+    state = model.state(requires_grad=False)
+    linear, angular = scene.initial_velocities()
+    wc.set_body_velocity(state, wp.array(linear, dtype=wp.vec3d), wp.array(angular, dtype=wp.vec3d), scene.settings.time_step)
+    for _ in range(frames):
+        following = model.state(requires_grad=False)
+        solver.step(state, following, model.control(requires_grad=False) if held else None, scene.settings.time_step)
+        state = following
+    return state.body_q.numpy()
+
+
 def test_an_initial_state_rollout_holds_pd_bodies_at_their_targets_as_simulate_does():
     """Found by a probe: an initial_state rollout stepped without a control, so a PD-driven
     body's spring followed the body (only its damping acted) and the run optimised other
@@ -893,21 +909,9 @@ def test_an_initial_state_rollout_holds_pd_bodies_at_their_targets_as_simulate_d
     held.linear_velocity = np.array([2.0, 0.0, 0.0])
     problem = TaskProblem(scene)
     _, _, trajectory = problem.rollout(problem.initial_values(1), problem.start, 4, gradient=False)
-    model = scene.build_model()
-    solver = wc.ImplicitSolver(model)
-    states = [model.state(requires_grad=False)]
-    linear, angular = scene.initial_velocities()
-    wc.set_body_velocity(states[0], wp.array(linear, dtype=wp.vec3d), wp.array(angular, dtype=wp.vec3d), scene.settings.time_step)
-    for _ in range(4):
-        states.append(model.state(requires_grad=False))
-        solver.step(states[-2], states[-1], model.control(requires_grad=False), scene.settings.time_step)
-    np.testing.assert_array_equal(trajectory[-1], states[-1].body_q.numpy())
-    free = states[0]
-    for _ in range(4):  # the springs following their bodies, as the rollout stepped before
-        following = model.state(requires_grad=False)
-        solver.step(free, following, None, scene.settings.time_step)
-        free = following
-    assert following.body_q.numpy()[1, 0] - trajectory[-1][1, 0] > 0.01
+    np.testing.assert_array_equal(trajectory[-1], _simulated(scene, 4, held=True))
+    following = _simulated(scene, 4, held=False)  # the springs following their bodies, as the rollout stepped before
+    assert following[1, 0] - trajectory[-1][1, 0] > 0.01
 
 
 def test_an_initial_state_control_on_a_jointed_body_is_refused():
@@ -1643,15 +1647,7 @@ def test_task_rollouts_start_with_the_scene_s_authored_velocities():
     scene.bodies[0].linear_velocity = np.array([0.0, 0.2, 0.0])
     problem = TaskProblem(scene, settings=TaskSettings(horizon=6, receding_horizon=0, iterations=1, learning_rate=0.1))
     _, _, trajectory = problem.rollout(np.zeros((1, 4)), problem.start, 6)
-    model = scene.build_model()
-    solver = wc.ImplicitSolver(model)
-    states = [model.state(requires_grad=False)]
-    lin, ang = scene.initial_velocities()
-    wc.set_body_velocity(states[0], wp.array(lin, dtype=wp.vec3d), wp.array(ang, dtype=wp.vec3d), scene.settings.time_step)
-    for _ in range(6):
-        states.append(model.state(requires_grad=False))
-        solver.step(states[-2], states[-1], None, scene.settings.time_step)
-    np.testing.assert_array_equal(trajectory[-1], states[-1].body_q.numpy())
+    np.testing.assert_array_equal(trajectory[-1], _simulated(scene, 6, held=False))
     assert trajectory[-1, 1, 0] - trajectory[0, 1, 0] > 0.1
     # Articulated scenes keep starting at rest: their joint coordinates would not follow.
     from warpcontact.scenes import build_scene
