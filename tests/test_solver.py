@@ -87,9 +87,29 @@ def test_a_far_dynamic_body_does_not_switch_off_another_body_s_forces():
     model = b.finalize()
     first = model.state(requires_grad=False)
     wc.set_body_velocity(first, wp.array([[1.0, 0.0, 2.0], [0.0, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(2, dtype=wp.vec3d), dt)
-    q, _ = rollout(model, steps, dt, first=first)
+    with pytest.warns(UserWarning, match=r"dt: 1e-06 s is too short for body 'far' 1e\+04 m from the origin") as warned:  # its own fall is below its rounding
+        q, _ = rollout(model, steps, dt, first=first)
+    assert len([w for w in warned if "too short for body" in str(w.message)]) == 1  # once per body, not per step
     vz = (q[-1, 0, 2] - q[-2, 0, 2]) / dt
     assert vz == pytest.approx(2.0 - 9.81 * steps * dt, abs=1e-6)
+
+
+def test_a_body_whose_fall_in_a_step_is_below_its_coordinates_rounding_is_warned_about():
+    """A probe at stop 61: a box 100 m up at dt 1e-7 s (its fall of 1e-13 m a step below the
+    3.6e-13 m its coordinates round to, which the steps take for convergence) hung in the air
+    for 200 steps without a word; at dt 1e-6 it falls, unwarned."""
+    for dt, warned in ((1e-7, True), (1e-6, False)):
+        b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+        b.add_box((0.3, 0.3, 0.3), density=500.0, name="high", pose=(0.0, 0.0, 100.0, 0.0, 0.0, 0.0, 1.0))
+        model = b.finalize()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            q, _ = rollout(model, 20, dt)
+        messages = [str(w.message) for w in caught if "too short for body" in str(w.message)]
+        if warned:
+            assert messages == ["dt: 1e-07 s is too short for body 'high' 100 m from the origin: its free fall in a step, 9.81e-14 m, is below the float64 rounding of its coordinates (3.55e-13 m), which the steps take for convergence, so gravity will not move it; use a longer dt or place the scene nearer the origin"]
+        else:
+            assert not messages and q[-1, 0, 2] < 100.0
 
 
 def test_a_far_static_body_does_not_loosen_a_small_body_s_tolerance():

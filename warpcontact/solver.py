@@ -26,6 +26,7 @@ second moments), which would otherwise stay zero.
 """
 
 import dataclasses
+import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -441,6 +442,7 @@ class ImplicitSolver:
         # The dynamic bodies in index order, and the rows of each one's 6x6 block in the
         # contact Hessians (``ContactEvaluation.hessian``), which hold them alone.
         self._dynamic_bodies = np.flatnonzero(self._dynamic)
+        self._unresolved_fall: set[int] = set()  # bodies warned about once: gravity below their rounding at some dt
         self._block_rows = np.arange(6 * len(self._dynamic_bodies)).reshape(-1, 6)
         # The dtype and shape of each model array the step reads back, as the model had them
         # when this solver was made: one replaced by another kind of array failed deep in
@@ -1003,6 +1005,21 @@ class ImplicitSolver:
             # The step's free fall g dt^2 then overflowed the kernels' coordinates: the error
             # named an internal argument of the advancement bound.
             raise ValueError(f"model.gravity and dt: gravity {np.asarray(model.gravity, dtype=np.float64).tolist()} m/s^2 falls {fall:.3g} m in dt={dt} s, beyond the +-{MAX_COORDINATE:g} m of a body's coordinates; reduce dt or gravity")
+        if fall > 0.0 and len(self._dynamic_bodies):
+            # A step no longer than the rounding of a body's coordinates counts as converged
+            # (the rounding floor): at z = 100 m and dt 1e-7 s a box hung in the air, its fall
+            # of 1e-13 m a step dropped every step, without a word (a probe).
+            reach = _ROUNDING * np.abs(q[self._dynamic_bodies, :3]).max(axis=1)
+            for stuck in np.flatnonzero(fall <= reach):
+                body = int(self._dynamic_bodies[stuck])
+                if body not in self._unresolved_fall:
+                    self._unresolved_fall.add(body)
+                    warnings.warn(
+                        f"dt: {dt:g} s is too short for body {model.body_names[body]!r} {np.abs(q[body, :3]).max():.3g} m from the origin: its free fall in a step, "
+                        f"{fall:.3g} m, is below the float64 rounding of its coordinates ({reach[stuck]:.3g} m), which the steps take for convergence, so "
+                        "gravity will not move it; use a longer dt or place the scene nearer the origin",
+                        stacklevel=3,
+                    )
         coords_now, joint_target = self._joint_arrays(state_in, state_out, control, q)
         if self._articulation is not None and self._articulation.cones:
             # A swing on or past its cone made the start's energy infinite, blamed on dt,
