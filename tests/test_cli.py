@@ -728,7 +728,7 @@ def test_simulate_writes_the_frames_before_a_failed_step(tmp_path, capsys, monke
 
     monkeypatch.setattr(ImplicitSolver, "step", third_fails(SolverError("implicit step: no convergence after 500 Newton iterations")))
     assert main(["simulate", "push", "--frames", "5", "--out", str(tmp_path)]) == 1
-    assert "error: frame 2: implicit step: no convergence after 500 Newton iterations; the outputs hold the 2 frames before it" in capsys.readouterr().err
+    assert "error: the step from frame 2 to 3 failed: implicit step: no convergence after 500 Newton iterations; the outputs hold frames 0 to 2" in capsys.readouterr().err
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["frames"] == 2 and summary["stopped"] == {"frame": 2, "error": "implicit step: no convergence after 500 Newton iterations"}
     assert Usd.Stage.Open(str(tmp_path / "trajectory.usda")).GetEndTimeCode() == 2
@@ -755,7 +755,7 @@ def test_simulate_interrupted_by_hand_writes_the_frames_it_simulated(tmp_path, c
 
     interrupt_call(monkeypatch, ImplicitSolver, "step", 4)
     assert main(["simulate", "push", "--frames", "6", "--out", str(tmp_path)]) == 130
-    assert "error: frame 3: interrupted; the outputs hold the 3 frames before it" in capsys.readouterr().err
+    assert "error: interrupted during the step from frame 3 to 4; the outputs hold frames 0 to 3" in capsys.readouterr().err
     assert json.loads((tmp_path / "summary.json").read_text())["stopped"] == {"frame": 3, "error": "interrupted"}
     assert Usd.Stage.Open(str(tmp_path / "trajectory.usda")).GetEndTimeCode() == 3
 
@@ -1070,3 +1070,21 @@ def test_python_dash_m_runs_the_command(tmp_path):
     done = subprocess.run([sys.executable, "-m", "warpcontact", "list"], capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     assert "push" in done.stdout and "billiards" in done.stdout
+
+
+
+def test_a_reader_that_closes_the_pipe_early_loses_nothing(tmp_path):
+    """A probe at stop 61: `simulate ... | head -1` ended with "error: [Errno 32] Broken pipe"
+    and no outputs (the progress line's write raised in the frame loop), and `list | head -1`
+    exited 1. The command now finishes, writes its outputs and exits 0."""
+    import subprocess
+    import sys
+
+    command = [sys.executable, "-m", "warpcontact", "simulate", "push", "--frames", "30", "--out", str(tmp_path / "sim")]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path)
+    process.stdout.readline()
+    process.stdout.close()  # as head does once it has its line
+    _, errors = process.communicate(timeout=300)
+    assert process.returncode == 0, errors.decode()
+    assert (tmp_path / "sim" / "trajectory.usda").is_file() and json.loads((tmp_path / "sim" / "summary.json").read_text())["frames"] == 30
+    assert b"Broken pipe" not in errors

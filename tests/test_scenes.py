@@ -39,6 +39,35 @@ def test_the_shipped_scenes_are_what_the_code_writes_and_are_never_overwritten_u
     assert exit_info.value.code == 0 and not Path("--help").exists()
 
 
+def test_writing_the_scenes_is_all_or_nothing_and_names_what_stops_it(tmp_path, capsys, monkeypatch):
+    """A probe at stop 61: a name taken by a folder, a folder that cannot be made and an
+    interrupt left a partial set of scenes (and tracebacks), and an empty folder name wrote
+    into the current folder."""
+    (tmp_path / "taken" / "push.usda").mkdir(parents=True)
+    assert scenes.main([str(tmp_path / "taken"), "--overwrite"]) == 2
+    assert "push.usda: is a folder, not a file name" in capsys.readouterr().err
+    assert sorted(p.name for p in (tmp_path / "taken").iterdir()) == ["push.usda"]
+    assert scenes.main([""]) == 2
+    assert "an empty name would write into the current folder" in capsys.readouterr().err
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    assert scenes.main([str(a_file / "sub")]) == 1
+    assert "cannot write the scenes" in capsys.readouterr().err
+    written = []
+
+    def interrupted(scene, path, **kwargs):
+        written.append(path)
+        if len(written) == 3:
+            raise KeyboardInterrupt
+        return real(scene, path, **kwargs)
+
+    real = scenes.save_scene
+    monkeypatch.setattr(scenes, "save_scene", interrupted)
+    assert scenes.main([str(tmp_path / "cut")]) == 130
+    assert "interrupted; no scene file was changed" in capsys.readouterr().err
+    assert list((tmp_path / "cut").iterdir()) == []
+
+
 @pytest.mark.parametrize("path", FILES, ids=[p.stem for p in FILES])
 def test_scene_loads_steps_and_exports(path, tmp_path):
     scene = io.load_scene(path)

@@ -149,7 +149,10 @@ def _simulate(args) -> int:
     newton = f", mean {np.mean(iterations):.1f} Newton iterations per frame" if iterations else ""
     print(f"wrote {trajectory} and {out / 'summary.json'} ({seconds:.1f} s{newton})")
     if stopped:
-        print(f"error: frame {stopped['frame']}: {stopped['error']}; the outputs hold the {stopped['frame']} frames before it", file=sys.stderr)
+        # "frame 2" read as the third step, after the progress line "frame 2/8" (a probe).
+        step = f"the step from frame {stopped['frame']} to {stopped['frame'] + 1}"
+        what = f"interrupted during {step}" if stopped["error"] == "interrupted" else f"{step} failed: {stopped['error']}"
+        print(f"error: {what}; the outputs hold frames 0 to {stopped['frame']}", file=sys.stderr)
         return 130 if stopped["error"] == "interrupted" else 1
     if interrupted:
         print("interrupted while the outputs were written: they were finished first and hold every frame", file=sys.stderr)
@@ -990,7 +993,53 @@ def _remove_empty(folders: list) -> None:
             return
 
 
+class _ReaderTolerantStream:
+    """A text stream that, once its reader has gone (a pipe closed early: ``| head``), drops
+    what is printed to it instead of raising: `simulate | head -1` lost the whole simulation
+    to a BrokenPipeError from its progress line, and `list | head -1` ended in an error (a
+    probe)."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self._reader_gone = False
+
+    def write(self, text: str) -> int:
+        if not self._reader_gone:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self._drop()
+        return len(text)
+
+    def flush(self) -> None:
+        if not self._reader_gone:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._drop()
+
+    def _drop(self) -> None:
+        self._reader_gone = True
+        try:  # the interpreter's own last flush at exit goes nowhere too, without a report
+            os.dup2(os.open(os.devnull, os.O_WRONLY), self._stream.fileno())
+        except (OSError, ValueError, AttributeError):
+            pass
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def main(argv=None) -> int:
+    """The ``warpcontact`` command; exit status 0, 1 (failed), 2 (refused input) or 130 (interrupted)."""
+    stdout = sys.stdout
+    sys.stdout = _ReaderTolerantStream(stdout)
+    try:
+        return _main(argv)
+    finally:
+        sys.stdout = stdout
+
+
+def _main(argv) -> int:
     args = build_parser().parse_args(argv)
     # Module-load chatter would drown the progress and results; warnings and errors still show.
     wp.config.log_level = logging.WARNING

@@ -31,6 +31,7 @@ import trimesh
 from .articulation import frame_in_body
 from ._validate import is_positive_finite, is_whole, real_array
 from .hull import convex_hull
+from ._files import replace_files
 from .io import BodySpec, JointSpec, Scene, SimulationSettings, TaskSpec, save_scene
 from .robots import AntSpec, ant_description
 from .sphere_tree import validated_mesh
@@ -479,16 +480,27 @@ def shipped_scene(name: str) -> Path:
 
 
 def write_scenes(folder, *, overwrite: bool = False) -> list[Path]:
-    """Write every scene in ``SCENE_NAMES`` to ``folder``/NAME.usda; FileExistsError, before
-    anything is written, when one of them exists and ``overwrite`` is not set."""
+    """Write every scene in ``SCENE_NAMES`` to ``folder``/NAME.usda as one set (all or none:
+    a failed or interrupted write left the scenes before it, and a rerun was then refused for
+    them); FileExistsError, before anything is written, when one of them exists and
+    ``overwrite`` is not set, ValueError when one of the names is a folder."""
+    if isinstance(folder, str) and not folder.strip():
+        # Path("") is the current folder: the CLI's --out refuses it for that reason.
+        raise ValueError("folder: an empty name would write into the current folder; give '.' to mean it")
     folder = Path(folder)
     paths = [folder / f"{name}.usda" for name in SCENE_NAMES]
+    taken = [p for p in paths if p.is_dir()]
+    if taken:
+        raise ValueError(f"{taken[0]}: is a folder, not a file name")
     existing = [p for p in paths if p.exists()]
     if existing and not overwrite:
-        raise FileExistsError(f"{existing[0]} exists ({len(existing)} of the {len(paths)} scene files do); pass overwrite=True (--overwrite) to replace them")
+        raise FileExistsError(f"{existing[0]} exists ({len(existing)} of the {len(paths)} scene files do); pass --overwrite (overwrite=True) to replace them")
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"{folder}: exists and is not a folder")
     folder.mkdir(parents=True, exist_ok=True)
-    for name, path in zip(SCENE_NAMES, paths):
-        save_scene(build_scene(name), path, overwrite=overwrite)
+    with replace_files(folder, [p.name for p in paths]) as staged:
+        for name in SCENE_NAMES:
+            save_scene(build_scene(name), staged / f"{name}.usda")
     return paths
 
 
@@ -501,11 +513,18 @@ def main(argv=None) -> int:
     parser.add_argument("--overwrite", action="store_true", help="replace scene files already there")
     args = parser.parse_args(argv)
     try:
-        for path in write_scenes(args.folder, overwrite=args.overwrite):
-            print(path)
+        paths = write_scenes(args.folder, overwrite=args.overwrite)
     except (FileExistsError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a folder that cannot be made or written: tracebacks before
+        print(f"error: {args.folder}: cannot write the scenes ({exc.strerror or exc}); no scene file was changed", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted; no scene file was changed", file=sys.stderr)
+        return 130
+    for path in paths:
+        print(path)
     return 0
 
 
