@@ -932,9 +932,9 @@ def test_shipped_scenes_are_found_from_any_folder(tmp_path, monkeypatch, capsys)
     assert str(shipped_scene("gather")) in capsys.readouterr().out
     # Misspelt, a name got the whole list and no hint (a probe).
     for misspelt, meant in (("pushh", "push"), ("psuh", "push"), ("Billiard", "billiards")):
-        with pytest.raises(ValueError, match=rf"'{misspelt}': not a .usda file and not a shipped scene \(known: .*\); did you mean '{meant}'\?"):
+        with pytest.raises(ValueError, match=rf"'{misspelt}': not a USD file \(\.usda, \.usd, \.usdc, \.usdz\) and not a shipped scene \(known: .*\); did you mean '{meant}'\?"):
             cli._resolve_scene_path(misspelt)
-    with pytest.raises(ValueError, match=r"'zzzz': not a .usda file and not a shipped scene \(known: [^)]*\)$"):
+    with pytest.raises(ValueError, match=r"'zzzz': not a USD file \(\.usda, \.usd, \.usdc, \.usdz\) and not a shipped scene \(known: [^)]*\)$"):
         cli._resolve_scene_path("zzzz")
     assert main(["bench", "frame", "--scenes", "push", "--scene-dir", str(tmp_path), "--frames", "1", "--out", str(tmp_path / "b")]) == 2
     assert f"{tmp_path / 'push.usda'} not found" in capsys.readouterr().err

@@ -173,7 +173,7 @@ def _resolve_scene_path(name: str) -> Path:
         # A misspelt name got the whole list and no hint, where a misspelt USD attribute gets one.
         close = difflib.get_close_matches(name.lower(), SCENE_NAMES, n=1)
         hint = f"; did you mean {close[0]!r}?" if close else ""
-        raise ValueError(f"{name!r}: not a .usda file and not a shipped scene (known: {', '.join(SCENE_NAMES)}){hint}")
+        raise ValueError(f"{name!r}: not a USD file ({', '.join(io.USD_READ_SUFFIXES)}) and not a shipped scene (known: {', '.join(SCENE_NAMES)}){hint}")
     return shipped_scene(name)
 
 
@@ -839,7 +839,7 @@ def _folder_name(text: str) -> str:
 def _writes(parser, default_out: str, *outputs: str):
     """--out (default ``default_out``) and --overwrite of a command that writes ``outputs``
     there; ``main`` refuses to replace them unless told."""
-    parser.add_argument("--out", type=_folder_name, default=default_out)
+    parser.add_argument("--out", type=_folder_name, default=default_out, help=f"output folder (default: {default_out})")
     parser.add_argument("--overwrite", action="store_true", help=f"replace an earlier run's {', '.join(outputs)} in OUT")
     parser.set_defaults(outputs=outputs)
 
@@ -849,9 +849,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     demo = sub.add_parser("demo", help="leaf potential between two icospheres at several gaps")
-    demo.add_argument("--subdivisions", type=int, default=1, choices=range(0, 4))
-    demo.add_argument("--gaps", type=_positive_float, nargs="+", default=[1.0, 0.1, 1e-2, 1e-4])
-    demo.add_argument("--device", default="cpu")
+    demo.add_argument("--subdivisions", type=int, default=1, choices=range(0, 4), help="icosphere subdivisions of the two balls (default: 1, 80 triangles each)")
+    demo.add_argument("--gaps", type=_positive_float, nargs="+", default=[1.0, 0.1, 1e-2, 1e-4], help="surface gaps between the balls (m; default: 1 0.1 0.01 0.0001)")
+    demo.add_argument("--device", default="cpu", help="cpu or cuda:N (default: cpu)")
     _writes(demo, "outputs/demo", "demo.json")
     demo.set_defaults(func=_demo)
 
@@ -877,9 +877,9 @@ def build_parser() -> argparse.ArgumentParser:
     listing.set_defaults(func=_list)
 
     simulate = sub.add_parser("simulate", help="simulate a USD scene and export its trajectory")
-    simulate.add_argument("scene", help="a shipped scene's name (warpcontact list) or a .usda scene")
-    simulate.add_argument("--frames", type=_frame_count, default=None, help="default: the scene's warpcontact:frames")
-    simulate.add_argument("--device", default="cpu")
+    simulate.add_argument("scene", help="a shipped scene's name (warpcontact list) or a USD scene (.usda, .usd, .usdc, .usdz)")
+    simulate.add_argument("--frames", type=_frame_count, default=None, help="default: the scene's warpcontact:frames, else 100")
+    simulate.add_argument("--device", default="cpu", help="cpu or cuda:N (default: cpu)")
     _writes(simulate, "outputs/simulate", *SIMULATE_OUTPUTS)
     simulate.set_defaults(func=_simulate)
 
