@@ -680,7 +680,7 @@ def test_cli_compare_skips_ipc_without_ipctk_and_keeps_the_other_models(tmp_path
 @pytest.mark.parametrize("command", ["run", "compare"])
 def test_cli_task_errors_are_clear(tmp_path, capsys, command):
     assert main([command, "no_such_task", "--out", str(tmp_path)]) == 2
-    assert "not a .usda file" in capsys.readouterr().err
+    assert "not a USD file (.usda, .usd, .usdc, .usdz)" in capsys.readouterr().err
     plain = tmp_path / "plain.usda"
     scene = space_billiards()
     scene.task = io.TaskSpec()
@@ -846,7 +846,7 @@ def test_initial_samples_start_the_descent_at_the_best_draw():
 @pytest.mark.parametrize(
     "change, message",
     [
-        (lambda s: setattr(s.task, "sample_low", ()), "need warpcontact:task:sampleLow"),
+        (lambda s: setattr(s.task, "sample_low", ()), "warpcontact:task:sampleHigh is authored without warpcontact:task:sampleLow"),
         (lambda s: setattr(s.task, "sample_high", (1.0, 1.0, 1.0)), "sampleHigh has 3 values for the 4 control DOFs"),
         (lambda s: setattr(s.task, "sample_low", (0.0, 0.0, np.nan, 0.0)), "sampleLow must be finite"),
         (lambda s: setattr(s.task, "sample_low", (0.5, -0.3, 0.0, -1.0)), "exceeds warpcontact:task:sampleHigh"),
@@ -953,6 +953,26 @@ def test_a_push_that_slides_and_turns_the_box_has_the_gradient_of_central_differ
             ahead = problem.rollout(values + h * direction, start, frames, gradient=False)[0]
             behind = problem.rollout(values - h * direction, start, frames, gradient=False)[0]
             assert (ahead - behind) / (2 * h) == pytest.approx(analytic, rel=1e-5)
+
+
+def test_a_sample_box_is_checked_whether_or_not_a_run_draws_from_it():
+    """A probe at stop 61: a box on a pd_targets task, or an inverted or short one, ran
+    without a word unless --init-samples asked for it."""
+    from warpcontact.tasks import validate_task
+
+    scene = space_billiards()
+    scene.task.sample_low, scene.task.sample_high = (-1.0, -1.0, 0.0, 0.0), (1.0, 1.0, 2.0, 2.0)
+    validate_task(scene)
+    scene.task.sample_high = (1.0, 1.0, -2.0, 2.0)
+    with pytest.raises(ValueError, match=r"warpcontact:task:sampleLow \[-1.0, -1.0, 0.0, 0.0\] exceeds warpcontact:task:sampleHigh"):
+        validate_task(scene)
+    scene.task.sample_high = ()
+    with pytest.raises(ValueError, match=r"warpcontact:task:sampleLow is authored without warpcontact:task:sampleHigh; a random-sampling box needs both"):
+        validate_task(scene)
+    pushed = _pd_space_billiards()
+    pushed.task.sample_low, pushed.task.sample_high = (-1.0, -1.0), (1.0, 1.0)
+    with pytest.raises(ValueError, match=r"sampleLow and sampleHigh bound random initial-state controls; this task's control is 'pd_targets', which never reads them: remove them"):
+        validate_task(pushed)
 
 
 def _pd_space_billiards():

@@ -546,9 +546,18 @@ def sample_box(scene, samples: int) -> tuple:
         raise ValueError(f"initial samples: must be >= 0, got {samples}")
     if task.control != "initial_state":
         raise ValueError(f"{source}: initial samples draw initial-state controls; this task's control is {task.control!r}")
-    dofs = tuple(scene.bodies[controlled].control_dofs)
     if not task.sample_low or not task.sample_high:
+        dofs = tuple(scene.bodies[controlled].control_dofs)
         raise ValueError(f"{source}: initial samples need warpcontact:task:sampleLow and warpcontact:task:sampleHigh (one bound per control DOF {dofs})")
+    return _checked_sample_box(scene, controlled)
+
+
+def _checked_sample_box(scene, controlled: int) -> tuple:
+    """(low, high) of an initial_state task's authored sample box; ValueError naming the
+    attribute for a box of the wrong length, non-finite bounds or a low bound above its high one."""
+    source = scene.source or "<scene>"
+    task = scene.task
+    dofs = tuple(scene.bodies[controlled].control_dofs)
     low, high = np.asarray(task.sample_low, dtype=np.float64), np.asarray(task.sample_high, dtype=np.float64)
     for name, bound in (("sampleLow", low), ("sampleHigh", high)):
         if bound.shape != (len(dofs),):
@@ -568,7 +577,8 @@ def validate_task(scene) -> tuple:
     or several controlled bodies, a static target or controlled body, an unknown control
     kind, or control dofs that are unknown, repeated, (for PD targets) velocities or
     coordinates without PD stiffness, given to a joint_sine task, or (initial_state) on a
-    body a joint links.
+    body a joint links; and a random-sampling box (sampleLow, sampleHigh) on another task
+    than initial_state, or one of the wrong length, non-finite or inverted.
     """
     source = scene.source or "<scene>"
     task = scene.task
@@ -610,6 +620,15 @@ def validate_task(scene) -> tuple:
         for i in indices:
             if scene.bodies[i].static:
                 raise ValueError(f"{source}: prim {scene.bodies[i].path}: a {label} body must be dynamic, but it is static (kinematic or disabled)")
+    if task.sample_low or task.sample_high:
+        # A box on another kind of task, or a malformed one, ran without a word unless
+        # --init-samples asked for it (a probe).
+        if task.control != "initial_state":
+            raise ValueError(f"{source}: warpcontact:task:sampleLow and sampleHigh bound random initial-state controls; this task's control is {task.control!r}, which never reads them: remove them")
+        if not (task.sample_low and task.sample_high):
+            given, missing = ("sampleLow", "sampleHigh") if task.sample_low else ("sampleHigh", "sampleLow")
+            raise ValueError(f"{source}: warpcontact:task:{given} is authored without warpcontact:task:{missing}; a random-sampling box needs both")
+        _checked_sample_box(scene, controlled[0])
     return (controlled[0] if controlled else None), targets
 
 
