@@ -2134,13 +2134,14 @@ def test_builder_names_a_flipped_face_a_hole_and_a_flat_face_on_an_edge():
 def test_a_float32_rounded_t_junction_sliver_does_not_push_a_body():
     """A probe at stop 61: the float64 rounding bound kept a T-junction's closing sliver whose
     corners float32 had rounded off their line (twice its area 6.8e-10 m^2 on a 0.2 m box's
-    edge), and it pushed the box sideways like a second copy of the edge."""
+    edge), and it pushed the box sideways like a second copy of the edge. Coordinates that are
+    all float32 values are judged against float32 rounding."""
     vertices = np.asarray(_BOX.vertices, dtype=np.float64)
     bottom = np.flatnonzero(np.isclose(vertices[:, 2], vertices[:, 2].min()))
     a, b = bottom[0], next(k for k in bottom[1:] if np.count_nonzero(vertices[k] != vertices[bottom[0]]) == 1)
     turn = np.array([[np.cos(0.7), -np.sin(0.7), 0.0], [np.sin(0.7), np.cos(0.7), 0.0], [0.0, 0.0, 1.0]])
     middle = (vertices[a] + vertices[b]) / 2.0
-    rounded = (np.vstack([vertices, middle]) @ turn.T).astype(np.float32).astype(np.float64) @ turn
+    rounded = (np.vstack([vertices, middle]) @ turn.T).astype(np.float32).astype(np.float64)  # as an STL file stores it
     sliver = np.array([[a, len(vertices), b]])
     rounded_corners = rounded[sliver[0]]
     assert np.linalg.norm(np.cross(rounded_corners[1] - rounded_corners[0], rounded_corners[2] - rounded_corners[0])) > 1e-12 * 0.5**2  # kept by the old bound

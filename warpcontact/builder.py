@@ -379,7 +379,7 @@ def _closure_hint(mesh: trimesh.Trimesh) -> str:
         corners = mesh.vertices[mesh.faces[on_edge]]
         twice_area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
         longest = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
-        flat = on_edge[twice_area <= flat_twice_area(longest, np.abs(mesh.vertices).max())]
+        flat = on_edge[twice_area <= flat_twice_area(longest, np.abs(mesh.vertices).max(), float32=float32_values(mesh.vertices))]
         if flat.size:
             return f" (face {int(flat[0])} has no area, its corners on a line, and lies on the edge between vertices {a} and {b}, which {int(counts[shared[0]])} faces then share: remove such faces)"
         return f" (the edge between vertices {a} and {b} is shared by {int(counts[shared[0]])} faces, {shared.size} such edge(s) in all: a surface closes a volume where every edge has two faces; split the pieces apart there)"
@@ -416,16 +416,26 @@ def _about_own_centre(mesh: trimesh.Trimesh) -> tuple[trimesh.Trimesh, np.ndarra
 _FLAT_TRIANGLE = 1e-12
 
 
-def flat_twice_area(edge, coordinate):
+def flat_twice_area(edge, coordinate, *, float32: bool = False):
     """Twice the area below which a triangle of longest edge ``edge`` (m), among coordinates
     up to ``coordinate`` (m) in magnitude, is flat: 1e-12 of its edge squared, or what rounding
-    its corners' coordinates to float32 makes of a straight corner, 8 float32 epsilons of the
-    largest coordinate times the edge (USD stores points, and STL files vertices, in float32:
-    a 0.2 m box's T-junction exported through a turned frame closed with a sliver of twice
-    the area 6.8e-10 m^2, which the float64 rounding's bound took for a triangle, and each
-    leaf pair counted it as one more copy of its edge; a probe). One rule for meshes and for
-    the polygons of USD faces."""
-    return np.maximum(_FLAT_TRIANGLE * np.square(edge), 8.0 * float(np.finfo(np.float32).eps) * np.asarray(coordinate) * edge)
+    its corners' coordinates makes of a straight corner (a 1 mm polygon 100 m from the
+    origin: 1e-11 of its edge squared), to float64, or with ``float32`` (coordinates that are
+    all float32 values: USD points, STL vertices) to float32, 8 float32 epsilons of the
+    largest coordinate times the edge (a 0.2 m box's T-junction in float32 closed with a
+    sliver of twice the area 6.8e-10 m^2, which the float64 bound took for a triangle, and
+    each leaf pair counted it as one more copy of its edge; a probe). One rule for meshes and
+    for the polygons of USD faces."""
+    epsilon = float(np.finfo(np.float32).eps) * 8.0 if float32 else float(np.finfo(np.float64).eps) * 64.0
+    return np.maximum(_FLAT_TRIANGLE * np.square(edge), epsilon * np.asarray(coordinate) * edge)
+
+
+def float32_values(points: np.ndarray) -> bool:
+    """Whether every coordinate is a float32 value (read from float32 data), so rounding to
+    float32 is what bent its straight corners."""
+    points = np.asarray(points, dtype=np.float64)
+    with np.errstate(over="ignore"):
+        return bool(np.array_equal(points.astype(np.float32).astype(np.float64), points))
 
 
 def _contact_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -439,7 +449,7 @@ def _contact_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     corners = vertices[faces]
     edges = corners[:, [1, 2, 0]] - corners
     area2 = np.linalg.norm(np.cross(edges[:, 0], edges[:, 1]), axis=1)
-    flat = area2 <= flat_twice_area(np.sqrt(np.max(np.sum(edges * edges, axis=2), axis=1)), np.abs(vertices).max())
+    flat = area2 <= flat_twice_area(np.sqrt(np.max(np.sum(edges * edges, axis=2), axis=1)), np.abs(vertices).max(), float32=float32_values(vertices))
     if flat.all() or not flat.any():
         return vertices, faces
     return _used_vertices(vertices, faces[~flat])

@@ -97,7 +97,7 @@ import trimesh
 from ._files import replace_file
 from ._validate import MAX_COORDINATE, MAX_FRAMES, QUATERNION_TOLERANCE, checked_flag, is_positive_finite, is_real, real_array, shown, time_step_problem
 from .articulation import frame_in_body
-from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact_setting_problem, coordinate_limits, flat_twice_area
+from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact_setting_problem, coordinate_limits, flat_twice_area, float32_values
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
 from .hull import convex_hull_mesh
 from .leaf import LEAF_PRECISIONS
@@ -395,7 +395,7 @@ def _flattened_polygons(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     and relative to corner 0, each corner's turn (m, n): the cross product of the edges into
     and out of corner k + 1, positive at a convex corner, and the turn (m,) below which a
     corner is straight (``flat_twice_area``)."""
-    straight = flat_twice_area(np.linalg.norm(np.roll(corners, -1, axis=1) - corners, axis=2).max(axis=1), np.abs(corners).max(axis=(1, 2)))
+    straight = flat_twice_area(np.linalg.norm(np.roll(corners, -1, axis=1) - corners, axis=2).max(axis=1), np.abs(corners).max(axis=(1, 2)), float32=float32_values(corners))
     corners = corners - corners[:, :1]
     normal = np.sum(np.cross(corners, np.roll(corners, -1, axis=1)), axis=1)
     drop = np.argmax(np.abs(normal), axis=1)
