@@ -2276,6 +2276,13 @@ def test_joint_values_the_parser_drops_are_refused(tmp_path, author, match):
 
 
 def test_d6_values_that_were_ignored_are_refused(tmp_path):
+    # A drive on an axis its limit locks loaded with no gain, and nothing moved (a probe, stop 61).
+    path = tmp_path / "locked_drive.usda"
+    stage = _hinge_stage(path, joint="D6")
+    drive = UsdPhysics.DriveAPI.Apply(stage.GetPrimAtPath("/World/hinge"), "rotZ")
+    drive.CreateStiffnessAttr(10.0)
+    drive.CreateTargetPositionAttr(30.0)
+    _load_refused(stage, path, r"prim /World/hinge: drive:rotZ drives an axis its limit locks \(low > high\), which it cannot move; remove the drive or free the axis")
     path = tmp_path / "d6.usda"
     stage = _hinge_stage(path, joint="D6")
     hinge = stage.GetPrimAtPath("/World/hinge")

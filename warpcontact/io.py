@@ -1786,6 +1786,10 @@ def _read_d6(desc, spec: JointSpec, where: str, units: _Units, prim):
         coordinates = rotations
     else:
         raise ValueError(f"{where}: a D6 joint with every axis locked is a fixed joint, which is not supported (merge the two bodies)")
+    locked = [axis for axis, drive in drives.items() if drive.enabled and axis not in free]
+    if locked:
+        # Its gain was dropped and nothing moved (a probe at stop 61).
+        raise ValueError(f"{where}: drive:{_api_token(locked[0])} drives an axis its limit locks (low > high), which it cannot move; remove the drive or free the axis")
     for axis, drive in drives.items():
         if drive.enabled:
             _check_drive(_drive_fields(drive), where, _api_token(axis), ball=spec.kind == "ball")
