@@ -2233,6 +2233,14 @@ def _hinge_stage(path, *, joint="RevoluteJoint", lower=None, upper=None, target=
     return stage
 
 
+def test_a_joint_starting_outside_its_limits_is_named_by_its_prim(tmp_path):
+    """A probe at stop 61: the message named the coordinate ('hinge:0') but not the prim."""
+    path = tmp_path / "outside.usda"
+    _hinge_stage(path, lower=10.0, upper=20.0)
+    with pytest.raises(ValueError, match=r"outside.usda: prim /World/hinge: joint coordinate 'hinge:0': initial value 0 is not strictly inside its limits \[0.174533, 0.349066\]"):
+        io.load_scene(path).build_model()
+
+
 @pytest.mark.parametrize("joint", ["RevoluteJoint", "D6"])
 def test_joint_limits_open_on_one_side_and_a_zero_drive_target_load(tmp_path, joint):
     """UsdPhysics leaves a limit side open with -inf: such a limit was dropped whole (the

@@ -341,7 +341,10 @@ class Scene(_ArrayFieldEquality):
         try:
             model = builder.finalize(device=device)
         except ValueError as exc:
-            raise ValueError(f"{self.source or '<scene>'}: {exc}") from None
+            # A coordinate's message named the joint ('hinge:0'), not its prim (a probe).
+            joint = next((j for j in self.joints if f"'{j.name}:" in str(exc) or f"joint {j.name!r}" in str(exc)), None)
+            where = f"prim {joint.path}: " if joint is not None else ""
+            raise ValueError(f"{self.source or '<scene>'}: {where}{exc}") from None
         start = model.contact.evaluate(model.initial_q)
         paths = {b.name: b.path for b in self.bodies}
         if start.contact_pairs:
