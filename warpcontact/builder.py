@@ -376,10 +376,7 @@ def _closure_hint(mesh: trimesh.Trimesh) -> str:
         a, b = (int(v) for v in edges[shared[0]])
         # A stray flat face along an edge was blamed on the pieces meeting there (a probe).
         on_edge = mesh.edges_face[inverse == shared[0]]
-        corners = mesh.vertices[mesh.faces[on_edge]]
-        twice_area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
-        longest = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
-        flat = on_edge[twice_area <= flat_twice_area(longest, np.abs(mesh.vertices).max(), float32=float32_values(mesh.vertices))]
+        flat = on_edge[_flat_faces(mesh.vertices, mesh.faces[on_edge])]
         if flat.size:
             return f" (face {int(flat[0])} has no area, its corners on a line, and lies on the edge between vertices {a} and {b}, which {int(counts[shared[0]])} faces then share: remove such faces)"
         return f" (the edge between vertices {a} and {b} is shared by {int(counts[shared[0]])} faces, {shared.size} such edge(s) in all: a surface closes a volume where every edge has two faces; split the pieces apart there)"
@@ -438,6 +435,14 @@ def float32_values(points: np.ndarray) -> bool:
         return bool(np.array_equal(points.astype(np.float32).astype(np.float64), points))
 
 
+def _flat_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Which of ``faces`` (m, 3) are flat (``flat_twice_area``), as a boolean mask (m,)."""
+    corners = vertices[faces]
+    edges = corners[:, [1, 2, 0]] - corners
+    area2 = np.linalg.norm(np.cross(edges[:, 0], edges[:, 1]), axis=1)
+    return area2 <= flat_twice_area(np.sqrt(np.max(np.sum(edges * edges, axis=2), axis=1)), np.abs(vertices).max(), float32=float32_values(vertices))
+
+
 def _contact_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The mesh without its zero-area triangles and the vertices only they used, where any
     triangle has an area (a mesh that is all points and segments is kept as it is).
@@ -446,10 +451,7 @@ def _contact_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     twice) encloses nothing, but a leaf pair counts it as one more copy of its edge: one
     lying on a box's bottom edge pushed the box sideways with ~600 N. Mass properties keep
     these triangles, which close some meshes' T-junctions."""
-    corners = vertices[faces]
-    edges = corners[:, [1, 2, 0]] - corners
-    area2 = np.linalg.norm(np.cross(edges[:, 0], edges[:, 1]), axis=1)
-    flat = area2 <= flat_twice_area(np.sqrt(np.max(np.sum(edges * edges, axis=2), axis=1)), np.abs(vertices).max(), float32=float32_values(vertices))
+    flat = _flat_faces(vertices, faces)
     if flat.all() or not flat.any():
         return vertices, faces
     return _used_vertices(vertices, faces[~flat])
