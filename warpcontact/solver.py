@@ -199,6 +199,12 @@ def _segments_cross_triangles(start: np.ndarray, end: np.ndarray, triangles: np.
     return int(first[0]), float(t[first[0], first[1]])
 
 
+def _coordinate_rounding(poses: np.ndarray) -> np.ndarray:
+    """Each body's rounding floor (m): ``_ROUNDING`` of its largest position coordinate, the
+    step length below which its Newton step counts as converged."""
+    return _ROUNDING * np.abs(poses[:, :3]).max(axis=1)
+
+
 def _closest_on_chords(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where each chord of a polyline ``points`` (k + 1, ..., 3) comes closest to the origin:
     the fraction along the chord (unclipped), the distance there (k, ...), and the chords'
@@ -1009,7 +1015,7 @@ class ImplicitSolver:
             # A step no longer than the rounding of a body's coordinates counts as converged
             # (the rounding floor): at z = 100 m and dt 1e-7 s a box hung in the air, its fall
             # of 1e-13 m a step dropped every step, without a word (a probe).
-            reach = _ROUNDING * np.abs(q[self._dynamic_bodies, :3]).max(axis=1)
+            reach = _coordinate_rounding(q[self._dynamic_bodies])
             for stuck in np.flatnonzero(fall <= reach):
                 body = int(self._dynamic_bodies[stuck])
                 if body not in self._unresolved_fall:
@@ -1146,7 +1152,7 @@ class ImplicitSolver:
             # Per body, from its own coordinates: from the largest dynamic coordinate of the scene,
             # a second box 10 km away made a box's whole step at dt 1e-6 (gravity's 1e-11 m)
             # "converged" at its first iteration, and the box never fell.
-            rounding_length = _ROUNDING * np.abs(q[:, :3]).max(axis=1)
+            rounding_length = _coordinate_rounding(q)
             converged_length = np.maximum(converged_step, rounding_length)
             # A step the saddle-free floor made short is no convergence (_saddle_free_direction).
             hidden_travel = np.zeros(len(travel)) if floored is None else self._step_travel(floored, None if art is None else jacobian)[1]
