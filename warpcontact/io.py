@@ -1254,6 +1254,7 @@ def load_scene(path) -> Scene:
     colliders: dict[str, list] = {}  # rigid body path -> its collider prims
     mesh_parts: dict[int, tuple] = {}  # id(body) -> (body, its colliders' (vertices, faces))
     collider_materials: dict[str, list] = {}  # collider path -> its bound physics materials
+    scene_materials = _scene_physics_materials(scene_prim)
     planes = []  # (path, world frame in stage units, axis token) of Plane colliders
     shape_kinds = [k for k in descs if k.endswith("Shape")]
     transforms = UsdGeom.XformCache(Usd.TimeCode.Default())
@@ -1280,7 +1281,7 @@ def load_scene(path) -> Scene:
             animated = [attr for attr in prim.GetAttributes() if attr.GetName() in _READ_GEOMETRY and _moves(attr)]
             animated += [attr for attr in _transform_attributes(prim, UsdGeom) if owner and attr not in body_attributes and _moves(attr)]
             _refuse_animated(animated, "a collider's shape and its place on its body are", f"{source}: prim {prim_path}")
-            collider_materials[str(prim_path)] = _bound_physics_materials(stage, prim, desc, scene_prim)
+            collider_materials[str(prim_path)] = _bound_physics_materials(stage, prim, desc, scene_materials)
             if kind == "PlaneShape":
                 if owner:
                     raise ValueError(f"{source}: prim {prim_path}: a Plane collider is infinite; it cannot belong to rigid body {owner}")
@@ -2066,22 +2067,31 @@ def _refuse_collision_filters(stage, UsdPhysics, Usd, source: str) -> None:
                 raise ValueError(f"{source}: prim {prim.GetPath()}: collision-group filtering is not supported (every body pair interacts); remove physics:filteredGroups")
 
 
-def _bound_physics_materials(stage, prim, desc, scene_prim) -> list:
+def _bound_physics_materials(stage, prim, desc, scene_materials: list) -> list:
     """A collider's physics materials: those the UsdPhysics parser lists (per GeomSubset too),
     and the one UsdShade binds to it for the physics purpose, which it may inherit from an
     ancestor (the parser lists a material only for prims with MaterialBindingAPI: a body's
-    binding was ignored by its colliders); without any, the scene's default, the material
-    bound to the PhysicsScene (PhysX's convention; it was ignored, a probe)."""
+    binding was ignored by its colliders); without any, ``scene_materials``, the scene's
+    default (``_scene_physics_materials``)."""
     from pxr import UsdShade
 
     materials = [stage.GetPrimAtPath(m) for m in desc.materials]
     bound, _ = UsdShade.MaterialBindingAPI(prim).ComputeBoundMaterial("physics")
     if bound and bound.GetPrim() not in materials:
         materials.append(bound.GetPrim())
-    if not materials and scene_prim is not None:
-        default, _ = UsdShade.MaterialBindingAPI(scene_prim).ComputeBoundMaterial("physics")
-        materials = [default.GetPrim()] if default else []
-    return materials
+    return materials or list(scene_materials)
+
+
+def _scene_physics_materials(scene_prim) -> list:
+    """The material bound to the PhysicsScene for the physics purpose, as a list (empty
+    without one): the default of colliders that bind none (PhysX's convention; it was
+    ignored, a probe)."""
+    from pxr import UsdShade
+
+    if scene_prim is None:
+        return []
+    default, _ = UsdShade.MaterialBindingAPI(scene_prim).ComputeBoundMaterial("physics")
+    return [default.GetPrim()] if default else []
 
 
 def _refuse_point_instanced_physics(stage, UsdGeom, UsdPhysics, Usd, source: str) -> None:
