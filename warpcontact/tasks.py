@@ -734,6 +734,9 @@ class TaskProblem:
         self.settings = settings or TaskSettings.from_task(scene)
         self.model = scene.build_model(device=device)
         self.solver = ImplicitSolver(self.model)
+        # The PD targets of an initial_state rollout's frames (a control each frame uploaded the
+        # same poses again, every rollout).
+        self._scene_control = self.model.control(requires_grad=False) if task.control == "initial_state" else None
         self.dt = scene.settings.time_step
         device = self.model.device
         art = self.model.articulation
@@ -881,7 +884,8 @@ class TaskProblem:
         # Every kind holds PD-driven bodies at the scene's targets, as `simulate` does: an
         # initial_state rollout without a control let each spring follow its body (only its
         # damping acted), so a run optimised other physics than `simulate` showed (a probe).
-        controls = [self.model.control(requires_grad=self.kind != "initial_state") for _ in range(frames)]
+        # Its targets never change: every frame steps with the one control the problem made.
+        controls = [self._scene_control] * frames if self.kind == "initial_state" else [self.model.control() for _ in range(frames)]
         loss = wp.zeros(1, dtype=wp.float64, device=device, requires_grad=True)
         tape = wp.Tape()
         base = wp.transformd(*map(float, self.base_pose)) if self.kind != "joint_sine" else None
