@@ -69,7 +69,11 @@ def _face_projection(p: wp.vec3d, b0: wp.vec3d, b1: wp.vec3d, b2: wp.vec3d):
     v = wp.dot(wp.cross(b2 - q, b0 - q), nrm)
     w = wp.dot(wp.cross(b0 - q, b1 - q), nrm)
     zero = wp.float64(0.0)
-    return q, (u >= zero and v >= zero and w >= zero)
+    # Exactly, u + v + w = nn. A point ~1e16 of the triangle's size away (beyond it in its
+    # plane) rounds b0 - q, b1 - q and b2 - q to one vector: u, v and w are then rounding
+    # noise (all 0 for such a point, read as inside: a far vertex "touched" the triangle).
+    resolved = wp.abs(u + v + w - nn) <= wp.float64(0.5) * nn
+    return q, (u >= zero and v >= zero and w >= zero and resolved)
 
 
 @wp.func

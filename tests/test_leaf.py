@@ -392,6 +392,23 @@ def test_pairs_beyond_the_plane_searchs_reach_are_reported_not_converged(distanc
         assert res.status[0] == wc.LeafStatus.NOT_CONVERGED and not np.isfinite(res.value[0])
 
 
+@pytest.mark.parametrize("distance", [1e15, 1e16, 1e20, 1e24])
+@pytest.mark.parametrize("far", ["triangle", "segment"])
+def test_a_far_vertex_in_the_plane_of_a_triangle_is_not_read_as_touching_it(distance, far):
+    """A vertex in the plane of the other triangle ~1e16 of its size away (beyond it) made
+    the closest-point search's inside-the-face test read rounding noise as inside (every
+    b_k - q rounded to one vector): distance 0, status CONTACT, value +inf, for disjoint
+    triangles (a probe, stop 62; ``ContactModel(mode="brute")`` reported two 1 m cubes 1e16
+    m apart as touching). Two point-like triangles that far apart have 12 (1 + r^-1/2)^2."""
+    A = np.array([[0.5, -0.5, -0.5], [-0.5, -0.5, 0.5], [-0.5, -0.5, -0.5]])  # in the plane y = -0.5
+    c = distance * np.array([0.6, 0.0, 0.8])
+    third = c + [4.0, 0.5, 4.0] if far == "triangle" else c + [0.0, -0.5, 0.0]
+    B = np.array([c + [0.0, -0.5, 0.0], c + [0.0, 0.5, 0.0], third])  # its first vertex in A's plane
+    res = evaluate(A, B)
+    assert res.status[0] == wc.LeafStatus.OK
+    assert res.value[0] == pytest.approx(12.0 * (1.0 + distance**-0.5) ** 2, rel=1e-12)
+
+
 # --- hard cases ------------------------------------------------------------------------------
 
 
