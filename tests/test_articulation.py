@@ -992,6 +992,17 @@ def test_ball_target_tape_gradient_matches_finite_differences():
         fd = (loss_and_grad(turned(target, h, axis), False)[0] - loss_and_grad(turned(target, -h, axis), False)[0]) / (2 * h)
         assert grad @ direction == pytest.approx(fd, rel=1e-5, abs=1e-7 * np.abs(grad).max())
     assert abs(grad @ target[0]) < 1e-12 * np.abs(grad).max()  # a target's norm does not matter
+    # A target off the unit sphere (an optimiser's step leaves it) is normalised, as body
+    # targets are: the same motion, and the gradient of the normalisation, 1/|q| of the unit
+    # target's (it refused norms 3e-6 off 1, a probe, stop 62).
+    scale = 1.3
+    loss_unit, _ = loss_and_grad(target, False)
+    loss_scaled, grad_scaled = loss_and_grad(scale * target)
+    assert loss_scaled == pytest.approx(loss_unit, rel=1e-12)
+    np.testing.assert_allclose(grad_scaled, grad / scale, rtol=1e-9, atol=1e-12 * np.abs(grad).max())
+    direction = np.array([0.3, -0.2, 0.5, 0.1])
+    fd = (loss_and_grad(scale * target + h * direction, False)[0] - loss_and_grad(scale * target - h * direction, False)[0]) / (2 * h)
+    assert grad_scaled @ direction == pytest.approx(fd, rel=1e-5, abs=1e-7 * np.abs(grad).max())
 
 
 @pytest.mark.parametrize("kind", ["revolute", "ball"])
@@ -1048,11 +1059,16 @@ def test_bad_ball_drives_are_refused():
     control.ball_target = wp.array(np.array([0.0, 0.0, 0.0, 1.0]), dtype=wp.float64)
     with pytest.raises(ValueError, match="control.ball_target: expected .*float64"):
         solver.step(state, model.state(), control, 0.01)
-    control.ball_target = wp.array(np.array([[0.0, 0.0, 0.0, 1.1]]), dtype=wp.quatd)
-    with pytest.raises(ValueError, match="ball joint 'shoulder' has norm 1.1; expected a unit quaternion"):
+    # Normalised like body targets (test_ball_target_tape_gradient_matches_finite_differences),
+    # within the same norms.
+    control.ball_target = wp.array(np.array([[0.0, 0.0, 0.0, 0.0]]), dtype=wp.quatd)
+    with pytest.raises(ValueError, match="control.ball_target: the target of ball joint 'shoulder' \\(index 0\\) has a zero rotation quaternion"):
+        solver.step(state, model.state(), control, 0.01)
+    control.ball_target = wp.array(np.array([[0.0, 0.0, 0.0, 1e200]]), dtype=wp.quatd)
+    with pytest.raises(ValueError, match="control.ball_target: the target of ball joint 'shoulder' \\(index 0\\) has a rotation quaternion of norm 1e\\+200; expected a norm in"):
         solver.step(state, model.state(), control, 0.01)
     control.ball_target = wp.array(np.array([[0.0, np.nan, 0.0, 1.0]]), dtype=wp.quatd)
-    with pytest.raises(ValueError, match=r"control.ball_target: the target of ball joint 'shoulder' is \[0.0, nan, 0.0, 1.0\]; expected a finite unit quaternion"):
+    with pytest.raises(ValueError, match=r"control.ball_target: the target of ball joint 'shoulder' is \[0.0, nan, 0.0, 1.0\]; expected a finite rotation quaternion"):
         solver.step(state, model.state(), control, 0.01)
 
 

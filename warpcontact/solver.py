@@ -34,7 +34,7 @@ import numpy as np
 import trimesh
 import warp as wp
 
-from ._validate import MAX_COORDINATE, QUATERNION_TOLERANCE, SCALE_RANGE, beyond_coordinates, check_finite_poses, check_time_step, checked_flag, is_real, is_whole, unit_inertia_outside, unit_inertia_problem
+from ._validate import MAX_COORDINATE, SCALE_RANGE, beyond_coordinates, check_finite_poses, check_time_step, checked_flag, is_real, is_whole, unit_inertia_outside, unit_inertia_problem
 from .kernels import dynamics as dynamics_kernels
 from .kernels.rigid import vec6d
 from ._runtime import HostReadback, LaunchCache, host_buffer, paused_tape
@@ -958,12 +958,11 @@ class ImplicitSolver:
         target = supplied.numpy()
         bad = np.flatnonzero(~np.isfinite(target).all(axis=1))
         if bad.size:
-            raise ValueError(f"control.ball_target: the target of ball joint {art.ball_joint_names[bad[0]]!r} is {target[bad[0]].tolist()}; expected a finite unit quaternion")
-        norms = np.linalg.norm(target, axis=1)
-        bad = np.flatnonzero(np.abs(norms - 1.0) > QUATERNION_TOLERANCE)
-        if bad.size:
-            raise ValueError(f"control.ball_target: the target of ball joint {art.ball_joint_names[bad[0]]!r} has norm {norms[bad[0]]:.9g}; expected a unit quaternion")
-        return target / norms[:, None], start
+            raise ValueError(f"control.ball_target: the target of ball joint {art.ball_joint_names[bad[0]]!r} is {target[bad[0]].tolist()}; expected a finite rotation quaternion")
+        # Normalised as body targets are, with the same norms accepted: an optimiser's step on
+        # a target (or a finite difference of 1e-5) leaves the unit sphere, and was refused.
+        _check_quaternion_norms(target, np.ones(count, dtype=bool), "control.ball_target", art.ball_joint_names, whose="the target of ball joint")
+        return target / np.linalg.norm(target, axis=1)[:, None], start
 
     def _solve(self, state_in: State, state_out: State, control: Control | None, dt: float, *, taped: bool = False):
         check_time_step(dt)
@@ -1604,9 +1603,10 @@ class ImplicitSolver:
         ball_target_is_start = control is None or control.ball_target is None
         ball_target_grad = balls and not ball_target_is_start and control.ball_target.requires_grad
         if ball_target_grad:
-            ball_target_arr = wp.array(step_in.ball_target, dtype=wp.quatd, device=dev)
-        # step_in.joint_target may be a view of the control's memory (.numpy() on a CPU), and
-        # step_in.ball_target is normalised: those get copies of their own.
+            # As given, not normalised: the adjoint of the normalisation divides by the norm.
+            ball_target_arr = wp.clone(control.ball_target, requires_grad=False)
+        # step_in.joint_target may be a view of the control's memory (.numpy() on a CPU): it
+        # gets a copy of its own.
         own = {"control.body_target": target_arr, "control.joint_target": step_in.joint_target.copy()}
         control_values = {id(array): own[label] if label in own else wp.clone(array, requires_grad=False) for label, array in _taped_control_arrays(control)}
 
