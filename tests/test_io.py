@@ -1919,6 +1919,19 @@ def test_unmodelled_damping_and_restitution_are_named_in_a_warning(tmp_path):
         io.load_scene(path)
 
 
+def test_physics_attributes_of_no_usd_physics_schema_are_named_in_a_warning(tmp_path):
+    """A misspelt physics:densty, or another tool's physics:linearDamping, loaded without a
+    word (a probe, stop 62); the warpcontact: namespace refuses such names."""
+    path = write_physics_scene(tmp_path / "typo.usda")
+    stage = Usd.Stage.Open(str(path))
+    box = stage.GetPrimAtPath("/World/box")
+    box.CreateAttribute("physics:densty", Sdf.ValueTypeNames.Float).Set(300.0)
+    box.CreateAttribute("physics:linearDamping", Sdf.ValueTypeNames.Float).Set(0.1)
+    stage.GetRootLayer().Save()
+    with pytest.warns(UserWarning, match=r"typo\.usda: no UsdPhysics schema has these attributes, so they are ignored: /World/box physics:densty \(did you mean physics:density\?\), /World/box physics:linearDamping"):
+        io.load_scene(path)
+
+
 @pytest.mark.parametrize("axis", ["Z", "Y", "X"])
 def test_a_plane_collider_becomes_a_large_square_under_the_scene(tmp_path, axis):
     """Plane colliders (infinite in UsdPhysics) were refused, so a typical ground plane

@@ -337,8 +337,11 @@ def test_out_of_range_task_settings_are_clear_errors(tmp_path, field, value, mes
     setattr(scene.task, field, value)
     path = tmp_path / "bad.usda"
     io.save_scene(scene, path)
-    with pytest.raises(ValueError, match=f"bad.usda: {message}"):
-        TaskSettings.from_task(io.load_scene(path), quick=field.startswith("quick"))
+    # The task's own settings also under --quick, whose preset replaces them: a scene with a
+    # negative learning rate ran --quick and failed only its real run (a probe, stop 62).
+    for quick in (True,) if field.startswith("quick") else (False, True):
+        with pytest.raises(ValueError, match=f"bad.usda: {message}"):
+            TaskSettings.from_task(io.load_scene(path), quick=quick)
 
 
 def test_a_horizon_taken_from_the_scenes_frames_names_them():
@@ -881,6 +884,48 @@ def test_cli_init_samples_round_trip_the_box_and_record_the_draws(tmp_path, caps
     io.save_scene(space_billiards(), plain)
     assert main(["run", str(plain), "--init-samples", "3", "--out", str(tmp_path / "out2")]) == 2
     assert "need warpcontact:task:sampleLow" in capsys.readouterr().err
+
+
+def test_cli_compare_init_samples_start_every_model_from_one_draw(tmp_path, capsys):
+    """Each model chose the best draw by its own loss, so a compare's models started from
+    different draws (ours from a strike, sdrs from a miss; a probe, stop 62). The draws are
+    now scored once, by ours, and every model starts from the same values."""
+    scene_path = tmp_path / "space.usda"
+    io.save_scene(sampled_space_billiards(), scene_path)
+    out = tmp_path / "cmp"
+    assert main(["compare", str(scene_path), "--models", "sdrs,ours", "--init-samples", "3", "--seed", "2", "--iters", "1", "--out", str(out)]) == 0
+    payload = json.loads((out / "compare.json").read_text())
+    chosen = payload["initial_samples"]
+    assert chosen["scored_by"] == "ours" and len(chosen["samples"]) == 3
+    feasible = [x for x in chosen["samples"] if x["loss"] is not None]
+    best = min(feasible, key=lambda x: x["loss"])
+    assert chosen["start"] == best["values"]
+    assert payload["models"]["ours"]["initial_loss"] == best["loss"]
+    settings = TaskSettings(15, 0, 1, 0.3, initial_values=tuple(best["values"]))
+    for model in ("ours", "sdrs"):
+        alone = TaskProblem(io.load_scene(scene_path), settings=dataclasses.replace(settings, horizon=payload["horizon"]), model=model).optimize()
+        assert payload["models"][model]["initial_loss"] == pytest.approx(alone.initial_loss, rel=1e-12)
+    assert "the best of 3 draws by ours's loss" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "values, samples, message",
+    [
+        ((0.1, 0.2, 1.0), 0, r"settings.initial_values must hold one value per control DOF \(x, y, vx, vy\)"),
+        ((0.1, 0.2, np.nan, 0.0), 0, "settings.initial_values must be None or a tuple of finite numbers"),
+        ((0.1, 0.2, 1.0, 0.0), 2, "settings.initial_values must be None or a tuple of finite numbers, and None with initial_samples"),
+    ],
+)
+def test_initial_values_are_checked(values, samples, message):
+    with pytest.raises(ValueError, match=message):
+        TaskProblem(sampled_space_billiards(), settings=TaskSettings(15, 0, 1, 0.3, initial_samples=samples, initial_values=values)).optimize()
+
+
+def test_initial_values_start_the_descent_there():
+    settings = TaskSettings(15, 0, 1, 0.3, initial_values=(0.1, 0.2, 6.0, 1.0))
+    problem = TaskProblem(space_billiards(), settings=settings)
+    start = np.array([settings.initial_values])
+    assert problem.optimize().initial_loss == pytest.approx(problem.rollout(start, problem.start, 15, gradient=False)[0], rel=1e-12)
 
 
 def _simulated(scene, frames: int, *, held: bool) -> np.ndarray:

@@ -1,6 +1,7 @@
 """Command-line entry point: ``warpcontact run | compare | list | simulate | demo | bench ...``."""
 
 import argparse
+import dataclasses
 import difflib
 import json
 import logging
@@ -408,6 +409,18 @@ def _compare(args) -> int:
         "complete": False,
         "models": results,
     }
+    if settings.initial_samples:
+        # One start for every model: each model choosing the best draw by its own loss
+        # started them from different draws (a probe, stop 62). The paper's model scores them.
+        chooser = "ours" if "ours" in args.models else args.models[0]
+        try:
+            values, samples = _task_problem(scene, settings, chooser, args).best_initial_sample()
+        except (ValueError, SolverError) as exc:
+            print(f"error: {chooser} could not score the initial samples: {exc}", file=sys.stderr)
+            return 1
+        payload["initial_samples"] = {"scored_by": chooser, "samples": samples, "start": values.tolist()}
+        settings = dataclasses.replace(settings, initial_samples=0, initial_values=tuple(float(v) for v in values))
+        print(f"start: the best of {len(samples)} draws by {chooser}'s loss, {_loss_text(min(x['loss'] for x in samples if x['loss'] is not None))}, for every model")
     interrupted = None
     for model in args.models:
         # A model that cannot run this scene (ipc off the CPU or without ipctk, a failed step

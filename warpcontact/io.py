@@ -1385,6 +1385,7 @@ def load_scene(path) -> Scene:
         _read_settings(scene_prim, settings, task, source)
     _read_material_friction(collider_materials, scene_prim, settings, UsdPhysics, source)
     _warn_unmodelled(stage, collider_materials, UsdPhysics, Usd, source)
+    _warn_unknown_physics(stage, UsdPhysics, Usd, source)
     joints = _read_joints(stage, descs, {**bodies, **static_bodies}, mirrored, units, source, UsdPhysics)
     # In the stage's order too: grouped by joint type, a prismatic joint authored before a
     # revolute one came back after it, permuting the joint coordinates (and their targets).
@@ -2007,6 +2008,35 @@ def _warn_unmodelled(stage, collider_materials: dict, UsdPhysics, Usd, source: s
             found.append(f"{path} physics:restitution {attr.Get():g}")
     if found:
         warnings.warn(f"{source}: not modelled, so ignored: {', '.join(found[:5])}{' ...' if len(found) > 5 else ''}", stacklevel=3)
+
+
+def _usd_physics_attribute_names(UsdPhysics) -> frozenset:
+    """The physics: attribute names of UsdPhysics' schemas (the pxr installed)."""
+    names = set()
+    for schema in vars(UsdPhysics).values():
+        listed = getattr(schema, "GetSchemaAttributeNames", None)
+        if listed is not None:
+            names.update(name for name in listed(True) if name.startswith("physics:"))
+    return frozenset(names)
+
+
+def _warn_unknown_physics(stage, UsdPhysics, Usd, source: str) -> None:
+    """Warn, naming the prims, about authored physics: attributes that no UsdPhysics schema
+    has: a typo (physics:densty) or another tool's name (physics:linearDamping) was ignored
+    without a word, where the warpcontact: namespace refuses one (``_check_namespace``). A
+    warning, not an error: a newer UsdPhysics may add attributes."""
+    import difflib
+
+    known = _usd_physics_attribute_names(UsdPhysics)
+    found = []
+    for prim in _all_prims(stage, Usd):
+        for attr in prim.GetAuthoredAttributes():
+            name = attr.GetName()
+            if name.startswith("physics:") and name not in known:
+                close = difflib.get_close_matches(name, sorted(known), n=1)
+                found.append(f"{prim.GetPath()} {name}{f' (did you mean {close[0]}?)' if close else ''}")
+    if found:
+        warnings.warn(f"{source}: no UsdPhysics schema has these attributes, so they are ignored: {', '.join(found[:5])}{' ...' if len(found) > 5 else ''}", stacklevel=3)
 
 
 def _warn_foreign_layer_units(stage, stage_units: dict, source: str) -> None:

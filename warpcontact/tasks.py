@@ -101,6 +101,10 @@ class TaskSettings:
     # scene's box (warpcontact:task:sampleLow/High) with ``sample_seed``; 0: the trivial guess.
     initial_samples: int = 0
     sample_seed: int = 0
+    # Initial-state control: the descent's first iterate (one value per control DOF) instead
+    # of the trivial guess; ``warpcontact compare --init-samples`` gives every model the draw
+    # one model's sampling chose (``TaskProblem.best_initial_sample``). None: the trivial guess.
+    initial_values: tuple | None = None
 
     @property
     def window(self) -> int:
@@ -137,6 +141,10 @@ class TaskSettings:
         """
         t = scene.task
         source = scene.source or "<scene>"
+        if quick:
+            # The task's own settings as well: a negative learning rate ran under --quick
+            # (its preset, or the caps, replace it), and the scene failed its real run.
+            cls.from_task(scene)
         preset = {field: getattr(t, f"quick_{field}") for field in _QUICK_PRESET_DEFAULTS}
         authored = [field for field, default in _QUICK_PRESET_DEFAULTS.items() if field != "horizon" and preset[field] != default]
         if quick and not t.quick_horizon and authored:
@@ -209,9 +217,16 @@ class TaskSettings:
             ("betas", "two numbers in [0, 1)", len(betas) == 2 and all(unit_interval(b) for b in betas)),
             ("initial_samples", "a whole number >= 0", is_whole(self.initial_samples) and self.initial_samples >= 0),
             ("sample_seed", "a whole number >= 0", is_whole(self.sample_seed) and self.sample_seed >= 0),
+            ("initial_values", "None or a tuple of finite numbers, and None with initial_samples", _start_values_ok(self.initial_values, self.initial_samples)),
         ):
             if not ok:
                 raise ValueError(f"{where(name)} must be {rule}, got {getattr(self, name)!r}")
+
+
+def _start_values_ok(values, samples) -> bool:
+    if values is None:
+        return True
+    return isinstance(values, tuple) and not (is_whole(samples) and samples > 0) and all(is_real(v) and np.isfinite(v) for v in values)
 
 
 @dataclass
@@ -798,6 +813,8 @@ class TaskProblem:
             # optimise one window of the whole horizon while reporting the receding settings.
             raise ValueError(f"{source}: receding-horizon control applies to pd_targets tasks, and this task's control is {self.kind} (set warpcontact:task:recedingHorizon to 0)")
         self._sample_box = sample_box(self.scene, s.initial_samples) if s.initial_samples else None
+        if s.initial_values is not None and (self.kind != "initial_state" or len(s.initial_values) != len(self.dof_names)):
+            raise ValueError(f"{source}: settings.initial_values must hold one value per control DOF ({', '.join(self.dof_names)}) of an initial_state task; this task's control is {self.kind}, got {len(s.initial_values)} values")
 
     # --- rollouts -------------------------------------------------------------------------
 
@@ -1017,7 +1034,7 @@ class TaskProblem:
             return objective
 
         if not receding:
-            values = self.initial_values(1 if self.kind == "initial_state" else s.horizon)
+            values = self.initial_values(1 if self.kind == "initial_state" else s.horizon) if s.initial_values is None else np.array([s.initial_values], dtype=np.float64)
             first = None
             if s.initial_samples and not saved:
                 values, extra["initial_samples"], first = self._best_sample(self.start, s.horizon)
@@ -1165,6 +1182,17 @@ class TaskProblem:
                 default=_fingerprint_value,
             )
         )
+
+    def best_initial_sample(self) -> tuple[np.ndarray, list]:
+        """(the lowest-loss draw's values, one per control DOF; every draw's values and
+        loss) of ``settings.initial_samples`` draws: the start ``optimize`` takes.
+        ``warpcontact compare`` scores the draws once, with one model, and starts every model
+        there (``TaskSettings.initial_values``). ValueError when every draw is infeasible."""
+        self._check_settings()
+        if not self.settings.initial_samples:
+            raise ValueError("settings.initial_samples: 0 draws to choose from")
+        values, samples, _ = self._best_sample(self.start, self.settings.horizon)
+        return values[0], samples
 
     def _best_sample(self, start: tuple, frames: int):
         """(the lowest-loss sample, every sample's values and loss, the lowest-loss rollout
