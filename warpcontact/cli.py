@@ -1,4 +1,4 @@
-"""Command-line entry point: ``warpcontact run | compare | list | simulate | demo | bench ...``."""
+"""Command-line entry point: warpcontact run | compare | list | simulate | demo | bench ..."""
 
 import argparse
 import dataclasses
@@ -825,7 +825,7 @@ def _add_task_arguments(parser):
         default=None,
         help="frames executed per receding window, at most the window (receding-window tasks only; default: the scene's; the paper's settings execute 1)",
     )
-    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda:N (default: cpu)")
     parser.add_argument("--quick", action="store_true", help="the scene's quick preset (warpcontact:task:quick:*), else the task's settings capped at 24 frames, windows of 8 and 8 iterations (minutes on a CPU)")
     parser.add_argument("--seed", type=_seed, default=0, help="seed of the gb model's samples and of --init-samples")
     parser.add_argument(
@@ -902,7 +902,7 @@ def build_parser() -> argparse.ArgumentParser:
     leaf.add_argument("--pairs", type=_pair_count, default=100_000)
     leaf.add_argument("--repeats", type=_positive_int, default=5)
     leaf.add_argument("--precisions", nargs="+", choices=LEAF_PRECISIONS, default=list(LEAF_PRECISIONS), help="plane search precisions; rows after the first give errors against it")
-    leaf.add_argument("--device", default="cpu")
+    leaf.add_argument("--device", default="cpu", help="cpu or cuda:N (default: cpu)")
     _writes(leaf, "outputs/bench", "leaf.json", "leaf.csv")
     leaf.set_defaults(func=_bench_leaf, saves_rows=True)
     contact = bench_sub.add_parser("contact", help="BSH speed vs force error against brute force (eps sweep)")
@@ -912,7 +912,7 @@ def build_parser() -> argparse.ArgumentParser:
     contact.add_argument("--repeats", type=_positive_int, default=3)
     contact.add_argument("--ipc-dhat", type=_ipc_dhat, default=1e-2, help="IPC Toolkit barrier support (m) for the side-by-side ipc rows (CPU); 0 skips them")
     contact.add_argument("--centred-weights", nargs="+", choices=CENTRED_WEIGHTS, default=["paper"], help="centred-term weights of the bsh rows (docs/architecture.md, 'Centred weights')")
-    contact.add_argument("--device", default="cpu")
+    contact.add_argument("--device", default="cpu", help="cpu or cuda:N (default: cpu)")
     _writes(contact, "outputs/bench", "contact.json", "contact.csv", "contact.png")
     contact.set_defaults(func=_bench_contact, saves_rows=True)
     scaling = bench_sub.add_parser("scaling", help="contact cost against triangle count (16-ball rack)")
@@ -920,7 +920,7 @@ def build_parser() -> argparse.ArgumentParser:
     scaling.add_argument("--eps", type=_eps, default=0.5)
     scaling.add_argument("--brute-max-triangles", type=_non_negative_int, default=2560)
     scaling.add_argument("--repeats", type=_positive_int, default=3)
-    scaling.add_argument("--device", default="cpu")
+    scaling.add_argument("--device", default="cpu", help="cpu or cuda:N (default: cpu)")
     _writes(scaling, "outputs/bench", "scaling.json", "scaling.csv", "scaling.png")
     scaling.set_defaults(func=_bench_scaling, saves_rows=True)
     frame = bench_sub.add_parser("frame", help="per-frame forward, contact, Newton iterations and backward on task scenes")
@@ -943,7 +943,7 @@ def build_parser() -> argparse.ArgumentParser:
     frame.add_argument("--leaf-precision", choices=LEAF_PRECISIONS, default="float64", help="plane search precision of bsh and brute (ipc: float64)")
     frame.add_argument("--scene-dir", default=None, help="folder of NAME.usda scenes (default: the shipped scenes)")
     frame.add_argument("--peer-meshes", default="../shared/peer-meshes", help="folder of the paper code base's meshes (18.obj ... 196.obj)")
-    frame.add_argument("--device", default="cpu")
+    frame.add_argument("--device", default="cpu", help="cpu or cuda:N (default: cpu)")
     _writes(frame, "outputs/bench", "frame.json", "frame.csv", "frame.png")
     frame.set_defaults(func=_bench_frame, saves_rows=True)
     accuracy = bench_sub.add_parser("accuracy", help="time against error (eps, solver tolerance) on a small billiards case")
@@ -957,7 +957,7 @@ def build_parser() -> argparse.ArgumentParser:
     accuracy.add_argument("--points", type=_points_per_ball, default=18, help="points per ball (2N-4 faces)")
     accuracy.add_argument("--gap", type=_positive_float, default=0.02)
     accuracy.add_argument("--speed", type=_positive_float, default=1.0)
-    accuracy.add_argument("--device", default="cpu")
+    accuracy.add_argument("--device", default="cpu", help="cpu or cuda:N (default: cpu)")
     _writes(accuracy, "outputs/bench", "accuracy.json", "accuracy.csv", "accuracy.png")
     accuracy.set_defaults(func=_bench_accuracy, saves_rows=True)
     return parser
