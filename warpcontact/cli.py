@@ -40,14 +40,15 @@ def _demo(args) -> int:
     tris = V[F]
     nt = len(F)
     rows = []
-    print(f"Brute-force leaf potential between two icospheres ({nt} triangles each, {nt * nt} pairs), device {args.device}")
-    print(f"{'gap [m]':>10} {'P':>16} {'net force on A [N/mu]':>24} {'Newton it (mean)':>17} {'seconds':>8}")
     for gap in args.gaps:
         problem = leaf_gap_problem(gap, V[:, 2].max() - V[:, 2].min())
         if problem is not None:  # it was reported as triangle pairs that did not solve, after the finished gaps
             raise ValueError(f"--gaps: {problem}")
-    # The first timed gap included compiling and loading the leaf kernels (a probe, stop 58).
+    # The first timed gap included compiling and loading the leaf kernels (a probe, stop 58);
+    # and a device that is not there is refused before the table's header.
     triangle_pair_potential(tris[:1], tris[:1] + np.array([0.0, 0.0, 2.0]), device=args.device)
+    print(f"Brute-force leaf potential between two icospheres ({nt} triangles each, {nt * nt} pairs), device {args.device}")
+    print(f"{'gap [m]':>10} {'P':>16} {'net force on A [N/mu]':>24} {'Newton it (mean)':>17} {'seconds':>8}")
     for gap in args.gaps:
         # Sphere B sits below A: A's lowest point is `gap` above B's highest point.
         shift = V[:, 2].max() - V[:, 2].min() + gap
@@ -641,13 +642,16 @@ def _default_frame_scenes(peer_meshes: Path) -> tuple[list[str], str | None]:
 def _bench_frame(args) -> int:
     from .bench import run_frame_benchmark
 
-    # Medians over the frames, then the means the paper's per-frame figures are.
-    print(
+    # Medians over the frames, then the means the paper's per-frame figures are. Printed with
+    # the first row: a scene name that is none was refused under the header.
+    header = [
         f"{'scene':>20} {'tri':>5} {'model':>5} {'frames':>6} {'forward s':>10} {'Newton it':>9} {'s/iter':>8} {'contact s':>10} {'backward s':>10} "
         f"{'fwd mean s':>10} {'frame mean s':>12}  note"
-    )
+    ]
 
     def show(r):
+        if header:
+            print(header.pop())
         print(
             f"{r['scene']:>20} {r['triangles']:5d} {r['model']:>5} {r['frames']:6d} {_fmt(r['forward_seconds'], '10.4f')} {_fmt(r['newton_iterations'], '9.1f')} "
             f"{_fmt(r['forward_seconds_per_iteration'], '8.4f')} {_fmt(r['contact_seconds'], '10.5f')} {_fmt(r['backward_seconds'], '10.5f')} "
