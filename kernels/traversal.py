@@ -75,6 +75,10 @@ COUNTER_LEAF = wp.constant(2)
 COUNTER_MAX_LEVEL = wp.constant(3)
 # Slot COUNTER_ROUND_TASKS + r counts the tasks round r hands on to round r + 1.
 COUNTER_ROUND_TASKS = wp.constant(4)
+# Nodes closer than this (float64 contact geometry resolves no less: ``_validate.MIN_EXTENT``)
+# are neither far nor blended but solved as leaves: two point faces 1e-104 m apart (d1 = 0)
+# had a far term whose Hessian overflowed, in an evaluation reported ok (a probe, stop 62).
+MIN_NODE_DISTANCE = wp.constant(wp.float64(1.0e-75))
 
 # Node pairs one thread visits per round, at most (host-sized launches). Larger means fewer
 # rounds (one host read each) but fewer, longer threads with a larger zero-initialised
@@ -173,13 +177,14 @@ def traverse_round_kernel(visit_budget: int):
             local = support > wp.float64(0.0)
             # d1 = 0 (two nodes collapsed to points) at dist 0 is a contact, which only a leaf
             # solve reports: the centred term's direction is undefined there.
-            far = dist >= d2 and dist > d1
+            resolved = dist >= MIN_NODE_DISTANCE
+            far = dist >= d2 and dist > d1 and resolved
             if local:
                 far = dist - d1 >= support
             if far:
                 _emit(counters_out, COUNTER_FAR, far_out, wp.vec4i(ni, nj, parent, seed))
                 continue
-            if dist > d1 and not local:
+            if dist > d1 and not local and resolved:
                 record = _emit(counters_out, COUNTER_BLEND, blend_out, wp.vec4i(ni, nj, parent, seed))
                 if record < blend_level_out.shape[0]:
                     blend_level_out[record] = level

@@ -104,6 +104,23 @@ def test_every_triangle_pair_is_covered_exactly_once(eps):
         assert max(counts.values()) == 1, key
 
 
+@pytest.mark.parametrize("separation", [1e-104, 1e-160])
+def test_point_faces_closer_than_geometry_resolves_are_unsolved_not_far_terms(separation):
+    """Two point faces (zero-area faces are allowed) 1e-104 m apart have d1 = 0, and the
+    traversal's far test took them as a far term at any distance: a Hessian of inf and NaN
+    (gradient NaN at 1e-160) in an evaluation reported ok (a probe, stop 62). Below the 1e-75
+    m float64 contact geometry resolves they are solved as leaves, which report them
+    unsolved, as brute force does."""
+    V = np.array([[0, 0, -1], [1, 0, -1], [0, 1, -1], [0, 0, 0.0]])
+    W = np.array([[0, 0, 1], [1, 0, 1], [0, 1, 1], [0, 0, 0.0]])
+    F = np.array([[0, 1, 2], [3, 3, 3]])
+    poses = np.array([[0, 0, 0, 0, 0, 0, 1.0], [0, 0, separation, 0, 0, 0, 1.0]])
+    for mode in ("bsh", "brute"):
+        res = wc.ContactModel([(V, F), (W, F)], mode=mode).evaluate(poses)
+        assert not res.ok and res.unsolved_pairs == [("body0", "body1")]
+        assert np.isfinite(res.grad).all() and np.isfinite(res.hessian).all()
+
+
 def test_pair_weighted_centred_terms_approximate_the_brute_force_sum():
     """Weighing a far cluster pair's centred term by its triangle pairs makes P_BSH an estimate
     of the brute-force sum (the paper's unweighted P_c counts a cluster pair once), with the
