@@ -399,11 +399,13 @@ def test_sync_free_launches_give_the_host_sized_launches_results_bit_for_bit(mod
         assert free._far.shape[0] > a.num_far or free._leaf.shape[0] > a.num_leaf  # idle threads ran
 
 
+@pytest.mark.parametrize("exact_deal_pairs", [None, 3])
 @pytest.mark.parametrize("mode", ["bsh", "brute", "sdrs"])
-def test_term_chunks_give_the_unchunked_results_bit_for_bit(mode):
+def test_term_chunks_give_the_unchunked_results_bit_for_bit(mode, exact_deal_pairs):
     # On a CPU the body pairs are dealt out to chunks whose terms run on their own threads;
     # each record still receives its terms in list order, so nothing may change, not even
-    # the last bit: potential, separations, advancement bounds and friction terms.
+    # the last bit: potential, separations, advancement bounds and friction terms. With
+    # exact_deal_pairs 3 all but the three costliest body pairs are dealt in snake order.
     meshes, poses = _rack_meshes_and_poses(0.02)
     static = [False] * (len(meshes) - 1) + [True]
     friction = wp.array([0.4], dtype=wp.float64)
@@ -413,6 +415,8 @@ def test_term_chunks_give_the_unchunked_results_bit_for_bit(mode):
     for chunks in (1, 2, 3):
         model = wc.ContactModel(meshes, mode=mode, dhat=0.05, static=static, term_chunks=chunks)
         model._min_chunk_leaf_terms = 1  # the rack is too small to be split by default
+        if exact_deal_pairs is not None:
+            model._exact_deal_pairs = exact_deal_pairs
         lagged = None
         for shift in (0.0, -0.3, 0.01):  # new lists, then other lists in the same buffers
             moved = poses.copy()
