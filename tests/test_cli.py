@@ -494,10 +494,13 @@ def test_frame_plot_draws_the_papers_points_at_the_papers_triangle_counts(tmp_pa
         pytest.skip("matplotlib not installed")
     figures = []
     monkeypatch.setattr(plt, "close", figures.append)  # keep the figure to read it
-    row = {"model": "bsh", "scene": "gather_bunny", "triangles": 2702, "contact_seconds": 0.1, "forward_seconds": 1.0, "backward_seconds": 0.1}
+    row = {"model": "bsh", "scene": "gather_bunny", "triangles": 2702, "contact_seconds": 0.1, "forward_seconds": 1.0, "backward_seconds": 0.1, "frame_seconds_mean": 1.3}
     assert bench._plot_frame_benchmark([row], tmp_path / "frame.png")
-    (line,) = [line for line in figures[0].axes[0].get_lines() if line.get_label() == "paper bsh (CPU)"]
-    assert dict(zip(line.get_xdata(), line.get_ydata())) == {512: 0.6, 6208: 3.18, 2784: 3.89}
+    lines = {line.get_label(): dict(zip(line.get_xdata(), line.get_ydata())) for line in figures[0].axes[0].get_lines()}
+    assert lines["paper bsh (CPU, mean forward + backward)"] == {512: 0.6, 6208: 3.18, 2784: 3.89}
+    # The paper's figures are means of forward + backward: ours drawn beside them are too
+    # (the plot compared them with our median forward step alone; a probe, stop 62).
+    assert lines["bsh mean forward + backward"] == {2702: 1.3}
 
 
 def test_a_failing_plot_does_not_hide_an_interruption(tmp_path, capsys, monkeypatch):
