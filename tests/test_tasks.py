@@ -548,6 +548,14 @@ def test_cli_compare_writes_json_and_plot(tmp_path, capsys):
             assert key in result
         assert len(result["loss_history"]) == 2
     assert data["models"]["gb"]["bundle"]["seed"] == 3
+    # Each model's contact settings (a probe, stop 62: no output recorded dhat, and gb's
+    # sigmas read null): the scene's mu, SDRS's dhat, gb's sigma schedule (10 lr down to lr
+    # over a window's updates).
+    models = data["models"]
+    assert models["ours"]["contact_stiffness"] == models["sdrs"]["contact_stiffness"] == space_billiards().settings.contact_stiffness
+    assert "dhat_m" not in models["ours"] and models["sdrs"]["dhat_m"] == models["gb"]["dhat_m"] == 1e-2
+    # --iters 2: one Adam update, at the schedule's first sigma, 10 lr.
+    assert models["gb"]["bundle"]["sigma_schedule"] == pytest.approx([10 * data["learning_rate"]] * 2, rel=1e-12)
     assert (out / "compare.png").stat().st_size > 1000
     assert "wrote" in capsys.readouterr().out
 

@@ -282,8 +282,10 @@ def _loss_text(loss) -> str:
 
 
 def _result_metrics(result, problem) -> dict:
-    """A descent's results and the contact mode its ``TaskProblem`` ran ("ours" runs the
-    scene's own, which a scene may set to sdrs or ipc: the outputs did not say)."""
+    """A descent's results and the contact model its ``TaskProblem`` ran ("ours" runs the
+    scene's own, which a scene may set to sdrs or ipc: the outputs did not say): its mode,
+    stiffness and, for the locally supported barriers, their dhat (no output recorded them)."""
+    settings = problem.scene.settings
     return {
         **result.extra,  # first: the run's own results are never written over
         "loss_history": result.loss_history,
@@ -292,7 +294,9 @@ def _result_metrics(result, problem) -> dict:
         "success": result.success,
         "seconds": result.seconds,
         "iterations": result.iterations,
-        "contact_mode": problem.scene.settings.contact_mode,
+        "contact_mode": settings.contact_mode,
+        "contact_stiffness": settings.contact_stiffness,
+        **({"dhat_m": problem.model.contact.dhat} if settings.contact_mode in ("ipc", "sdrs") else {}),
     }
 
 

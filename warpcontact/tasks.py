@@ -1007,7 +1007,7 @@ class TaskProblem:
                 raise ValueError(f"{store.path}: not a readable checkpoint (its rng is None, and the gb bundle needs its generator's state)")
             rng.bit_generator.state = saved["rng"]
         # gb's sample counts from the start: a run that drew no bundle (--iters 1) wrote none.
-        extra = saved["extra"] if saved else ({"bundle": dataclasses.asdict(self.bundle), "bundle_samples": 0, "bundle_samples_dropped": 0} if self.bundle else {})
+        extra = saved["extra"] if saved else ({"bundle": self._bundle_record(), "bundle_samples": 0, "bundle_samples_dropped": 0} if self.bundle else {})
         if saved and self.bundle is not None and "bundle_samples" not in extra:
             # A checkpoint from before the sample counts: they start at this resume.
             extra["bundle_samples_counted_since_resume"] = True
@@ -1182,6 +1182,13 @@ class TaskProblem:
                 default=_fingerprint_value,
             )
         )
+
+    def _bundle_record(self) -> dict:
+        """gb's settings as a run's results record them, with the sigmas each window's
+        schedule runs from and to (None in the settings stands for 10 and 1 times the learning
+        rate, and the results said only null; a probe, stop 62)."""
+        schedule = self.bundle.sigmas(self.settings.iterations - 1, self.settings.learning_rate)
+        return {**dataclasses.asdict(self.bundle), "sigma_schedule": [float(schedule[0]), float(schedule[-1])]}
 
     def best_initial_sample(self) -> tuple[np.ndarray, list]:
         """(the lowest-loss draw's values, one per control DOF; every draw's values and
