@@ -180,7 +180,8 @@ def test_each_model_runs_a_short_optimisation(model):
     if model in ("ipc", "sdrs"):
         assert result.loss_history[1] == result.loss_history[0]  # zero gradient from rest
     if model == "gb":
-        assert result.extra["bundle"] == {"samples": 2, "initial_sigma": None, "final_sigma": None, "seed": 1}
+        # One Adam update: its sigma is the schedule's first, 10 lr.
+        assert result.extra["bundle"] == {"samples": 2, "initial_sigma": None, "final_sigma": None, "seed": 1, "sigma_schedule": [10 * settings.learning_rate] * 2}
         assert result.extra["bundle_samples"] == 2 and result.extra["bundle_samples_dropped"] == 0  # one update's bundle
 
 

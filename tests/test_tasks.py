@@ -520,7 +520,8 @@ def test_cli_run_accepts_baselines_and_seed(tmp_path):
     assert main(["run", str(scene_path), "--model", "gb", "--seed", "5", "--quick", "--iters", "1", "--out", str(tmp_path / "out")]) == 0
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["model"] == "gb" and metrics["seed"] == 5
-    assert metrics["bundle"] == {"samples": 4, "initial_sigma": None, "final_sigma": None, "seed": 5}
+    # The schedule resolved: None stands for 10 and 1 times the learning rate.
+    assert metrics["bundle"] == {"samples": 4, "initial_sigma": None, "final_sigma": None, "seed": 5, "sigma_schedule": [10 * metrics["learning_rate"]] * 2}
     # One iteration draws no bundle: the counts were missing, not 0 (a probe, stop 58); and the
     # contact mode run is recorded (gb: sdrs; "ours" runs the scene's own).
     assert metrics["bundle_samples"] == metrics["bundle_samples_dropped"] == 0 and metrics["contact_mode"] == "sdrs"
