@@ -1378,14 +1378,13 @@ def load_scene(path) -> Scene:
         raise ValueError(f"{source}: no dynamic rigid bodies (apply PhysicsRigidBodyAPI to at least one prim)")
     _make_names_unique(all_bodies, "body", source)
 
-    _check_namespace(stage, scene_prim, bodies, Usd, source)
+    _check_namespace(stage, scene_prim, bodies, Usd, UsdPhysics, source)
     settings = SimulationSettings()
     task = TaskSpec()
     if scene_prim is not None:
         _read_settings(scene_prim, settings, task, source)
     _read_material_friction(collider_materials, scene_prim, settings, UsdPhysics, source)
     _warn_unmodelled(stage, collider_materials, UsdPhysics, Usd, source)
-    _warn_unknown_physics(stage, UsdPhysics, Usd, source)
     joints = _read_joints(stage, descs, {**bodies, **static_bodies}, mirrored, units, source, UsdPhysics)
     # In the stage's order too: grouped by joint type, a prismatic joint authored before a
     # revolute one came back after it, permuting the joint coordinates (and their targets).
@@ -2020,25 +2019,6 @@ def _usd_physics_attribute_names(UsdPhysics) -> frozenset:
     return frozenset(names)
 
 
-def _warn_unknown_physics(stage, UsdPhysics, Usd, source: str) -> None:
-    """Warn, naming the prims, about authored physics: attributes that no UsdPhysics schema
-    has: a typo (physics:densty) or another tool's name (physics:linearDamping) was ignored
-    without a word, where the warpcontact: namespace refuses one (``_check_namespace``). A
-    warning, not an error: a newer UsdPhysics may add attributes."""
-    import difflib
-
-    known = _usd_physics_attribute_names(UsdPhysics)
-    found = []
-    for prim in _all_prims(stage, Usd):
-        for attr in prim.GetAuthoredAttributes():
-            name = attr.GetName()
-            if name.startswith("physics:") and name not in known:
-                close = difflib.get_close_matches(name, sorted(known), n=1)
-                found.append(f"{prim.GetPath()} {name}{f' (did you mean {close[0]}?)' if close else ''}")
-    if found:
-        warnings.warn(f"{source}: no UsdPhysics schema has these attributes, so they are ignored: {', '.join(found[:5])}{' ...' if len(found) > 5 else ''}", stacklevel=3)
-
-
 def _warn_foreign_layer_units(stage, stage_units: dict, source: str) -> None:
     """Warn where a layer the stage uses (a reference, payload or sublayer) authors other
     units or another up axis than the stage: USD never converts them, so a 50 cm asset in
@@ -2369,17 +2349,25 @@ _SCENE_PRIM_NAMES = (*_SETTING_ATTRIBUTES, *TASK_ATTRIBUTES, "task:sampleLow", "
 _BODY_PRIM_NAMES = (*_BODY_ATTRIBUTES, "target:position", "target:tolerance")
 
 
-def _check_namespace(stage, scene_prim, body_paths, Usd, source: str):
+def _check_namespace(stage, scene_prim, body_paths, Usd, UsdPhysics, source: str):
     """Every authored warpcontact: attribute must be one this module reads, on the kind of
-    prim it is read from; a typo or a misplaced attribute would otherwise be ignored."""
+    prim it is read from; a typo or a misplaced attribute would otherwise be ignored. Authored
+    physics: attributes that no UsdPhysics schema has (a typo, physics:densty, or another
+    tool's name, physics:linearDamping: ignored without a word until stop 62) are named in a
+    warning, not refused: a newer UsdPhysics may add attributes."""
     import difflib
 
+    physics = _usd_physics_attribute_names(UsdPhysics)
+    unknown_physics = []
     scene_path = str(scene_prim.GetPath()) if scene_prim is not None else None
     for prim in _all_prims(stage, Usd):
         path = str(prim.GetPath())
         known = _SCENE_PRIM_NAMES if path == scene_path else _BODY_PRIM_NAMES if path in body_paths else ()
         for attr in prim.GetAuthoredAttributes():
             name = attr.GetName()
+            if name.startswith("physics:") and name not in physics:
+                close = difflib.get_close_matches(name, sorted(physics), n=1)
+                unknown_physics.append(f"{path} {name}{f' (did you mean {close[0]}?)' if close else ''}")
             if not name.startswith(_NS) or name[len(_NS) :] in known:
                 continue
             short = name[len(_NS) :]
@@ -2391,6 +2379,8 @@ def _check_namespace(stage, scene_prim, body_paths, Usd, source: str):
                 close = difflib.get_close_matches(short, _SCENE_PRIM_NAMES + _BODY_PRIM_NAMES, n=1)
                 hint = f"did you mean {_NS}{close[0]}?" if close else "see the namespace in warpcontact/io.py"
             raise ValueError(f"{source}: prim {path}: unknown attribute {name} here ({hint})")
+    if unknown_physics:
+        warnings.warn(f"{source}: no UsdPhysics schema has these attributes, so they are ignored: {', '.join(unknown_physics[:5])}{' ...' if len(unknown_physics) > 5 else ''}", stacklevel=3)
 
 
 def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: str):
