@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from .rotation import quat_norm
+from .rotation import normalized_poses, quat_norm
 
 __all__ = [
     "MAX_BARRIER_SUPPORT",
@@ -305,8 +305,4 @@ def validated_poses(poses, names, *, normalize: bool = True) -> np.ndarray:
             f"poses: body {i} ({names[i]}) has quaternion norm {norms[i]:.9g}; "
             f"expected unit norm within {QUATERNION_TOLERANCE} (layout px, py, pz, qx, qy, qz, qw)"
         )
-    if not normalize:
-        return poses
-    poses = poses.copy()
-    poses[:, 3:] /= norms[:, None]
-    return poses
+    return normalized_poses(poses) if normalize else poses
