@@ -1084,7 +1084,7 @@ def test_normalising_poses_twice_gives_the_bits_of_once():
     """A step's start pose is its previous step's solution normalised, and ``evaluate``
     normalises the poses it is given: dividing a normalised quaternion by its computed norm
     again moved 30% of them by an ulp, so the start evaluation was never reused once bodies
-    turned (a rolling 16-ball strike: 0 of 6 steps). Quaternions within rounding of unit
+    turned (a rolling 16-ball strike: 1 of 7 steps). Quaternions within rounding of unit
     norm are kept; others are still divided."""
     from warpcontact._validate import validated_poses
     from warpcontact.rotation import normalized_poses, quat_norm

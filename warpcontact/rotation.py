@@ -158,10 +158,10 @@ def quat_norm(q) -> np.ndarray:
 
 
 # A quaternion divided by its norm has a computed norm within 2 eps of 1 (1e6 random draws
-# at scales 1e-150 to 1e150); dividing it again moved 30% of them by an ulp, so a pose
-# normalised twice differed from the pose normalised once, and the solver's start pose never
-# equalled its previous step's last evaluated pose bit for bit (the start evaluation was
-# never reused; 2026-11-28).
+# at scales 1e-150 to 1e150); dividing it again moved 30% of them by an ulp. So a pose
+# normalised twice often differed from the pose normalised once, and the solver's start pose
+# seldom equalled its previous step's last evaluated pose bit for bit once bodies turned (a
+# rolling 16-ball strike reused 1 of 7 start evaluations; 2026-11-28).
 _UNIT_NORM_ROUNDING = 4.0 * np.finfo(np.float64).eps
 
 
