@@ -1143,9 +1143,9 @@ def test_a_step_starts_from_the_last_evaluation_of_the_previous_step(monkeypatch
     (its solution); reusing that evaluation saves one a step and changes nothing: the same
     poses, bit for bit, as evaluating again (a 20-frame strike of the 16-ball rack: 106 ->
     87 evaluations). Here 68 -> 61 over 8 steps: every step but the first, which has no
-    previous step. Until 2026-11-28 a step whose bodies had turned often missed it (68 -> 62 here,
-    1 of 7 reused in a rolling 16-ball strike): its start pose was the solution normalised once more,
-    an ulp off (``test_normalising_poses_twice_gives_the_bits_of_once``)."""
+    previous step. Until 2026-11-28 a step whose bodies had turned often missed it (68 -> 62
+    here, 1 of 7 reused in a rolling 16-ball strike): its start pose was the solution
+    normalised once more, an ulp off (``test_normalising_poses_twice_gives_the_bits_of_once``)."""
     model, first, dt = sliding_box_and_ball()
     evaluate = wc.ContactModel.evaluate
     fills, allowed = [], {"reuse": True}
