@@ -926,6 +926,32 @@ def test_non_finite_points_missing_files_and_empty_stages(tmp_path):
         io.load_scene(tmp_path / "empty.usda")
 
 
+def test_load_scene_reads_the_file_on_disk_while_a_stage_of_it_is_open(tmp_path):
+    """USD keeps one copy of each open file a process and Stage.Open hands it back unread: a
+    file saved or fixed while a viewer's stage held it, or while a failed load's traceback
+    did (a notebook keeps the last one), loaded as it was before (a probe, stop 63). Unsaved
+    in-process edits are loaded with a warning."""
+    path = write_physics_scene(tmp_path / "held.usda")
+    good = path.read_text()
+    path.write_text(good.replace("double size = 0.5", "double size = -1"))
+    with pytest.raises(ValueError, match="size must be a positive finite number") as kept:
+        io.load_scene(path)
+    path.write_text(good)
+    fixed = io.load_scene(path)
+    np.testing.assert_allclose(np.ptp(fixed.bodies[-1].vertices, axis=0), 0.5)
+    assert kept.value.__traceback__ is not None  # the failed load's frame, and its stage, still alive
+    held = Usd.Stage.Open(str(path))
+    held.GetPrimAtPath("/World/box/shape").GetAttribute("size").Set(0.4)
+    with pytest.warns(UserWarning, match="unsaved changes in this process"):
+        edited = io.load_scene(path)
+    np.testing.assert_allclose(np.ptp(edited.bodies[-1].vertices, axis=0), 0.4)
+    held.Reload()  # the edit dropped: the viewer's stage holds the file as saved
+    scene = io.load_scene(path)
+    scene.settings.time_step = 0.03
+    io.save_scene(scene, path, overwrite=True)
+    assert io.load_scene(path).settings.time_step == 0.03
+
+
 def test_a_scene_without_metersperunit_is_warned_about_and_a_tolerance_without_a_target_refused(tmp_path):
     # USD's fallback unit is the centimetre: a hand-written scene in metres that left it out
     # became 100 times smaller, silently.
@@ -2204,15 +2230,29 @@ def test_a_disabled_rigid_body_loads_static_with_its_collider_and_reset_stacks_k
     cube.CreateSizeAttr(0.4)
     UsdPhysics.CollisionAPI.Apply(cube.GetPrim())
     UsdPhysics.RigidBodyAPI(stage.GetPrimAtPath("/World/box")).CreateVelocityAttr(Gf.Vec3f(1.0, 0.0, 0.0))
+    moving = UsdGeom.Xform.Define(stage, "/World/turned/moving")
+    moving.SetResetXformStack(True)
+    moving.AddTranslateOp().Set(Gf.Vec3d(-2.0, 0.0, 1.0))
+    UsdPhysics.RigidBodyAPI.Apply(moving.GetPrim()).CreateVelocityAttr(Gf.Vec3f(1.0, 0.0, 0.0))
+    cube = UsdGeom.Cube.Define(stage, "/World/turned/moving/shape")
+    cube.CreateSizeAttr(0.4)
+    UsdPhysics.CollisionAPI.Apply(cube.GetPrim())
     stage.GetRootLayer().Save()
-    scene = io.load_scene(path)
+    # A static body's velocity never moved it, and a save dropped it (a probe, stop 63).
+    with pytest.warns(UserWarning, match=r"prim /World/turned/still: a static body here .* does not move: its authored physics:velocity \[1.0, 0.0, 0.0\] m/s"):
+        scene = io.load_scene(path)
     still = scene.body("still")
     assert still.static and len(still.faces) == 12
     np.testing.assert_allclose(still.pose[:3], [2.0, 0.0, 1.0], atol=1e-12)
     world = quat_matrix(still.pose[3:]) @ still.vertices.T
     np.testing.assert_allclose(np.ptp(world, axis=1), [0.4, 0.4, 0.4], atol=1e-6)
-    np.testing.assert_allclose(still.linear_velocity, [1.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_array_equal(still.linear_velocity, [0.0, 0.0, 0.0])
+    np.testing.assert_allclose(scene.body("moving").linear_velocity, [1.0, 0.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(scene.body("box").linear_velocity, [1.0, 0.0, 0.0])
+    # Python-built, the same is an error: it would be lost on a save.
+    still.linear_velocity = np.array([1.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match=r"static body 'still' has a velocity, which only a dynamic body takes"):
+        io.save_scene(scene, tmp_path / "saved.usda")
 
 
 

@@ -26,7 +26,8 @@ warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``Body
             ``--init-samples`` draws initial-state controls from)
     on a rigid-body prim
         warpcontact:target:position (double3)     warpcontact:target:tolerance (double)
-            (stage units, in the stage's world frame, whatever transforms the prim's parents carry)
+            (the goal of the body's centre of mass, the paper's x_com, not of the prim's origin;
+            stage units, in the stage's world frame, whatever transforms the prim's parents carry)
         warpcontact:pd:kpLinear (double3)         warpcontact:pd:kdLinear (double3)
         warpcontact:pd:kpAngular (double)         warpcontact:pd:kdAngular (double)
         warpcontact:control:dofs (string[]: the optimised DOFs, each once: x y z rx ry rz
@@ -44,7 +45,7 @@ radii) as the hull of their end spheres or rings; a mass from density is the tri
 shape's (a Sphere's 3.4% below the sphere's). A static Plane (infinite) becomes a square of
 ``PLANE_SIZE_FACTOR`` times the other bodies' extent, centred under them. Polygons are fan-triangulated where convex and ear-clipped where not; self-intersecting ones are refused.
 Kinematic or disabled rigid bodies load as static bodies (an animated kinematic body is an
-error). Scales anywhere above a collider
+error; their authored velocities are dropped with a warning). Scales anywhere above a collider
 apply as USD composes them; a rigid body's frame is its prim's with the scale removed (the
 nearest rotation where the scale is not uniform). Where UsdPhysics' description of a
 collider (a rigid pose and a scale along the collider's own axes) cannot hold its
@@ -1100,8 +1101,21 @@ def load_scene(path) -> Scene:
         raise ValueError(f"{source}: not a file")
     from pxr import Tf
 
+    # USD keeps one copy of each open file a process: while anything holds a stage of it (a
+    # viewer's, or a failed load's, kept alive by a notebook's last traceback), Stage.Open hands
+    # that copy back without reading the file, and a file edited or saved since loaded as it
+    # was (the fixed file raised its old error again; a probe, stop 63).
+    already_open = {layer.identifier for layer in Sdf.Layer.GetLoadedLayers()}
     try:
         stage = Usd.Stage.Open(str(path))
+        if stage is not None:
+            for layer in stage.GetUsedLayers():
+                if layer.anonymous or layer.identifier not in already_open:
+                    continue
+                if layer.dirty:
+                    warnings.warn(f"{source}: {layer.realPath or layer.identifier} has unsaved changes in this process, which are loaded instead of the file on disk", stacklevel=2)
+                else:
+                    layer.Reload(force=True)
     except Tf.ErrorException as exc:
         raise ValueError(f"{source}: not a readable USD stage ({_usd_error_text(exc)})") from None
     if stage is None:
@@ -1244,6 +1258,14 @@ def load_scene(path) -> Scene:
             reflection = _polar_factor(linear) @ quat_to_matrix(body.pose[3:])
             body.inertia = reflection.T @ body.inertia @ reflection
         _read_warpcontact_body(prim, body, meters, source)
+        if body.static and (np.any(body.linear_velocity) or np.any(body.angular_velocity)):
+            # Kept, it never moved the body, and a save dropped it (a probe, stop 63).
+            warnings.warn(
+                f"{source}: prim {prim_path}: a static body here (kinematic, disabled or welded to the world) does not move: its authored "
+                f"physics:velocity {body.linear_velocity.tolist()} m/s and physics:angularVelocity {np.degrees(body.angular_velocity).tolist()} deg/s are ignored",
+                stacklevel=2,
+            )
+            body.linear_velocity, body.angular_velocity = np.zeros(3), np.zeros(3)
         dynamic_only = _dynamic_only(body)
         if dynamic_only:
             raise ValueError(f"{source}: prim {prim_path}: a static body here (kinematic, disabled or welded to the world) has {dynamic_only}, which only a dynamic body takes")
@@ -2220,6 +2242,8 @@ def _dynamic_only(body: BodySpec) -> str:
             ("a target", body.target_position is not None),
             ("PD gains", bool(np.any(body.kp_linear) or np.any(body.kd_linear) or body.kp_angular or body.kd_angular)),
             ("control dofs", bool(body.control_dofs)),
+            # It never moves, and a save wrote it as a bare collider (a probe, stop 63).
+            ("a velocity", bool(np.any(body.linear_velocity) or np.any(body.angular_velocity))),
         )
         if present
     )
