@@ -15,9 +15,13 @@ __all__ = ["convex_hull", "convex_hull_mesh"]
 # A point closer than this fraction of the points' extent to a face's plane, on its outer
 # side, counts as on the hull already (not in convex position).
 _PLANE_TOLERANCE = 1e-12
+# Where that hull fails its check, it is built again with these (all_on_hull excepted).
+_PLANE_TOLERANCES = (_PLANE_TOLERANCE, 1e-10, 1e-8, 1e-6)
 # The returned hull may miss a point by this fraction of the extent (rounding of the plane
-# tests of sliver faces); a larger miss, or a hull that is not closed, is refused.
+# tests of sliver faces), or by this many plane tolerances where that is more; a larger
+# miss, or a hull that is not closed, is refused.
 _CHECK_TOLERANCE = 1e-9
+_CHECK_MARGIN = 10.0
 # Sets thinner than this fraction of their extent are refused as nearly flat: the check
 # above cannot see errors in them (a 1 x 1 x 1.8e-11 slab came back with 6% more volume and
 # points 0.9 of its thickness outside).
@@ -38,7 +42,11 @@ def convex_hull(points, *, all_on_hull: bool = False) -> np.ndarray:
         points: (N, 3) coordinates, N >= 4, finite.
 
     The result is checked: closed (every edge used once each way) and no point outside it by
-    more than 1e-9 of the extent. Points that nearly coincide (a copy of each point 1e-11
+    more than 1e-9 of the extent. Where that fails (points in one plane to within their own
+    rounding, as float32 points or points 1e4 m from the origin are, let rounding decide which
+    faces a point sees), the hull is built again counting points within 1e-10, 1e-8, then
+    1e-6 of the extent of a face's plane on it, and checked to 10 times that (not with
+    ``all_on_hull``). Points that nearly coincide (a copy of each point 1e-11
     away, an exporter's seam) can make the plane tests' rounding decide visibility, and such a
     hull came back open, with up to 200 times the volume and points outside it; it is refused
     now. The points are scaled by a power of two (exactly) to an extent of about 1, so sets of
@@ -64,8 +72,30 @@ def convex_hull(points, *, all_on_hull: bool = False) -> np.ndarray:
     # underflowed beyond ~1e80 and below ~1e-85 (a unit cube of 1e100 m read as flat).
     exponent = int(np.frexp(extent)[1])
     points, extent = np.ldexp(points, -exponent), float(np.ldexp(extent, -exponent))
-    tolerance = _PLANE_TOLERANCE * extent
-    seed = _seed_tetrahedron(points, tolerance, extent)
+    # On points in one plane to within their own rounding (float32 points, or points 1e4 m
+    # from the origin) rounding decided which faces a point saw: hulls came back open, or
+    # with sliver faces whose rounding-set planes had points "outside", and convexHull
+    # colliders were refused (a turned, subdivided float32 box in 9 of 100 turns; a cylinder
+    # 1e4 m out in every turn; a probe, stop 63). Such sets are built again with points near
+    # a face's plane counted on it, and checked to that tolerance.
+    seed = _seed_tetrahedron(points, _PLANE_TOLERANCE * extent, extent)
+    failure = None
+    for relative in (_PLANE_TOLERANCE,) if all_on_hull else _PLANE_TOLERANCES:
+        faces = _incremental_hull(points, seed, relative * extent, all_on_hull)
+        failure = _hull_failure(points, faces, max(_CHECK_TOLERANCE, _CHECK_MARGIN * relative))
+        if failure is None:
+            return faces
+    raise ValueError(
+        f"points: their convex hull could not be built reliably ({failure}, with points within {relative:g} of their extent of a face's "
+        "plane counted on it): points that nearly coincide, or a set too large or small for float64 products; merge points that nearly "
+        "coincide, or rescale them"
+    )
+
+
+def _incremental_hull(points: np.ndarray, seed: tuple[int, int, int, int], tolerance: float, all_on_hull: bool) -> np.ndarray:
+    """Outward triangles of the hull of ``points`` (scaled to an extent of about 1), grown
+    from the tetrahedron ``seed``, where a point within ``tolerance`` of a face's plane counts
+    as on it; unchecked."""
     centre = points[list(seed)].mean(axis=0)
     a, b, c, d = seed
     faces = []
@@ -90,14 +120,13 @@ def convex_hull(points, *, all_on_hull: bool = False) -> np.ndarray:
         faces = np.concatenate([faces[~visible], horizon])
         corner = np.concatenate([corner[~visible], new_corner])
         scaled = np.concatenate([scaled[~visible], new_scaled])
-    _check_hull(points, faces)
     return faces
 
 
-def _check_hull(points: np.ndarray, faces: np.ndarray) -> None:
-    """ValueError unless ``faces`` close up with every edge used once in each direction and
-    no point lies outside a face's plane by more than _CHECK_TOLERANCE of the extent (tested
-    on the points centred and scaled to unit extent)."""
+def _hull_failure(points: np.ndarray, faces: np.ndarray, tolerance: float) -> str | None:
+    """None where ``faces`` close up with every edge used once in each direction and no
+    point lies outside a face's plane by more than ``tolerance`` of the extent (tested on the
+    points centred and scaled to unit extent); else what fails."""
     edges = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
     directed = {tuple(e) for e in edges.tolist()}
     closed = len(directed) == len(edges) and all((v, u) in directed for u, v in directed)
@@ -113,11 +142,11 @@ def _check_hull(points: np.ndarray, faces: np.ndarray) -> None:
         outside = -np.inf
         for start in range(0, len(unit), 256):  # points x faces in slices of bounded memory
             outside = max(outside, float(np.nan_to_num(unit[start : start + 256] @ normal.T - offset, nan=np.inf).max()))
-    if not outside <= _CHECK_TOLERANCE:
-        raise ValueError(
-            "points: their convex hull could not be built reliably (points that nearly coincide, or a set too large or "
-            "small for float64 products); merge points that nearly coincide, or rescale them"
-        )
+    if not closed:
+        return "it does not close up"
+    if not outside <= tolerance:
+        return f"a point lies {outside:.2g} of the extent outside it"
+    return None
 
 
 def _face_planes(points: np.ndarray, faces: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
@@ -143,8 +172,12 @@ def _seed_tetrahedron(points: np.ndarray, tolerance: float, extent: float) -> tu
         raise ValueError("points: they span no volume (all in one plane)")
     if heights[fourth] <= _FLAT_TOLERANCE * extent:
         raise ValueError(f"points: they span almost no volume (a thickness of {heights[fourth] / extent:.1e} of their extent, below {_FLAT_TOLERANCE:g}), where their hull is not reliable in float64")
-    # A first three on one line gave a base whose normal was rounding noise.
-    if np.linalg.norm(_off_line(points[:3], 0, 1)[2]) > tolerance and _tetrahedron_height(points, (0, 1, 2), 3) > tolerance:
+    # A first three on one line gave a base whose normal was rounding noise, and a first four
+    # in one plane a flat seed. "On" is to within the points' own rounding, which can exceed
+    # ``tolerance``: four points of a cylinder's rim 1e4 m from the origin made a seed 1e-12
+    # of the extent thick, turned either way by rounding (a probe, stop 63).
+    thick = _FLAT_TOLERANCE * extent
+    if np.linalg.norm(_off_line(points[:3], 0, 1)[2]) > thick and _tetrahedron_height(points, (0, 1, 2), 3) > thick:
         return 0, 1, 2, 3
     return first, second, third, fourth
 
