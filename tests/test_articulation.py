@@ -136,6 +136,50 @@ def test_free_bodies_beside_joints_take_the_per_body_arithmetic_bit_for_bit():
     assert np.array_equal(reduced_hess[np.ix_(loose, loose)], hess_loops[np.ix_(loose, loose)])
 
 
+def test_a_turned_static_body_beside_joints_steps():
+    """The articulated line search bounds the straight path to each trial pose; for a static
+    body turned about a general axis that path held a rotation of rounding (1.4e-17), which
+    the bound refuses from a static body, so every scene with joints and such a body (a tilted
+    ramp, a turned wall) failed its first step (a probe, stop 63)."""
+    hinge = {}
+    for turn in ((0.0, 0.0, 0.0), (0.2, -0.3, 0.5)):
+        b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+        b.add_box((1.0, 1.0, 0.1), static=True, pose=np.r_[5.0, 0.0, 0.0, wc.rotation.quat_from_rotation_vector(np.array(turn))], name="ramp")
+        rod = b.add_box((0.02, 0.02, 1.0), mass=1.0, pose=(0, 0, 1.5, 0, 0, 0, 1), name="rod")
+        b.add_joint("revolute", child=rod, anchor=(0, 0, 2.0), axis=(0, 1, 0), name="hinge")
+        model = b.finalize()
+        solver = wc.ImplicitSolver(model)
+        state = model.state(requires_grad=False)
+        state.body_q_prev.assign(model.articulation.retract(model.initial_q, np.array([-0.02])))
+        for _ in range(5):
+            following = model.state(requires_grad=False)
+            solver.step(state, following, None, 0.01)
+            state = following
+        hinge[turn] = float(state.joint_q.numpy()[0])
+    assert hinge[(0.2, -0.3, 0.5)] == pytest.approx(hinge[(0.0, 0.0, 0.0)], abs=1e-6)
+
+
+def test_moving_a_joints_static_parent_is_refused():
+    """A static parent's built pose is folded into the joint frame, so a post slid 5 mm a
+    step by writing its pose left its arm hinged where it was built: the joint came 0.1 m
+    apart over 20 accepted steps (a probe, stop 63). Refused, as for a dynamic parent."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    post = b.add_box((0.2, 0.2, 0.2), static=True, pose=(0, 0, 1.0, 0, 0, 0, 1), name="post")
+    arm = b.add_box((0.6, 0.04, 0.04), mass=1.0, pose=(0.4, 0, 1.0, 0, 0, 0, 1), name="arm")
+    b.add_joint("revolute", child=arm, parent=post, anchor=(0.1, 0, 1.0), axis=(0, 1, 0), kp=50.0, kd=1.0, name="hinge")
+    model = b.finalize()
+    solver = wc.ImplicitSolver(model)
+    state = model.state(requires_grad=False)
+    following = model.state(requires_grad=False)
+    solver.step(state, following, None, 0.02)  # where it was built: steps
+    for pose in (following.body_q, following.body_q_prev):
+        q = pose.numpy()
+        q[post, 1] += 0.005
+        pose.assign(q)
+    with pytest.raises(ValueError, match=r"joint 'hinge': its parent, static body 'post', is 0.005 m and 0 rad from where the joint was built"):
+        solver.step(following, model.state(requires_grad=False), None, 0.02)
+
+
 def test_free_bodies_have_identity_coordinates():
     b = wc.ModelBuilder()
     b.add_box((1, 1, 1), density=1.0, pose=(0, 0, 2, 0, 0, 0, 1))

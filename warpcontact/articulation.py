@@ -112,6 +112,10 @@ class Joint:
     # None or NaN: the initial coordinates.
     target: np.ndarray | None = None
     cone_limit: float = np.inf  # ball joints: largest angle (rad) between the axis in parent and child
+    # A static parent is part of the world: its pose as built is folded into ``parent_frame``
+    # (parent -1), so the body may not move; -1 and None where the parent is not static.
+    static_parent: int = -1
+    static_parent_pose: np.ndarray | None = None
 
     def num_coordinates(self) -> int:
         if self.kind in ("revolute", "prismatic"):
@@ -538,6 +542,16 @@ class ArticulationModel:
         universal coordinate that disagrees with them (angles modulo 2 pi), or a base joint to
         the world whose poses and coordinates disagree (``_base_problem``)."""
         for j, joint in enumerate(self.joints):
+            if joint.static_parent >= 0:
+                # Moved between steps, the body left the joint behind, hinged where it was
+                # built, and the joint came apart silently (a probe, stop 63).
+                built, now = joint.static_parent_pose, poses[joint.static_parent]
+                moved, turned = float(np.linalg.norm(now[:3] - built[:3])), _rotation_gap(now[3:], built[3:])
+                if moved > self._anchor_tolerance[j] or turned > _ANGLE_TOLERANCE:
+                    return (
+                        f"joint {joint.name!r}: its parent, static body {self.body_names[joint.static_parent]!r}, is {moved:.3g} m and {turned:.3g} rad "
+                        "from where the joint was built; a joint's static parent is part of the world and cannot move (make it dynamic and drive it, or build the model again)"
+                    )
             if joint.kind == "base" and joint.parent < 0:
                 problem = self._base_problem(j, joint, poses, coordinates)
                 if problem is not None:

@@ -923,6 +923,8 @@ class ModelBuilder:
         if parent is not None and parent_index < 0:  # a static parent is part of the world
             frames = (pose_mul(parent_pose, frames[0]), frames[1])
         probe = Joint(name, kind, parent_index, int(child), frames[0], frames[1], axes, dofs)
+        if parent is not None and parent_index < 0:
+            probe.static_parent, probe.static_parent_pose = int(parent), np.array(parent_pose, dtype=np.float64)
         count = probe.num_coordinates()
         if kind == "ball" and limits is not None:
             raise ValueError(f"{where}: ball joints have no coordinates, so no coordinate limits (a swing limit is cone_limit)")

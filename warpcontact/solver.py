@@ -1190,7 +1190,12 @@ class ImplicitSolver:
                     # the straight path to each body's actual trial pose.
                     trial = art.retract(q, alpha * direction)
                     t_coords = coords + alpha * direction[art.coordinate_dof]
-                    certified = model.contact.advancement_limit(rigid_step_between(q, trial), fraction=self.advancement_fraction, frame=frame)
+                    path = rigid_step_between(q, trial)
+                    # An unchanged turned pose gives a rotation of rounding (1e-17), which the
+                    # bound refuses from a static body: any scene with joints and a turned
+                    # static body failed its first step (a probe, stop 63).
+                    path[~dynamic] = 0.0
+                    certified = model.contact.advancement_limit(path, fraction=self.advancement_fraction, frame=frame)
                     if certified < 1.0:
                         alpha *= min(max(certified, 0.1), 0.9)
                         continue
