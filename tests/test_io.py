@@ -983,7 +983,7 @@ def _author(path, edit):
         (lambda st: UsdPhysics.RigidBodyAPI(st.GetPrimAtPath("/World/box")).CreateVelocityAttr(Gf.Vec3f(float("nan"), 0, 0)), r"prim /World/box: physics:velocity must be finite, got \[nan, 0.0, 0.0\]"),
         # A probe: a misspelt position met the tolerance's error, and a cm stage's -20 read "got -0.2".
         (lambda st: [st.GetPrimAtPath("/World/box").CreateAttribute(name, Sdf.ValueTypeNames.Double3 if "pos" in name else Sdf.ValueTypeNames.Double).Set(value) for name, value in (("warpcontact:target:positon", Gf.Vec3d(1, 0, 0)), ("warpcontact:target:tolerance", 0.1))], r"prim /World/box: warpcontact:target:tolerance is authored without a warpcontact:target:position, which makes a body a target \(found warpcontact:target:positon: misspelt\?\)"),
-        (lambda st: [UsdGeom.SetStageMetersPerUnit(st, 0.01)] + [st.GetPrimAtPath("/World/box").CreateAttribute(name, kind).Set(value) for name, kind, value in (("warpcontact:target:position", Sdf.ValueTypeNames.Double3, Gf.Vec3d(250, 0, 0)), ("warpcontact:target:tolerance", Sdf.ValueTypeNames.Double, -20.0))], r"prim /World/box: warpcontact:target:tolerance must be >= 0 and finite, got -0.2 \(authored: position \[250.0, 0.0, 0.0\], tolerance -20.0, at metersPerUnit 0.01\)"),
+        (lambda st: [UsdGeom.SetStageMetersPerUnit(st, 0.01)] + [st.GetPrimAtPath("/World/box").CreateAttribute(name, kind).Set(value) for name, kind, value in (("warpcontact:target:position", Sdf.ValueTypeNames.Double3, Gf.Vec3d(250, 0, 0)), ("warpcontact:target:tolerance", Sdf.ValueTypeNames.Double, -20.0))], r"prim /World/box: warpcontact:target:tolerance must be finite, >= 0 and at most 1e\+150 m, got -0.2 \(authored: position \[250.0, 0.0, 0.0\], tolerance -20.0, at metersPerUnit 0.01\)"),
         # A zero was replaced by 1 silently; a negative or NaN one surfaced as some other value's error.
         (lambda st: UsdGeom.SetStageMetersPerUnit(st, 0.0), r"metersPerUnit must be positive and finite, got 0.0"),
         (lambda st: UsdGeom.SetStageMetersPerUnit(st, float("nan")), r"metersPerUnit must be positive and finite, got nan"),
@@ -994,7 +994,7 @@ def _author(path, edit):
         (lambda st: UsdPhysics.MassAPI.Apply(st.GetPrimAtPath("/World/box")).CreateCenterOfMassAttr(Gf.Vec3f(0, float("inf"), 0)), r"prim /World/box: centerOfMass must be finite"),
         (lambda st: UsdPhysics.MassAPI.Apply(st.GetPrimAtPath("/World/box")).CreateDiagonalInertiaAttr(Gf.Vec3f(float("nan"), 1, 1)), r"prim /World/box: diagonalInertia must be positive"),
         (lambda st: st.GetPrimAtPath("/World/box").CreateAttribute("warpcontact:target:position", Sdf.ValueTypeNames.Double3).Set(Gf.Vec3d(float("nan"), 0, 0)), r"prim /World/box: warpcontact:target:position must be 3 finite numbers"),
-        (lambda st: [st.GetPrimAtPath("/World/box").CreateAttribute(name, kind).Set(value) for name, kind, value in (("warpcontact:target:position", Sdf.ValueTypeNames.Double3, Gf.Vec3d(1, 0, 0)), ("warpcontact:target:tolerance", Sdf.ValueTypeNames.Double, -0.1))], r"prim /World/box: warpcontact:target:tolerance must be >= 0 and finite, got -0.1"),
+        (lambda st: [st.GetPrimAtPath("/World/box").CreateAttribute(name, kind).Set(value) for name, kind, value in (("warpcontact:target:position", Sdf.ValueTypeNames.Double3, Gf.Vec3d(1, 0, 0)), ("warpcontact:target:tolerance", Sdf.ValueTypeNames.Double, -0.1))], r"prim /World/box: warpcontact:target:tolerance must be finite, >= 0 and at most 1e\+150 m, got -0.1"),
         (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:friction", Sdf.ValueTypeNames.Double).Set(float("inf")), r"prim /World/physicsScene: warpcontact:friction must be >= 0 and finite, got inf"),
         (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:contactStiffness", Sdf.ValueTypeNames.Double).Set(-1.0), r"prim /World/physicsScene: warpcontact:contactStiffness must be positive and finite, got -1.0"),
         (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:timeStep", Sdf.ValueTypeNames.String).Set("fast"), r"prim /World/physicsScene: warpcontact:timeStep must be a number, got 'fast'"),
@@ -2455,7 +2455,7 @@ def test_overwrite_must_be_a_flag(tmp_path):
     [
         (lambda s: setattr(s.bodies[1], "mass", 1e40), r"prim /World/cue: mass must be positive \(or 0: not specified\), got inf"),
         (lambda s: setattr(s.bodies[1], "linear_velocity", np.array([1e39, 0.0, 0.0])), r"prim /World/cue: physics:velocity must be finite"),
-        (lambda s: s.bodies[1].__dict__.update(target_position=np.zeros(3), target_tolerance=-1.0), r"prim /World/cue: warpcontact:target:tolerance must be >= 0"),
+        (lambda s: s.bodies[1].__dict__.update(target_position=np.zeros(3), target_tolerance=-1.0), r"prim /World/cue: warpcontact:target:tolerance must be finite, >= 0"),
         (lambda s: setattr(s.bodies[1], "inertia", -np.eye(3)), r"prim /World/cue: diagonalInertia must be positive \(or 0 on every axis: not specified\), got \[-1. -1. -1.\]"),
     ],
 )

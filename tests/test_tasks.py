@@ -390,8 +390,10 @@ def test_non_finite_decision_variables_a_moved_controlled_body_and_string_dofs_a
         ("target_position", np.array([1.0, 0.0]), r"warpcontact:target:position must be 3 finite numbers .*, got \[1.0, 0.0\]"),
         # Beyond 1e150 m the loss's squared distance overflowed to inf.
         ("target_position", np.array([1e160, 0.0, 0.0]), r"warpcontact:target:position must be 3 finite numbers of at most 1e\+150 m in magnitude, got \[1e\+160, 0.0, 0.0\]"),
-        ("target_tolerance", -1.0, "prim /World/target: warpcontact:target:tolerance must be >= 0 and finite, got -1.0"),
-        ("target_tolerance", float("inf"), "warpcontact:target:tolerance must be >= 0 and finite, got inf"),
+        ("target_tolerance", -1.0, r"prim /World/target: warpcontact:target:tolerance must be finite, >= 0 and at most 1e\+150 m, got -1.0"),
+        # Its square overflowed in the receding loss: a traceback after the whole run (a probe, stop 63).
+        ("target_tolerance", 1e155, r"warpcontact:target:tolerance must be finite, >= 0 and at most 1e\+150 m, got 1e\+155"),
+        ("target_tolerance", float("inf"), r"warpcontact:target:tolerance must be finite, >= 0 and at most 1e\+150 m, got inf"),
     ],
 )
 def test_a_scene_built_in_python_is_refused_a_goal_that_is_not_finite(field, value, message):
@@ -861,6 +863,9 @@ def test_initial_samples_start_the_descent_at_the_best_draw():
         (lambda s: setattr(s.task, "sample_low", ()), "warpcontact:task:sampleHigh is authored without warpcontact:task:sampleLow"),
         (lambda s: setattr(s.task, "sample_high", (1.0, 1.0, 1.0)), "sampleHigh has 3 values for the 4 control DOFs"),
         (lambda s: setattr(s.task, "sample_low", (0.0, 0.0, np.nan, 0.0)), "sampleLow must be finite"),
+        # numpy's draw overflowed (a traceback), or every draw was "not feasible" (a probe, stop 63).
+        (lambda s: setattr(s.task, "sample_low", (-1e308, 0.0, 0.0, 0.0)), r"sampleLow must be finite and within \+-1e\+150, got \[-1e\+308"),
+        (lambda s: setattr(s.task, "sample_high", (1e200, 1.0, 1.0, 1.0)), r"sampleHigh must be finite and within \+-1e\+150"),
         (lambda s: setattr(s.task, "sample_low", (0.5, -0.3, 0.0, -1.0)), "exceeds warpcontact:task:sampleHigh"),
         (lambda s: (setattr(s.task, "control", "pd_targets"), setattr(s.bodies[0], "control_dofs", ("x", "y")), setattr(s.bodies[0], "kp_linear", np.full(3, 100.0))), "this task's control is 'pd_targets'"),
     ],

@@ -2219,15 +2219,17 @@ def _read_material_friction(collider_materials, scene_prim, settings: Simulation
 
 def target_problem(body: BodySpec) -> str | None:
     """What is wrong with a target body's goal (``target_position``: 3 finite numbers,
-    ``target_tolerance``: finite and >= 0), or None: one rule for scenes read from USD and
+    ``target_tolerance``: finite, in [0, MAX_COORDINATE]), or None: one rule for scenes read from USD and
     scenes built in Python (``tasks.validate_task``)."""
     position = np.asarray(body.target_position, dtype=np.float64)
     if position.shape != (3,) or not np.isfinite(position).all() or np.abs(position).max() > MAX_COORDINATE:
         # Beyond MAX_COORDINATE the squared distance of the loss overflowed to inf.
         return f"warpcontact:target:position must be 3 finite numbers of at most {MAX_COORDINATE:g} m in magnitude, got {position.tolist()}"
     tolerance = body.target_tolerance
-    if not is_real(tolerance) or not np.isfinite(tolerance) or tolerance < 0:
-        return f"warpcontact:target:tolerance must be >= 0 and finite, got {tolerance}"
+    # Beyond MAX_COORDINATE its square overflowed in the receding loss, and a run of hours
+    # ended in a traceback with nothing written (1e155; a probe, stop 63).
+    if not is_real(tolerance) or not np.isfinite(tolerance) or not 0 <= tolerance <= MAX_COORDINATE:
+        return f"warpcontact:target:tolerance must be finite, >= 0 and at most {MAX_COORDINATE:g} m, got {tolerance}"
     return None
 
 

@@ -570,7 +570,8 @@ def sample_box(scene, samples: int) -> tuple:
 
 def _checked_sample_box(scene, controlled: int) -> tuple:
     """(low, high) of an initial_state task's authored sample box; ValueError naming the
-    attribute for a box of the wrong length, non-finite bounds or a low bound above its high one."""
+    attribute for a box of the wrong length, non-finite bounds or bounds beyond MAX_COORDINATE,
+    or a low bound above its high one."""
     source = scene.source or "<scene>"
     task = scene.task
     dofs = tuple(scene.bodies[controlled].control_dofs)
@@ -578,8 +579,10 @@ def _checked_sample_box(scene, controlled: int) -> tuple:
     for name, bound in (("sampleLow", low), ("sampleHigh", high)):
         if bound.shape != (len(dofs),):
             raise ValueError(f"{source}: warpcontact:task:{name} has {bound.size} values for the {len(dofs)} control DOFs {dofs}")
-        if not np.all(np.isfinite(bound)):
-            raise ValueError(f"{source}: warpcontact:task:{name} must be finite, got {bound.tolist()}")
+        # Beyond the coordinates' range numpy's draw overflowed (a traceback at +-1e308), or
+        # every draw was refused as "not feasible" (1e199; a probe, stop 63).
+        if not np.all(np.isfinite(bound)) or np.abs(bound).max(initial=0.0) > MAX_COORDINATE:
+            raise ValueError(f"{source}: warpcontact:task:{name} must be finite and within +-{MAX_COORDINATE:g}, got {bound.tolist()}")
     if np.any(low > high):
         raise ValueError(f"{source}: warpcontact:task:sampleLow {low.tolist()} exceeds warpcontact:task:sampleHigh {high.tolist()}")
     return low, high
