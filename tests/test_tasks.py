@@ -842,9 +842,12 @@ def test_initial_samples_start_the_descent_at_the_best_draw():
     draw of the scene's box, and every draw (seeded) is recorded with its loss."""
     settings = TaskSettings(horizon=15, receding_horizon=0, iterations=2, learning_rate=0.3, initial_samples=5, sample_seed=1)
     scene = sampled_space_billiards()
-    result = TaskProblem(scene, settings=settings).optimize()
+    drawn = []
+    result = TaskProblem(scene, settings=settings).optimize(sample_progress=lambda *reported: drawn.append(reported))
     samples = result.extra["initial_samples"]
     assert len(samples) == 5
+    # Each draw is reported as it finishes: eight Billiards draws took minutes in silence (a probe, stop 63).
+    assert drawn == [(k + 1, 5, sample["loss"]) for k, sample in enumerate(samples)]
     losses = [s["loss"] for s in samples]
     low, high = np.array(scene.task.sample_low), np.array(scene.task.sample_high)
     for s in samples:
@@ -893,6 +896,7 @@ def test_cli_init_samples_round_trip_the_box_and_record_the_draws(tmp_path, caps
     assert main(["run", str(scene_path), "--init-samples", "3", "--seed", "2", "--iters", "1", "--out", str(out)]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["init_samples"] == 3 and len(metrics["initial_samples"]) == 3
+    assert "initial samples: 3/3 drawn" in capsys.readouterr().out
     assert metrics["initial_loss"] == min(s["loss"] for s in metrics["initial_samples"])
     plain = tmp_path / "plain.usda"
     io.save_scene(space_billiards(), plain)

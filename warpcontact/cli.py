@@ -276,6 +276,20 @@ def _progress(label: str):
     return progress
 
 
+def _sample_progress():
+    """Prints each initial-sample draw on one line: a CPU took minutes over Billiards' eight
+    in silence, and an interruption said only "nothing to keep yet" (a probe, stop 63)."""
+    best = [None]
+
+    def progress(i, n, loss):
+        if loss is not None and (best[0] is None or loss < best[0]):
+            best[0] = loss
+        end = "\n" if i == n else ""
+        print(f"\rinitial samples: {i}/{n} drawn, loss {_loss_text(loss)}{'' if loss is not None else ' (infeasible)'}, best {_loss_text(best[0])}   ", end=end, flush=True)
+
+    return progress
+
+
 def _loss_text(loss) -> str:
     """A loss for messages; None is an initial loss the trivial plan could not reach."""
     return "n/a" if loss is None else f"{loss:.6g}"
@@ -342,7 +356,7 @@ def _run(args) -> int:
     t = scene.task
     print(f"{scene_path}: task {t.name}, model {args.model}, control {t.control} of {problem.dof_names}, {_settings_line(settings)}{resumed}")
     try:
-        result = problem.optimize(progress=_progress(""), checkpoint=checkpoint.path, resume=args.resume, keep_checkpoint=True)
+        result = problem.optimize(progress=_progress(""), sample_progress=_sample_progress(), checkpoint=checkpoint.path, resume=args.resume, keep_checkpoint=True)
     except KeyboardInterrupt:
         kept = f"progress kept in {checkpoint.path} ({checkpoint.describe()}); continue with the same command and --resume" if checkpoint.exists() else "nothing to keep yet"
         print(f"\ninterrupted: {kept}", file=sys.stderr)
@@ -419,7 +433,7 @@ def _compare(args) -> int:
         # started them from different draws (a probe, stop 62). The paper's model scores them.
         chooser = "ours" if "ours" in args.models else args.models[0]
         try:
-            values, samples = _task_problem(scene, settings, chooser, args).best_initial_sample()
+            values, samples = _task_problem(scene, settings, chooser, args).best_initial_sample(progress=_sample_progress())
         except (ValueError, SolverError) as exc:
             print(f"error: {chooser} could not score the initial samples: {exc}", file=sys.stderr)
             return 1

@@ -969,7 +969,7 @@ class TaskProblem:
         sigmas = self.bundle.sigmas(self.settings.iterations - 1, self.settings.learning_rate)
         return bundled_gradient(exact, sigmas=sigmas, samples=self.bundle.samples, rng=rng, tally=tally)
 
-    def optimize(self, *, progress=None, checkpoint=None, resume: bool = False, keep_checkpoint: bool = False) -> TaskResult:
+    def optimize(self, *, progress=None, sample_progress=None, checkpoint=None, resume: bool = False, keep_checkpoint: bool = False) -> TaskResult:
         """Gradient descent from the trivial guess (zero offsets); see the module docstring.
 
         The result's ``initial_loss`` is the trivial guess's loss where ``final_loss`` is
@@ -979,6 +979,8 @@ class TaskProblem:
         Args:
             progress: callback (done, total, loss) after every iteration (one window) or
                 every executed stride (receding horizon).
+            sample_progress: callback (done, total, loss or None where infeasible) after
+                every draw of ``settings.initial_samples`` (``best_initial_sample``).
             checkpoint: path of a ``TaskCheckpoint`` rewritten before every Adam iteration
                 and removed when the optimisation returns; an existing file is refused
                 unless ``resume`` is set, so no run's progress is overwritten.
@@ -1040,7 +1042,7 @@ class TaskProblem:
             values = self.initial_values(1 if self.kind == "initial_state" else s.horizon) if s.initial_values is None else np.array([s.initial_values], dtype=np.float64)
             first = None
             if s.initial_samples and not saved:
-                values, extra["initial_samples"], first = self._best_sample(self.start, s.horizon)
+                values, extra["initial_samples"], first = self._best_sample(self.start, s.horizon, sample_progress)
             objective = objective_at(self.start, s.horizon, saved)
             final, values, traj = _descend(objective, values, s, history, progress, first=first, resume=saved, save=saver(objective), stalled=_stall_note(extra))
             result = TaskResult(history, history[0], final, final == 0.0, len(history), time.perf_counter() - start_time, values, traj, extra)
@@ -1193,18 +1195,19 @@ class TaskProblem:
         schedule = self.bundle.sigmas(self.settings.iterations - 1, self.settings.learning_rate)
         return {**dataclasses.asdict(self.bundle), "sigma_schedule": [float(schedule[0]), float(schedule[-1])]}
 
-    def best_initial_sample(self) -> tuple[np.ndarray, list]:
+    def best_initial_sample(self, *, progress=None) -> tuple[np.ndarray, list]:
         """(the lowest-loss draw's values, one per control DOF; every draw's values and
         loss) of ``settings.initial_samples`` draws: the start ``optimize`` takes.
         ``warpcontact compare`` scores the draws once, with one model, and starts every model
-        there (``TaskSettings.initial_values``). ValueError when every draw is infeasible."""
+        there (``TaskSettings.initial_values``). ``progress``: callback (done, total, loss or
+        None where infeasible) after every draw. ValueError when every draw is infeasible."""
         self._check_settings()
         if not self.settings.initial_samples:
             raise ValueError("settings.initial_samples: 0 draws to choose from")
-        values, samples, _ = self._best_sample(self.start, self.settings.horizon)
+        values, samples, _ = self._best_sample(self.start, self.settings.horizon, progress)
         return values[0], samples
 
-    def _best_sample(self, start: tuple, frames: int):
+    def _best_sample(self, start: tuple, frames: int, progress=None):
         """(the lowest-loss sample, every sample's values and loss, the lowest-loss rollout
         for the descent's first step or None) of ``settings.initial_samples`` draws from
         the scene's box; infeasible draws (bodies intersecting at the start, a failed step)
@@ -1229,6 +1232,8 @@ class TaskProblem:
             samples.append({"values": values[0].tolist(), "loss": None if result is None else result[0]})
             if result is not None and (best is None or result[0] < best[1][0]):
                 best = (values, result)
+            if progress is not None:
+                progress(len(samples), self.settings.initial_samples, samples[-1]["loss"])
         if best is None:
             raise ValueError(f"{self.scene.source or '<scene>'}: none of the {len(samples)} initial samples is feasible (bodies intersect at the start, or a step fails)")
         return best[0], samples, (best[1] if exact else None)
