@@ -277,8 +277,8 @@ def _progress(label: str):
 
 
 def _sample_progress():
-    """Prints each initial-sample draw on one line: a CPU took minutes over Billiards' eight
-    in silence, and an interruption said only "nothing to keep yet" (a probe, stop 63)."""
+    """Prints each initial-sample draw as it finishes, on one line: a CPU took minutes over
+    Billiards' eight in silence (a probe, stop 63)."""
     best = [None]
 
     def progress(i, n, loss):

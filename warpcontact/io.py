@@ -2219,8 +2219,8 @@ def _read_material_friction(collider_materials, scene_prim, settings: Simulation
 
 def target_problem(body: BodySpec) -> str | None:
     """What is wrong with a target body's goal (``target_position``: 3 finite numbers,
-    ``target_tolerance``: finite, in [0, MAX_COORDINATE]), or None: one rule for scenes read from USD and
-    scenes built in Python (``tasks.validate_task``)."""
+    ``target_tolerance``: in [0, MAX_COORDINATE]), or None: one rule for scenes read from
+    USD and scenes built in Python (``tasks.validate_task``)."""
     position = np.asarray(body.target_position, dtype=np.float64)
     if position.shape != (3,) or not np.isfinite(position).all() or np.abs(position).max() > MAX_COORDINATE:
         # Beyond MAX_COORDINATE the squared distance of the loss overflowed to inf.
