@@ -33,6 +33,13 @@ def _offsets(values: wp.array2d(dtype=wp.float64), row: int, dof_codes: wp.array
     return dp, rv, dv
 
 
+@wp.func
+def _moved_pose(base_pose: wp.transformd, dp: wp.vec3d, rv: wp.vec3d):
+    """``base_pose`` moved by ``dp`` and turned by the rotation vector ``rv`` about world axes."""
+    rot = quat_from_rotation_vector(rv) * wp.transform_get_rotation(base_pose)
+    return wp.transformd(wp.transform_get_translation(base_pose) + dp, rot)
+
+
 @wp.kernel
 def pd_target_kernel(
     # Model:
@@ -47,8 +54,7 @@ def pd_target_kernel(
 ):
     """Target of ``body`` = base pose moved by the row's offsets (rotation about world axes)."""
     dp, rv, dv = _offsets(values, row, dof_codes)
-    rot = quat_from_rotation_vector(rv) * wp.transform_get_rotation(base_pose)
-    target_out[body] = wp.transformd(wp.transform_get_translation(base_pose) + dp, rot)
+    target_out[body] = _moved_pose(base_pose, dp, rv)
 
 
 @wp.kernel
@@ -67,8 +73,7 @@ def initial_state_kernel(
     """Initial pose and velocity of ``body`` from the decision variables (row 0): offsets from
     its base pose and base (authored) velocity."""
     dp, rv, dv = _offsets(values, 0, dof_codes)
-    rot = quat_from_rotation_vector(rv) * wp.transform_get_rotation(base_pose)
-    body_q_out[body] = wp.transformd(wp.transform_get_translation(base_pose) + dp, rot)
+    body_q_out[body] = _moved_pose(base_pose, dp, rv)
     linear_velocity_out[body] = base_velocity + dv
 
 

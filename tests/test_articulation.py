@@ -274,7 +274,7 @@ def test_joint_pd_holds_target():
 def ant_model(friction=0.5, friction_smoothing=1e-4):
     b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-6, friction=friction, friction_smoothing=friction_smoothing)
     ant = add_ant(b)
-    ground = ground_rectangle(3.0, 3.0, 0.5)
+    ground = ground_rectangle(3.0, 3.0, cell=0.5)
     b.add_body((ground.vertices, ground.faces), static=True, name="ground")
     return b.finalize(), ant
 

@@ -260,13 +260,13 @@ def test_unknown_scene_is_a_clear_error():
         (lambda: scenes.fibonacci_ball(3), r"num_points: must be a whole number >= 4, got 3"),  # was an IndexError
         (lambda: scenes.fibonacci_ball(18, radius=0.0), r"radius: must be positive and finite, got 0.0"),  # was "point 4 is not in convex position"
         (lambda: scenes.decimate(*scenes.fibonacci_ball(42), 0.0), r"cell: must be positive and finite, got 0.0"),  # was an empty mesh
-        (lambda: scenes.bunny_mesh(270, height=-1.0), r"height: must be positive and finite \(m\), got -1.0"),  # was a mirrored bunny
+        (lambda: scenes.bunny_mesh(target_faces=270, height=-1.0), r"height: must be positive and finite \(m\), got -1.0"),  # was a mirrored bunny
         # A ground of no area, one facing down, NaN vertices, a TypeError, 6.9 EiB asked for:
         (lambda: scenes.ground_rectangle(0.0, 1.0), r"size_x: must be positive and finite \(m\), got 0.0"),
         (lambda: scenes.ground_rectangle(1.0, -2.0), r"size_y: must be positive and finite \(m\), got -2.0"),
         (lambda: scenes.ground_rectangle(1.0, 1.0, centre=(np.nan, 0.0)), r"centre: must be 2 finite numbers \(m\), got \(nan, 0.0\)"),
         (lambda: scenes.ground_rectangle("1", 1.0), r"size_x: must be positive and finite \(m\), got '1'"),
-        (lambda: scenes.ground_rectangle(1.0, 1.0, 1e-9), r"cell: must be at least 0.001 m for this size \(at most 1,000,000 cells\), got 1e-09"),
+        (lambda: scenes.ground_rectangle(1.0, 1.0, cell=1e-9), r"cell: must be at least 0.001 m for this size \(at most 1,000,000 cells\), got 1e-09"),
         (lambda: scenes.rack_centres(0.0), r"spacing: must be positive and finite \(m\), got 0.0"),  # every ball on one point
         # An IndexError, trimesh's error, a TypeError:
         (lambda: scenes.billiards_scene(scenes.fibonacci_ball(18)[0], scenes.fibonacci_ball(18)[1] + 100), r"mesh 'ball': face 0 has vertex indices"),

@@ -27,7 +27,7 @@ def quat_matrix(q):
 
 
 def grid_ground(size=4.0, cell=0.5):
-    ground = scenes.ground_rectangle(size, size, cell)
+    ground = scenes.ground_rectangle(size, size, cell=cell)
     return ground.vertices, ground.faces
 
 
@@ -658,7 +658,7 @@ def test_a_tiny_friction_smoothing_does_not_freeze_a_falling_box():
 
     def gaps(smoothing):
         b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), contact_stiffness=1e-6, friction=0.5, friction_smoothing=smoothing)
-        ground = scenes.ground_rectangle(4.0, 4.0, 0.5)
+        ground = scenes.ground_rectangle(4.0, 4.0, cell=0.5)
         b.add_body((ground.vertices, ground.faces), static=True, name="ground")
         b.add_box((0.4, 0.4, 0.4), density=500.0, name="box", pose=(0.0, 0.0, 0.21, 0.0, 0.0, np.sin(0.15), np.cos(0.15)))
         q, _ = rollout(b.finalize(), 4, 0.02)

@@ -242,7 +242,7 @@ def real_dtype(array: np.ndarray) -> bool:
     return array.dtype.kind in "iuf"
 
 
-def as_float64_array(value, name: str, *, trailing_shape: tuple[int, ...] = (), allow_empty: bool = True) -> np.ndarray:
+def as_float64_array(value, name: str, *, trailing_shape: tuple[int, ...] = ()) -> np.ndarray:
     """Return ``value`` as a C-contiguous float64 array of shape (N, *trailing_shape).
 
     Raises ValueError naming ``name`` for non-numeric data, a wrong shape, or NaN/inf entries.
@@ -256,8 +256,6 @@ def as_float64_array(value, name: str, *, trailing_shape: tuple[int, ...] = (), 
     expected = ("N",) + tuple(trailing_shape)
     if arr.ndim != len(expected) or tuple(arr.shape[1:]) != tuple(trailing_shape):
         raise ValueError(f"{name}: expected shape {expected}, got {arr.shape}")
-    if not allow_empty and arr.shape[0] == 0:
-        raise ValueError(f"{name}: must not be empty")
     arr = np.ascontiguousarray(arr, dtype=np.float64)
     bad = ~np.isfinite(arr)
     if bad.any():

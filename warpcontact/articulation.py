@@ -118,6 +118,7 @@ class Joint:
     static_parent_pose: np.ndarray | None = None
 
     def num_coordinates(self) -> int:
+        """How many joint coordinates (rad or m) this joint owns in ``State.joint_q``."""
         if self.kind in ("revolute", "prismatic"):
             return 1
         if self.kind == "universal":

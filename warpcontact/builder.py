@@ -1075,6 +1075,10 @@ class ModelBuilder:
                 )
 
     def finalize(self, *, device="cpu") -> Model:
+        """The ``Model`` of the bodies and joints added, its arrays on ``device`` ("cpu",
+        "cuda:0", or a ``wp.Device``): float64 poses (nbodies, 7), masses (kg), inertias
+        (kg m^2) and PD gains, the contact model (sphere trees) and the articulation. Raises
+        ValueError for a builder without bodies or a device Warp does not have."""
         if not self._bodies:
             raise ValueError("ModelBuilder: no bodies were added")
         dev = resolve_device(device)

@@ -1019,7 +1019,14 @@ class ContactModel:
         """Lagged friction data at the last evaluated configuration (a step's q^t): per leaf
         pair, its plane normal and, at each vertex of its carrying triangle, the vertex's
         normal force mu W |n| (-b'(g_k)) of this mode's leaf potential and the two bodies'
-        material points there (``kernels/friction.py``)."""
+        material points there (``kernels/friction.py``).
+
+        Args:
+            mu: the contact stiffness (the potential's scale in the step; positive, finite).
+            friction: the model's (1,) float64 array holding the friction coefficient.
+            slip_smoothing: the slip length below which Coulomb friction is smoothed (m; the
+                model's friction smoothing speed x dt).
+        """
         check_friction_arguments(mu, friction, slip_smoothing)
         self._require_evaluation("friction_frame")
         with wp.ScopedDevice(self.device):

@@ -258,6 +258,7 @@ class Scene(_ArrayFieldEquality):
     up_axis: str = "Z"
 
     def body(self, name: str) -> BodySpec:
+        """The body named ``name``; KeyError naming the scene otherwise."""
         for b in self.bodies:
             if b.name == name:
                 return b
@@ -386,11 +387,10 @@ def _quat_xyzw(q) -> np.ndarray:
     return np.array([im[0], im[1], im[2], q.GetReal()], dtype=np.float64)
 
 
-def _attr(prim, name, default=None):
+def _attr(prim, name):
+    """The authored value of ``prim``'s attribute ``name``, or None."""
     attr = prim.GetAttribute(name)
-    if attr and attr.HasAuthoredValue():
-        return attr.Get()
-    return default
+    return attr.Get() if attr and attr.HasAuthoredValue() else None
 
 
 def _flattened_polygons(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -2453,7 +2453,7 @@ def _new_stage(Usd, UsdGeom, path: Path, up_axis: str):
     return stage
 
 
-def _author_mesh(stage, UsdGeom, Vt, Gf, path: str, vertices, faces):
+def _author_mesh(stage, UsdGeom, Vt, path: str, vertices, faces):
     mesh = UsdGeom.Mesh.Define(stage, path)
     # Whole arrays at once (a Gf.Vec3f per vertex took 0.54 s at 229k triangles); float32
     # rounds to nearest either way, so the file is the same.
@@ -2606,13 +2606,13 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
             path_ = f"/World/{b.name}"
             if b.static and b.group < 0:
                 # A static collider is one Mesh prim: the name and pose load back unchanged.
-                mesh = _author_mesh(stage, UsdGeom, Vt, Gf, path_, b.vertices, b.faces)
+                mesh = _author_mesh(stage, UsdGeom, Vt, path_, b.vertices, b.faces)
                 _set_pose_ops(mesh, Gf, UsdGeom, b.pose)
                 UsdPhysics.CollisionAPI.Apply(mesh.GetPrim())
                 continue
             xform = UsdGeom.Xform.Define(stage, path_)
             _set_pose_ops(xform, Gf, UsdGeom, b.pose)
-            mesh = _author_mesh(stage, UsdGeom, Vt, Gf, path_ + "/collider", b.vertices, b.faces)
+            mesh = _author_mesh(stage, UsdGeom, Vt, path_ + "/collider", b.vertices, b.faces)
             UsdPhysics.CollisionAPI.Apply(mesh.GetPrim())
             body_prim = xform.GetPrim()
             rb = UsdPhysics.RigidBodyAPI.Apply(body_prim)
@@ -2870,7 +2870,7 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
         stage.SetEndTimeCode(len(poses) - 1)
         for i, b in enumerate(scene.bodies):
             xform = UsdGeom.Xform.Define(stage, f"/World/{b.name}")
-            _author_mesh(stage, UsdGeom, Vt, Gf, f"/World/{b.name}/mesh", b.vertices, b.faces)
+            _author_mesh(stage, UsdGeom, Vt, f"/World/{b.name}/mesh", b.vertices, b.faces)
             # The first frame is also the default, which readers without a time take.
             ops = _pose_ops(xform, UsdGeom)
             _set_pose_ops(xform, Gf, UsdGeom, poses[0, i], ops=ops)

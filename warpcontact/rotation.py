@@ -61,6 +61,7 @@ def quat_mul(q, r) -> np.ndarray:
 
 
 def quat_conjugate(q) -> np.ndarray:
+    """(..., 4) conjugates (-x, -y, -z, w): the inverse rotations of unit quaternions."""
     q = np.asarray(q, dtype=np.float64)
     return np.concatenate([-q[..., :3], q[..., 3:]], axis=-1)
 
@@ -98,6 +99,7 @@ def rotation_vector_from_quat(q) -> np.ndarray:
 
 
 def quat_to_matrix(q) -> np.ndarray:
+    """(..., 3, 3) rotation matrices of (..., 4) unit quaternions (column-vector convention: R v)."""
     x, y, z, w = np.moveaxis(np.asarray(q, dtype=np.float64), -1, 0)
     return np.stack(
         [
@@ -175,6 +177,7 @@ def normalized_poses(poses) -> np.ndarray:
 
 
 def pose_inverse(a) -> np.ndarray:
+    """(..., 7) inverses of poses (p, q): (-R^T p, q*), so that pose_mul(pose_inverse(a), a) is the identity."""
     a = np.asarray(a, dtype=np.float64)
     q = quat_conjugate(a[..., 3:])
     return np.concatenate([-quat_rotate(q, a[..., :3]), q], axis=-1)

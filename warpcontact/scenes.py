@@ -51,7 +51,7 @@ def _require(ok: bool, name: str, wanted: str, value) -> None:
         raise ValueError(f"{name}: must be {wanted}, got {value!r}")
 
 
-def fibonacci_ball(num_points: int, radius: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def fibonacci_ball(num_points: int, *, radius: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """A ball mesh: hull of ``num_points`` (>= 4) Fibonacci points on a sphere of ``radius``
     (m, > 0): 2 N - 4 faces."""
     _require(is_whole(num_points) and num_points >= 4, "num_points", "a whole number >= 4", num_points)
@@ -139,7 +139,7 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, cell: float) -> tuple[np.n
     return merged[used], remap.reshape(-1, 3)
 
 
-def bunny_mesh(target_faces: int = 270, height: float = 0.3):
+def bunny_mesh(*, target_faces: int = 270, height: float = 0.3):
     """warp-lang's bunny, z-up, scaled to ``height``, decimated to about ``target_faces``.
 
     Returns (vertices, faces, mass properties per unit density of the original mesh:
@@ -177,7 +177,7 @@ def bunny_mesh(target_faces: int = 270, height: float = 0.3):
 _MAX_GROUND_CELLS = 1_000_000
 
 
-def ground_rectangle(size_x: float, size_y: float, cell: float | None = None, centre=(0.0, 0.0)) -> BodySpec:
+def ground_rectangle(size_x: float, size_y: float, *, cell: float | None = None, centre=(0.0, 0.0)) -> BodySpec:
     """A static rectangle of size_x by size_y m at z = 0: two triangles (every scene's
     ground), or squares of about ``cell`` m, two triangles each (a grid, for tests of
     contact across the seams between coplanar faces)."""
@@ -218,8 +218,9 @@ def _box_mesh(extents):
 _ROD_CLEARANCE = 0.03
 
 
-def _rod(position, dofs, kp=400.0, kd=60.0):
+def _rod(position, dofs):
     """The pusher: a 0.1 x 0.1 x 0.6 m PD-actuated rod hovering _ROD_CLEARANCE above the ground."""
+    kp, kd = 400.0, 60.0  # N/m and N s/m (N m/rad, N m s/rad about its axes)
     return _body(
         "rod",
         _box_mesh((0.1, 0.1, 0.6)),
@@ -279,7 +280,7 @@ def billiards_scene(vertices: np.ndarray, faces: np.ndarray, *, friction: float 
     spacing = 2 * radius + 0.05
     centres = [(x + 4.0, y) for x, y in rack_centres(spacing)]
     z = height + _REST_GAP
-    bodies = [ground_rectangle(16.0, 10.0, table_cell, centre=(3.0, 0.0))]
+    bodies = [ground_rectangle(16.0, 10.0, cell=table_cell, centre=(3.0, 0.0))]
     cue = _body("cue", ball, (-2.0, 0.0, z), density=100.0, control_dofs=("x", "y", "vx", "vy"))
     bodies.append(cue)
     for i, (x, y) in enumerate(centres):
@@ -371,7 +372,7 @@ def _ant_push() -> Scene:
     )
 
 
-def _scattered_cubes(rng, count, mesh_factory, *, labels=None, target_of=None, spread=2.0):
+def _scattered_cubes(rng, count, mesh_factory, *, target_of, labels=None, spread=2.0):
     bodies = []
     placed = []
     while len(placed) < count:

@@ -487,6 +487,8 @@ class TaskCheckpoint:
         return self.path.is_file()
 
     def save(self, fingerprint: dict, state: dict) -> None:
+        """Writes ``state`` (a descent's arrays and metadata) with the problem's
+        ``fingerprint``, whole, through a temporary file and a rename."""
         meta = {k: v for k, v in state.items() if k not in _CHECKPOINT_ARRAYS}
         meta.update(version=CHECKPOINT_VERSION, fingerprint=fingerprint)
         arrays = {k: np.asarray(state[k], dtype=np.float64) for k in _CHECKPOINT_ARRAYS if k in state}
@@ -543,6 +545,7 @@ class TaskCheckpoint:
         return f"task {fp['task']}, model {fp['model']}, {where}{done} Adam iteration{'' if done == 1 else 's'}, {state['seconds']:.0f} s"
 
     def remove(self) -> None:
+        """Deletes the checkpoint file, if there is one."""
         self.path.unlink(missing_ok=True)
 
 
