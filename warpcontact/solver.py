@@ -152,6 +152,9 @@ _PASS_THROUGH_CHORDS = 16
 # Along the joints, the centres' paths are followed by a chord per this much swing (rad) of the
 # body whose centre swings most, up to _PASS_THROUGH_CHORDS.
 _PASS_THROUGH_CHORD_TURN = 0.2
+# A closed body whose centre of mass is outside its material (a ring) is followed by a point
+# inside it, sought along the inward normals of this many of its largest faces.
+_INNER_POINT_FACES = 16
 
 
 def _is_closed(vertices: np.ndarray, faces: np.ndarray) -> bool:
@@ -172,6 +175,27 @@ def _encloses(triangles: np.ndarray, point: np.ndarray) -> bool:
     integer winding number (2 inside two overlapping boxes)."""
     winding = winding_numbers(point[None], triangles)[0]
     return bool(round(winding) != 0 and abs(winding - round(winding)) < 1e-3)
+
+
+def _inner_point(triangles: np.ndarray) -> np.ndarray | None:
+    """A point inside a closed, outward-wound mesh ``triangles`` (T, 3, 3) well away from its
+    surface, or None: along the inward normals of its largest faces, halfway to the first
+    surface each meets, the deepest of them (a ring's or a cup's centre of mass lies in its
+    hollow; this finds its tube's or wall's middle)."""
+    normal = cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    area = np.linalg.norm(normal, axis=1)
+    span = 2.0 * float(np.linalg.norm(triangles.reshape(-1, 3), axis=1).max())
+    best, depth = None, 0.0
+    for face in np.argsort(-area)[:_INNER_POINT_FACES]:
+        if area[face] == 0.0:
+            break
+        inward = -normal[face] / area[face]
+        start = triangles[face].mean(axis=0) + 1e-9 * span * inward  # off its own face
+        hit = _segments_cross_triangles(start[None], (start + span * inward)[None], triangles)
+        if hit is not None and hit[1] * span > depth:
+            depth = hit[1] * span
+            best = start + 0.5 * depth * inward
+    return best if best is not None and _encloses(triangles, best) else None
 
 
 def _segments_cross_triangles(start: np.ndarray, end: np.ndarray, triangles: np.ndarray) -> tuple[int, float] | None:
@@ -266,6 +290,10 @@ class _CrossingGeometry(NamedTuple):
 
     closed: bool  # its mesh has an inside (``_is_closed``)
     centre_inside: bool  # its centre of mass is a material point (a ring's or an open ground's is not)
+    # The material point the crossing test follows, in the body's frame: the centre of mass
+    # where it is inside, else a point inside a closed mesh (``_inner_point``: a ring's tube),
+    # None for an open mesh.
+    followed_point: np.ndarray | None
     triangles: np.ndarray  # (T, 3, 3)
     low: np.ndarray  # (T, 3) the triangles' bounding boxes
     high: np.ndarray
@@ -1399,9 +1427,11 @@ class ImplicitSolver:
         movers = {i: ((a[i], b[i]), (b[i], a[i])) if containers[i] is None else (containers[i],) for i in suspect}
         for i in suspect:
             for mover, other in movers[i]:
-                where = self._centre_crossing(mover, other, path) if self._crossing_geometry(mover).centre_inside else None
+                geometry = self._crossing_geometry(mover)
+                where = self._centre_crossing(mover, other, path) if geometry.followed_point is not None else None
                 if where is not None:
-                    return refusal(i, f"{names[mover]!r}'s centre of mass crosses {names[other]!r}'s surface at {where:.0%} of it")
+                    point = f"{names[mover]!r}'s centre of mass" if geometry.centre_inside else f"a point inside {names[mover]!r}"
+                    return refusal(i, f"{point} crosses {names[other]!r}'s surface at {where:.0%} of it")
         # Two bodies whose centres come closer than the sum of their inner balls' radii overlap
         # there however they turn: a cube passing beside another, its centre never inside it.
         # Sampling the contact model on the straight motion is left to pairs without both
@@ -1422,7 +1452,7 @@ class ImplicitSolver:
         # here as well, an ant's leg sliding on the ground with its joints turning was refused
         # as passing through it: the replayed joint path dipped its tip below the ground, which
         # neither the iterates nor the same gait at half the step did (a probe, stop 59).
-        followed = np.array([all(self._crossing_geometry(mover).centre_inside or not self._dynamic[mover] for mover, _ in movers[i]) for i in suspect], dtype=bool)
+        followed = np.array([all(self._crossing_geometry(mover).followed_point is not None or not self._dynamic[mover] for mover, _ in movers[i]) for i in suspect], dtype=bool)
         suspect = suspect[~followed]
         closest = suspect[(fraction[suspect] > 0.0) & (fraction[suspect] < 1.0)]
         for s in np.unique(np.round(fraction[closest], 3)):
@@ -1451,7 +1481,8 @@ class ImplicitSolver:
             closed = _is_closed(vertices, faces)
             centre_inside = closed and _encloses(triangles, np.zeros(3))
             inner = float(np.linalg.norm(trimesh.triangles.closest_point(triangles, np.zeros((len(triangles), 3))), axis=1).min()) if centre_inside else 0.0
-            geometry = _CrossingGeometry(closed, centre_inside, triangles, triangles.min(axis=1), triangles.max(axis=1), inner)
+            followed = np.zeros(3) if centre_inside else _inner_point(triangles) if closed else None
+            geometry = _CrossingGeometry(closed, centre_inside, followed, triangles, triangles.min(axis=1), triangles.max(axis=1), inner)
             self._crossing_geometries[body] = geometry
         return geometry
 
@@ -1481,7 +1512,8 @@ class ImplicitSolver:
         s = np.linspace(0.0, 1.0, _PASS_THROUGH_CHORDS + 1)
         poses = path(s)[:, [mover, other]]
         rotation = quat_to_matrix(poses[:, 1, 3:])
-        centre = np.einsum("kji,kj->ki", rotation, poses[:, 0, :3] - poses[:, 1, :3])
+        point = poses[:, 0, :3] + quat_to_matrix(poses[:, 0, 3:]) @ self._crossing_geometry(mover).followed_point
+        centre = np.einsum("kji,kj->ki", rotation, point - poses[:, 1, :3])
         # Only triangles whose boxes meet the path's: a ball over a 49,152-face ground tested
         # every face, half its step time.
         geometry = self._crossing_geometry(other)
