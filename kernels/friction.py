@@ -292,14 +292,15 @@ def friction_adjoint_kernel(
     seed_body_pair: wp.array(dtype=wp.vec2i),
     frame: FrictionFrame,
     multiplier: wp.array(dtype=vec6d),
+    first: int,
     # Data out:
     adj_now_out: wp.array2d(dtype=wp.float64),
     adj_friction_out: wp.array(dtype=wp.float64),
     adj_mu_out: wp.array(dtype=wp.float64),
 ):
     """lambda^T d(grad_q D)/dy for y = q^t (through each point's N_k, n^ and the points'
-    places), lambda_f and mu."""
-    tid = wp.tid()
+    places), lambda_f and mu, of the lagged pairs from ``first`` on (one thread each)."""
+    tid = first + wp.tid()
     lam_f = friction[0]
     if lam_f == wp.float64(0.0):
         return

@@ -441,6 +441,33 @@ def test_term_chunks_give_the_unchunked_results_bit_for_bit(mode, exact_deal_pai
         np.testing.assert_array_equal(f_hess, ref_f_hess)
 
 
+def test_a_chunked_friction_adjoint_agrees_with_one_thread():
+    """On a CPU the friction adjoint runs ranges of the lagged pairs on one thread per core,
+    each into outputs of its own, summed in order (one thread took 44 ms of a 6,208-triangle
+    frame's 48 ms backward). The sums' order moves the last bits only."""
+    meshes, poses = _rack_meshes_and_poses(0.02)
+    static = [False] * (len(meshes) - 1) + [True]
+    friction = wp.array([0.4], dtype=wp.float64)
+    rng = np.random.default_rng(5)
+    moved = poses.copy()
+    moved[:-1, :3] += rng.normal(scale=1e-3, size=(len(meshes) - 1, 3))
+    multiplier = rng.normal(size=(len(meshes), 6))
+    results = {}
+    for chunks in (1, 2, 3):
+        model = wc.ContactModel(meshes, dhat=0.05, static=static, term_chunks=chunks)
+        model._min_chunk_leaf_terms = 1  # the rack is too small to be split by default
+        model.evaluate(poses)
+        lagged = model.friction_frame(1e-6, friction, 1e-4)
+        assert model._chunk_count(lagged.pairs) == chunks
+        results[chunks] = model.friction_adjoint(lagged, moved, poses, multiplier)
+    adj_q, adj_friction, adj_mu = results[1]
+    assert np.abs(adj_q).max() > 0.0 and adj_friction != 0.0 and adj_mu != 0.0
+    for chunks in (2, 3):
+        q, f, m = results[chunks]
+        np.testing.assert_allclose(q, adj_q, rtol=1e-12, atol=1e-12 * np.abs(adj_q).max())
+        assert f == pytest.approx(adj_friction, rel=1e-12) and m == pytest.approx(adj_mu, rel=1e-12)
+
+
 def test_term_chunks_are_validated():
     with pytest.raises(ValueError, match="term_chunks"):
         wc.ContactModel([icosphere(0), icosphere(0)], term_chunks=0)

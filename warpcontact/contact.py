@@ -1127,6 +1127,10 @@ class ContactModel:
         Returns ((nbodies, 6) rigid-coordinate adjoint of q_now, adjoint of lambda, of mu).
         """
         n = self.num_bodies
+        # On a CPU, ranges of the lagged pairs on one thread per core, each into outputs of its
+        # own, summed in order: one thread took 44 ms of a 6,208-triangle frame's 48 ms
+        # backward (stop 63).
+        chunks = self._chunk_count(lagged.pairs)
         with wp.ScopedDevice(self.device):
             rot_next = wp.zeros(n, dtype=wp.mat33d)
             pos_next = wp.zeros(n, dtype=wp.vec3d)
@@ -1134,13 +1138,17 @@ class ContactModel:
             pos_now = wp.zeros(n, dtype=wp.vec3d)
             wp.launch(rigid_kernels.body_transforms_kernel, dim=n, inputs=[wp.array(q_next, dtype=wp.transformd)], outputs=[rot_next, pos_next])
             wp.launch(rigid_kernels.body_transforms_kernel, dim=n, inputs=[wp.array(q_now, dtype=wp.transformd)], outputs=[rot_now, pos_now])
-            adj_q = wp.zeros((n, 6), dtype=wp.float64)
-            adj_friction = wp.zeros(1, dtype=wp.float64)
-            adj_mu = wp.zeros(1, dtype=wp.float64)
-            if lagged.pairs:
-                wp.launch(
+            adj_q = wp.zeros((chunks, n, 6), dtype=wp.float64)
+            adj_friction = wp.zeros((chunks, 1), dtype=wp.float64)
+            adj_mu = wp.zeros((chunks, 1), dtype=wp.float64)
+            lam = wp.array(multiplier, dtype=rigid_kernels.vec6d)
+        bounds = [lagged.pairs * k // chunks for k in range(chunks + 1)]
+        run_concurrently(
+            (
+                functools.partial(
+                    wp.launch,
                     friction_kernels.friction_adjoint_kernel,
-                    dim=lagged.pairs,
+                    dim=bounds[k + 1] - bounds[k],
                     inputs=[
                         self._triangle_vertices,
                         self._eps,
@@ -1156,11 +1164,19 @@ class ContactModel:
                         self._body_dynamic,
                         self._seed_body_pair,
                         lagged.data,
-                        wp.array(multiplier, dtype=rigid_kernels.vec6d),
+                        lam,
+                        bounds[k],
                     ],
-                    outputs=[adj_q, adj_friction, adj_mu],
+                    outputs=[adj_q[k], adj_friction[k], adj_mu[k]],
+                    device=self.device,
                 )
-        return adj_q.numpy(), float(adj_friction.numpy()[0]), float(adj_mu.numpy()[0])
+                for k in range(chunks)
+                if bounds[k + 1] > bounds[k]
+            ),
+            modules=[friction_kernels],
+            device=self.device,
+        )
+        return adj_q.numpy().sum(axis=0), float(adj_friction.numpy().sum()), float(adj_mu.numpy().sum())
 
     @property
     def body_rotation(self) -> wp.array:
