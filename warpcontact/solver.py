@@ -1434,10 +1434,10 @@ class ImplicitSolver:
                     return refusal(i, f"{point} crosses {names[other]!r}'s surface at {where:.0%} of it")
         # Two bodies whose centres come closer than the sum of their inner balls' radii overlap
         # there however they turn: a cube passing beside another, its centre never inside it.
-        # Sampling the contact model on the straight motion is left to pairs without both
-        # balls (a ring's or an open mesh's centre is no material point): its turning is not
-        # the bodies' and clips a tumbling corner (random piles of boxes and balls at dt 0.02
-        # were refused in 4 of 8 seeds, though sub-steps showed nothing passing).
+        # Sampling the contact model on the straight motion is left to pairs with a dynamic
+        # open mesh, which has no inside to follow (below): its turning is not the bodies'
+        # and clips a tumbling corner (random piles of boxes and balls at dt 0.02 were
+        # refused in 4 of 8 seeds, though sub-steps showed nothing passing).
         inner = {body: self._crossing_geometry(body).inner_radius for body in np.unique(np.concatenate([a[suspect], b[suspect]]))}
         for i in suspect:
             sliding = inner[a[i]] >= _PASS_THROUGH_ROUND * radius[a[i]] and inner[b[i]] >= _PASS_THROUGH_ROUND * radius[b[i]] and turn[i] < _PASS_THROUGH_TURN
