@@ -1389,7 +1389,7 @@ def test_a_recorded_step_s_backward_uses_the_parameters_it_stepped_with():
     """The step's backward read the model's masses and friction coefficient when it ran:
     changed after a recorded step (a second step recorded with new values, say), the first
     step's gradient came out with the new ones (off by 2.6x the gradient, a probe's two-step
-    case)."""
+    case); its second moments until stop 63 (163x in a probe)."""
 
     def gradients(change):
         sim = Collision(steps=6, tolerance=1e-13)
@@ -1398,6 +1398,7 @@ def test_a_recorded_step_s_backward_uses_the_parameters_it_stepped_with():
         model = out["model"]
         if change:
             model.body_mass.assign(model.body_mass.numpy() * [4.0, 0.3, 2.0])
+            model.body_unit_second_moment.assign(model.body_unit_second_moment.numpy() * np.array([3.0, 0.5, 2.0])[:, None, None])
             model.friction.assign([0.9])
         tape.backward(out["loss"])
         return [a.grad.numpy().copy() for a in (out["vel"], out["states"][0].body_q, model.contact_stiffness)]
@@ -1405,6 +1406,37 @@ def test_a_recorded_step_s_backward_uses_the_parameters_it_stepped_with():
     for kept, changed in zip(gradients(False), gradients(True)):
         assert np.abs(kept).max() > 0
         np.testing.assert_array_equal(changed, kept)
+
+
+def test_outputs_marked_retain_grad_keep_their_gradients():
+    """Warp leaves the adjoint of an array marked ``retain_grad`` after the backward pass, for
+    inspection; the step's backward zeroed its outputs' adjoints regardless, so every
+    intermediate state read 0 (a probe, stop 63). The inputs' gradients do not change."""
+
+    def run(retain):
+        b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0), contact_stiffness=1e-3)
+        b.add_sphere(0.5, subdivisions=1, density=100.0, name="a", pose=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+        b.add_sphere(0.5, subdivisions=1, density=100.0, name="b", pose=(1.3, 0.2, 0.0, 0.0, 0.0, 0.0, 1.0))
+        model = b.finalize()
+        solver = wc.ImplicitSolver(model, tolerance=1e-12)
+        states = [model.state() for _ in range(5)]
+        for state in states[1:]:
+            state.body_q.retain_grad = retain
+        vel = wp.array([[2.0, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=wp.vec3d, requires_grad=True)
+        loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+        tape = wp.Tape()
+        with tape:
+            wc.set_body_velocity(states[0], vel, wp.zeros(2, dtype=wp.vec3d), 0.04)
+            for t in range(4):
+                solver.step(states[t], states[t + 1], None, 0.04)
+            wp.launch(position_loss_kernel, dim=1, inputs=[states[-1].body_q, 1, wp.vec3d(2.5, 1.0, 0.3)], outputs=[loss])
+        tape.backward(loss)
+        return vel.grad.numpy().copy(), [state.body_q.grad.numpy().copy() for state in states[1:4]]
+
+    kept_vel, kept = run(True)
+    plain_vel, plain = run(False)
+    np.testing.assert_array_equal(kept_vel, plain_vel)
+    assert all(np.abs(g).max() > 0 for g in kept) and not any(np.any(g) for g in plain)
 
 
 def test_arrays_replaced_between_recorded_steps_get_their_own_steps_gradients():

@@ -524,13 +524,15 @@ class ImplicitSolver:
 
     def _body_model(self, dt: float, *, snapshot: bool = False) -> dynamics_kernels.BodyModel:
         """The model's per-body data for a step of ``dt``: its arrays, or with ``snapshot``
-        copies of those a user may change between steps (masses and gains), which a taped
-        step's backward reads when it runs; shapes and static flags are set by ``finalize``."""
+        copies of those a user may change between steps (masses, second moments and gains),
+        which a taped step's backward reads when it runs; static flags are set by ``finalize``."""
         m = self.model
         take = (lambda array: wp.clone(array, requires_grad=False)) if snapshot else (lambda array: array)
         bodies = dynamics_kernels.BodyModel()
         bodies.mass = take(m.body_mass)
-        bodies.unit_second_moment = m.body_unit_second_moment
+        # Read live by the backward, a second moment changed after the step (a user's, or a
+        # second step's) turned its gradients 163x and flipped their signs (a probe, stop 63).
+        bodies.unit_second_moment = take(m.body_unit_second_moment)
         bodies.dynamic = m.body_dynamic
         bodies.kp_linear = take(m.body_kp_linear)
         bodies.kd_linear = take(m.body_kd_linear)
@@ -1722,10 +1724,11 @@ class ImplicitSolver:
                 # The step's outputs' adjoints are consumed, as Warp's adjoints of array writes
                 # consume theirs: a second tape.backward() without tape.zero() then adds its
                 # gradient to the first instead of passing this step's adjoints through again.
-                state_out.body_q.grad.zero_()
-                state_out.body_q_prev.grad.zero_()
-                if model.num_joint_coordinates:
-                    state_out.joint_q.grad.zero_()
-                    state_out.joint_q_prev.grad.zero_()
+                # An array marked retain_grad keeps its adjoint, as Warp's writes leave it (they
+                # were zeroed regardless, a probe, stop 63).
+                outputs = (state_out.body_q, state_out.body_q_prev) + ((state_out.joint_q, state_out.joint_q_prev) if model.num_joint_coordinates else ())
+                for output in outputs:
+                    if not output.retain_grad:
+                        output.grad.zero_()
 
         return backward, arrays, control_values
