@@ -3,6 +3,7 @@
 import csv
 import json
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -915,6 +916,42 @@ def test_overwriting_a_shared_name_does_not_mix_two_commands_results(tmp_path, c
     assert f"{tmp_path / 'trajectory.usda'} belongs with" in err and "choose another --out" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(earlier)
     assert all((tmp_path / name).read_text() == f"earlier {name}" for name in earlier)
+
+
+def test_simulate_refuses_an_unfinished_runs_folder(tmp_path, capsys):
+    """A simulate into the folder of an interrupted run (its checkpoint.npz) wrote its
+    trajectory there, and the run's own --resume, with or without --overwrite, was then
+    refused: the run could not be continued in place (a probe, stop 63)."""
+    (tmp_path / "checkpoint.npz").write_bytes(b"an unfinished run")
+    for extra in ([], ["--overwrite"]):
+        assert main(["simulate", "push", "--frames", "1", "--out", str(tmp_path), *extra]) == 2
+        assert "an unfinished run's progress" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.npz"]
+
+
+def test_simulate_keeps_its_frames_when_stdout_fails_and_names_its_scene_absolutely(tmp_path, capsys, monkeypatch):
+    """A progress line that could not be written (a full disk under a redirected stdout) ended
+    the run with every frame lost; and summary.json named the scene as typed, relative to
+    wherever the command ran, beside a trajectory that records it absolutely (a probe, stop
+    63)."""
+    import io as std_io
+    import shutil
+
+    from warpcontact.scenes import shipped_scene
+
+    class FullDisk(std_io.StringIO):
+        def write(self, text):
+            if text.startswith("  frame"):  # the progress lines, while the disk is full
+                raise OSError(28, "No space left on device")
+            return super().write(text)
+
+    shutil.copy(shipped_scene("push"), tmp_path / "mine.usda")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "stdout", FullDisk())
+    assert main(["simulate", "mine.usda", "--frames", "2", "--out", "out"]) == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["frames"] == 2 and summary["scene"] == str((tmp_path / "mine.usda").resolve())
+    assert Usd.Stage.Open(str(tmp_path / "out" / "trajectory.usda")).GetEndTimeCode() == 2
 
 
 @pytest.mark.parametrize("command", [["run", "--quick", "--iters", "1"], ["simulate", "--frames", "1"]])

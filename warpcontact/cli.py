@@ -111,7 +111,10 @@ def _simulate(args) -> int:
             state, following = following, state
             iterations.append(info.iterations)
             if (frame + 1) % max(1, frames // 10) == 0 or frame + 1 == frames:
-                print(f"  frame {frame + 1:4d}/{frames}  Newton iterations {info.iterations:3d}  min separation {info.min_separation:.2e} m")
+                try:
+                    print(f"  frame {frame + 1:4d}/{frames}  Newton iterations {info.iterations:3d}  min separation {info.min_separation:.2e} m")
+                except OSError:
+                    pass  # a full or closed stdout lost every frame simulated (a probe, stop 63)
         except (SolverError, ValueError) as exc:
             # The frames before it are written: they are what one looks at to see why. A later
             # step's ValueError is the simulation's, not the scene's (a state it produced that
@@ -135,7 +138,7 @@ def _simulate(args) -> int:
             if b.target_position is not None
         }
         summary = {
-            "scene": str(scene_path),
+            "scene": str(Path(scene_path).resolve()),  # absolute, as the trajectory records its source
             "device": str(model.device),
             "frames": len(poses) - 1,
             "time_step": dt,
@@ -243,6 +246,9 @@ def _refuse_mixed_results(out: Path, names: tuple):
     in OUT: run and simulate both write trajectory.usda, and a simulate --overwrite into a
     run's folder left the run's metrics.json and convergence.png beside another trajectory
     (a run, simulate's summary.json), without a word."""
+    if names != RUN_OUTPUTS and set(names) & set(RUN_OUTPUTS) and (out / CHECKPOINT_NAME).exists():
+        # A simulate there blocked the run from resuming in place (a probe, stop 63).
+        raise ValueError(f"{out / CHECKPOINT_NAME}: an unfinished run's progress, which this command's results would keep from resuming; continue it with run --resume, or choose another --out")
     for others in (RUN_OUTPUTS, SIMULATE_OUTPUTS):
         shared = [name for name in others if name in names and (out / name).exists()]
         companions = [name for name in others if name not in names and (out / name).exists()]
@@ -370,7 +376,7 @@ def _run(args) -> int:
     print()
     metrics = {
         "task": t.name,
-        "scene": str(scene_path),
+        "scene": str(Path(scene_path).resolve()),  # absolute, as the trajectory records its source
         "model": args.model,
         "device": str(problem.model.device),
         "seed": args.seed,
@@ -418,7 +424,7 @@ def _compare(args) -> int:
     results = {}
     payload = {
         "task": t.name,
-        "scene": str(scene_path),
+        "scene": str(Path(scene_path).resolve()),  # absolute, as the trajectory records its source
         "device": args.device,
         "seed": args.seed,
         "quick": bool(args.quick),
