@@ -1283,7 +1283,9 @@ def test_a_failed_results_write_leaves_the_earlier_results_whole(tmp_path, capsy
 
 def test_a_resumed_run_keeps_results_another_command_wrote_since_its_checkpoint(tmp_path, capsys, monkeypatch):
     """--resume skipped the check for earlier results: a simulate's trajectory written into
-    the folder of an interrupted run was replaced by the resumed run's, without a word."""
+    the folder of an interrupted run was replaced by the resumed run's, without a word.
+    Since stop 63 simulate refuses that folder; a trajectory put there otherwise is still
+    kept."""
     from warpcontact import tasks
 
     scene_path = tmp_path / "space.usda"
@@ -1293,13 +1295,15 @@ def test_a_resumed_run_keeps_results_another_command_wrote_since_its_checkpoint(
     interrupt_call(monkeypatch, tasks.TaskProblem, "rollout", 2)
     assert main(argv) == 130
     monkeypatch.undo()
-    assert main(["simulate", str(scene_path), "--frames", "2", "--out", str(out)]) == 0
-    simulated = (out / "trajectory.usda").read_bytes()
     capsys.readouterr()
+    assert main(["simulate", str(scene_path), "--frames", "2", "--out", str(out)]) == 2
+    assert "an unfinished run's progress" in capsys.readouterr().err
+    (out / "trajectory.usda").write_text("another trajectory")
     assert main([*argv, "--resume"]) == 2
     assert "trajectory.usda holds an earlier run's results (use --overwrite)" in capsys.readouterr().err
-    assert (out / "trajectory.usda").read_bytes() == simulated
+    assert (out / "trajectory.usda").read_text() == "another trajectory"
     # Replacing it would leave the simulate's summary.json beside the run's trajectory.
+    (out / "summary.json").write_text("{}")
     assert main([*argv, "--resume", "--overwrite"]) == 2
     assert "belongs with summary.json" in capsys.readouterr().err
     (out / "summary.json").unlink()
