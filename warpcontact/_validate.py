@@ -303,4 +303,4 @@ def validated_poses(poses, names, *, normalize: bool = True) -> np.ndarray:
             f"poses: body {i} ({names[i]}) has quaternion norm {norms[i]:.9g}; "
             f"expected unit norm within {QUATERNION_TOLERANCE} (layout px, py, pz, qx, qy, qz, qw)"
         )
-    return normalized_poses(poses) if normalize else poses
+    return normalized_poses(poses, norms=norms) if normalize else poses

@@ -167,11 +167,12 @@ def quat_norm(q) -> np.ndarray:
 _UNIT_NORM_ROUNDING = 4.0 * np.finfo(np.float64).eps
 
 
-def normalized_poses(poses) -> np.ndarray:
+def normalized_poses(poses, *, norms: np.ndarray | None = None) -> np.ndarray:
     """A copy of (..., 7) poses (p, q) with unit quaternions: each divided by its norm,
-    unless that is 1 within rounding, so that normalising twice gives the bits of once."""
+    unless that is 1 within rounding, so that normalising twice gives the bits of once.
+    ``norms``: the quaternions' ``quat_norm`` (...,), where the caller has them already."""
     out = np.array(poses, dtype=np.float64)
-    norms = quat_norm(out[..., 3:])[..., None]
+    norms = (quat_norm(out[..., 3:]) if norms is None else norms)[..., None]
     out[..., 3:] = np.where(np.abs(norms - 1.0) <= _UNIT_NORM_ROUNDING, out[..., 3:], out[..., 3:] / norms)
     return out
 
