@@ -138,7 +138,7 @@ def _simulate(args) -> int:
             if b.target_position is not None
         }
         summary = {
-            "scene": str(Path(scene_path).resolve()),  # absolute, as the trajectory records its source
+            "scene": _recorded_scene(scene_path),
             "device": str(model.device),
             "frames": len(poses) - 1,
             "time_step": dt,
@@ -180,6 +180,12 @@ def _resolve_scene_path(name: str) -> Path:
         hint = f"; did you mean {close[0]!r}?" if close else ""
         raise ValueError(f"{name!r}: not a USD file ({', '.join(io.USD_READ_SUFFIXES)}) and not a shipped scene (known: {', '.join(SCENE_NAMES)}){hint}")
     return shipped_scene(name)
+
+
+def _recorded_scene(path) -> str:
+    """A scene's path as the JSON outputs record it: absolute, as a trajectory records its
+    source (summary.json named it as typed, relative to where the command ran; a probe, stop 63)."""
+    return str(Path(path).resolve())
 
 
 def _output_folder(path: str) -> Path:
@@ -376,7 +382,7 @@ def _run(args) -> int:
     print()
     metrics = {
         "task": t.name,
-        "scene": str(Path(scene_path).resolve()),  # absolute, as the trajectory records its source
+        "scene": _recorded_scene(scene_path),
         "model": args.model,
         "device": str(problem.model.device),
         "seed": args.seed,
@@ -424,7 +430,7 @@ def _compare(args) -> int:
     results = {}
     payload = {
         "task": t.name,
-        "scene": str(Path(scene_path).resolve()),  # absolute, as the trajectory records its source
+        "scene": _recorded_scene(scene_path),
         "device": args.device,
         "seed": args.seed,
         "quick": bool(args.quick),
