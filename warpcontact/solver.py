@@ -1102,7 +1102,11 @@ class ImplicitSolver:
             outputs=[self._predicted_position, self._predicted_rotation, self._prediction_sensitivity, self._predict_status],
             device=model.device,
         )
-        failed = np.flatnonzero(self._predict_status.numpy())
+        # One wait for the status and the prediction the warm start reads: three reads of their
+        # own were three synchronisations of a GPU a step.
+        self._readback.enqueue(predict_status=self._predict_status, predicted_position=self._predicted_position, predicted_rotation=self._predicted_rotation)
+        self._readback.wait()
+        failed = np.flatnonzero(self._readback.read("predict_status"))
         if failed.size:
             raise SolverError(f"rotation prediction failed for {[model.body_names[i] for i in failed]}: rotation per step too large for dt={dt}")
 
@@ -1312,8 +1316,9 @@ class ImplicitSolver:
         Newton step's bound (else None), instead of evaluating q again."""
         model = self.model
         dynamic = self._dynamic_bodies
-        position = self._predicted_position.numpy()
-        rotation = self._predicted_rotation.numpy()
+        # As read back with the prediction's status (``_solve``).
+        position = self._readback.read("predicted_position")
+        rotation = self._readback.read("predicted_rotation")
         predicted = q[dynamic].copy()
         predicted[:, :3] = position[dynamic]
         predicted[:, 3:] = np.array([quat_from_matrix(rotation[b]) for b in dynamic]).reshape(-1, 4)
