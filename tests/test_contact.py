@@ -741,6 +741,49 @@ def test_friction_terms_check_their_poses():
         model.friction_terms(lagged, poses=poses[:, :6])
 
 
+def test_friction_terms_queued_with_an_evaluation_are_those_computed_after_it(monkeypatch):
+    """``evaluate(poses, friction=lagged)`` queues the friction terms behind the evaluation's
+    wait (on a GPU one synchronisation fewer an evaluation); ``friction_terms(lagged)`` then
+    returns exactly what it computes after a plain evaluation, without launching, once."""
+    model = wc.ContactModel([icosphere(1), box((2.0, 2.0, 1.0))], static=[False, True])
+    poses = identity_poses([[0, 0, 1.05], [0, 0, 0]])
+    slid = identity_poses([[0.01, -0.004, 1.049], [0, 0, 0]])
+    model.evaluate(poses)
+    lagged = model.friction_frame(1.0, wp.array([0.5], dtype=wp.float64), 1e-4)
+    model.evaluate(slid)
+    expected = model.friction_terms(lagged)
+    assert expected[0] > 0.0 and np.abs(expected[1]).max() > 0.0
+    launches = []
+    queue = model._queue_friction_terms
+    monkeypatch.setattr(model, "_queue_friction_terms", lambda *args, **kwargs: launches.append(args) or queue(*args, **kwargs))
+
+    def same(got, want):
+        assert got[0] == want[0] and np.array_equal(got[1], want[1]) and np.array_equal(got[2], want[2])
+
+    result = model.evaluate(slid, friction=lagged)
+    assert len(launches) == 1 and result.value == model.evaluate(slid).value
+    model.evaluate(slid, friction=lagged)
+    same(model.friction_terms(lagged), expected)
+    assert len(launches) == 2  # none of its own
+    same(model.friction_terms(lagged), expected)  # taken once: the next call computes
+    assert len(launches) == 3
+    # Terms at other poses replace the read-backs: the evaluation's are computed again.
+    model.evaluate(slid, friction=lagged)
+    at_start = model.friction_terms(lagged, poses=poses)
+    assert at_start[0] != expected[0]
+    same(model.friction_terms(lagged), expected)
+    # Nor are they the terms of a later evaluation, or of term_lists' poses.
+    model.evaluate(slid, friction=lagged)
+    model.evaluate(poses)
+    same(model.friction_terms(lagged), at_start)
+    model.evaluate(slid, friction=lagged)
+    model.term_lists(poses)
+    with pytest.raises(RuntimeError, match=r"friction_terms: uses .* last evaluate\(poses\), and the model holds none"):
+        model.friction_terms(lagged)
+    with pytest.raises(ValueError, match="friction: expected a LaggedFriction"):
+        model.evaluate(slid, friction="lagged")
+
+
 @pytest.mark.parametrize("gap", [1e-7, 1e-8])
 def test_turned_cubes_stacked_near_contact_keep_their_hessian(gap):
     """Found by a probe: two 1 m cubes stacked face to face had Hessians off by a median 3e-4

@@ -1179,7 +1179,7 @@ def test_a_step_starts_from_the_last_evaluation_of_the_previous_step(monkeypatch
     fills, allowed = [], {"reuse": True}
     fill = wc.ContactModel._fill_lists
     monkeypatch.setattr(wc.ContactModel, "_fill_lists", lambda self, **kw: (fills.append(1), fill(self, **kw)))
-    monkeypatch.setattr(wc.ContactModel, "evaluate", lambda self, poses, reuse=False: evaluate(self, poses, reuse=reuse and allowed["reuse"]))
+    monkeypatch.setattr(wc.ContactModel, "evaluate", lambda self, poses, reuse=False, **options: evaluate(self, poses, reuse=reuse and allowed["reuse"], **options))
     runs = {}
     for on in (True, False):
         allowed["reuse"] = on

@@ -511,6 +511,7 @@ class ContactModel:
         self._records = None
         self._friction_records = None  # (records, totals), allocated by the first friction_terms
         self._friction_graphs = (None, {})  # (the LaggedFriction they belong to, {at_poses: graph})
+        self._queued_friction = None  # the LaggedFriction whose terms the last evaluation queued
         if self._mode == "brute":
             self._set_brute_leaf_list()
         else:
@@ -713,9 +714,11 @@ class ContactModel:
         self._readback.wait()
         return self._readback.read("counters")
 
-    def _fill_lists(self, *, reduce: bool):
+    def _fill_lists(self, *, reduce: bool, friction: LaggedFriction | None = None):
         """Term lists at the current poses (and, with ``reduce``, the potential from them),
         growing the buffers and starting over until they fit; then records the counts.
+        ``friction``: a lagged frame whose terms at these poses are queued behind each attempt,
+        so that its wait covers them too.
 
         Sync-free on a GPU, the launches of an evaluation that fitted its buffers are
         captured into a CUDA graph, which later evaluations replay while the buffers stay
@@ -723,6 +726,8 @@ class ContactModel:
         counters = None
         if reduce and self.sync_free and self._graph is not None:
             wp.capture_launch(self._graph)
+            if friction is not None:
+                self._queue_friction_terms(friction, at_poses=False)
             counters = self._read_counters()
             if self._take_counts(counters):
                 return
@@ -735,6 +740,8 @@ class ContactModel:
             if counters is not None:
                 self._grow_lists(counters)
             self._launch_evaluation(reduce=reduce)
+            if friction is not None:
+                self._queue_friction_terms(friction, at_poses=False)
             counters = self._read_counters()
             if self._take_counts(counters):
                 if reduce and self.sync_free and self.device.is_cuda and self._graph is None:
@@ -863,7 +870,7 @@ class ContactModel:
                 outputs=[targets],
             )
 
-    def evaluate(self, poses, *, reuse: bool = False) -> ContactEvaluation:
+    def evaluate(self, poses, *, reuse: bool = False, friction: LaggedFriction | None = None) -> ContactEvaluation:
         """Potential, gradient and Hessian at ``poses`` (nbodies, 7) = (px, py, pz, qx, qy, qz, qw).
 
         Quaternions within ``QUATERNION_TOLERANCE`` of unit norm are normalised; others raise
@@ -874,16 +881,24 @@ class ContactModel:
                 bit and nothing has overwritten its term lists since (``term_lists``), return
                 a copy of its result and launch nothing. An implicit step starts where the
                 previous step's last evaluation ended, so this saves one evaluation a step.
+            friction: a ``LaggedFriction`` (of ``friction_frame``) whose terms at ``poses`` are
+                computed with the evaluation, behind the same wait; ``friction_terms(friction)``
+                then returns them without a launch or a wait of its own (on a GPU, one
+                synchronisation fewer an evaluation). Not with a reused evaluation.
         """
         poses = self._validated_poses(poses)
+        if friction is not None and not isinstance(friction, LaggedFriction):
+            raise ValueError(f"friction: expected a LaggedFriction (ContactModel.friction_frame) or None, got {type(friction).__name__}")
         last = self._last_evaluation
         if checked_flag(reuse, "reuse") and last is not None and np.array_equal(poses, last[0]):
             return _copy_evaluation(last[1])
         # Until this evaluation succeeds the buffers hold no evaluation's lists and planes.
         self._last_evaluation = None
         self._pair_separation = None
+        self._queued_friction = None
         self._set_poses(poses)
-        self._fill_lists(reduce=True)
+        self._fill_lists(reduce=True, friction=friction)
+        self._queued_friction = friction
         num_far, num_blend, num_leaf, _ = self._counts
         read = self._readback.read
         status = read("status")
@@ -1060,19 +1075,32 @@ class ContactModel:
         Sync-free on a GPU, the launches are captured into a CUDA graph per lagged frame and
         kind of call, which its later calls replay: a step with friction calls this once per
         trial and per iteration of the solver's friction-exact model."""
-        if self._friction_records is None:
-            n = self.num_bodies
-            with wp.ScopedDevice(self.device):
-                totals = (wp.zeros(1, dtype=wp.float64), wp.zeros((n, 6), dtype=wp.float64), wp.zeros(self._hessian_shape, dtype=wp.float64))
-            self._friction_records = (self._new_records(0), totals)
         at_poses = poses is not None
         if not at_poses:
             # term_lists moves the transforms without evaluating: "the last evaluated poses"
             # were silently term_lists' (friction 0 read 0.44).
             self._require_evaluation("friction_terms")
-        if at_poses:
-            # The solver's retracted poses as given, to the last bit (their norms are 1 within rounding).
-            self._friction_pose_host.numpy()[:] = self._validated_poses(poses, normalize=False)
+        # Queued with the last evaluation, whose wait covered them: taken once, as the read-backs
+        # hold the last queued terms only.
+        queued = not at_poses and self._queued_friction is lagged
+        self._queued_friction = None
+        if not queued:
+            if at_poses:
+                # The solver's retracted poses as given, to the last bit (their norms are 1 within rounding).
+                self._friction_pose_host.numpy()[:] = self._validated_poses(poses, normalize=False)
+            self._queue_friction_terms(lagged, at_poses)
+            self._readback.wait()
+        read = self._readback.read
+        return float(read("friction_value")[0]), read("friction_grad").reshape(-1).copy(), symmetric_from_upper(read("friction_hess"))
+
+    def _queue_friction_terms(self, lagged: LaggedFriction, at_poses: bool):
+        """Launches the friction terms (at the last evaluation's transforms, or at the staged
+        ``_friction_pose_host`` with ``at_poses``) and enqueues their read-back, no wait."""
+        if self._friction_records is None:
+            n = self.num_bodies
+            with wp.ScopedDevice(self.device):
+                totals = (wp.zeros(1, dtype=wp.float64), wp.zeros((n, 6), dtype=wp.float64), wp.zeros(self._hessian_shape, dtype=wp.float64))
+            self._friction_records = (self._new_records(0), totals)
         # A graph holds the lagged frame's arrays and numbers: one set per LaggedFriction.
         if self._friction_graphs[0] is not lagged:
             self._friction_graphs = (lagged, {})
@@ -1085,9 +1113,6 @@ class ContactModel:
                 with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
                     self._launch_friction_terms(lagged, at_poses)
                 graphs[at_poses] = capture.graph
-        self._readback.wait()
-        read = self._readback.read
-        return float(read("friction_value")[0]), read("friction_grad").reshape(-1).copy(), symmetric_from_upper(read("friction_hess"))
 
     def _launch_friction_terms(self, lagged: LaggedFriction, at_poses: bool):
         targets, (value, grad, hess) = self._friction_records
@@ -1198,6 +1223,7 @@ class ContactModel:
         replace the last evaluation's: call ``evaluate`` again before bounding a step."""
         self._last_evaluation = None
         self._pair_separation = None
+        self._queued_friction = None
         self._set_poses(self._validated_poses(poses))
         self._fill_lists(reduce=False)
         num_far, num_blend, num_leaf, _ = self._counts

@@ -159,11 +159,12 @@ class IpcContactModel:
         QUATERNION_TOLERANCE is refused; a zero one gave a NaN gradient with value 0)."""
         return validated_poses(poses, self.names)
 
-    def evaluate(self, poses, *, reuse: bool = False) -> ContactEvaluation:
+    def evaluate(self, poses, *, reuse: bool = False, friction: LaggedFriction | None = None) -> ContactEvaluation:
         """Barrier value, (nbodies, 6) gradient and Hessian in rigid coordinates (dp, dtheta).
 
-        ``reuse`` is accepted for ``ContactModel``'s signature and ignored: ipctk's
-        collision set is rebuilt at every call.
+        ``reuse`` and ``friction`` are accepted for ``ContactModel``'s signature and ignored:
+        ipctk's collision set is rebuilt at every call, and ``friction_terms`` computes on the
+        host, with nothing to wait for.
         """
         checked_flag(reuse, "reuse")
         poses = self._validated_poses(poses)
