@@ -1954,8 +1954,26 @@ def test_physics_attributes_of_no_usd_physics_schema_are_named_in_a_warning(tmp_
     box.CreateAttribute("physics:densty", Sdf.ValueTypeNames.Float).Set(300.0)
     box.CreateAttribute("physics:linearDamping", Sdf.ValueTypeNames.Float).Set(0.1)
     stage.GetRootLayer().Save()
-    with pytest.warns(UserWarning, match=r"typo\.usda: no UsdPhysics schema has these attributes, so they are ignored: /World/box physics:densty \(did you mean physics:density\?\), /World/box physics:linearDamping"):
+    with pytest.warns(UserWarning, match=r"typo\.usda: no UsdPhysics schema has these attributes or schemas, so they are ignored: /World/box physics:densty \(did you mean physics:density\?\), /World/box physics:linearDamping"):
         io.load_scene(path)
+
+
+def test_misspelt_usd_physics_schemas_are_named_in_a_warning(tmp_path):
+    """USD drops an API schema it does not know without a word: a crate listing
+    PhysicsRigidbodyAPI loaded as a static obstacle, silently (a probe, stop 64). Names that
+    look like UsdPhysics' are named; other tools' schemas (PhysX's) are not."""
+    path = write_physics_scene(tmp_path / "schema.usda")
+    stage = Usd.Stage.Open(str(path))
+    crate = UsdGeom.Xform.Define(stage, "/World/crate")
+    crate.AddTranslateOp().Set(Gf.Vec3d(1.2, 0.0, 0.6))
+    listed = Sdf.TokenListOp()
+    listed.prependedItems = ["PhysicsRigidbodyAPI", "physicsMassAPI", "PhysxRigidBodyAPI"]
+    crate.GetPrim().SetMetadata("apiSchemas", listed)
+    UsdPhysics.CollisionAPI.Apply(UsdGeom.Cube.Define(stage, "/World/crate/shape").GetPrim())
+    stage.GetRootLayer().Save()
+    with pytest.warns(UserWarning, match=r"schema\.usda: no UsdPhysics schema has these attributes or schemas, so they are ignored: /World/crate apiSchemas PhysicsRigidbodyAPI \(did you mean PhysicsRigidBodyAPI\?\), /World/crate apiSchemas physicsMassAPI \(did you mean PhysicsMassAPI\?\)$"):
+        scene = io.load_scene(path)
+    assert scene.body("shape").static and not scene.body("box").static  # the crate's collider, static
 
 
 @pytest.mark.parametrize("axis", ["Z", "Y", "X"])

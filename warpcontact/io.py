@@ -2379,8 +2379,9 @@ def _check_namespace(stage, scene_prim, body_paths, Usd, UsdPhysics, source: str
     """Every authored warpcontact: attribute must be one this module reads, on the kind of
     prim it is read from; a typo or a misplaced attribute would otherwise be ignored. Authored
     physics: attributes that no UsdPhysics schema has (a typo, physics:densty, or another
-    tool's name, physics:linearDamping: ignored without a word until stop 62) are named in a
-    warning, not refused: a newer UsdPhysics may add attributes."""
+    tool's name, physics:linearDamping: ignored without a word until stop 62), and API schemas
+    that look like UsdPhysics' but that USD does not know (``_unknown_physics_schemas``), are
+    named in a warning, not refused: a newer UsdPhysics may add names."""
     import difflib
 
     physics = _usd_physics_attribute_names(UsdPhysics)
@@ -2388,6 +2389,7 @@ def _check_namespace(stage, scene_prim, body_paths, Usd, UsdPhysics, source: str
     scene_path = str(scene_prim.GetPath()) if scene_prim is not None else None
     for prim in _all_prims(stage, Usd):
         path = str(prim.GetPath())
+        unknown_physics.extend(f"{path} apiSchemas {name}{f' (did you mean {close}?)' if close else ''}" for name, close in _unknown_physics_schemas(prim, Usd, UsdPhysics, difflib))
         known = _SCENE_PRIM_NAMES if path == scene_path else _BODY_PRIM_NAMES if path in body_paths else ()
         for attr in prim.GetAuthoredAttributes():
             name = attr.GetName()
@@ -2406,7 +2408,35 @@ def _check_namespace(stage, scene_prim, body_paths, Usd, UsdPhysics, source: str
                 hint = f"did you mean {_NS}{close[0]}?" if close else "see the namespace in warpcontact/io.py"
             raise ValueError(f"{source}: prim {path}: unknown attribute {name} here ({hint})")
     if unknown_physics:
-        warnings.warn(f"{source}: no UsdPhysics schema has these attributes, so they are ignored: {', '.join(unknown_physics[:5])}{' ...' if len(unknown_physics) > 5 else ''}", stacklevel=3)
+        warnings.warn(f"{source}: no UsdPhysics schema has these attributes or schemas, so they are ignored: {', '.join(unknown_physics[:5])}{' ...' if len(unknown_physics) > 5 else ''}", stacklevel=3)
+
+
+def _unknown_physics_schemas(prim, Usd, UsdPhysics, difflib) -> list[tuple[str, str | None]]:
+    """(name, the UsdPhysics API schema it is closest to, or None) of each API schema in the
+    prim's apiSchemas that USD does not know and that looks like a UsdPhysics one (its prefix
+    "Physics", or one of their names but for case): USD drops them without a word, and a box
+    listing PhysicsRigidbodyAPI loaded as a static obstacle (a probe, stop 64). Other tools'
+    schemas (PhysxRigidBodyAPI, a studio's own) are not named."""
+    listed = prim.GetMetadata("apiSchemas")
+    if listed is None:
+        return []
+    applied = set(prim.GetAppliedSchemas())
+    physics = _usd_physics_api_schemas(Usd, UsdPhysics)
+    by_lower = {name.lower(): name for name in physics}
+    unknown = []
+    for name in dict.fromkeys(listed.GetAddedOrExplicitItems()):
+        api = name.split(":")[0]  # a multiple-apply schema's instance name follows its colon
+        if name in applied or not (api.startswith("Physics") or api.lower() in by_lower):
+            continue
+        unknown.append((name, by_lower.get(api.lower()) or next(iter(difflib.get_close_matches(api, physics, n=1)), None)))
+    return unknown
+
+
+def _usd_physics_api_schemas(Usd, UsdPhysics) -> list[str]:
+    """The names of UsdPhysics' API schemas (the pxr installed)."""
+    from pxr import Tf
+
+    return sorted(Usd.SchemaRegistry.GetAPISchemaTypeName(Tf.Type.Find(schema)) for schema in vars(UsdPhysics).values() if isinstance(schema, type) and issubclass(schema, Usd.APISchemaBase))
 
 
 def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: str):
