@@ -1958,6 +1958,20 @@ def test_physics_attributes_of_no_usd_physics_schema_are_named_in_a_warning(tmp_
         io.load_scene(path)
 
 
+@pytest.mark.parametrize("attribute, value", [("pd:kpLinear", (400.0, 400.0, -400.0)), ("pd:kdLinear", (60.0, float("nan"), 60.0)), ("pd:kdAngular", -1.0)])
+def test_a_negative_or_nan_pd_gain_is_named_by_its_attribute(tmp_path, attribute, value):
+    """The builder's check named its own argument and a numpy repr ("kp_linear must be 1 or 3
+    numbers ..., got array([ 400., 400., -400.])"; a probe, stop 64)."""
+    path = write_physics_scene(tmp_path / "gain.usda")
+    stage = Usd.Stage.Open(str(path))
+    box = stage.GetPrimAtPath("/World/box")
+    kind = Sdf.ValueTypeNames.Double3 if isinstance(value, tuple) else Sdf.ValueTypeNames.Double
+    box.CreateAttribute("warpcontact:" + attribute, kind, custom=True).Set(Gf.Vec3d(*value) if isinstance(value, tuple) else value)
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=rf"gain\.usda: prim /World/box: warpcontact:{attribute} must be finite and >= 0 \(a PD gain\), got [-\[]"):
+        io.load_scene(path)
+
+
 def test_misspelt_usd_physics_schemas_are_named_in_a_warning(tmp_path):
     """USD drops an API schema it does not know without a word: a crate listing
     PhysicsRigidbodyAPI loaded as a static obstacle, silently (a probe, stop 64). Names that

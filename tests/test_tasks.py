@@ -1138,9 +1138,30 @@ def test_settings_changed_after_the_problem_was_built_are_checked_again():
 
 
 def test_a_negative_pd_stiffness_is_reported_as_such():
+    """It was reported as moving nothing "without a positive PD stiffness" (a probe, stop 64)."""
     scene = _pd_space_billiards()
     scene.bodies[0].kp_linear = np.array([-400.0, 100.0, 100.0])
-    with pytest.raises(ValueError, match=r"PD targets of \['x'\] move nothing without a positive PD stiffness there .*got \{'x': -400.0\}"):
+    with pytest.raises(ValueError, match=r"warpcontact:control:dofs: a PD stiffness must be finite and >= 0 \(warpcontact:pd:kpLinear / kpAngular\), got \{'x': -400.0\}"):
+        TaskProblem(scene)
+
+
+def test_a_task_control_and_its_controlled_bodies_are_named_by_attribute():
+    """A misspelt or missing control was "task control '' is not one of (...)", naming no
+    attribute, and two controlled bodies were counted, not named (a probe, stop 64)."""
+    scene = _pd_space_billiards()
+    scene.task.control = "pd_target"
+    with pytest.raises(ValueError, match=r"warpcontact:task:control \(on the PhysicsScene prim\) is 'pd_target'; it must be one of initial_state, pd_targets, joint_sine"):
+        TaskProblem(scene)
+    scene.task.control = ""
+    with pytest.raises(ValueError, match=r"warpcontact:task:control \(on the PhysicsScene prim\) is not authored; it must be one of"):
+        TaskProblem(scene)
+    scene = _pd_space_billiards()
+    scene.bodies[1].control_dofs = ("x",)
+    with pytest.raises(ValueError, match=r"a pd_targets task controls exactly one body, the one with warpcontact:control:dofs; found 2: /World/cue, /World/target"):
+        TaskProblem(scene)
+    for body in scene.bodies:
+        body.control_dofs = ()
+    with pytest.raises(ValueError, match=r"controls exactly one body, the one with warpcontact:control:dofs; found none"):
         TaskProblem(scene)
 
 

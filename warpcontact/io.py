@@ -2268,6 +2268,12 @@ def _read_warpcontact_body(prim, body: BodySpec, meters: float, source: str):
             authored = f" (authored: position {target.tolist()}, tolerance {tolerance}, at metersPerUnit {meters:g})" if meters != 1.0 else ""
             raise ValueError(f"{source}: prim {prim.GetPath()}: {problem}{authored}")
     _read_casts(prim, body, _BODY_ATTRIBUTES, source)
+    for attr_name, (field_name, _cast) in _BODY_ATTRIBUTES.items():
+        # Here, by attribute: the builder's check named its own argument and a numpy repr
+        # ("kp_linear must be ..., got array([ 400., 400., -400.])"; a probe, stop 64).
+        gain = np.asarray(getattr(body, field_name), dtype=np.float64) if attr_name.startswith("pd:") else None
+        if gain is not None and not (np.isfinite(gain).all() and (gain >= 0.0).all()):
+            raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:{attr_name} must be finite and >= 0 (a PD gain), got {gain.tolist()}")
 
 
 def _read_casts(prim, target, casts: dict, source: str):

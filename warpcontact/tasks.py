@@ -607,7 +607,8 @@ def validate_task(scene) -> tuple:
     if not task.name:
         raise ValueError(f"{source}: no task metadata (warpcontact:task:name on the PhysicsScene prim)")
     if task.control not in CONTROL_KINDS:
-        raise ValueError(f"{source}: task control {task.control!r} is not one of {CONTROL_KINDS}")
+        got = f"is {task.control!r}" if task.control else "is not authored"
+        raise ValueError(f"{source}: warpcontact:task:control (on the PhysicsScene prim) {got}; it must be one of {', '.join(CONTROL_KINDS)}")
     controlled = [i for i, b in enumerate(scene.bodies) if b.control_dofs]
     if task.control == "joint_sine" and controlled:
         # They were accepted and never read: the sine waves drive the joints only.
@@ -616,7 +617,8 @@ def validate_task(scene) -> tuple:
             "whose sine waves drive the joints' PD targets; remove it"
         )
     if task.control != "joint_sine" and len(controlled) != 1:
-        raise ValueError(f"{source}: expected exactly one body with warpcontact:control:dofs, found {len(controlled)}")
+        found = f"found {len(controlled)}: {', '.join(str(scene.bodies[i].path or scene.bodies[i].name) for i in controlled)}" if controlled else "found none"
+        raise ValueError(f"{source}: a {task.control} task controls exactly one body, the one with warpcontact:control:dofs; {found}")
     if controlled:
         body = scene.bodies[controlled[0]]
         _check_control_dofs(body, task.control, source, scene.up_axis)
@@ -691,6 +693,10 @@ def _check_control_dofs(body, control: str, source: str, up_axis: str = "Z"):
         raise ValueError(f"{where}: {velocities} are initial velocities, which pd_targets control does not use")
     kp_linear = np.broadcast_to(np.asarray(body.kp_linear, dtype=np.float64), (3,))
     stiffness = {d: float(body.kp_angular if d in _ROTATION_DOFS else kp_linear[_POSITION_DOFS.index(d)]) for d in dofs}
+    invalid = {d: kp for d, kp in stiffness.items() if not (np.isfinite(kp) and kp >= 0.0)}
+    if invalid:
+        # It was reported as moving nothing "without a positive PD stiffness" (a probe, stop 64).
+        raise ValueError(f"{where}: a PD stiffness must be finite and >= 0 (warpcontact:pd:kpLinear / kpAngular), got {invalid}")
     undriven = {d: kp for d, kp in stiffness.items() if not kp > 0}
     if undriven:
         raise ValueError(
