@@ -1124,6 +1124,26 @@ def test_python_dash_m_runs_the_command(tmp_path):
 
 
 
+def test_a_commands_warnings_print_on_one_line(tmp_path):
+    """The package's warnings printed its source file and line, then that line of code
+    ("warpcontact/cli.py:214: UserWarning: ..." and "scene = io.load_scene(scene_path)") to a
+    user who wrote no code (a probe, stop 64)."""
+    import subprocess
+    import sys
+
+    text = (Path(__file__).resolve().parents[1] / "scenes" / "push.usda").read_text()
+    damped = text.replace("custom double warpcontact:pd:kpAngular", "float physxRigidBody:angularDamping = 0.05\n        custom double warpcontact:pd:kpAngular", 1)
+    assert damped != text
+    scene = tmp_path / "damped.usda"
+    scene.write_text(damped)
+    command = [sys.executable, "-m", "warpcontact", "simulate", str(scene), "--frames", "1", "--out", str(tmp_path / "sim")]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    line = next(line for line in done.stderr.splitlines() if "not modelled" in line)
+    assert line.startswith(f"warning: {scene}: not modelled, so ignored: ") and "angularDamping 0.05" in line, done.stderr
+    assert "UserWarning" not in done.stderr and "load_scene(" not in done.stderr, done.stderr
+
+
 def test_a_reader_that_closes_the_pipe_early_loses_nothing(tmp_path):
     """A probe at stop 61: `simulate ... | head -1` ended with "error: [Errno 32] Broken pipe"
     and no outputs (the progress line's write raised in the frame loop), and `list | head -1`

@@ -8,6 +8,7 @@ import logging
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -1079,12 +1080,27 @@ class _ReaderTolerantStream:
 
 def main(argv=None) -> int:
     """The ``warpcontact`` command; exit status 0, 1 (failed), 2 (refused input) or 130 (interrupted)."""
-    stdout = sys.stdout
+    stdout, formatwarning = sys.stdout, warnings.formatwarning
     sys.stdout = _ReaderTolerantStream(stdout)
+    warnings.formatwarning = _command_warning(formatwarning)
     try:
         return _main(argv)
     finally:
-        sys.stdout = stdout
+        sys.stdout, warnings.formatwarning = stdout, formatwarning
+
+
+def _command_warning(formatwarning):
+    """Python's warning format with the package's own warnings (UserWarning: they name the
+    file, prim or setting) on one line, "warning: ...": they printed the package's source
+    file and line ("warpcontact/cli.py:214: UserWarning: ...", then the line of code) to a
+    user who wrote no code (a probe, stop 64)."""
+
+    def format_warning(message, category, filename, lineno, line=None):
+        if issubclass(category, UserWarning):
+            return f"warning: {message}\n"
+        return formatwarning(message, category, filename, lineno, line)
+
+    return format_warning
 
 
 def _main(argv) -> int:
