@@ -1049,7 +1049,7 @@ def _author(path, edit):
         (lambda st: st.GetPrimAtPath("/World/physicsScene").CreateAttribute("warpcontact:task:learningrate", Sdf.ValueTypeNames.Double).Set(0.1), r"prim /World/physicsScene: unknown attribute warpcontact:task:learningrate here \(did you mean warpcontact:task:learningRate\?\)"),
         (lambda st: st.GetPrimAtPath("/World/ground").CreateAttribute("warpcontact:target:position", Sdf.ValueTypeNames.Double3).Set(Gf.Vec3d(1, 0, 0)), r"prim /World/ground: unknown attribute warpcontact:target:position here \(it belongs on a rigid-body prim\)"),
         (lambda st: st.GetPrimAtPath("/World/box").CreateAttribute("warpcontact:frames", Sdf.ValueTypeNames.Int).Set(3), r"prim /World/box: unknown attribute warpcontact:frames here \(it belongs on the PhysicsScene prim\)"),
-        (lambda st: st.GetPrimAtPath("/World/box/shape").CreateAttribute("warpcontact:spin", Sdf.ValueTypeNames.Int).Set(3), r"prim /World/box/shape: unknown attribute warpcontact:spin here \(see the namespace"),
+        (lambda st: st.GetPrimAtPath("/World/box/shape").CreateAttribute("warpcontact:spin", Sdf.ValueTypeNames.Int).Set(3), r"prim /World/box/shape: unknown attribute warpcontact:spin here \(the attributes read are listed in docs/scene_format\.md\)"),
     ],
 )
 def test_bad_values_name_the_file_prim_and_attribute(tmp_path, edit, match):

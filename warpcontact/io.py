@@ -4,7 +4,8 @@ Import reads the UsdPhysics schemas through ``UsdPhysics.LoadUsdPhysicsFromRange
 newer name) plus warpcontact's own attributes; export writes a scene (round-trippable) or a
 simulated trajectory (time-sampled transforms, meshes authored once).
 
-warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``BodySpec``):
+warpcontact namespace (all optional; defaults in ``SimulationSettings`` / ``BodySpec``; for users, with
+units and defaults: docs/scene_format.md):
 
     on the PhysicsScene prim
         warpcontact:timeStep (double, s)          warpcontact:frames (int)
@@ -2411,7 +2412,7 @@ def _check_namespace(stage, scene_prim, body_paths, Usd, UsdPhysics, source: str
                 hint = "it belongs on a rigid-body prim"
             else:
                 close = difflib.get_close_matches(short, _SCENE_PRIM_NAMES + _BODY_PRIM_NAMES, n=1)
-                hint = f"did you mean {_NS}{close[0]}?" if close else "see the namespace in warpcontact/io.py"
+                hint = f"did you mean {_NS}{close[0]}?" if close else "the attributes read are listed in docs/scene_format.md"
             raise ValueError(f"{source}: prim {path}: unknown attribute {name} here ({hint})")
     if unknown_physics:
         warnings.warn(f"{source}: no UsdPhysics schema has these attributes or schemas, so they are ignored: {', '.join(unknown_physics[:5])}{' ...' if len(unknown_physics) > 5 else ''}", stacklevel=3)
