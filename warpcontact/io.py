@@ -2269,11 +2269,13 @@ def _read_warpcontact_body(prim, body: BodySpec, meters: float, source: str):
             authored = f" (authored: position {target.tolist()}, tolerance {tolerance}, at metersPerUnit {meters:g})" if meters != 1.0 else ""
             raise ValueError(f"{source}: prim {prim.GetPath()}: {problem}{authored}")
     _read_casts(prim, body, _BODY_ATTRIBUTES, source)
+    # Here, by attribute: the builder's check named its own argument and a numpy repr
+    # ("kp_linear must be ..., got array([ 400., 400., -400.])"; a probe, stop 64).
     for attr_name, (field_name, _cast) in _BODY_ATTRIBUTES.items():
-        # Here, by attribute: the builder's check named its own argument and a numpy repr
-        # ("kp_linear must be ..., got array([ 400., 400., -400.])"; a probe, stop 64).
-        gain = np.asarray(getattr(body, field_name), dtype=np.float64) if attr_name.startswith("pd:") else None
-        if gain is not None and not (np.isfinite(gain).all() and (gain >= 0.0).all()):
+        if not attr_name.startswith("pd:"):
+            continue
+        gain = np.asarray(getattr(body, field_name), dtype=np.float64)
+        if not (np.isfinite(gain).all() and (gain >= 0.0).all()):
             raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:{attr_name} must be finite and >= 0 (a PD gain), got {gain.tolist()}")
 
 
@@ -2392,11 +2394,12 @@ def _check_namespace(stage, scene_prim, body_paths, Usd, UsdPhysics, source: str
     import difflib
 
     physics = _usd_physics_attribute_names(UsdPhysics)
+    physics_schemas = _usd_physics_api_schemas(Usd, UsdPhysics)
     unknown_physics = []
     scene_path = str(scene_prim.GetPath()) if scene_prim is not None else None
     for prim in _all_prims(stage, Usd):
         path = str(prim.GetPath())
-        unknown_physics.extend(f"{path} apiSchemas {name}{f' (did you mean {close}?)' if close else ''}" for name, close in _unknown_physics_schemas(prim, Usd, UsdPhysics, difflib))
+        unknown_physics.extend(f"{path} apiSchemas {name}{f' (did you mean {close}?)' if close else ''}" for name, close in _unknown_physics_schemas(prim, physics_schemas, difflib))
         known = _SCENE_PRIM_NAMES if path == scene_path else _BODY_PRIM_NAMES if path in body_paths else ()
         for attr in prim.GetAuthoredAttributes():
             name = attr.GetName()
@@ -2418,17 +2421,16 @@ def _check_namespace(stage, scene_prim, body_paths, Usd, UsdPhysics, source: str
         warnings.warn(f"{source}: no UsdPhysics schema has these attributes or schemas, so they are ignored: {', '.join(unknown_physics[:5])}{' ...' if len(unknown_physics) > 5 else ''}", stacklevel=3)
 
 
-def _unknown_physics_schemas(prim, Usd, UsdPhysics, difflib) -> list[tuple[str, str | None]]:
+def _unknown_physics_schemas(prim, physics: list[str], difflib) -> list[tuple[str, str | None]]:
     """(name, the UsdPhysics API schema it is closest to, or None) of each API schema in the
-    prim's apiSchemas that USD does not know and that looks like a UsdPhysics one (its prefix
-    "Physics", or one of their names but for case): USD drops them without a word, and a box
-    listing PhysicsRigidbodyAPI loaded as a static obstacle (a probe, stop 64). Other tools'
-    schemas (PhysxRigidBodyAPI, a studio's own) are not named."""
+    prim's apiSchemas that USD does not know and that looks like one of UsdPhysics' (``physics``,
+    their names): the prefix "Physics", or one of their names but for case. USD drops them
+    without a word, and a box listing PhysicsRigidbodyAPI loaded as a static obstacle (a
+    probe, stop 64). Other tools' schemas (PhysxRigidBodyAPI, a studio's own) are not named."""
     listed = prim.GetMetadata("apiSchemas")
     if listed is None:
         return []
     applied = set(prim.GetAppliedSchemas())
-    physics = _usd_physics_api_schemas(Usd, UsdPhysics)
     by_lower = {name.lower(): name for name in physics}
     unknown = []
     for name in dict.fromkeys(listed.GetAddedOrExplicitItems()):
