@@ -1,6 +1,7 @@
 """CLI commands run end to end on tiny cases and write well-formed output."""
 
 import csv
+import os
 import json
 import re
 import sys
@@ -1122,6 +1123,33 @@ def test_python_dash_m_runs_the_command(tmp_path):
     assert done.returncode == 0, done.stderr
     assert "push" in done.stdout and "billiards" in done.stdout
 
+
+
+def test_a_ctrl_c_while_trimesh_imports_is_not_lost(tmp_path):
+    """trimesh's optional imports catch every exception, KeyboardInterrupt included: a Ctrl-C
+    in a command's first ~0.3 s was lost, and the command ran on and replaced its earlier
+    results (a probe, stop 64). A stand-in trimesh that receives SIGINT while importing and
+    swallows it as trimesh does, then hands over to the real one: importing the package
+    ends in the interruption instead of going on."""
+    import subprocess
+    import sys
+
+    (tmp_path / "trimesh").mkdir()
+    (tmp_path / "trimesh" / "__init__.py").write_text(
+        "import importlib, os, signal, sys, time\n"
+        "try:\n"
+        "    os.kill(os.getpid(), signal.SIGINT)\n"
+        "    time.sleep(1.0)\n"
+        "except BaseException:\n"
+        "    pass\n"
+        "here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))\n"
+        "sys.path[:] = [p for p in sys.path if os.path.abspath(p or '.') != here]\n"
+        "del sys.modules['trimesh']\n"
+        "sys.modules['trimesh'] = importlib.import_module('trimesh')\n"
+    )
+    script = "import signal; signal.signal(signal.SIGINT, signal.default_int_handler)\nimport warpcontact\nprint('ran on')"
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(tmp_path)})
+    assert "ran on" not in done.stdout and "KeyboardInterrupt" in done.stderr, (done.stdout, done.stderr)
 
 
 def test_a_commands_warnings_print_on_one_line(tmp_path):

@@ -5,6 +5,7 @@ centred limit and quintic blending (Ye, Wu, Komura, Pan: "Efficient Differentiab
 Model with Long-range Influence"). See docs/architecture.md for the pipeline.
 """
 
+from . import _guarded_imports  # noqa: F401  (first: its docstring says why)
 from .builder import ModelBuilder
 from .contact import CENTRED_WEIGHTS, CONTACT_MODES, ContactEvaluation, ContactModel, TermLists
 from .leaf import (
