@@ -1711,6 +1711,25 @@ def test_a_failing_step_names_the_length_it_had_to_converge_below():
     assert below == pytest.approx(1e-5 * 0.02**2) and step > below
 
 
+def test_a_failing_step_shorter_than_its_converged_length_says_why_it_did_not_count():
+    """A 1 mm box on a 10 m box: the step fails with a last step of 6.3e-10 m, "converged
+    below 7.1e-10 m", which read as a contradiction (a probe, stop 64); the error now says
+    what keeps such a step from counting, before the floored eigenvalues it names."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81), friction=0.5)
+    ground = scenes.ground_rectangle(4.0, 4.0, cell=0.5)
+    b.add_body((ground.vertices, ground.faces), static=True, name="ground")
+    b.add_box((10.0, 10.0, 1.0), density=500.0, pose=(0.0, 0.0, 0.501, 0.0, 0.0, 0.0, 1.0), name="big")
+    b.add_box((1e-3, 1e-3, 1e-3), density=500.0, pose=(0.0, 0.0, 1.0025, 0.0, 0.0, 0.0, 1.0), name="tiny")
+    with pytest.warns(UserWarning, match="tiny"):
+        model = b.finalize()
+    with pytest.raises(wc.SolverError, match=r"no convergence after 30 Newton iterations") as failure:
+        wc.ImplicitSolver(model).step(model.state(), model.state(), None, 0.02)
+    step, below = map(float, re.search(r"moves points up to (\S+) m \(converged below (\S+) m: the least of", str(failure.value)).groups())
+    assert step <= below
+    assert "; this one is shorter, but a body pressed close to a contact, eigenvalues floored in the Newton system or another body's own smaller length kept it from counting as converged)" in str(failure.value)
+    assert "eigenvalues floored at 1e-10 of the largest hid a move" in str(failure.value)
+
+
 @pytest.mark.parametrize("gap", [1e-9, 1e-8])
 def test_a_box_pressed_between_walls_beyond_float64s_reach_is_an_error_not_a_freeze(gap):
     """A frictionless box between two walls ``gap`` away, falling along them. At 1e-9 m the

@@ -1573,12 +1573,19 @@ class ImplicitSolver:
         if unsolved.failed:
             pairs = ", ".join(f"{a} and {b}" for a, b in unsolved.pairs)
             hint += f"; {unsolved.failed} of {unsolved.trials} trial poses had unsolved leaf pairs (last: {pairs}): {UNSOLVED_HINT}"
+        # A step below that length that still failed read as a contradiction (a probe, stop 64).
+        short = (
+            "; this one is shorter, but a body pressed close to a contact, eigenvalues floored in the Newton system or another body's own smaller "
+            "length kept it from counting as converged"
+            if step_length <= converged_length
+            else ""
+        )
         return (
             f"implicit step: {what} after {iterations} Newton iterations; last Newton step moves points "
             # The length the step had to fall below, not tolerance x the largest radius alone: a
             # 4e10 m ground made that 2.8 m, which a step of 1e-6 m "missed".
             f"up to {step_length:.3e} m (converged below {converged_length:.3e} m: the least of tolerance x the largest body radius, "
-            f"1e-5 m/s^2 x dt^2 and the friction smoothing length, or the coordinates' rounding), L = {value:.9e}; "
+            f"1e-5 m/s^2 x dt^2 and the friction smoothing length, or the coordinates' rounding{short}), L = {value:.9e}; "
             f"largest moves: {bodies}{hint}"
         )
 
