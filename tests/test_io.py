@@ -354,10 +354,12 @@ def test_quads_fanned_at_once_give_the_face_by_face_triangles():
     expected = np.concatenate([p[np.asarray(io._polygon_triangles(points[p]))] for p in polygons])
     counts = np.array([len(p) for p in polygons])
     assert (counts == 4).sum() > 100  # enough quads for both paths
-    got = io._polygon_mesh_faces(points, counts, np.concatenate(polygons), np.ones(len(counts), dtype=bool), "test")
+    got, owners = io._polygon_mesh_faces(points, counts, np.concatenate(polygons), np.ones(len(counts), dtype=bool), "test")
     np.testing.assert_array_equal(got, expected)
+    # Each triangle's authored face, which error messages name.
+    np.testing.assert_array_equal(owners, np.repeat(np.arange(len(counts)), [len(io._polygon_triangles(points[p])) for p in polygons]))
     # A quad listed in holeIndices adds nothing.
-    with_hole = io._polygon_mesh_faces(points, np.append(counts, 4), np.concatenate(polygons + [np.arange(s, s + 4)]), np.append(np.ones(len(counts), dtype=bool), False), "test")
+    with_hole, _ = io._polygon_mesh_faces(points, np.append(counts, 4), np.concatenate(polygons + [np.arange(s, s + 4)]), np.append(np.ones(len(counts), dtype=bool), False), "test")
     np.testing.assert_array_equal(with_hole, expected)
 
 
@@ -1970,6 +1972,33 @@ def test_a_negative_or_nan_pd_gain_is_named_by_its_attribute(tmp_path, attribute
     stage.GetRootLayer().Save()
     with pytest.raises(ValueError, match=rf"gain\.usda: prim /World/box: warpcontact:{attribute} must be finite and >= 0 \(a PD gain\), got [-\[]"):
         io.load_scene(path)
+
+
+def test_a_mesh_error_names_the_authored_faces_and_points(tmp_path):
+    """A box of six quads with the third flipped was "faces 5 and 10 both run from vertex 0 to
+    vertex 4": triangles of the triangulation, counted over all of a body's colliders; the
+    file has quads 2 and 5 (a probe, stop 64). A primitive's triangles are named as such."""
+    path = write_physics_scene(tmp_path / "flipped.usda")
+    stage = Usd.Stage.Open(str(path))
+    stage.RemovePrim("/World/box/shape")
+    collider = UsdGeom.Mesh.Define(stage, "/World/box/collider")
+    collider.CreatePointsAttr([(-0.25, -0.25, -0.25), (0.25, -0.25, -0.25), (0.25, 0.25, -0.25), (-0.25, 0.25, -0.25), (-0.25, -0.25, 0.25), (0.25, -0.25, 0.25), (0.25, 0.25, 0.25), (-0.25, 0.25, 0.25)])
+    quads = [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]]
+    quads[2] = quads[2][::-1]
+    collider.CreateFaceVertexCountsAttr([4] * 6)
+    collider.CreateFaceVertexIndicesAttr([i for quad in quads for i in quad])
+    UsdPhysics.CollisionAPI.Apply(collider.GetPrim())
+    stage.GetRootLayer().Save()
+    scene = io.load_scene(path)
+    with pytest.raises(ValueError, match=r"prim /World/box: body 'box': mass from density needs a closed, consistently outward-oriented mesh \(face 2 of /World/box/collider and face 5 of /World/box/collider both run from point 0 of /World/box/collider to point 4 of /World/box/collider: one of them is wound the other way round"):
+        scene.build_model(device="cpu")
+    # A second, primitive collider after the mesh: the names still point into the mesh.
+    UsdPhysics.CollisionAPI.Apply(UsdGeom.Cube.Define(stage, "/World/box/knob").GetPrim())
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"face 2 of /World/box/collider and face 5 of /World/box/collider both run"):
+        io.load_scene(path).build_model(device="cpu")
+    part = io.ColliderPart("/World/box/knob", 12, 8)
+    assert part.face_name(3) == "triangle 3 of /World/box/knob's triangulation" and part.vertex_name(1) == "vertex 1 of /World/box/knob's triangulation"
 
 
 def test_misspelt_usd_physics_schemas_are_named_in_a_warning(tmp_path):

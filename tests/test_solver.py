@@ -1829,7 +1829,7 @@ def test_a_solid_whose_pieces_share_an_edge_is_refused_naming_the_edge():
     c.apply_translation((1, 1, 0))
     bracket = trimesh.util.concatenate([a, c])
     bracket.merge_vertices()
-    with pytest.raises(ValueError, match=r"'bracket': mass from density needs .* \(the edge between vertices \d+ and \d+ is shared by 4 faces, 1 such edge\(s\) in all"):
+    with pytest.raises(ValueError, match=r"'bracket': mass from density needs .* \(the edge between vertex \d+ and vertex \d+ is shared by 4 faces, 1 such edge\(s\) in all"):
         wc.ModelBuilder().add_body(bracket, density=1000.0, name="bracket")
 
 
@@ -2201,14 +2201,19 @@ def test_builder_names_a_flipped_face_a_hole_and_a_flat_face_on_an_edge():
     stray zero-area triangle along an edge was blamed on pieces meeting there."""
     flipped = _BOX.faces.copy()
     flipped[2] = flipped[2, ::-1]
-    with pytest.raises(ValueError, match=r"'flipped': mass from density needs .* \(faces \d+ and \d+ both run from vertex \d+ to vertex \d+: one of them is wound the other way round; invert it\)"):
+    with pytest.raises(ValueError, match=r"'flipped': mass from density needs .* \(face \d+ and face \d+ both run from vertex \d+ to vertex \d+: one of them is wound the other way round; invert it\)") as unshifted:
         wc.ModelBuilder().add_body((_BOX.vertices, flipped), density=1.0, name="flipped")
-    with pytest.raises(ValueError, match=r"'holed': mass from density needs .* \(the edge between vertices \d+ and \d+ borders face \d+ alone, 3 such open edge\(s\) in all: a hole or a T-junction"):
+    # The caller's vertex numbers, not those left once unused vertices are dropped (a vertex
+    # no face uses, listed first, shifted every number the error gave by one; stop 64).
+    a, b = map(int, re.search(r"from vertex (\d+) to vertex (\d+)", str(unshifted.value)).groups())
+    with pytest.raises(ValueError, match=rf"both run from vertex {a + 1} to vertex {b + 1}: one of them"):
+        wc.ModelBuilder().add_body((np.vstack([[9.0, 9.0, 9.0], _BOX.vertices]), flipped + 1), density=1.0, name="flipped")
+    with pytest.raises(ValueError, match=r"'holed': mass from density needs .* \(the edge between vertex \d+ and vertex \d+ borders face \d+ alone, 3 such open edge\(s\) in all: a hole or a T-junction"):
         wc.ModelBuilder().add_body((_BOX.vertices, _BOX.faces[1:]), density=1.0, name="holed")
     a, b = _BOX.faces[0, :2]
     midpoint = (_BOX.vertices[a] + _BOX.vertices[b]) / 2.0
     stray = (np.vstack([_BOX.vertices, midpoint]), np.vstack([_BOX.faces, [[a, len(_BOX.vertices), b]]]))
-    with pytest.raises(ValueError, match=rf"'stray': mass from density needs .* \(face 12 has no area, its corners on a line, and lies on the edge between vertices {min(a, b)} and {max(a, b)}, which 3 faces then share: remove such faces\)"):
+    with pytest.raises(ValueError, match=rf"'stray': mass from density needs .* \(face 12 has no area, its corners on a line, and lies on the edge between vertex {min(a, b)} and vertex {max(a, b)}, which 3 faces then share: remove such faces\)"):
         wc.ModelBuilder().add_body(stray, density=1.0, name="stray")
 
 

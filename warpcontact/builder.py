@@ -2,6 +2,7 @@
 
 import warnings
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -349,7 +350,15 @@ def _overlapping_pieces(mesh: trimesh.Trimesh, pieces: tuple) -> bool:
     return False
 
 
-def _closure_hint(mesh: trimesh.Trimesh) -> str:
+@dataclass(frozen=True)
+class _MeshNames:
+    """How errors name a mesh's faces and vertices (``add_body``'s ``mesh_names``)."""
+
+    face: Callable[[int], str]
+    vertex: Callable[[int], str]
+
+
+def _closure_hint(mesh: trimesh.Trimesh, names: _MeshNames) -> str:
     """Why a mesh that does not enclose a volume may not: a closed piece wound inside out
     (``_inside_out_piece``), a face naming a vertex twice, the whole mesh wound inside out,
     or faces that share no vertices (a triangle soup, as many exporters write), which close
@@ -359,7 +368,7 @@ def _closure_hint(mesh: trimesh.Trimesh) -> str:
     repeated = np.flatnonzero((mesh.faces[:, 0] == mesh.faces[:, 1]) | (mesh.faces[:, 1] == mesh.faces[:, 2]) | (mesh.faces[:, 2] == mesh.faces[:, 0]))
     if repeated.size:
         a, b, _ = mesh.faces[repeated[0]]
-        return f" (face {int(repeated[0])} names vertex {int(a if a in mesh.faces[repeated[0], 1:] else b)} twice, which closes nothing: remove such faces)"
+        return f" ({names.face(repeated[0])} names {names.vertex(a if a in mesh.faces[repeated[0], 1:] else b)} twice, which closes nothing: remove such faces)"
     with np.errstate(invalid="ignore", divide="ignore"):
         if mesh.is_watertight and mesh.is_winding_consistent and mesh.volume < 0:
             return " (it is wound inside out, its faces' normals pointing inwards: invert its faces, e.g. trimesh's invert())"
@@ -378,20 +387,20 @@ def _closure_hint(mesh: trimesh.Trimesh) -> str:
         on_edge = mesh.edges_face[inverse == shared[0]]
         flat = on_edge[_flat_faces(mesh.vertices, mesh.faces[on_edge])]
         if flat.size:
-            return f" (face {int(flat[0])} has no area, its corners on a line, and lies on the edge between vertices {a} and {b}, which {int(counts[shared[0]])} faces then share: remove such faces)"
-        return f" (the edge between vertices {a} and {b} is shared by {int(counts[shared[0]])} faces, {shared.size} such edge(s) in all: a surface closes a volume where every edge has two faces; split the pieces apart there)"
+            return f" ({names.face(flat[0])} has no area, its corners on a line, and lies on the edge between {names.vertex(a)} and {names.vertex(b)}, which {int(counts[shared[0]])} faces then share: remove such faces)"
+        return f" (the edge between {names.vertex(a)} and {names.vertex(b)} is shared by {int(counts[shared[0]])} faces, {shared.size} such edge(s) in all: a surface closes a volume where every edge has two faces; split the pieces apart there)"
     # A face wound the other way, a hole, a T-junction: refused without a word of why (a probe).
     open_edges = np.flatnonzero(counts == 1)
     if open_edges.size:
         a, b = (int(v) for v in edges[open_edges[0]])
         face = int(mesh.edges_face[np.flatnonzero(inverse == open_edges[0])[0]])
-        return f" (the edge between vertices {a} and {b} borders face {face} alone, {open_edges.size} such open edge(s) in all: a hole or a T-junction, where a closed surface has two faces on every edge)"
+        return f" (the edge between {names.vertex(a)} and {names.vertex(b)} borders {names.face(face)} alone, {open_edges.size} such open edge(s) in all: a hole or a T-junction, where a closed surface has two faces on every edge)"
     directed, directed_counts = np.unique(mesh.edges, axis=0, return_counts=True)
     twice = np.flatnonzero(directed_counts > 1)
     if twice.size:
         a, b = (int(v) for v in directed[twice[0]])
         faces = mesh.edges_face[np.flatnonzero((mesh.edges[:, 0] == a) & (mesh.edges[:, 1] == b))]
-        return f" (faces {int(faces[0])} and {int(faces[1])} both run from vertex {a} to vertex {b}: one of them is wound the other way round; invert it)"
+        return f" ({names.face(faces[0])} and {names.face(faces[1])} both run from {names.vertex(a)} to {names.vertex(b)}: one of them is wound the other way round; invert it)"
     return ""
 
 
@@ -454,13 +463,14 @@ def _contact_faces(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray,
     flat = _flat_faces(vertices, faces)
     if flat.all() or not flat.any():
         return vertices, faces
-    return _used_vertices(vertices, faces[~flat])
+    return _used_vertices(vertices, faces[~flat])[:2]
 
 
-def _used_vertices(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The mesh without the vertices no face uses, faces renumbered."""
+def _used_vertices(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh without the vertices no face uses, faces renumbered, and each kept vertex's
+    index in the given mesh."""
     used, renumbered = np.unique(faces, return_inverse=True)
-    return vertices[used], renumbered.reshape(-1, 3)
+    return vertices[used], renumbered.reshape(-1, 3), used
 
 
 def finite_vector(value, size: int) -> np.ndarray | None:
@@ -471,9 +481,10 @@ def finite_vector(value, size: int) -> np.ndarray | None:
     return array
 
 
-def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia, center_of_mass) -> tuple[float, np.ndarray, np.ndarray]:
+def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia, center_of_mass, names: "_MeshNames") -> tuple[float, np.ndarray, np.ndarray]:
     """(mass, centre of mass in the mesh frame, second moment about it) of a dynamic body
-    from ``add_body``'s arguments, each checked and named."""
+    from ``add_body``'s arguments, each checked and named (its mesh's faces and vertices
+    by ``names``)."""
     where = f"body {name!r}"
     pieces = _volume_pieces(mesh)
     closed = pieces is not None
@@ -485,14 +496,14 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
     if not is_positive_finite(value):
         raise ValueError(f"{where}: {label} must be positive and finite, got {value!r}")
     if density is not None and not closed:
-        raise ValueError(f"{where}: mass from density needs a closed, consistently outward-oriented mesh{_closure_hint(mesh)}; give mass and inertia instead")
+        raise ValueError(f"{where}: mass from density needs a closed, consistently outward-oriented mesh{_closure_hint(mesh, names)}; give mass and inertia instead")
     if closed and (density is not None or inertia is None or center_of_mass is None) and _overlapping_pieces(mesh, pieces):
         raise ValueError(
             f"{where}: closed pieces of its mesh overlap, so their shared volume would count twice in its mass properties; "
             "join them into one surface (a boolean union) or give mass, inertia and center_of_mass"
         )
     if inertia is None and not closed:
-        raise ValueError(f"{where}: inertia is needed for a mesh that is not closed and consistently outward-oriented (no volume to take it from){_closure_hint(mesh)}")
+        raise ValueError(f"{where}: inertia is needed for a mesh that is not closed and consistently outward-oriented (no volume to take it from){_closure_hint(mesh, names)}")
     centred, origin = _about_own_centre(mesh)
     with np.errstate(all="ignore"):  # the inertia check below names a body too large or small for them
         props = centred.mass_properties if closed else None
@@ -689,6 +700,7 @@ class ModelBuilder:
         kd_linear=0.0,
         kp_angular: float = 0.0,
         kd_angular: float = 0.0,
+        mesh_names=None,
     ) -> int:
         """Add a rigid body; returns its index.
 
@@ -708,6 +720,10 @@ class ModelBuilder:
             kp_linear, kd_linear: PD gains per translation axis (scalar or 3 values; N/m,
                 N s/m).
             kp_angular, kd_angular: PD gains of the orientation (N m/rad, N m s/rad).
+            mesh_names: (face_name, vertex_name), functions of a face's and a vertex's index
+                in ``mesh`` returning how an error about the mesh names them (default
+                "face i", "vertex v"; ``io`` names the collider prims' authored faces and
+                points, which its triangulation numbers otherwise).
         """
         name = self._body_name(name)
         static = checked_flag(static, f"body {name!r}: static")
@@ -723,7 +739,10 @@ class ModelBuilder:
         vertices, faces = validated_mesh(vertices, faces, name)
         # Vertices no face uses are not part of the body: they moved the centre of mass of
         # the mass and inertia path, and the body radius that sizes the solver's tolerance.
-        vertices, faces = _used_vertices(vertices, faces)
+        vertices, faces, used = _used_vertices(vertices, faces)
+        face_name, vertex_name = mesh_names if mesh_names is not None else (lambda f: f"face {f}", lambda v: f"vertex {v}")
+        # The errors name what the caller gave: a vertex by its index before unused ones went.
+        names = _MeshNames(face=lambda f: face_name(int(f)), vertex=lambda v: vertex_name(int(used[v])))
         tm = trimesh.Trimesh(vertices, faces, process=False)
         given = pose
         pose = finite_vector(pose, 7)
@@ -742,7 +761,7 @@ class ModelBuilder:
             com = vertices.mean(axis=0)
             body_mass, second_moment = 1.0, np.zeros((3, 3))
         else:
-            body_mass, com, second_moment = _mass_properties(tm, name, density=density, mass=mass, inertia=inertia, center_of_mass=center_of_mass)
+            body_mass, com, second_moment = _mass_properties(tm, name, density=density, mass=mass, inertia=inertia, center_of_mass=center_of_mass, names=names)
 
         gains = {}
         for label, value, count in (("kp_linear", kp_linear, 3), ("kd_linear", kd_linear, 3), ("kp_angular", kp_angular, 1), ("kd_angular", kd_angular, 1)):

@@ -108,6 +108,7 @@ from .sphere_tree import repeated_corner_sets
 
 __all__ = [
     "BodySpec",
+    "ColliderPart",
     "JointSpec",
     "Scene",
     "SimulationSettings",
@@ -220,6 +221,48 @@ class BodySpec(_ArrayFieldEquality):
     target_tolerance: float = 0.0
     control_dofs: tuple = ()
     group: int = -1
+    # The colliders its mesh was read from (``ColliderPart``s, in mesh order; empty for a body
+    # built in Python), which errors about the mesh name.
+    collider_parts: tuple = ()
+
+
+@dataclass(frozen=True, eq=False)
+class ColliderPart(_ArrayFieldEquality):
+    """A run of a loaded body's triangles and vertices and the collider prim it came from:
+    ``faces`` holds each triangle's authored face for a Mesh (None for a primitive or a
+    convex hull, which the loader triangulates); a Mesh's vertices are its points, in order."""
+
+    prim: str
+    first_triangle: int
+    first_vertex: int
+    faces: np.ndarray | None = None
+
+    def face_name(self, triangle: int) -> str:
+        return f"face {int(self.faces[triangle])} of {self.prim}" if self.faces is not None else f"triangle {triangle} of {self.prim}'s triangulation"
+
+    def vertex_name(self, vertex: int) -> str:
+        return f"point {vertex} of {self.prim}" if self.faces is not None else f"vertex {vertex} of {self.prim}'s triangulation"
+
+
+def _mesh_names(parts: tuple):
+    """``ModelBuilder.add_body``'s ``mesh_names`` for a body loaded from ``parts``
+    (``BodySpec.collider_parts``), or None for one built in Python: errors counted the
+    triangulated faces of all its colliders together (an authored quad 2 was "faces 5"; a
+    probe, stop 64)."""
+    if not parts:
+        return None
+    triangles = np.array([part.first_triangle for part in parts])
+    vertices = np.array([part.first_vertex for part in parts])
+
+    def face_name(triangle: int) -> str:
+        part = parts[int(np.searchsorted(triangles, triangle, side="right")) - 1]
+        return part.face_name(triangle - part.first_triangle)
+
+    def vertex_name(vertex: int) -> str:
+        part = parts[int(np.searchsorted(vertices, vertex, side="right")) - 1]
+        return part.vertex_name(vertex - part.first_vertex)
+
+    return face_name, vertex_name
 
 
 @dataclass(eq=False)
@@ -294,7 +337,7 @@ class Scene(_ArrayFieldEquality):
                 else:
                     kwargs.update(density=b.density if b.density is not None else 1000.0)
             try:
-                builder.add_body((b.vertices, b.faces), **kwargs)
+                builder.add_body((b.vertices, b.faces), mesh_names=_mesh_names(b.collider_parts), **kwargs)
             except ValueError as exc:
                 raise ValueError(f"{self.source or '<scene>'}: prim {b.path}: {exc}") from None
         index = {b.name: i for i, b in enumerate(self.bodies)}
@@ -529,7 +572,8 @@ def _polygon_triangles(corners: np.ndarray) -> list | None:
     return triangles
 
 
-def _mesh_triangles(prim, UsdGeom, source, *, refuse_repeats: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def _mesh_triangles(prim, UsdGeom, source, *, refuse_repeats: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A Mesh prim's points, triangles and the authored face of each triangle."""
     mesh = UsdGeom.Mesh(prim)
     points = np.asarray(mesh.GetPointsAttr().Get() or [], dtype=np.float64).reshape(-1, 3)
     counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
@@ -555,7 +599,7 @@ def _mesh_triangles(prim, UsdGeom, source, *, refuse_repeats: bool = True) -> tu
     kept[holes] = False
     if refuse_repeats:
         _refuse_repeated_polygons(points, counts, indices, kept, where)
-    faces = _polygon_mesh_faces(points, counts, indices, kept, where)
+    faces, owners = _polygon_mesh_faces(points, counts, indices, kept, where)
     if not len(faces):
         raise ValueError(f"{where}: every face is a hole (holeIndices)")
     faces = np.asarray(faces, dtype=np.int64)
@@ -566,7 +610,7 @@ def _mesh_triangles(prim, UsdGeom, source, *, refuse_repeats: bool = True) -> tu
     area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     if not (area2 > 0).any():
         raise ValueError(f"{where}: mesh is degenerate (every triangle has zero area)")
-    return points, faces
+    return points, faces, owners
 
 
 def _refuse_repeated_polygons(points: np.ndarray, counts: np.ndarray, indices: np.ndarray, kept: np.ndarray, where: str) -> None:
@@ -597,10 +641,11 @@ def _refuse_repeated_polygons(points: np.ndarray, counts: np.ndarray, indices: n
             )
 
 
-def _polygon_mesh_faces(points: np.ndarray, counts: np.ndarray, indices: np.ndarray, kept: np.ndarray, where: str) -> np.ndarray:
+def _polygon_mesh_faces(points: np.ndarray, counts: np.ndarray, indices: np.ndarray, kept: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
     """Triangles (nt, 3) of a mesh's polygons (those ``kept``: holes are not), face by face
-    in order. Triangles and strictly convex quads, the common polygons, are split at once
-    (one face at a time, 229k triangles took 2.9 s and a 90,000-quad ground 25 s)."""
+    in order, and the authored face of each (nt,). Triangles and strictly convex quads, the
+    common polygons, are split at once (one face at a time, 229k triangles took 2.9 s and a
+    90,000-quad ground 25 s)."""
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     left = kept.copy()
     single = np.flatnonzero(left & (counts == 3))
@@ -621,20 +666,22 @@ def _polygon_mesh_faces(points: np.ndarray, counts: np.ndarray, indices: np.ndar
             raise ValueError(f"{where}: face {f} ({counts[f]} vertices) is a self-intersecting polygon, which has no triangulation; split it into simple polygons")
         triangles.append(poly[np.asarray(corners)])
         owners.append(np.full(len(corners), f))
-    order = np.argsort(np.concatenate(owners), kind="stable")
-    return np.concatenate(triangles).astype(np.int64).reshape(-1, 3)[order]
+    owners = np.concatenate(owners)
+    order = np.argsort(owners, kind="stable")
+    return np.concatenate(triangles).astype(np.int64).reshape(-1, 3)[order], owners[order].astype(np.int64)
 
 
-def _shape_triangles(kind, prim, UsdGeom, source, desc=None, *, exact: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """A collider's triangles: with ``desc``, in UsdPhysics' description (its own-axis scale
+def _shape_triangles(kind, prim, UsdGeom, source, desc=None, *, exact: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """A collider's vertices, triangles and, for a Mesh, the authored face of each triangle
+    (None for a primitive): with ``desc``, in UsdPhysics' description (its own-axis scale
     folded into the dimensions, meshScale for a Mesh); without, in its prim frame from its
     unscaled attributes (for the exact path, ``_in_frame``). ``exact``: the triangles are
     collided themselves (not replaced by a hull of the points), so a Mesh's repeated
     polygons are refused."""
     where = f"{source}: prim {prim.GetPath()}"
     if kind == "MeshShape":
-        points, faces = _mesh_triangles(prim, UsdGeom, source, refuse_repeats=exact)
-        return (points if desc is None else points * np.asarray(desc.meshScale, dtype=np.float64)), faces
+        points, faces, owners = _mesh_triangles(prim, UsdGeom, source, refuse_repeats=exact)
+        return (points if desc is None else points * np.asarray(desc.meshScale, dtype=np.float64)), faces, owners
     for name in _READ_GEOMETRY:
         attr = prim.GetAttribute(name)
         if attr and attr.Get() is None:
@@ -661,7 +708,7 @@ def _shape_triangles(kind, prim, UsdGeom, source, desc=None, *, exact: bool = Tr
         m = _tapered(size["bottom"], size["top"], size["height"], rounded=kind == "Capsule1Shape", where=where)
     if "axis" in size:
         m = _align_axis(m, size["axis"])
-    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64)
+    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64), None
 
 
 # The dimensions of the primitives that have no tapered form (``_tapered`` checks those),
@@ -1275,7 +1322,7 @@ def load_scene(path) -> Scene:
     static_bodies: dict[str, BodySpec] = {}
     disabled = {str(prim_path) for prim_path, desc in descs.get("RigidBody", []) if not desc.rigidBodyEnabled}
     colliders: dict[str, list] = {}  # rigid body path -> its collider prims
-    mesh_parts: dict[int, tuple] = {}  # id(body) -> (body, its colliders' (vertices, faces))
+    mesh_parts: dict[int, tuple] = {}  # id(body) -> (body, its colliders' (vertices, faces, (prim, authored faces)))
     collider_materials: dict[str, list] = {}  # collider path -> its bound physics materials
     scene_materials = _scene_physics_materials(scene_prim)
     planes = []  # (path, world frame in stage units, axis token) of Plane colliders
@@ -1330,7 +1377,7 @@ def load_scene(path) -> Scene:
                 # of the ellipsoid USD draws). Its points are then moved by the full world
                 # matrix into the frame of its body (or its own); a mirroring matrix also
                 # reverses the triangles' winding, which keeps a closed mesh outward-oriented.
-                vertices, faces = _shape_triangles(kind, prim, UsdGeom, source, exact=exact)
+                vertices, faces, owners = _shape_triangles(kind, prim, UsdGeom, source, exact=exact)
                 frame = owner_frame if owner else _frame(matrix)
                 vertices = _in_frame(vertices, matrix, frame) * meters
                 if np.linalg.det(linear) < 0:
@@ -1340,7 +1387,7 @@ def load_scene(path) -> Scene:
                 local_pose = frame.copy()
                 local_pose[:3] *= meters
             else:
-                vertices, faces = _shape_triangles(kind, prim, UsdGeom, source, desc, exact=exact)
+                vertices, faces, owners = _shape_triangles(kind, prim, UsdGeom, source, desc, exact=exact)
                 # localPos / localRot place the collider in its rigid body's frame, or in the
                 # world for a collider without a rigid body (a static body of its own). Scale is
                 # already in the shape's dimensions (meshScale, radius, halfExtents).
@@ -1354,6 +1401,7 @@ def load_scene(path) -> Scene:
                 if owner:
                     vertices = quat_rotate(local_pose[3:], vertices) + local_pose[:3]
             if approximation == "convexHull":
+                owners = None
                 try:
                     vertices, faces = convex_hull_mesh(vertices)
                 except ValueError as exc:
@@ -1367,14 +1415,15 @@ def load_scene(path) -> Scene:
                 )
             # Joined once all are read: joining at each collider was quadratic (a body of
             # 4,000 colliders loaded in 7.5 s, now 2.6 s).
-            mesh_parts.setdefault(id(target), (target, []))[1].append((vertices, faces))
+            mesh_parts.setdefault(id(target), (target, []))[1].append((vertices, faces, (str(prim_path), owners)))
             if owner:
                 colliders.setdefault(owner, []).append(prim)
     for target, parts in mesh_parts.values():
-        pieces = [(target.vertices, target.faces), *parts]
-        offsets = np.cumsum([0] + [len(vertices) for vertices, _ in pieces[:-1]])
-        target.vertices = np.concatenate([vertices for vertices, _ in pieces])
-        target.faces = np.concatenate([faces + offset for (_, faces), offset in zip(pieces, offsets)])
+        first_triangles = np.cumsum([0] + [len(faces) for _, faces, _ in parts[:-1]])
+        first_vertices = np.cumsum([0] + [len(vertices) for vertices, _, _ in parts[:-1]])
+        target.vertices = np.concatenate([vertices for vertices, _, _ in parts])
+        target.faces = np.concatenate([faces + offset for (_, faces, _), offset in zip(parts, first_vertices)])
+        target.collider_parts = tuple(ColliderPart(prim, int(t), int(v), owners) for (_, _, (prim, owners)), t, v in zip(parts, first_triangles, first_vertices))
     for body_path, body_welds in welds.items():
         for joint_path, desc in body_welds:
             _check_weld(stage, bodies[body_path], joint_path, desc, static_bodies, meters, UsdGeom, Usd, source)
