@@ -84,18 +84,20 @@ def _host() -> str:
     return f"{name}, {cores} logical cores"
 
 
-def _write_results(out_dir: Path, name: str, device, repeats: int, fields: dict, *, complete: bool = False) -> dict:
-    """Write out_dir/NAME.json with the common header (benchmark, device, host, date, repeats,
-    and ``complete``: False while rows are still to come, so that the files of a run stopped
-    early say so; a stop-58 probe found them indistinguishable from a finished run's), and
-    out_dir/NAME.csv with one line per entry of ``fields["rows"]`` when there is one."""
+def _write_results(out_dir: Path, name: str, device, repeats: int | None, fields: dict, *, complete: bool = False) -> dict:
+    """Write out_dir/NAME.json with the common header (benchmark, device, host, date, the
+    ``repeats`` of a benchmark that repeats its measurements (frame and accuracy measure
+    frames, which their headers count, and had "repeats" hold the frame count and 1; a probe,
+    stop 64), and ``complete``: False while rows are still to come, so that the files of a run
+    stopped early say so; a stop-58 probe found them indistinguishable from a finished run's),
+    and out_dir/NAME.csv with one line per entry of ``fields["rows"]`` when there is one."""
     payload = {
         "benchmark": name,
         "device": str(device),
         "device_name": device.name,
         "host": _host(),
         "date": time.strftime("%Y-%m-%d"),
-        "repeats": repeats,
+        **({"repeats": repeats} if repeats is not None else {}),
         "complete": complete,
         **fields,
     }
@@ -339,10 +341,12 @@ def run_contact_benchmark(
     missing = ipc.toolkit_problem() if with_ipc else None
     if missing is not None:  # before any row replaces an earlier run's
         raise ValueError(f"{missing}; or leave out the ipc rows (ipc_dhat=None; --ipc-dhat 0 on the command line)")
+    # Compile time apart, as the other benchmarks report it (these two left it out; a probe, stop 64).
+    module_seconds = _load_kernel_modules(dev)
     rows = []
 
     def save(*, complete=False):
-        _write_results(out_dir, "contact", dev, repeats, {"rows": rows}, complete=complete)
+        _write_results(out_dir, "contact", dev, repeats, {"module_load_seconds": module_seconds, "rows": rows}, complete=complete)
 
     try:
         for scene in contact_benchmark_scenes(subdivisions=subdivisions, gaps=gaps):
@@ -455,11 +459,12 @@ def run_scaling_benchmark(*, points_per_ball, eps: float, brute_max_triangles: i
     points_per_ball = _distinct(points_per_ball)
     _check_settings(eps_values=(eps,))
     dev = resolve_device(device)
+    module_seconds = _load_kernel_modules(dev)
     rows = []
 
     def save(*, complete=False):
         # The cap explains the missing brute rows (recorded nowhere before stop 58).
-        _write_results(out_dir, "scaling", dev, repeats, {"brute_max_triangles": brute_max_triangles, "rows": rows}, complete=complete)
+        _write_results(out_dir, "scaling", dev, repeats, {"module_load_seconds": module_seconds, "brute_max_triangles": brute_max_triangles, "rows": rows}, complete=complete)
 
     try:
         for n in points_per_ball:
@@ -909,7 +914,7 @@ def run_frame_benchmark(
     }
 
     def save(*, complete=False):
-        _write_results(out_dir, "frame", dev, frames, {**header, "rows": rows}, complete=complete)
+        _write_results(out_dir, "frame", dev, None, {**header, "rows": rows}, complete=complete)
 
     # Every scene is read before any is timed: a bad name or a missing peer-mesh folder used
     # to end the default run after hours of the scenes before it.
@@ -1125,7 +1130,7 @@ def run_accuracy_benchmark(
     }
 
     def save(*, complete=False):
-        _write_results(out_dir, "accuracy", dev, 1, {**header, "rows": rows}, complete=complete)
+        _write_results(out_dir, "accuracy", dev, None, {**header, "rows": rows}, complete=complete)
 
     def finish(row):
         rows.append(row)
