@@ -1,5 +1,6 @@
 """USD import / export: hand-written UsdPhysics scenes, round trips, trajectories, errors."""
 
+import dataclasses
 import contextlib
 import re
 import warnings
@@ -1999,6 +2000,21 @@ def test_a_mesh_error_names_the_authored_faces_and_points(tmp_path):
         io.load_scene(path).build_model(device="cpu")
     part = io.ColliderPart("/World/box/knob", 12, 8)
     assert part.face_name(3) == "triangle 3 of /World/box/knob's triangulation" and part.vertex_name(1) == "vertex 1 of /World/box/knob's triangulation"
+    # A mesh replaced in Python is named by its own numbers: the colliders it was read from
+    # named a point the prim does not have, and a face past their end was an IndexError (a
+    # review, stop 64). Where a body came from is no part of its equality.
+    scene = io.load_scene(path)
+    box = scene.body("box")
+    assert box == dataclasses.replace(box, mesh_origin=None)
+    box.faces = box.faces[:-1]
+    with pytest.raises(ValueError, match=rf"the edge between vertex \d+ and vertex \d+ borders face {len(box.faces) - 1} alone"):
+        scene.build_model(device="cpu")
+    # A triangle listed twice (across the box, on none of its faces) is named by its authored faces too.
+    collider.CreateFaceVertexCountsAttr([4] * 6 + [3, 3])
+    collider.CreateFaceVertexIndicesAttr([i for quad in quads for i in quad] + [0, 2, 5, 5, 0, 2])
+    stage.GetRootLayer().Save()
+    with pytest.raises(ValueError, match=r"mesh 'box': face 6 of /World/box/collider and face 7 of /World/box/collider are the same triangle"):
+        io.load_scene(path).build_model(device="cpu")
 
 
 def test_misspelt_usd_physics_schemas_are_named_in_a_warning(tmp_path):
@@ -2010,11 +2026,11 @@ def test_misspelt_usd_physics_schemas_are_named_in_a_warning(tmp_path):
     crate = UsdGeom.Xform.Define(stage, "/World/crate")
     crate.AddTranslateOp().Set(Gf.Vec3d(1.2, 0.0, 0.6))
     listed = Sdf.TokenListOp()
-    listed.prependedItems = ["PhysicsRigidbodyAPI", "physicsMassAPI", "PhysxRigidBodyAPI"]
+    listed.prependedItems = ["PhysicsRigidbodyAPI", "physicsMassAPI", "PhysxRigidBodyAPI", "PhysicsDriveAPI"]
     crate.GetPrim().SetMetadata("apiSchemas", listed)
     UsdPhysics.CollisionAPI.Apply(UsdGeom.Cube.Define(stage, "/World/crate/shape").GetPrim())
     stage.GetRootLayer().Save()
-    with pytest.warns(UserWarning, match=r"schema\.usda: no UsdPhysics schema has these attributes or schemas, so they are ignored: /World/crate apiSchemas PhysicsRigidbodyAPI \(did you mean PhysicsRigidBodyAPI\?\), /World/crate apiSchemas physicsMassAPI \(did you mean PhysicsMassAPI\?\)$"):
+    with pytest.warns(UserWarning, match=r"schema\.usda: no UsdPhysics schema has these attributes or schemas, so they are ignored: /World/crate apiSchemas PhysicsRigidbodyAPI \(did you mean PhysicsRigidBodyAPI\?\), /World/crate apiSchemas physicsMassAPI \(did you mean PhysicsMassAPI\?\), /World/crate apiSchemas PhysicsDriveAPI \(did you mean PhysicsDriveAPI:<instance>\?\)$"):
         scene = io.load_scene(path)
     assert scene.body("shape").static and not scene.body("box").static  # the crate's collider, static
 

@@ -736,7 +736,7 @@ class ModelBuilder:
                 raise ValueError(f"body {name!r}: mesh must be a trimesh.Trimesh or (vertices, faces): {exc}") from None
         # Checked before anything reads the mesh: trimesh would cast fractional indices to
         # integers and the mass properties would blame an index out of range on the shape.
-        vertices, faces = validated_mesh(vertices, faces, name)
+        vertices, faces = validated_mesh(vertices, faces, name, face_name=None if mesh_names is None else mesh_names[0])
         # Vertices no face uses are not part of the body: they moved the centre of mass of
         # the mass and inertia path, and the body radius that sizes the solver's tolerance.
         vertices, faces, used = _used_vertices(vertices, faces)

@@ -1090,10 +1090,10 @@ def main(argv=None) -> int:
 
 
 def _command_warning(formatwarning):
-    """Python's warning format with the package's own warnings (UserWarning: they name the
-    file, prim or setting) on one line, "warning: ...": they printed the package's source
-    file and line ("warpcontact/cli.py:214: UserWarning: ...", then the line of code) to a
-    user who wrote no code (a probe, stop 64)."""
+    """Python's warning format with UserWarnings (the package's name the file, prim or
+    setting) on one line, "warning: ...": they printed the package's source file and line
+    ("warpcontact/cli.py:214: UserWarning: ...", then the line of code) to a user who wrote no
+    code (a probe, stop 64). A command's user has no use for any package's source line."""
 
     def format_warning(message, category, filename, lineno, line=None):
         if issubclass(category, UserWarning):

@@ -110,6 +110,7 @@ __all__ = [
     "BodySpec",
     "ColliderPart",
     "JointSpec",
+    "MeshOrigin",
     "Scene",
     "SimulationSettings",
     "TaskSpec",
@@ -183,7 +184,7 @@ def _specs_equal(a, b) -> bool:
     if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
         return type(a) is type(b) and len(a) == len(b) and all(_specs_equal(x, y) for x, y in zip(a, b, strict=True))
     if dataclasses.is_dataclass(a) and not isinstance(a, type):
-        return type(a) is type(b) and all(_specs_equal(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a))
+        return type(a) is type(b) and all(_specs_equal(getattr(a, f.name), getattr(b, f.name)) for f in dataclasses.fields(a) if f.compare)
     return bool(a == b)
 
 
@@ -221,9 +222,10 @@ class BodySpec(_ArrayFieldEquality):
     target_tolerance: float = 0.0
     control_dofs: tuple = ()
     group: int = -1
-    # The colliders its mesh was read from (``ColliderPart``s, in mesh order; empty for a body
-    # built in Python), which errors about the mesh name.
-    collider_parts: tuple = ()
+    # Where its mesh was read from (``MeshOrigin``; None for a body built in Python), which
+    # errors about the mesh name while the mesh is the one read. Not part of equality: a body
+    # is what it is, wherever it came from.
+    mesh_origin: MeshOrigin | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -244,13 +246,30 @@ class ColliderPart(_ArrayFieldEquality):
         return f"point {vertex} of {self.prim}" if self.faces is not None else f"vertex {vertex} of {self.prim}'s triangulation"
 
 
-def _mesh_names(parts: tuple):
-    """``ModelBuilder.add_body``'s ``mesh_names`` for a body loaded from ``parts``
-    (``BodySpec.collider_parts``), or None for one built in Python: errors counted the
-    triangulated faces of all its colliders together (an authored quad 2 was "faces 5"; a
-    probe, stop 64)."""
-    if not parts:
+@dataclass(frozen=True, eq=False)
+class MeshOrigin(_ArrayFieldEquality):
+    """The colliders a loaded body's mesh was joined from (``ColliderPart``s, in mesh order)
+    and a digest of the mesh they describe."""
+
+    parts: tuple
+    digest: str
+
+    @staticmethod
+    def mesh_digest(vertices: np.ndarray, faces: np.ndarray) -> str:
+        import hashlib
+
+        return hashlib.sha1(np.ascontiguousarray(vertices, dtype=np.float64).tobytes() + np.ascontiguousarray(faces, dtype=np.int64).tobytes()).hexdigest()
+
+
+def _mesh_names(body: BodySpec):
+    """``ModelBuilder.add_body``'s ``mesh_names`` for a loaded body whose mesh is still the one
+    read (``BodySpec.mesh_origin``), else None: errors counted the triangulated faces of all
+    its colliders together (an authored quad 2 was "faces 5"; a probe, stop 64), and a mesh
+    replaced since must not be named by the old one's colliders (a review: an IndexError)."""
+    origin = body.mesh_origin
+    if origin is None or origin.digest != MeshOrigin.mesh_digest(body.vertices, body.faces):
         return None
+    parts = origin.parts
     triangles = np.array([part.first_triangle for part in parts])
     vertices = np.array([part.first_vertex for part in parts])
 
@@ -337,7 +356,7 @@ class Scene(_ArrayFieldEquality):
                 else:
                     kwargs.update(density=b.density if b.density is not None else 1000.0)
             try:
-                builder.add_body((b.vertices, b.faces), mesh_names=_mesh_names(b.collider_parts), **kwargs)
+                builder.add_body((b.vertices, b.faces), mesh_names=_mesh_names(b), **kwargs)
             except ValueError as exc:
                 raise ValueError(f"{self.source or '<scene>'}: prim {b.path}: {exc}") from None
         index = {b.name: i for i, b in enumerate(self.bodies)}
@@ -1423,7 +1442,8 @@ def load_scene(path) -> Scene:
         first_vertices = np.cumsum([0] + [len(vertices) for vertices, _, _ in parts[:-1]])
         target.vertices = np.concatenate([vertices for vertices, _, _ in parts])
         target.faces = np.concatenate([faces + offset for (_, faces, _), offset in zip(parts, first_vertices)])
-        target.collider_parts = tuple(ColliderPart(prim, int(t), int(v), owners) for (_, _, (prim, owners)), t, v in zip(parts, first_triangles, first_vertices))
+        colliders_read = tuple(ColliderPart(prim, int(t), int(v), owners) for (_, _, (prim, owners)), t, v in zip(parts, first_triangles, first_vertices))
+        target.mesh_origin = MeshOrigin(colliders_read, MeshOrigin.mesh_digest(target.vertices, target.faces))
     for body_path, body_welds in welds.items():
         for joint_path, desc in body_welds:
             _check_weld(stage, bodies[body_path], joint_path, desc, static_bodies, meters, UsdGeom, Usd, source)
@@ -2486,7 +2506,9 @@ def _unknown_physics_schemas(prim, physics: list[str], difflib) -> list[tuple[st
         api = name.split(":")[0]  # a multiple-apply schema's instance name follows its colon
         if name in applied or not (api.startswith("Physics") or api.lower() in by_lower):
             continue
-        unknown.append((name, by_lower.get(api.lower()) or next(iter(difflib.get_close_matches(api, physics, n=1)), None)))
+        close = by_lower.get(api.lower()) or next(iter(difflib.get_close_matches(api, physics, n=1)), None)
+        # A multiple-apply schema listed without its instance name is not applied either.
+        unknown.append((name, f"{close}:<instance>" if close == name else close))
     return unknown
 
 

@@ -1577,7 +1577,7 @@ class ImplicitSolver:
         short = (
             "; this one is shorter, but a body pressed close to a contact, eigenvalues floored in the Newton system or another body's own smaller "
             "length kept it from counting as converged"
-            if step_length <= converged_length
+            if what == "no convergence" and step_length <= converged_length
             else ""
         )
         return (

@@ -235,8 +235,10 @@ def _unique_vertex_means(
     return sums / counts[:, None], counts
 
 
-def validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """Return (float64 (nv, 3) positions, int64 (nf, 3) face indices) or raise ValueError."""
+def validated_mesh(vertices, faces, name: str, *, face_name=None) -> tuple[np.ndarray, np.ndarray]:
+    """Return (float64 (nv, 3) positions, int64 (nf, 3) face indices) or raise ValueError.
+    ``face_name``: how a repeated face is named, a function of its index (default "face i";
+    ``ModelBuilder.add_body``'s ``mesh_names``)."""
     positions = _mesh_array(vertices, name, "vertices")
     if positions.ndim != 2 or positions.shape[1] != 3:
         raise ValueError(f"mesh {name!r}: vertices must have shape (nv, 3), got {positions.shape}")
@@ -265,7 +267,7 @@ def validated_mesh(vertices, faces, name: str) -> tuple[np.ndarray, np.ndarray]:
             f"outside [0, {positions.shape[0]}) (the mesh has {positions.shape[0]} vertices)"
         )
     faces = np.ascontiguousarray(raw_faces, dtype=np.int64)
-    _refuse_repeated_faces(positions, faces, name)
+    _refuse_repeated_faces(positions, faces, name, face_name)
     # The faces' vertices only: an unused vertex 1 m away let a mesh 1e-170 m across through
     # (its tree's radii underflowed to 0), and one 1e-80 m from a point body refused it.
     used = positions[np.unique(faces)]
@@ -289,15 +291,16 @@ def repeated_corner_sets(corners: np.ndarray) -> tuple[int, int, int] | None:
     return int(again[0]), int(again[1]), int((counts - 1).sum())
 
 
-def _refuse_repeated_faces(positions: np.ndarray, faces: np.ndarray, name: str) -> None:
+def _refuse_repeated_faces(positions: np.ndarray, faces: np.ndarray, name: str, face_name=None) -> None:
     """Refuse a triangle listed twice (the same three corners, by index or by position, in
     any order or winding): each copy is a leaf of the potential, so the mesh pushed twice as
     hard there (a box rested 0.89 mm over a ground of doubled faces instead of 0.63 mm)."""
     repeated = repeated_corner_sets(positions[faces])
     if repeated is not None:
         first, second, total = repeated
+        pair = f"faces {first} and {second}" if face_name is None else f"{face_name(first)} and {face_name(second)}"
         raise ValueError(
-            f"mesh {name!r}: faces {first} and {second} are the same triangle ({total} repeated face(s) in all); "
+            f"mesh {name!r}: {pair} are the same triangle ({total} repeated face(s) in all); "
             "each copy would push in the contact potential: remove the repeats (e.g. trimesh's update_faces(unique_faces()))"
         )
 
