@@ -575,6 +575,39 @@ def test_a_model_stepped_from_another_thread_meanwhile_is_refused():
     assert not model.step_lock.locked()
 
 
+def test_a_step_meeting_another_threads_recording_tape_is_refused():
+    """Warp keeps one recording tape for the whole process: a probe (stop 64) stepped its own
+    model in a second thread while the first recorded a rollout, and the first thread's
+    gradients came back wrong (relative error 1) without an error. The second thread's step
+    is now refused, naming the recording thread; once that tape ends, it steps."""
+    import threading
+
+    model, first = _box_thrown_at_a_plate((0.0, 0.0, 0.0))
+    other, other_first = _box_thrown_at_a_plate((0.0, 0.0, 0.0))
+    recording, done = threading.Event(), threading.Event()
+
+    def record():
+        with wp.Tape():
+            start = model.state(requires_grad=True)
+            start.body_q.assign(first.body_q)
+            start.body_q_prev.assign(first.body_q_prev)
+            wc.ImplicitSolver(model).step(start, model.state(requires_grad=True), None, 0.04)
+            recording.set()
+            done.wait(60.0)
+
+    thread = threading.Thread(target=record, name="recorder")
+    thread.start()
+    recording.wait(60.0)
+    out = other.state(requires_grad=False)
+    try:
+        with pytest.raises(RuntimeError, match=r"wp.Tape: thread 'recorder' is recording a wp.Tape, and Warp records every thread's launches on the one tape a process has"):
+            wc.ImplicitSolver(other).step(other_first, out, None, 0.04)
+    finally:
+        done.set()
+        thread.join()
+    wc.ImplicitSolver(other).step(other_first, out, None, 0.04)  # no tape records now
+
+
 def test_a_box_that_tunnels_past_a_large_plate_is_refused():
     """At 35 m/s (1.4 m a step) the iterates led the box around the plate's edge to below it;
     the check tested only where the centres come closest, 26% of the step, with the box

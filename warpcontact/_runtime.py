@@ -5,6 +5,8 @@ import contextlib
 import functools
 import math
 import os
+import threading
+import weakref
 
 import numpy as np
 import warp as wp
@@ -163,17 +165,36 @@ class HostReadback:
         return self._twins[name].numpy()
 
 
+# The thread whose step first met each recording tape. Warp keeps one recording tape for the
+# whole process, whichever thread entered it: another thread's steps were recorded on it, or
+# hid it from its own thread's steps, and gradients came back wrong without an error (a probe,
+# stop 64).
+_TAPE_THREADS: "weakref.WeakKeyDictionary[wp.Tape, threading.Thread]" = weakref.WeakKeyDictionary()
+
+
 @contextlib.contextmanager
 def paused_tape():
     """Suspend tape recording; yields the paused tape (or None).
 
     The implicit step's internal launches (Newton iterations) must not be recorded: its
-    backward is the implicit-function-theorem function it records itself.
+    backward is the implicit-function-theorem function it records itself. RuntimeError when
+    the recording tape is one another, still running thread's steps met first (Warp's tape is
+    the process's, not the thread's).
     """
     from warp._src import context
 
     runtime = getattr(context, "runtime", None)
     tape = getattr(runtime, "tape", None)
+    if tape is not None:
+        owner = _TAPE_THREADS.get(tape)
+        if owner is None or not owner.is_alive():
+            owner = _TAPE_THREADS[tape] = threading.current_thread()
+        if owner is not threading.current_thread():
+            raise RuntimeError(
+                f"wp.Tape: thread {owner.name!r} is recording a wp.Tape, and Warp records every thread's launches on the one tape a process "
+                "has: this step would be recorded on it (or hide it from that thread's steps); record tapes in one thread at a time, "
+                "and step other threads' models only while none records"
+            )
     try:
         # Inside the try: a Ctrl-C right after it must still give the tape back (Warp then
         # raised "ended tape capture, but tape not present" over the interrupt).
