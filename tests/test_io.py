@@ -2505,6 +2505,19 @@ def test_a_cone_limited_in_one_direction_is_refused(tmp_path):
         io.load_scene(write_hinged_box(tmp_path / "cone.usda", cone=-1.0, cone1=30.0))
 
 
+def test_a_limit_that_locks_a_joint_or_a_zero_cone_is_refused_with_a_way_out(tmp_path):
+    """Equal limits, as authors lock an axis, were "limits must be ... lower < upper", naming
+    no way out, and a zero cone "cone_limit must be in (0, pi) rad", the builder's argument (a
+    probe, stop 64)."""
+    for joint in ("RevoluteJoint", "D6"):
+        path = tmp_path / f"locked_{joint}.usda"
+        _hinge_stage(path, joint=joint, lower=5.0, upper=5.0)
+        with pytest.raises(ValueError, match=r"prim /World/hinge: (limit|the Rot. limit) has lower == upper \(5\), which locks the coordinate: .*lock a D6 axis with low > high, or join the bodies with a fixed joint"):
+            io.load_scene(path)
+    with pytest.raises(ValueError, match=r"physics:coneAngle0Limit / coneAngle1Limit of 0 degrees leave no swing; a cone limit must be in \(0, 180\) degrees"):
+        io.load_scene(write_hinged_box(tmp_path / "cone.usda", cone=0.0, cone1=0.0))
+
+
 def test_a_joint_far_from_the_origin_loads_despite_float32_anchors(tmp_path):
     """localPos is float32: a consistent joint at x = 13.7 m was refused, its anchors 1.9e-7 m
     apart against a tolerance of 1e-6 of the 0.1 m box."""

@@ -1725,6 +1725,9 @@ def _read_joints(stage, descs, bodies: dict, mirrored: set, units: _Units, sourc
                     # coneAngle0Limit / coneAngle1Limit: only a circular cone is modelled
                     if abs(desc.limit.lower - desc.limit.upper) > 1e-6:
                         raise ValueError(f"{where}: elliptical cone limits ({desc.limit.lower} and {desc.limit.upper} degrees) are not supported; give both cone angles the same value")
+                    if not desc.limit.lower > 0.0:
+                        # It was "cone_limit must be in (0, pi) rad, got 0.0", the builder's name (a probe, stop 64).
+                        raise ValueError(f"{where}: physics:coneAngle0Limit / coneAngle1Limit of {desc.limit.lower:g} degrees leave no swing; a cone limit must be in (0, 180) degrees (negative: no limit)")
                     spec.cone_limit = float(desc.limit.lower) * _DEGREE
                 # UsdPhysics parses no drives for spherical joints: read DriveAPI:rot* off the prim.
                 drives = {}
@@ -1812,6 +1815,13 @@ def _limit_bounds(limit, scale: float, where: str, name: str) -> tuple | None:
         raise ValueError(f"{where}: {name} must be numbers (-inf or inf for an open side), got ({lower}, {upper})")
     if not (np.isfinite(lower) or np.isfinite(upper)):
         return None
+    if lower == upper:
+        # Refused further on as "limits must be ... lower < upper", which named no way out (a
+        # probe, stop 64): authors lock axes this way.
+        raise ValueError(
+            f"{where}: {name} has lower == upper ({lower:g}), which locks the coordinate: a joint's limits must leave it room; "
+            "lock a D6 axis with low > high, or join the bodies with a fixed joint (or merge them)"
+        )
     return (lower * scale if np.isfinite(lower) else -np.inf, upper * scale if np.isfinite(upper) else np.inf)
 
 
