@@ -628,6 +628,27 @@ def test_cli_compare_interrupted_keeps_and_plots_the_finished_models(tmp_path, c
     assert list(json.loads((out / "compare.json").read_text())["models"]) == ["sdrs"]
     assert not (out / "compare.png").exists()
     assert "interrupted while drawing compare.png:" in capsys.readouterr().err
+    # Killed (SIGTERM) after its first model, a comparison left its compare.json beside an
+    # earlier run's compare.png (a probe, stop 64): the earlier plot goes with the first write.
+    assert main(["compare", str(scene_path), "--models", "sdrs", "--iters", "1", "--out", str(out), "--overwrite"]) == 0
+    assert (out / "compare.png").is_file()
+
+    class Killed(BaseException):
+        pass
+
+    calls, optimize = [], TaskProblem.optimize
+
+    def killed_at_the_second_model(self, **options):
+        calls.append(1)
+        if len(calls) == 2:
+            raise Killed
+        return optimize(self, **options)
+
+    monkeypatch.setattr(TaskProblem, "optimize", killed_at_the_second_model)
+    with pytest.raises(Killed):
+        main(["compare", str(scene_path), "--models", "ours,sdrs", "--iters", "1", "--out", str(out), "--overwrite"])
+    assert list(json.loads((out / "compare.json").read_text())["models"]) == ["ours"]
+    assert not (out / "compare.png").exists()
 
 
 def test_quick_preset_values_without_a_quick_horizon_are_an_error():

@@ -475,6 +475,11 @@ def _compare(args) -> int:
         # "complete" is false until every model is in (one stopped after its first model read
         # as a finished comparison of that model alone, as the benches' results did).
         payload["complete"] = len(results) == len(args.models)
+        if len(results) == 1:
+            # An earlier comparison's plot goes with the first of this one's compare.json: it
+            # stood beside it while the other models ran, and for good when the command was
+            # killed (a probe, stop 64).
+            (out / "compare.png").unlink(missing_ok=True)
         replace_json(out / "compare.json", payload)
     if not results:
         # Stopped during the first model: an earlier comparison's compare.json was announced
