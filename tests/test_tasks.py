@@ -326,8 +326,9 @@ def test_quick_uses_the_scene_preset_or_caps_the_paper_settings():
         ("learning_rate", -0.1, "warpcontact:task:learningRate must be positive and finite, got -0.1"),
         ("learning_rate", float("nan"), "warpcontact:task:learningRate must be positive and finite"),
         ("receding_horizon", -2, "warpcontact:task:recedingHorizon must be a whole number >= 0, got -2"),
-        ("receding_stride", 0, r"warpcontact:task:recedingStride must be a whole number >= 1 and at most the window \(15\), got 0"),
-        ("receding_stride", 16, r"warpcontact:task:recedingStride must be a whole number >= 1 and at most the window \(15\), got 16"),
+        # A single window (this task's) executes no stride: any whole number >= 1 does (one
+        # past the window was refused here, the same on a longer horizon passed; stop 64).
+        ("receding_stride", 0, r"warpcontact:task:recedingStride must be a whole number >= 1, got 0"),
         ("quick_learning_rate", 0.0, "warpcontact:task:quick:learningRate must be positive and finite, got 0.0"),
     ],
 )
@@ -418,6 +419,7 @@ def test_a_scene_built_in_python_is_refused_a_goal_that_is_not_finite(field, val
         (dict(learning_rate=float("nan")), "settings.learning_rate must be positive and finite, got nan"),
         (dict(receding_horizon=-4), "settings.receding_horizon must be a whole number >= 0, got -4"),
         (dict(receding_stride=3), r"settings.receding_stride must be a whole number >= 1 and at most the window \(2\), got 3"),
+        (dict(receding_stride=0, receding_horizon=0), r"settings.receding_stride must be a whole number >= 1, got 0"),
         (dict(betas=(1.5, 0.5)), r"settings.betas must be two numbers in \[0, 1\), got \(1.5, 0.5\)"),
         (dict(initial_samples=-1), "settings.initial_samples must be a whole number >= 0, got -1"),
     ],
@@ -429,6 +431,19 @@ def test_settings_built_directly_are_checked_like_a_scenes(changes, message):
     settings = dataclasses.replace(_CHECKPOINTED_RUNS["receding"][1], **changes)
     with pytest.raises(ValueError, match=message):
         TaskProblem(_pd_space_billiards(), settings=settings)
+
+
+def test_a_single_window_takes_any_stride():
+    """A stride past the window of a task optimised as one window was refused, though the same
+    stride passed on a longer horizon and a single window executes none (a probe, stop 64)."""
+    settings = dataclasses.replace(_CHECKPOINTED_RUNS["receding"][1], horizon=6, receding_horizon=0, receding_stride=8)
+    assert not settings.receding
+    settings.check()
+    settings.receding_horizon = 8  # a window at least the horizon: one window too
+    settings.check()
+    settings.receding_horizon = 4
+    with pytest.raises(ValueError, match=r"settings.receding_stride must be a whole number >= 1 and at most the window \(4\), got 8"):
+        settings.check()
 
 
 @pytest.mark.parametrize("stride", [1, 2])

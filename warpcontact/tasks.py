@@ -207,11 +207,19 @@ class TaskSettings:
             return is_real(value) and 0.0 <= value < 1.0
 
         window = self.window if is_whole(self.horizon) and is_whole(self.receding_horizon) else None
+        receding = window is not None and window < self.horizon
         betas = tuple(self.betas) if isinstance(self.betas, (tuple, list, np.ndarray)) else ()
         for name, rule, ok in (
             ("horizon", f"a whole number from 1 to {MAX_FRAMES:,}", is_whole(self.horizon) and 1 <= self.horizon <= MAX_FRAMES),
             ("receding_horizon", "a whole number >= 0", is_whole(self.receding_horizon) and self.receding_horizon >= 0),
-            ("receding_stride", f"a whole number >= 1 and at most the window ({window})", is_whole(self.receding_stride) and window is not None and 1 <= self.receding_stride <= window),
+            # At most the window where windows recede; a single window executes no stride, and
+            # one longer than it was refused there while the same stride passed on a longer
+            # horizon (a probe, stop 64).
+            (
+                "receding_stride",
+                f"a whole number >= 1 and at most the window ({window})" if receding else "a whole number >= 1",
+                is_whole(self.receding_stride) and 1 <= self.receding_stride and (not receding or self.receding_stride <= window),
+            ),
             ("iterations", f"a whole number from 1 to {MAX_ITERATIONS:,}", is_whole(self.iterations) and 1 <= self.iterations <= MAX_ITERATIONS),
             ("learning_rate", "positive and finite", is_positive_finite(self.learning_rate)),
             ("betas", "two numbers in [0, 1)", len(betas) == 2 and all(unit_interval(b) for b in betas)),
