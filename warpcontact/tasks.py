@@ -171,7 +171,7 @@ class TaskSettings:
         stride_name = f"warpcontact:{prefix}recedingStride"
         if receding_stride is not None:
             if not settings.receding:
-                raise ValueError(f"{source}: --stride applies to receding-window tasks; this one optimises a single window of {settings.horizon} frames")
+                raise ValueError(f"{source}: --stride applies to receding-window tasks; this one optimises a single window of {settings.horizon} frame{'' if settings.horizon == 1 else 's'}")
             settings.receding_stride, stride_name = receding_stride, "--stride"
         names = {
             # Without a task horizon the scene's frames are the horizon.
