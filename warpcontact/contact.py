@@ -84,7 +84,8 @@ class ContactEvaluation:
     """Scene contact potential at one configuration.
 
     Attributes:
-        value: total potential (1/m, as its leaf barriers 1/g; scaled by the contact stiffness in the step);
+        value: total potential (1/m, as its leaf barriers 1/g; the ipc model's is ipctk's barrier on squared
+            distances, in m^4; scaled by the contact stiffness in the step);
             +inf when any two bodies touch or intersect, or a leaf solve did not converge
             (``unsolved_pairs``).
         grad: (nbodies, 6) dP/d(dp, dtheta) per body; zero rows for static bodies.
