@@ -728,6 +728,33 @@ def test_a_deep_walk_grows_its_task_lists_until_it_fits():
         assert result.value == pytest.approx(reference.value, rel=1e-12) and result.num_leaf == reference.num_leaf
 
 
+def test_another_models_frames_and_bad_friction_are_refused():
+    """A probe (stop 64): another contact model's advancement frame bounded a step by -0.915
+    and its lagged friction gave 3,492 where this model's was 0; a NaN coefficient gave NaN
+    friction, -0.5 a negative one; a string or None failed with an AttributeError or a KeyError."""
+    meshes = [icosphere(1), box((2.0, 2.0, 1.0))]
+    poses = identity_poses([[0, 0, 1.05], [0, 0, 0]])
+    model, other = (wc.ContactModel(meshes, static=[False, True]) for _ in range(2))
+    for m in (model, other):
+        m.evaluate(poses)
+    step = np.zeros((2, 6))
+    step[0, 2] = -0.1
+    theirs = other.friction_frame(0.5, wp.array([0.5], dtype=wp.float64), 1e-4)
+    with pytest.raises(ValueError, match="frame: this AdvancementFrame is another contact model's; use this model's own"):
+        model.advancement_limit(step, frame=other.advancement_frame())
+    with pytest.raises(ValueError, match="frame: expected an AdvancementFrame of this contact model, got str"):
+        model.advancement_limit(step, frame="x")
+    for call in (lambda: model.friction_terms(theirs), lambda: model.evaluate(poses, friction=theirs), lambda: model.friction_adjoint(theirs, poses, poses, np.zeros((2, 6)))):
+        with pytest.raises(ValueError, match="this LaggedFriction is another contact model's"):
+            call()
+    with pytest.raises(ValueError, match="lagged: expected a LaggedFriction of this contact model, got NoneType"):
+        model.friction_terms(None)
+    for bad in (np.nan, np.inf, -0.5):
+        with pytest.raises(ValueError, match=r"friction: the friction coefficient must be >= 0 and finite, got"):
+            model.friction_frame(0.5, wp.array([bad], dtype=wp.float64), 1e-4)
+    assert 0.0 < model.advancement_limit(step, frame=model.advancement_frame()) <= 1.0
+
+
 def test_friction_terms_check_their_poses():
     model = wc.ContactModel([icosphere(1), box((2.0, 2.0, 1.0))], static=[False, True])
     poses = identity_poses([[0, 0, 1.05], [0, 0, 0]])

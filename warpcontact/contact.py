@@ -23,7 +23,7 @@ potential, so the modes differ only in the normal contact potential.
 import collections
 import functools
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import warp as wp
@@ -207,6 +207,9 @@ class LaggedFriction:
     friction: wp.array
     slip_smoothing: float
     data: object
+    # id() of the contact model that made it: another model's data indexed this model's pairs
+    # and bodies (a probe, stop 64: friction 3,492 where this model's was 0).
+    model_id: int = field(default=0, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -223,6 +226,8 @@ class AdvancementFrame:
     num_leaf: int
     seed_separation: wp.array
     pair_separation: np.ndarray  # host copy of seed_separation
+    # id() of the contact model that made it (another model's bounded a step by -0.915; a probe, stop 64).
+    model_id: int = field(default=0, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -291,7 +296,18 @@ def _excluded_pair_keys(exclude_pairs, n: int) -> np.ndarray:
     return np.minimum(array[:, 0], array[:, 1]).astype(np.int64) * n + np.maximum(array[:, 0], array[:, 1])
 
 
-def check_friction_arguments(mu, friction, slip_smoothing) -> None:
+def check_own(value, kind: type, label: str, model) -> None:
+    """ValueError naming ``label`` unless ``value`` is a ``kind`` (a ``LaggedFriction`` or an
+    ``AdvancementFrame``) that ``model`` made: another object failed deep inside (an
+    AttributeError, a KeyError), and another model's data gave wrong numbers."""
+    if not isinstance(value, kind):
+        article = "an" if kind.__name__[0] in "AEIOU" else "a"
+        raise ValueError(f"{label}: expected {article} {kind.__name__} of this contact model, got {type(value).__name__}")
+    if value.model_id != id(model):
+        raise ValueError(f"{label}: this {kind.__name__} is another contact model's; use this model's own")
+
+
+def check_friction_arguments(mu, friction, slip_smoothing, coefficient=None) -> None:
     """ValueError naming the argument unless ``mu`` (the contact stiffness) and
     ``slip_smoothing`` (the step's slip length, friction smoothing x dt, m) are positive and
     finite and ``friction`` is the model's one-value float64 array (``friction_frame``: NaN
@@ -302,6 +318,11 @@ def check_friction_arguments(mu, friction, slip_smoothing) -> None:
             raise ValueError(f"{label}: must be a positive finite number, got {value!r}")
     if not (isinstance(friction, wp.array) and friction.dtype == wp.float64 and friction.shape == (1,)):
         raise ValueError(f"friction: expected a wp.array of one float64 (the model's friction), got {friction!r}")
+    # Its value too (a NaN gave NaN friction, -0.5 a negative one; a probe, stop 64): read
+    # here unless the caller has it (the solver reads it back with the step's poses).
+    value = float(friction.numpy()[0]) if coefficient is None else coefficient
+    if not (is_real(value) and np.isfinite(value) and value >= 0.0):
+        raise ValueError(f"friction: the friction coefficient must be >= 0 and finite, got {value!r}")
 
 
 class ContactModel:
@@ -888,8 +909,8 @@ class ContactModel:
                 synchronisation fewer an evaluation). Not with a reused evaluation.
         """
         poses = self._validated_poses(poses)
-        if friction is not None and not isinstance(friction, LaggedFriction):
-            raise ValueError(f"friction: expected a LaggedFriction (ContactModel.friction_frame) or None, got {type(friction).__name__}")
+        if friction is not None:
+            check_own(friction, LaggedFriction, "friction", self)
         last = self._last_evaluation
         if checked_flag(reuse, "reuse") and last is not None and np.array_equal(poses, last[0]):
             return _copy_evaluation(last[1])
@@ -939,6 +960,7 @@ class ContactModel:
         num_far, _, num_leaf, _ = self._counts
         with wp.ScopedDevice(self.device):
             return AdvancementFrame(
+                model_id=id(self),
                 rotation=wp.clone(self._rotation),
                 position=wp.clone(self._position),
                 far=wp.clone(self._far[: max(num_far, 1)]) if self._far.shape[0] else wp.zeros(1, dtype=wp.vec4i),
@@ -971,7 +993,9 @@ class ContactModel:
         if frame is None:
             self._require_evaluation("advancement_limit")
             num_far, _, num_leaf, _ = self._counts
-            frame = AdvancementFrame(self._rotation, self._position, self._far, num_far, self._leaf, self._leaf_plane, num_leaf, self._seed_separation, self._pair_separation)
+            frame = AdvancementFrame(self._rotation, self._position, self._far, num_far, self._leaf, self._leaf_plane, num_leaf, self._seed_separation, self._pair_separation, model_id=id(self))
+        else:
+            check_own(frame, AdvancementFrame, "frame", self)
         if self._pairs_keep_clear(step, frame.pair_separation, fraction):
             return 1.0  # no term can cut the step: nothing to launch or wait for
         self._alpha.fill_(1.0)
@@ -1031,7 +1055,7 @@ class ContactModel:
 
     # --- friction -----------------------------------------------------------------------
 
-    def friction_frame(self, mu: float, friction: wp.array, slip_smoothing: float) -> LaggedFriction:
+    def friction_frame(self, mu: float, friction: wp.array, slip_smoothing: float, *, coefficient: float | None = None) -> LaggedFriction:
         """Lagged friction data at the last evaluated configuration (a step's q^t): per leaf
         pair, its plane normal and, at each vertex of its carrying triangle, the vertex's
         normal force mu W |n| (-b'(g_k)) of this mode's leaf potential and the two bodies'
@@ -1042,8 +1066,10 @@ class ContactModel:
             friction: the model's (1,) float64 array holding the friction coefficient.
             slip_smoothing: the slip length below which Coulomb friction is smoothed (m; the
                 model's friction smoothing speed x dt).
+            coefficient: ``friction``'s value where the caller has read it (checked; else it
+                is read, on a GPU a synchronisation).
         """
-        check_friction_arguments(mu, friction, slip_smoothing)
+        check_friction_arguments(mu, friction, slip_smoothing, coefficient)
         self._require_evaluation("friction_frame")
         with wp.ScopedDevice(self.device):
             frame = friction_kernels.FrictionFrame()
@@ -1062,7 +1088,7 @@ class ContactModel:
                     inputs=[self._triangle_vertices, self._eps, self._dhat, float(mu), self._body_dynamic, self._rotation, self._position, self._seed_body_pair],
                     outputs=[frame],
                 )
-        return LaggedFriction(pairs=count, mu=float(mu), friction=friction, slip_smoothing=float(slip_smoothing), data=frame)
+        return LaggedFriction(pairs=count, mu=float(mu), friction=friction, slip_smoothing=float(slip_smoothing), data=frame, model_id=id(self))
 
     def friction_terms(self, lagged: LaggedFriction, *, poses: np.ndarray | None = None):
         """Friction value, (6 nbodies,) gradient and dense Hessian over ``hessian_bodies`` (as
@@ -1076,6 +1102,7 @@ class ContactModel:
         Sync-free on a GPU, the launches are captured into a CUDA graph per lagged frame and
         kind of call, which its later calls replay: a step with friction calls this once per
         trial and per iteration of the solver's friction-exact model."""
+        check_own(lagged, LaggedFriction, "lagged", self)
         at_poses = poses is not None
         if not at_poses:
             # term_lists moves the transforms without evaluating: "the last evaluated poses"
@@ -1152,6 +1179,7 @@ class ContactModel:
 
         Returns ((nbodies, 6) rigid-coordinate adjoint of q_now, adjoint of lambda, of mu).
         """
+        check_own(lagged, LaggedFriction, "lagged", self)
         n = self.num_bodies
         # On a CPU, ranges of the lagged pairs on one thread per core, each into outputs of its
         # own, summed in order: one thread took 44 ms of a 6,208-triangle frame's 48 ms

@@ -35,7 +35,7 @@ import numpy as np
 from dataclasses import dataclass
 
 from .articulation import connected_labels
-from .contact import ContactEvaluation, LaggedFriction, check_friction_arguments, checked_bodies, contact_body_pairs, hessian_slots
+from .contact import ContactEvaluation, LaggedFriction, check_friction_arguments, check_own, checked_bodies, contact_body_pairs, hessian_slots
 from .rotation import cross, quat_from_rotation_vector, quat_to_matrix, skew
 from ._validate import check_barrier_support, checked_flag, validated_poses, validated_step
 
@@ -264,22 +264,24 @@ class IpcContactModel:
 
     # --- friction -----------------------------------------------------------------------
 
-    def friction_frame(self, mu: float, friction, slip_smoothing: float) -> LaggedFriction:
+    def friction_frame(self, mu: float, friction, slip_smoothing: float, *, coefficient: float | None = None) -> LaggedFriction:
         """IPC's lagged friction at the last evaluated configuration (a step's q^t): ipctk's
-        tangential collisions of the collisions active there (module docstring)."""
-        check_friction_arguments(mu, friction, slip_smoothing)
+        tangential collisions of the collisions active there (module docstring);
+        ``coefficient`` as ``ContactModel.friction_frame``'s."""
+        check_friction_arguments(mu, friction, slip_smoothing, coefficient)
         self._require_evaluation("friction_frame")
         ipctk = self._ipctk
         normal_potential = ipctk.BarrierPotential(self.dhat, float(mu))
         collisions = ipctk.TangentialCollisions()
         collisions.build(self._mesh, self._world, self._collisions, normal_potential, float(friction.numpy()[0]))
         data = _IpcLaggedFriction(collisions, self._world.copy(), normal_potential, ipctk.FrictionPotential(float(slip_smoothing)))
-        return LaggedFriction(pairs=len(collisions), mu=float(mu), friction=friction, slip_smoothing=float(slip_smoothing), data=data)
+        return LaggedFriction(pairs=len(collisions), mu=float(mu), friction=friction, slip_smoothing=float(slip_smoothing), data=data, model_id=id(self))
 
     def friction_terms(self, lagged: LaggedFriction, *, poses: np.ndarray | None = None):
         """Friction value, (6 nbodies,) gradient and dense Hessian over ``hessian_bodies`` in
         rigid coordinates at the last evaluated poses, or at ``poses`` (see
         ``ContactModel.friction_terms``)."""
+        check_own(lagged, LaggedFriction, "lagged", self)
         data = lagged.data
         if poses is None:
             self._require_evaluation("friction_terms")
@@ -304,6 +306,7 @@ class IpcContactModel:
         With F(x^t, u) ipctk's friction force (-dD/du) and u = x - x^t, grad_x D = -F and
         d(grad_x D)/dx^t = -dF/dx^t|_u + dF/du = -dF/dx^t|_u - d2D/du2.
         """
+        check_own(lagged, LaggedFriction, "lagged", self)
         ipctk = self._ipctk
         data = lagged.data
         mesh = self._mesh

@@ -622,7 +622,7 @@ class ImplicitSolver:
         model = self.model
         if friction == 0.0:
             return None
-        return model.contact.friction_frame(mu, model.friction, model.friction_smoothing * dt)
+        return model.contact.friction_frame(mu, model.friction, model.friction_smoothing * dt, coefficient=friction)
 
     def _friction_rate_frame(self, mu: float, dt: float) -> "LaggedFriction":
         """The lagged friction data at q^t with coefficient 1: D is linear in the coefficient,
@@ -631,7 +631,7 @@ class ImplicitSolver:
         model = self.model
         if self._unit_friction is None:
             self._unit_friction = wp.array([1.0], dtype=wp.float64, device=model.device)
-        return model.contact.friction_frame(mu, self._unit_friction, model.friction_smoothing * dt)
+        return model.contact.friction_frame(mu, self._unit_friction, model.friction_smoothing * dt, coefficient=1.0)
 
     def _evaluate(self, poses: np.ndarray, coords: np.ndarray, step_in: "_StepInputs", contact=None):
         """L, its gradient and Hessian over the reduced coordinates, the contact evaluation and
