@@ -2017,6 +2017,23 @@ def test_a_mesh_error_names_the_authored_faces_and_points(tmp_path):
         io.load_scene(path).build_model(device="cpu")
 
 
+def test_a_scene_or_path_of_the_wrong_kind_is_named(tmp_path):
+    """A probe (stop 64): None or a list as a path gave pathlib's TypeError, None as a scene an
+    AttributeError, a static flag "no" read as true, and an up axis "X" was written as Z."""
+    scene = io.load_scene(write_physics_scene(tmp_path / "box.usda"))
+    for call in (lambda: io.load_scene(None), lambda: io.save_scene(scene, ["a.usda"]), lambda: io.export_trajectory(scene, np.zeros((1, 2, 7)), 3)):
+        with pytest.raises(ValueError, match=r"path: expected a file path \(str or pathlib.Path\), got (NoneType|list|int)"):
+            call()
+    with pytest.raises(ValueError, match=r"scene: expected a warpcontact Scene \(io.load_scene, scenes.build_scene\), got NoneType"):
+        io.save_scene(None, tmp_path / "none.usda")
+    with pytest.raises(ValueError, match=r"x.usda: scene.up_axis must be 'Y' or 'Z' \(USD's up axes\), got 'X'"):
+        io.save_scene(dataclasses.replace(scene, up_axis="X"), tmp_path / "x.usda")
+    scene.body("box").static = "no"
+    with pytest.raises(ValueError, match=r"flag.usda: body 'box': static: expected True/False"):
+        io.save_scene(scene, tmp_path / "flag.usda")
+    assert not any(tmp_path.glob("[nxf]*.usda"))
+
+
 def test_misspelt_usd_physics_schemas_are_named_in_a_warning(tmp_path):
     """USD drops an API schema it does not know without a word: a crate listing
     PhysicsRigidbodyAPI loaded as a static obstacle, silently (a probe, stop 64). Names that

@@ -1151,6 +1151,23 @@ def _usd_error_text(exc) -> str:
     return text.strip()
 
 
+def _checked_path(path, label: str = "path") -> Path:
+    """``path`` as a Path; ValueError naming ``label`` for anything but text or a path (None
+    or a list gave pathlib's TypeError; a probe, stop 64)."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"{label}: expected a file path (str or pathlib.Path), got {type(path).__name__}")
+    return Path(path)
+
+
+def _checked_scene(scene, path) -> None:
+    """ValueError unless ``scene`` is a ``Scene`` whose up axis a file can hold (None gave an
+    AttributeError, and an up axis "X" was written as Z without a word; a probe, stop 64)."""
+    if not isinstance(scene, Scene):
+        raise ValueError(f"scene: expected a warpcontact Scene (io.load_scene, scenes.build_scene), got {type(scene).__name__}")
+    if scene.up_axis not in ("Y", "Z"):
+        raise ValueError(f"{path}: scene.up_axis must be 'Y' or 'Z' (USD's up axes), got {scene.up_axis!r}")
+
+
 def load_scene(path) -> Scene:
     """Read a USD stage into a ``Scene``.
 
@@ -1160,7 +1177,7 @@ def load_scene(path) -> Scene:
     type, unsupported joints or colliders).
     """
     Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
-    path = Path(path)
+    path = _checked_path(path)
     source = str(path)
     if not path.exists():
         raise ValueError(f"{source}: file not found")
@@ -2661,12 +2678,17 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
 
     Poses and ``warpcontact:`` attributes are doubles; what the schemas type as float (mesh
     points, mass properties, velocities) is rounded to float32 (docs/architecture.md, "USD")."""
+    path = _checked_path(path)
+    _checked_scene(scene, path)
     Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
     _check_prim_names(scene.bodies, "body", reserved=("physicsScene", "joints"), Sdf=Sdf)
     _check_prim_names(scene.joints, "joint", reserved=(), Sdf=Sdf)
     # What load_scene would refuse, or what the file cannot hold, is refused here, before a
     # file is written (such scenes were written, and failed at load or lost data silently).
     _check_settings(scene.settings, f"{path}: scene settings")
+    for body in scene.bodies:
+        # "no" read as true, and the body was refused as a static one with a target (a probe, stop 64).
+        checked_flag(body.static, f"{path}: body {body.name!r}: static")
     if not any(not body.static for body in scene.bodies):
         raise ValueError(f"{path}: the scene has no dynamic bodies, which load_scene requires")
     for body in scene.bodies:
@@ -2951,6 +2973,8 @@ def export_trajectory(scene: Scene, poses, path, *, fps: float | None = None, ov
     The layer's customLayerData names the scene's file (``warpcontact:trajectoryOf``), and
     ``load_scene`` refuses the export pointing to it.
     """
+    path = _checked_path(path)
+    _checked_scene(scene, path)
     Gf, Sdf, Usd, UsdGeom, UsdPhysics, Vt = _pxr()
     _check_prim_names(scene.bodies, "body", reserved=(), Sdf=Sdf)
     # The target markers' group takes a name no body has: reserving "targets" refused a body
