@@ -2216,6 +2216,14 @@ def test_builder_rejects_open_mesh_with_density():
         b.add_body((V, np.array([[0, 1, 2]])), density=1.0, name="sheet")
 
 
+@pytest.mark.parametrize("option", [dict(mass=1e300), dict(mass=1e-300), dict(density=1e300)])
+def test_a_mass_or_density_beyond_the_settings_range_is_refused(option):
+    """Taken, it failed the first step as "no convergence" (a probe, stop 64)."""
+    label = next(iter(option))
+    with pytest.raises(ValueError, match=rf"body 'heavy': {label} must lie in \[1e-150, 1e\+150\] (kg|kg/m\^3) \(its square and inverse must be representable\)"):
+        wc.ModelBuilder().add_box((0.3, 0.3, 0.3), name="heavy", **option)
+
+
 def test_builder_names_an_inside_out_mesh_for_density_and_for_a_mass_without_inertia():
     """A whole mesh wound inside out, and a face naming a vertex twice, were refused without a
     cause (a probe), where other unclosed meshes got one."""

@@ -495,6 +495,11 @@ def _mass_properties(mesh: trimesh.Trimesh, name: str, *, density, mass, inertia
     label, value = ("density", density) if density is not None else ("mass", mass)
     if not is_positive_finite(value):
         raise ValueError(f"{where}: {label} must be positive and finite, got {value!r}")
+    # The model settings' range: a mass of 1e300 (or 1e-300) was taken, and the first step
+    # failed "no convergence", blaming Newton (a probe, stop 64).
+    problem = scale_problem(value, "kg/m^3" if label == "density" else "kg")
+    if problem is not None:
+        raise ValueError(f"{where}: {label} {problem}, got {value!r}")
     if density is not None and not closed:
         raise ValueError(f"{where}: mass from density needs a closed, consistently outward-oriented mesh{_closure_hint(mesh, names)}; give mass and inertia instead")
     if closed and (density is not None or inertia is None or center_of_mass is None) and _overlapping_pieces(mesh, pieces):
