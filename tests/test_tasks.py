@@ -433,6 +433,15 @@ def test_settings_built_directly_are_checked_like_a_scenes(changes, message):
         TaskProblem(_pd_space_billiards(), settings=settings)
 
 
+def test_flags_of_the_task_api_are_flags():
+    """quick="yes" and gradient="no" were truth-tested (a probe, stop 64)."""
+    with pytest.raises(ValueError, match="quick: expected True/False"):
+        TaskSettings.from_task(space_billiards(), quick="yes")
+    problem = TaskProblem(space_billiards())
+    with pytest.raises(ValueError, match="gradient: expected True/False"):
+        problem.rollout(problem.initial_values(1), problem.start, 2, gradient="no")
+
+
 def test_a_single_window_takes_any_stride():
     """A stride past the window of a task optimised as one window was refused, though the same
     stride passed on a longer horizon and a single window executes none (a probe, stop 64)."""

@@ -139,6 +139,7 @@ class TaskSettings:
 
         Raises ValueError naming the attribute when a value is out of range.
         """
+        quick = checked_flag(quick, "quick")  # "yes" read as true (a probe, stop 64)
         t = scene.task
         source = scene.source or "<scene>"
         if quick:
@@ -885,6 +886,7 @@ class TaskProblem:
         gradient's read back (benchmarks).
         """
         device = self.model.device
+        gradient = checked_flag(gradient, "gradient")  # "no" returned a gradient (a probe, stop 64)
         if not is_whole(frames) or frames < 0:
             raise ValueError(f"frames: must be a whole number >= 0, got {frames!r}")
         shape = np.shape(values)
