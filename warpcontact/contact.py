@@ -310,9 +310,10 @@ def check_own(value, kind: type, label: str, model) -> None:
 def check_friction_arguments(mu, friction, slip_smoothing, coefficient=None) -> None:
     """ValueError naming the argument unless ``mu`` (the contact stiffness) and
     ``slip_smoothing`` (the step's slip length, friction smoothing x dt, m) are positive and
-    finite and ``friction`` is the model's one-value float64 array (``friction_frame``: NaN
-    gave NaN friction, mu = -1 a negative energy, a float a Warp error from inside a kernel
-    launch). Their ranges are the model settings' (``ImplicitSolver``)."""
+    finite and ``friction`` is the model's one-value float64 array holding a coefficient >= 0
+    (``coefficient``, its value where the caller has it; ``friction_frame``: NaN gave NaN
+    friction, mu = -1 a negative energy, a float a Warp error from inside a kernel launch).
+    Their ranges are the model settings' (``ImplicitSolver``)."""
     for label, value in (("mu", mu), ("slip_smoothing", slip_smoothing)):
         if not is_positive_finite(value):
             raise ValueError(f"{label}: must be a positive finite number, got {value!r}")
