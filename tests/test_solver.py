@@ -2216,6 +2216,15 @@ def test_builder_rejects_open_mesh_with_density():
         b.add_body((V, np.array([[0, 1, 2]])), density=1.0, name="sheet")
 
 
+def test_a_sphere_radius_beyond_the_settings_range_and_no_meshes_are_named():
+    """A radius of 1e300 made trimesh's icosphere NaN, blamed on the mesh; ContactModel(None)
+    was "'NoneType' object is not iterable" (a probe, stop 64)."""
+    with pytest.raises(ValueError, match=r"body 'ball': sphere radius must lie in \[1e-150, 1e\+150\] m"):
+        wc.ModelBuilder().add_sphere(1e300, density=1.0, name="ball")
+    with pytest.raises(ValueError, match=r"meshes: expected a list of \(vertices, faces\) pairs, one per body, got NoneType"):
+        wc.ContactModel(None)
+
+
 @pytest.mark.parametrize("option", [dict(mass=1e300), dict(mass=1e-300), dict(density=1e300)])
 def test_a_mass_or_density_beyond_the_settings_range_is_refused(option):
     """Taken, it failed the first step as "no convergence" (a probe, stop 64)."""

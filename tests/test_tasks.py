@@ -433,6 +433,14 @@ def test_settings_built_directly_are_checked_like_a_scenes(changes, message):
         TaskProblem(_pd_space_billiards(), settings=settings)
 
 
+def test_a_task_problem_of_the_wrong_kind_of_scene_or_settings_is_named():
+    """None as a scene, and a dict as settings, failed with an AttributeError (a probe, stop 64)."""
+    with pytest.raises(ValueError, match=r"scene: expected a warpcontact Scene \(io.load_scene, scenes.build_scene\), got NoneType"):
+        TaskProblem(None)
+    with pytest.raises(ValueError, match=r"settings: expected a TaskSettings \(or None for the scene's own\), got dict"):
+        TaskProblem(space_billiards(), settings={"horizon": 2})
+
+
 def test_flags_of_the_task_api_are_flags():
     """quick="yes" and gradient="no" were truth-tested (a probe, stop 64)."""
     with pytest.raises(ValueError, match="quick: expected True/False"):

@@ -1048,6 +1048,10 @@ class ModelBuilder:
         where = f"body {self._body_name(kwargs.get('name'))!r}"
         if not is_positive_finite(radius):
             raise ValueError(f"{where}: sphere radius must be positive and finite (m), got {radius!r}")
+        # Beyond it trimesh's icosphere came out NaN, and the error blamed the mesh (a probe, stop 64).
+        problem = scale_problem(radius, "m")
+        if problem is not None:
+            raise ValueError(f"{where}: sphere radius {problem}, got {radius!r}")
         if not is_whole(subdivisions) or not 0 <= subdivisions <= 6:
             raise ValueError(f"{where}: sphere subdivisions must be a whole number from 0 to 6, got {subdivisions!r}")
         return self.add_body(trimesh.creation.icosphere(subdivisions=int(subdivisions), radius=float(radius)), **kwargs)

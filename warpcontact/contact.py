@@ -140,7 +140,10 @@ def checked_bodies(meshes, names, static) -> tuple[list, list, np.ndarray]:
     flags) of a contact model's arguments; ValueError naming the argument and body. One rule
     for every contact model (the IPC baseline took a face index past its vertices into ipctk,
     which crashed the process)."""
-    meshes = list(meshes)
+    try:
+        meshes = list(meshes)
+    except TypeError:  # None was "'NoneType' object is not iterable" (a probe, stop 64)
+        raise ValueError(f"meshes: expected a list of (vertices, faces) pairs, one per body, got {type(meshes).__name__}") from None
     if len(meshes) < 1:
         raise ValueError("meshes: need at least one body")
     if isinstance(names, str):  # it was read as one name per character
