@@ -439,6 +439,12 @@ def test_a_task_problem_of_the_wrong_kind_of_scene_or_settings_is_named():
         TaskProblem(None)
     with pytest.raises(ValueError, match=r"settings: expected a TaskSettings \(or None for the scene's own\), got dict"):
         TaskProblem(space_billiards(), settings={"horizon": 2})
+    problem = TaskProblem(space_billiards())
+    with pytest.raises(ValueError, match=r"start: expected \(q, q_prev\), two \(nbodies, 7\) pose arrays \(TaskProblem.start\), got NoneType"):
+        problem.rollout(problem.initial_values(1), None, 2)
+    for rows in (-1, "2"):
+        with pytest.raises(ValueError, match=r"rows: must be a whole number >= 0, got"):
+            problem.initial_values(rows)
 
 
 def test_flags_of_the_task_api_are_flags():

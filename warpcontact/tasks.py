@@ -864,6 +864,8 @@ class TaskProblem:
 
     def initial_values(self, rows: int) -> np.ndarray:
         """The trivial guess: zero offsets, or zero sine amplitudes at 1..SINE_WAVES Hz."""
+        if not is_whole(rows) or rows < 0:  # -1 was numpy's "negative dimensions" (a probe, stop 64)
+            raise ValueError(f"rows: must be a whole number >= 0, got {rows!r}")
         if self.kind != "joint_sine":
             return np.zeros((rows, len(self.dof_names)))
         values = np.zeros((len(self.dof_names), 3 * SINE_WAVES))
@@ -919,6 +921,9 @@ class TaskProblem:
         if far is not None:  # 1e200 was blamed on control.body_target, an array the caller never sees
             row, column = far
             raise ValueError(f"values: {self._value_name(row, column)} is {float(values[row, column])!r}, beyond the +-{MAX_COORDINATE:g} that the simulation's coordinates represent")
+        if not (isinstance(start, (tuple, list)) and len(start) == 2):
+            # None was "_state() argument after * must be an iterable" (a probe, stop 64).
+            raise ValueError(f"start: expected (q, q_prev), two (nbodies, 7) pose arrays (TaskProblem.start), got {type(start).__name__}")
         start_state = self._state(*start)
         if self.kind == "initial_state" and not np.array_equal(np.asarray(start[0], dtype=np.float64)[self.body], self.base_pose):
             # The control places its body at the scene's pose plus its offsets: another pose
