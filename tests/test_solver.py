@@ -1,8 +1,10 @@
 """Implicit time step: physics checks, non-penetration, tape gradients, bad input."""
 
+import contextlib
 import re
 import subprocess
 import sys
+import threading
 import warnings
 from pathlib import Path
 
@@ -544,32 +546,39 @@ def _box_thrown_at_a_plate(velocity, *, start=(0.0, 0.0, 0.6)):
     return model, first
 
 
+@contextlib.contextmanager
+def _held_by_another_thread(hold, *, name=None):
+    """Runs ``hold`` (a context manager) in a second thread named ``name``, and yields while
+    that thread is inside it."""
+    inside, leave = threading.Event(), threading.Event()
+
+    def run():
+        with hold():
+            inside.set()
+            leave.wait(60.0)
+
+    thread = threading.Thread(target=run, name=name)
+    thread.start()
+    inside.wait(60.0)
+    try:
+        yield
+    finally:
+        leave.set()
+        thread.join()
+
+
 def test_a_model_stepped_from_another_thread_meanwhile_is_refused():
     """Found by a probe: two solvers of one model stepped from two threads read each other's
     last evaluation; one raised an error naming an internal function, the other's trajectory
     moved by 2.5e-9 m. A step now holds the model, and a second thread is refused at once,
     its state_out untouched."""
-    import threading
-
     model, first = _box_thrown_at_a_plate((0.0, 0.0, 0.0))
     out = model.state(requires_grad=False)
     before = out.body_q.numpy().copy()
-    holding, release = threading.Event(), threading.Event()
-
-    def other_step():
-        with model.step_lock:  # where another thread's step holds it
-            holding.set()
-            release.wait(60.0)
-
-    thread = threading.Thread(target=other_step)
-    thread.start()
-    holding.wait(60.0)
-    try:
+    # Where another thread's step holds it.
+    with _held_by_another_thread(lambda: model.step_lock):
         with pytest.raises(RuntimeError, match=r"model: another thread is stepping this model; a Model serves one thread at a time .*build one model per thread"):
             wc.ImplicitSolver(model).step(first, out, None, 0.04)
-    finally:
-        release.set()
-        thread.join()
     assert np.array_equal(out.body_q.numpy(), before)
     wc.ImplicitSolver(model).step(first, out, None, 0.04)  # released: steps again
     assert not model.step_lock.locked()
@@ -580,31 +589,22 @@ def test_a_step_meeting_another_threads_recording_tape_is_refused():
     model in a second thread while the first recorded a rollout, and the first thread's
     gradients came back wrong (relative error 1) without an error. The second thread's step
     is now refused, naming the recording thread; once that tape ends, it steps."""
-    import threading
-
     model, first = _box_thrown_at_a_plate((0.0, 0.0, 0.0))
     other, other_first = _box_thrown_at_a_plate((0.0, 0.0, 0.0))
-    recording, done = threading.Event(), threading.Event()
 
-    def record():
+    @contextlib.contextmanager
+    def recording():
         with wp.Tape():
             start = model.state(requires_grad=True)
             start.body_q.assign(first.body_q)
             start.body_q_prev.assign(first.body_q_prev)
             wc.ImplicitSolver(model).step(start, model.state(requires_grad=True), None, 0.04)
-            recording.set()
-            done.wait(60.0)
+            yield
 
-    thread = threading.Thread(target=record, name="recorder")
-    thread.start()
-    recording.wait(60.0)
     out = other.state(requires_grad=False)
-    try:
+    with _held_by_another_thread(recording, name="recorder"):
         with pytest.raises(RuntimeError, match=r"wp.Tape: thread 'recorder' is recording a wp.Tape, and Warp records every thread's launches on the one tape a process has"):
             wc.ImplicitSolver(other).step(other_first, out, None, 0.04)
-    finally:
-        done.set()
-        thread.join()
     wc.ImplicitSolver(other).step(other_first, out, None, 0.04)  # no tape records now
 
 
