@@ -84,6 +84,7 @@ negative one means Earth's gravity, as UsdPhysics specifies).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import inspect
 import os
 import re
@@ -256,8 +257,6 @@ class MeshOrigin(_ArrayFieldEquality):
 
     @staticmethod
     def mesh_digest(vertices: np.ndarray, faces: np.ndarray) -> str:
-        import hashlib
-
         return hashlib.sha1(np.ascontiguousarray(vertices, dtype=np.float64).tobytes() + np.ascontiguousarray(faces, dtype=np.int64).tobytes()).hexdigest()
 
 
@@ -1159,11 +1158,17 @@ def _checked_path(path, label: str = "path") -> Path:
     return Path(path)
 
 
-def _checked_scene(scene, path) -> None:
-    """ValueError unless ``scene`` is a ``Scene`` whose up axis a file can hold (None gave an
-    AttributeError, and an up axis "X" was written as Z without a word; a probe, stop 64)."""
+def check_scene_type(scene) -> None:
+    """ValueError unless ``scene`` is a ``Scene`` (None failed with an AttributeError in every
+    function that takes one; a probe, stop 64)."""
     if not isinstance(scene, Scene):
         raise ValueError(f"scene: expected a warpcontact Scene (io.load_scene, scenes.build_scene), got {type(scene).__name__}")
+
+
+def _checked_scene(scene, path) -> None:
+    """ValueError unless ``scene`` is a ``Scene`` whose up axis a file can hold (an up axis
+    "X" was written as Z without a word; a probe, stop 64)."""
+    check_scene_type(scene)
     if scene.up_axis not in ("Y", "Z"):
         raise ValueError(f"{path}: scene.up_axis must be 'Y' or 'Z' (USD's up axes), got {scene.up_axis!r}")
 
@@ -2517,33 +2522,34 @@ def _check_namespace(stage, scene_prim, body_paths, Usd, UsdPhysics, source: str
         warnings.warn(f"{source}: no UsdPhysics schema has these attributes or schemas, so they are ignored: {', '.join(unknown_physics[:5])}{' ...' if len(unknown_physics) > 5 else ''}", stacklevel=3)
 
 
-def _unknown_physics_schemas(prim, physics: list[str], difflib) -> list[tuple[str, str | None]]:
+def _unknown_physics_schemas(prim, physics: dict[str, str], difflib) -> list[tuple[str, str | None]]:
     """(name, the UsdPhysics API schema it is closest to, or None) of each API schema in the
-    prim's apiSchemas that USD does not know and that looks like one of UsdPhysics' (``physics``,
-    their names): the prefix "Physics", or one of their names but for case. USD drops them
-    without a word, and a box listing PhysicsRigidbodyAPI loaded as a static obstacle (a
-    probe, stop 64). Other tools' schemas (PhysxRigidBodyAPI, a studio's own) are not named."""
+    prim's apiSchemas that USD does not know and that looks like one of UsdPhysics' (``physics``:
+    their names by their lower-case names): the prefix "Physics", or one of their names but for
+    case. USD drops them without a word, and a box listing PhysicsRigidbodyAPI loaded as a
+    static obstacle (a probe, stop 64). Other tools' schemas (PhysxRigidBodyAPI, a studio's
+    own) are not named."""
     listed = prim.GetMetadata("apiSchemas")
     if listed is None:
         return []
     applied = set(prim.GetAppliedSchemas())
-    by_lower = {name.lower(): name for name in physics}
     unknown = []
     for name in dict.fromkeys(listed.GetAddedOrExplicitItems()):
         api = name.split(":")[0]  # a multiple-apply schema's instance name follows its colon
-        if name in applied or not (api.startswith("Physics") or api.lower() in by_lower):
+        if name in applied or not (api.startswith("Physics") or api.lower() in physics):
             continue
-        close = by_lower.get(api.lower()) or next(iter(difflib.get_close_matches(api, physics, n=1)), None)
+        close = physics.get(api.lower()) or next(iter(difflib.get_close_matches(api, list(physics.values()), n=1)), None)
         # A multiple-apply schema listed without its instance name is not applied either.
         unknown.append((name, f"{close}:<instance>" if close == name else close))
     return unknown
 
 
-def _usd_physics_api_schemas(Usd, UsdPhysics) -> list[str]:
-    """The names of UsdPhysics' API schemas (the pxr installed)."""
+def _usd_physics_api_schemas(Usd, UsdPhysics) -> dict[str, str]:
+    """The names of UsdPhysics' API schemas (the pxr installed), by their lower-case names."""
     from pxr import Tf
 
-    return sorted(Usd.SchemaRegistry.GetAPISchemaTypeName(Tf.Type.Find(schema)) for schema in vars(UsdPhysics).values() if isinstance(schema, type) and issubclass(schema, Usd.APISchemaBase))
+    names = sorted(Usd.SchemaRegistry.GetAPISchemaTypeName(Tf.Type.Find(schema)) for schema in vars(UsdPhysics).values() if isinstance(schema, type) and issubclass(schema, Usd.APISchemaBase))
+    return {name.lower(): name for name in names}
 
 
 def _read_settings(prim, settings: SimulationSettings, task: TaskSpec, source: str):

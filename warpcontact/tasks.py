@@ -51,7 +51,7 @@ from ._files import replace_file
 from ._validate import MAX_COORDINATE, MAX_FRAMES, beyond_coordinates, check_finite_poses, checked_flag, is_positive_finite, is_real, is_whole, real_array
 from .builder import check_contact_setting
 from .bundle import BundleSettings, bundled_gradient
-from .io import TASK_ATTRIBUTES, Scene, TaskSpec, target_problem
+from .io import TASK_ATTRIBUTES, TaskSpec, check_scene_type, target_problem
 from .kernels import task as task_kernels
 from .solver import ImplicitSolver, SolverError
 from .types import State, set_body_velocity
@@ -745,10 +745,8 @@ class TaskProblem:
         bundle: BundleSettings | None = None,
         ipc_stiffness: float = IPC_TASK_STIFFNESS,
     ):
-        # Each failed with an AttributeError ('NoneType' has no 'source', 'dict' has no 'check';
-        # a probe, stop 64).
-        if not isinstance(scene, Scene):
-            raise ValueError(f"scene: expected a warpcontact Scene (io.load_scene, scenes.build_scene), got {type(scene).__name__}")
+        check_scene_type(scene)
+        # A dict failed with an AttributeError ('dict' has no 'check'; a probe, stop 64).
         if settings is not None and not isinstance(settings, TaskSettings):
             raise ValueError(f"settings: expected a TaskSettings (or None for the scene's own), got {type(settings).__name__}")
         source = scene.source or "<scene>"
