@@ -1234,7 +1234,11 @@ class ContactModel:
             modules=[friction_kernels],
             device=self.device,
         )
-        return adj_q.numpy().sum(axis=0), float(adj_friction.numpy().sum()), float(adj_mu.numpy().sum())
+        # One wait for the three (three reads were three synchronisations of a GPU a step).
+        self._readback.enqueue(adjoint_q=adj_q, adjoint_friction=adj_friction, adjoint_mu=adj_mu)
+        self._readback.wait()
+        read = self._readback.read
+        return read("adjoint_q").sum(axis=0), float(read("adjoint_friction").sum()), float(read("adjoint_mu").sum())
 
     @property
     def body_rotation(self) -> wp.array:
