@@ -755,6 +755,26 @@ def test_another_models_frames_and_bad_friction_are_refused():
     assert 0.0 < model.advancement_limit(step, frame=model.advancement_frame()) <= 1.0
 
 
+def test_friction_adjoint_checks_its_arrays():
+    """Strings failed inside Warp's array constructor, a short multiplier inside the kernel (a probe, stop 64)."""
+    model = wc.ContactModel([icosphere(1), box((2.0, 2.0, 1.0))], static=[False, True])
+    poses = identity_poses([[0, 0, 1.05], [0, 0, 0]])
+    model.evaluate(poses)
+    lagged = model.friction_frame(0.5, wp.array([0.5], dtype=wp.float64), 1e-4)
+    lam = np.zeros((2, 6))
+    for args, message in (
+        (("a", poses, lam), r"q_next: expected a real numeric array, got dtype <U1"),
+        ((poses, poses[:1], lam), r"q_now: expected 2 rows \(one per body\), got 1"),
+        ((poses, poses, np.zeros((2, 3))), r"multiplier: expected shape \('N', 6\), got \(2, 3\)"),
+        ((poses, poses, np.zeros((1, 6))), r"multiplier: expected 2 rows \(one per body\), got 1"),
+        ((poses, poses, np.full((2, 6), np.nan)), r"multiplier: non-finite value nan at index \(0, 0\)"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            model.friction_adjoint(lagged, *args)
+    adj_q, _, _ = model.friction_adjoint(lagged, poses, poses, lam)
+    assert adj_q.shape == (2, 6)
+
+
 def test_friction_terms_check_their_poses():
     model = wc.ContactModel([icosphere(1), box((2.0, 2.0, 1.0))], static=[False, True])
     poses = identity_poses([[0, 0, 1.05], [0, 0, 0]])

@@ -287,20 +287,20 @@ def validated_step(step, names, static: np.ndarray) -> np.ndarray:
     return step
 
 
-def validated_poses(poses, names, *, normalize: bool = True) -> np.ndarray:
+def validated_poses(poses, names, *, normalize: bool = True, label: str = "poses") -> np.ndarray:
     """(len(names), 7) float64 poses (px, py, pz, qx, qy, qz, qw) with quaternions within
     QUATERNION_TOLERANCE of unit norm, normalised unless ``normalize`` is False; ValueError
-    naming the argument, or the body by index and name, otherwise."""
-    poses = as_float64_array(poses, "poses", trailing_shape=(7,))
-    check_coordinates(poses, "poses")
+    naming the argument (``label``), or the body by index and name, otherwise."""
+    poses = as_float64_array(poses, label, trailing_shape=(7,))
+    check_coordinates(poses, label)
     if poses.shape[0] != len(names):
-        raise ValueError(f"poses: expected {len(names)} rows (one per body), got {poses.shape[0]}")
+        raise ValueError(f"{label}: expected {len(names)} rows (one per body), got {poses.shape[0]}")
     norms = quat_norm(poses[:, 3:])
     bad = np.flatnonzero(np.abs(norms - 1.0) > QUATERNION_TOLERANCE)
     if bad.size:
         i = int(bad[0])
         raise ValueError(
-            f"poses: body {i} ({names[i]}) has quaternion norm {norms[i]:.9g}; "
+            f"{label}: body {i} ({names[i]}) has quaternion norm {norms[i]:.9g}; "
             f"expected unit norm within {QUATERNION_TOLERANCE} (layout px, py, pz, qx, qy, qz, qw)"
         )
     return normalized_poses(poses, norms=norms) if normalize else poses

@@ -33,7 +33,7 @@ from .kernels import reduction as reduction_kernels
 from .kernels import rigid as rigid_kernels
 from .kernels import traversal as traversal_kernels
 from ._runtime import HostReadback, LaunchCache, host_buffer, resolve_device, run_concurrently
-from ._validate import QUATERNION_TOLERANCE, blend_eps_problem, check_barrier_support, check_count, checked_flag, is_positive_finite, is_real, is_whole, scale_problem, validated_poses, validated_step
+from ._validate import QUATERNION_TOLERANCE, as_float64_array, blend_eps_problem, check_barrier_support, check_count, checked_flag, is_positive_finite, is_real, is_whole, scale_problem, validated_poses, validated_step
 from .leaf import DEFAULT_MAX_ITERATIONS, LeafStatus, float32_search
 from .rotation import rigid_step_travel
 from .sphere_tree import SphereTree, tree_of_validated_mesh, validated_mesh
@@ -308,6 +308,18 @@ def check_own(value, kind: type, label: str, model) -> None:
         raise ValueError(f"{label}: expected {article} {kind.__name__} of this contact model, got {type(value).__name__}")
     if value.model_id != id(model):
         raise ValueError(f"{label}: this {kind.__name__} is another contact model's; use this model's own")
+
+
+def checked_adjoint_arguments(q_next, q_now, multiplier, names) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``friction_adjoint``'s poses (len(names), 7) and multiplier (len(names), 6) as float64
+    arrays, or ValueError naming the argument (strings failed inside Warp's array
+    constructor, a short multiplier inside a kernel launch; a probe, stop 64)."""
+    q_next = validated_poses(q_next, names, normalize=False, label="q_next")
+    q_now = validated_poses(q_now, names, normalize=False, label="q_now")
+    multiplier = as_float64_array(multiplier, "multiplier", trailing_shape=(6,))
+    if multiplier.shape[0] != len(names):
+        raise ValueError(f"multiplier: expected {len(names)} rows (one per body), got {multiplier.shape[0]}")
+    return q_next, q_now, multiplier
 
 
 def check_friction_arguments(mu, friction, slip_smoothing, coefficient=None) -> None:
@@ -1184,6 +1196,7 @@ class ContactModel:
         Returns ((nbodies, 6) rigid-coordinate adjoint of q_now, adjoint of lambda, of mu).
         """
         check_own(lagged, LaggedFriction, "lagged", self)
+        q_next, q_now, multiplier = checked_adjoint_arguments(q_next, q_now, multiplier, self.names)
         n = self.num_bodies
         # On a CPU, ranges of the lagged pairs on one thread per core, each into outputs of its
         # own, summed in order: one thread took 44 ms of a 6,208-triangle frame's 48 ms

@@ -35,7 +35,7 @@ import numpy as np
 from dataclasses import dataclass
 
 from .articulation import connected_labels
-from .contact import ContactEvaluation, LaggedFriction, check_friction_arguments, check_own, checked_bodies, contact_body_pairs, hessian_slots
+from .contact import ContactEvaluation, LaggedFriction, check_friction_arguments, check_own, checked_adjoint_arguments, checked_bodies, contact_body_pairs, hessian_slots
 from .rotation import cross, quat_from_rotation_vector, quat_to_matrix, skew
 from ._validate import check_barrier_support, checked_flag, validated_poses, validated_step
 
@@ -307,6 +307,7 @@ class IpcContactModel:
         d(grad_x D)/dx^t = -dF/dx^t|_u + dF/du = -dF/dx^t|_u - d2D/du2.
         """
         check_own(lagged, LaggedFriction, "lagged", self)
+        q_next, q_now, multiplier = checked_adjoint_arguments(q_next, q_now, multiplier, self.names)
         ipctk = self._ipctk
         data = lagged.data
         mesh = self._mesh
