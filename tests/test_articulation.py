@@ -1487,6 +1487,21 @@ def test_joint_targets_for_a_model_without_joint_coordinates_are_refused():
     wc.ImplicitSolver(model).step(model.state(), model.state(), model.control(), 0.01)
 
 
+@pytest.mark.parametrize("name", ["joint_q", "joint_q_prev"])
+def test_joint_coordinates_for_a_model_without_them_are_refused(name):
+    """Coordinates given to a model without joint coordinates were ignored (a probe, stop 64)."""
+    model = _hanging_rod("ball")
+    state_in, state_out = model.state(), model.state()
+    for label, state in (("state_in", state_in), ("state_out", state_out)):
+        if label == "state_in" and name == "joint_q_prev":
+            continue  # state_in's joint_q_prev is not read
+        setattr(state, name, wp.array([0.3], dtype=wp.float64))
+        with pytest.raises(ValueError, match=rf"{label}.{name}: this model has no joint coordinates; expected None or model.state\(\)'s empty array, got float64 array of shape \(1,\)"):
+            wc.ImplicitSolver(model).step(state_in, state_out, None, 0.01)
+        setattr(state, name, None)
+    wc.ImplicitSolver(model).step(state_in, state_out, None, 0.01)
+
+
 @pytest.mark.parametrize("position", [(0.0, 0.0, 5.0), 1.0, (np.nan, 0.0)])
 def test_ant_position_is_checked(position):
     """A third coordinate was dropped (the ant stood on the ground all the same), a scalar

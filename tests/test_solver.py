@@ -1814,6 +1814,14 @@ def test_api_objects_of_the_wrong_kind_are_named():
         solver.step(None, model.state(), None, 0.01)
     with pytest.raises(ValueError, match="exact_friction_steps: expected True/False"):
         wc.ImplicitSolver(model, exact_friction_steps="no")
+    # An AttributeError deep in the step (a probe, stop 64).
+    contact, model.contact = model.contact, None
+    with pytest.raises(ValueError, match=r"model.contact: replaced after this solver was made \(now NoneType\); .* make a new ImplicitSolver, or restore it"):
+        solver.step(model.state(), model.state(), None, 0.01)
+    with pytest.raises(ValueError, match=r"model.contact: expected the contact model finalize made \(ContactModel or IpcContactModel\), got NoneType"):
+        wc.ImplicitSolver(model)
+    model.contact = contact
+    solver.step(model.state(), model.state(), None, 0.01)
     with pytest.raises(ValueError, match="derivatives: expected True/False"):
         wc.triangle_pair_potential(np.eye(3)[None], np.eye(3)[None] + 2.0, derivatives="no")
     for call, match in (

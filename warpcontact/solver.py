@@ -26,6 +26,7 @@ second moments), which would otherwise stay zero.
 """
 
 import dataclasses
+import sys
 import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -420,6 +421,15 @@ class _StepInputs:
     ball_start: np.ndarray  # (nball, 4) ball-joint rotations at t
 
 
+def _check_contact_model(contact) -> None:
+    """ValueError unless ``contact`` is a contact model ``finalize`` makes (ipc's only exists
+    once ``warpcontact.ipc`` was imported, which is why it is looked up, not imported)."""
+    ipc = sys.modules.get("warpcontact.ipc")
+    kinds = (ContactModel,) if ipc is None else (ContactModel, ipc.IpcContactModel)
+    if not isinstance(contact, kinds):
+        raise ValueError(f"model.contact: expected the contact model finalize made (ContactModel or IpcContactModel), got {_described(contact)}")
+
+
 class ImplicitSolver:
     """Implicit Newton time stepper of a ``Model``.
 
@@ -464,7 +474,11 @@ class ImplicitSolver:
             raise ValueError(f"max_iterations: must be a whole number >= 1, got {max_iterations!r}")
         if not isinstance(model, Model):
             raise ValueError(f"model: expected a Model (ModelBuilder.finalize()), got {type(model).__name__}")
+        _check_contact_model(model.contact)
         self.model = model
+        # The contact model the solver's tables below were made from: one put in its place
+        # later failed as an AttributeError deep in the step (a probe, stop 64).
+        self._contact = model.contact
         self.tolerance = float(tolerance)
         self.max_iterations = int(max_iterations)
         self.advancement_fraction = float(advancement_fraction)
@@ -935,6 +949,10 @@ class ImplicitSolver:
             if supplied is not None and not (isinstance(supplied, wp.array) and supplied.shape == (0,)):
                 # Ignored before: targets for joints the model does not have.
                 raise ValueError(f"control.joint_target: this model has no joint coordinates; expected None or model.control()'s empty array, got {_described(supplied)}")
+            for label, arr in (("state_in.joint_q", state_in.joint_q), ("state_out.joint_q", state_out.joint_q), ("state_out.joint_q_prev", state_out.joint_q_prev)):
+                # Ignored before: coordinates for joints the model does not have.
+                if arr is not None and not (isinstance(arr, wp.array) and arr.shape == (0,)):
+                    raise ValueError(f"{label}: this model has no joint coordinates; expected None or model.state()'s empty array, got {_described(arr)}")
             return np.zeros(0), np.zeros(0)
         for label, arr in (("state_in.joint_q", state_in.joint_q), ("state_out.joint_q", state_out.joint_q), ("state_out.joint_q_prev", state_out.joint_q_prev)):
             # An int32 output stored the coordinates truncated, silently, and the next step
@@ -1012,6 +1030,8 @@ class ImplicitSolver:
             for name in ("body_q", "body_q_prev"):
                 _check_pose_array(getattr(state, name, None), model.num_bodies, f"{label}.{name}", "one per body of this model (use model.state())")
         _check_no_shared_arrays(state_in, state_out)
+        if model.contact is not self._contact:
+            raise ValueError(f"model.contact: replaced after this solver was made (now {_described(model.contact)}); the solver's tables belong to the model's own contact model: make a new ImplicitSolver, or restore it")
         for name, (dtype, shape) in self._model_array_layout.items():
             value = getattr(model, name)
             if not isinstance(value, wp.array) or value.dtype != dtype or value.shape != shape or value.device != model.device:
