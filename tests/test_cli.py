@@ -476,6 +476,9 @@ def test_results_are_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert json.loads(path.read_text())["rows"][1] is None  # the earlier file, whole
     assert [p.name for p in tmp_path.iterdir()] == ["results.json"]  # no temporary left
+    # A folder where no file can be made: the error named the temporary file (a probe, stop 64).
+    with pytest.raises(OSError, match=r"^\[Errno 2\] /proc/results.json: no file can be created in /proc \(No such file or directory\)$"):
+        _files.replace_json("/proc/results.json", {})
 
 
 def test_bench_frame_refuses_bad_pickles_and_strikerless_scenes_before_timing(tmp_path, capsys):

@@ -95,7 +95,11 @@ def replace_file(path, write) -> None:
     if not path.parent.is_dir():
         # mkstemp named its temporary file, not the output.
         raise FileNotFoundError(f"{path}: its folder does not exist")
-    fd, temporary = tempfile.mkstemp(suffix=path.suffix, prefix=_TEMPORARY_PREFIX, dir=path.parent)
+    try:
+        fd, temporary = tempfile.mkstemp(suffix=path.suffix, prefix=_TEMPORARY_PREFIX, dir=path.parent)
+    except OSError as exc:
+        # Named the temporary file (/proc: "No such file or directory: '/proc/.warpcontact-tmp-...'").
+        raise OSError(exc.errno, f"{path}: no file can be created in {path.parent} ({exc.strerror})") from None
     os.close(fd)
     os.unlink(temporary)  # some writers (Usd.Stage.CreateNew) refuse an existing file
     try:
