@@ -2560,7 +2560,6 @@ def test_overwrite_must_be_a_flag(tmp_path):
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        (lambda s: setattr(s.bodies[1], "mass", 1e40), r"prim /World/cue: mass must be positive \(or 0: not specified\), got inf"),
         (lambda s: setattr(s.bodies[1], "linear_velocity", np.array([1e39, 0.0, 0.0])), r"prim /World/cue: physics:velocity must be finite"),
         (lambda s: s.bodies[1].__dict__.update(target_position=np.zeros(3), target_tolerance=-1.0), r"prim /World/cue: warpcontact:target:tolerance must be finite, >= 0"),
         (lambda s: setattr(s.bodies[1], "inertia", -np.eye(3)), r"prim /World/cue: diagonalInertia must be positive \(or 0 on every axis: not specified\), got \[-1. -1. -1.\]"),
@@ -2579,6 +2578,30 @@ def test_save_scene_never_writes_a_file_load_scene_refuses(tmp_path, change, mes
     with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: not written, as load_scene would refuse it \(values the schemas type as float are written as float32\): {message}"):
         io.save_scene(scene, path, overwrite=True)
     assert path.read_bytes() == good and [p.name for p in tmp_path.iterdir()] == ["scene.usda"]
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "label", "read_back"),
+    [
+        ("mass", 1e-46, "physics:mass", "0"),  # read back as "not given": the default density's mass, silently (a probe, stop 65)
+        ("mass", 1e40, "physics:mass", "inf"),
+        ("density", 1e-40, "physics:density", r"9.99995e-41"),  # a subnormal, its digits lost
+        ("inertia", np.diag([1e-45, 1.0, 1.0]), "physics:diagonalInertia", r"1.4013e-45"),
+    ],
+)
+def test_save_scene_refuses_mass_properties_float32_cannot_hold(tmp_path, field, value, label, read_back):
+    from warpcontact.scenes import build_scene
+
+    scene = build_scene("billiards_512")
+    cue = scene.body("cue")
+    setattr(cue, field, value)
+    if field == "density":
+        cue.mass = None
+    path = tmp_path / "scene.usda"
+    shown = f"{float(np.min(np.diag(value)) if field == 'inertia' else value):g}"
+    with pytest.raises(ValueError, match=rf"{re.escape(str(path))}: body 'cue': {label} {re.escape(shown)} is outside the float32 range \[1.17549e-38, 3.40282e\+38\] in which UsdPhysics stores it \(written, it would read back as {read_back}\)"):
+        io.save_scene(scene, path)
+    assert not path.exists()
 
 
 @pytest.mark.parametrize(

@@ -2709,6 +2709,7 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
         dynamic_only = _dynamic_only(body)
         if dynamic_only:
             raise ValueError(f"{path}: static body {body.name!r} has {dynamic_only}, which only a dynamic body takes (a static collider's file holds none of them)")
+        _check_float32_mass_properties(body, path)
 
     def write(tmp: Path):
         stage = _new_stage(Usd, UsdGeom, tmp, scene.up_axis)
@@ -2802,6 +2803,28 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
                 raise ValueError(f"{path}: not written, as load_scene would refuse it (values the schemas type as float are written as float32): {reason}") from None
 
     _atomic_save(write, path, overwrite)
+
+
+# The range of normal float32 numbers, in which MassAPI's float attributes hold a value.
+_FLOAT32_NORMAL = (float(np.finfo(np.float32).tiny), float(np.finfo(np.float32).max))
+
+
+def _check_float32_mass_properties(body: BodySpec, path) -> None:
+    """ValueError naming the body and attribute when a mass, density or principal moment of
+    inertia lies outside the normal float32 range the UsdPhysics schema stores it in: a mass
+    of 1e-46 was written as 0, which UsdPhysics reads as "not given", and came back as the
+    default density's 64 kg (a probe, stop 65); above the range it became inf."""
+    low, high = _FLOAT32_NORMAL
+    moments = () if body.inertia is None else np.linalg.eigvalsh(np.asarray(body.inertia, dtype=np.float64))
+    for label, values in (("physics:mass", () if body.mass is None else (body.mass,)), ("physics:density", () if body.density is None else (body.density,)), ("physics:diagonalInertia", moments)):
+        for value in values:
+            if not low <= abs(float(value)) <= high:
+                with np.errstate(over="ignore"):
+                    stored = float(np.float32(value))
+                raise ValueError(
+                    f"{path}: body {body.name!r}: {label} {float(value):g} is outside the float32 range [{low:.6g}, {high:.6g}] "
+                    f"in which UsdPhysics stores it (written, it would read back as {stored:g}); this scene's mass units cannot be saved"
+                )
 
 
 def _check_prim_names(specs: list, kind: str, *, reserved: tuple, Sdf) -> None:
