@@ -291,6 +291,16 @@ def test_the_strike_is_set_up_across_the_stage_up_axis():
     above.body("rod").pose[:2] = above.body(setups[0]["struck"]).pose[:2]
     with pytest.raises(ValueError, match="the striker 'rod' stands straight above or below 'box'"):
         bench.strike_setup(above, gap=0.02, speed=1.0)
+    # A static striker was given a velocity it never had, and the results recorded a strike
+    # it never made; a striker alone failed in min() (a probe, stop 65).
+    static = scenes.build_scene("push")
+    static.body("rod").static = True
+    with pytest.raises(ValueError, match=r"the striker 'rod' is static \(a collider without a rigid body\): it cannot strike"):
+        bench.strike_setup(static, gap=0.02, speed=1.0)
+    alone = scenes.build_scene("push")
+    alone.body("box").static = True
+    with pytest.raises(ValueError, match="no dynamic body besides the striker 'rod' to strike"):
+        bench.strike_setup(alone, gap=0.02, speed=1.0)
 
 
 def test_bench_frame_times_brute_contact_only_above_the_cap(tmp_path):

@@ -640,15 +640,24 @@ def strike_setup(scene, *, gap: float, speed: float) -> dict:
 
     Returns a description (striker, struck body, gap, speed, direction) and sets
     ``control_target`` (prim-frame translation of the striker's PD target, or None).
-    ValueError when the striker stands straight above or below that body (no horizontal
-    direction to strike along).
+    ValueError when the striker is static, when no other dynamic body is there to strike, or
+    when the striker stands straight above or below that body (no horizontal direction to
+    strike along).
     """
     names = [b.name for b in scene.bodies]
     striker_name = "cue" if "cue" in names else "rod" if "rod" in names else None
     if striker_name is None:
         raise ValueError(f"{scene.source or '<scene>'}: no 'cue' or 'rod' body to strike with")
     striker = scene.body(striker_name)
+    where = scene.source or "<scene>"
+    if striker.static:
+        # Given a velocity it never had, it stood still while the results recorded a strike
+        # at the speed asked for (a probe, stop 65).
+        raise ValueError(f"{where}: the striker {striker_name!r} is static (a collider without a rigid body): it cannot strike")
     others = [b for b in scene.bodies if not b.static and b is not striker]
+    if not others:
+        # min() of no bodies: "min() arg is an empty sequence" (a probe, stop 65).
+        raise ValueError(f"{where}: no dynamic body besides the striker {striker_name!r} to strike")
     # The horizontal plane is the stage's: a Y-up scene's rod was moved along y, part way up.
     up = np.array([0.0, 1.0, 0.0]) if scene.up_axis == "Y" else np.array([0.0, 0.0, 1.0])
     struck = min(others, key=lambda b: np.linalg.norm(_horizontal(b.pose[:3] - striker.pose[:3], up)))
@@ -667,7 +676,7 @@ def strike_setup(scene, *, gap: float, speed: float) -> dict:
     if not reach + gap + travel <= MAX_COORDINATE:
         raise ValueError(f"speed: {speed:g} m/s moves the striker {travel:g} m a step of {scene.settings.time_step:g} s, beyond the +-{MAX_COORDINATE:g} m of a body's coordinates")
     if np.linalg.norm(offset) <= 1e-9 * reach:
-        raise ValueError(f"{scene.source or '<scene>'}: the striker {striker_name!r} stands straight above or below {struck.name!r}: there is no horizontal direction to strike it along")
+        raise ValueError(f"{where}: the striker {striker_name!r} stands straight above or below {struck.name!r}: there is no horizontal direction to strike it along")
     direction = offset / np.linalg.norm(offset)
     striker.pose[:3] = _horizontal(struck.pose[:3], up) - direction * (reach + gap) + (striker.pose[:3] @ up) * up
     striker.linear_velocity = speed * direction
