@@ -2709,7 +2709,8 @@ def save_scene(scene: Scene, path, *, overwrite: bool = False):
         dynamic_only = _dynamic_only(body)
         if dynamic_only:
             raise ValueError(f"{path}: static body {body.name!r} has {dynamic_only}, which only a dynamic body takes (a static collider's file holds none of them)")
-        _check_float32_mass_properties(body, path)
+        if not body.static:  # a static body's file holds no mass properties
+            _check_float32_mass_properties(body, path)
 
     def write(tmp: Path):
         stage = _new_stage(Usd, UsdGeom, tmp, scene.up_axis)

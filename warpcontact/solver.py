@@ -944,17 +944,18 @@ class ImplicitSolver:
         """Current joint coordinates and joint targets (numpy); checks the joint buffers and
         that the coordinates agree with the current ``poses`` (normalised state_in.body_q)."""
         count = self.model.num_joint_coordinates
+        buffers = (("state_in.joint_q", state_in.joint_q), ("state_out.joint_q", state_out.joint_q), ("state_out.joint_q_prev", state_out.joint_q_prev))
         if count == 0:
             supplied = None if control is None else control.joint_target
             if supplied is not None and not (isinstance(supplied, wp.array) and supplied.shape == (0,)):
                 # Ignored before: targets for joints the model does not have.
                 raise ValueError(f"control.joint_target: this model has no joint coordinates; expected None or model.control()'s empty array, got {_described(supplied)}")
-            for label, arr in (("state_in.joint_q", state_in.joint_q), ("state_out.joint_q", state_out.joint_q), ("state_out.joint_q_prev", state_out.joint_q_prev)):
+            for label, arr in buffers:
                 # Ignored before: coordinates for joints the model does not have.
                 if arr is not None and not (isinstance(arr, wp.array) and arr.shape == (0,)):
                     raise ValueError(f"{label}: this model has no joint coordinates; expected None or model.state()'s empty array, got {_described(arr)}")
             return np.zeros(0), np.zeros(0)
-        for label, arr in (("state_in.joint_q", state_in.joint_q), ("state_out.joint_q", state_out.joint_q), ("state_out.joint_q_prev", state_out.joint_q_prev)):
+        for label, arr in buffers:
             # An int32 output stored the coordinates truncated, silently, and the next step
             # blamed the state's consistency.
             if not isinstance(arr, wp.array) or arr.shape != (count,) or arr.dtype != wp.float64:
