@@ -2871,3 +2871,19 @@ def test_friction_of_a_common_turn_off_its_axis_is_zero():
         q1[:, 3:] = quat_mul(turn, q0[:, 3:])
         value, grad, _ = contact.friction_terms(lagged, poses=q1)
         assert value == 0.0 and np.abs(grad).max() < 1e-6, (angle, value, np.abs(grad).max())
+
+
+def test_an_infinite_contact_potential_with_no_pair_named_is_not_blamed_on_inertia(monkeypatch):
+    """The ipc model's potential between two touching static bodies was infinite with no pair
+    reported, and the step blamed inertia, gravity and PD terms (a probe, stop 65)."""
+    import dataclasses
+
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    b.add_box((4.0, 4.0, 0.2), static=True, name="floor", pose=(0.0, 0.0, -0.1, 0.0, 0.0, 0.0, 1.0))
+    b.add_box((0.3, 0.3, 0.3), density=200.0, name="box", pose=(0.0, 0.0, 0.151, 0.0, 0.0, 0.0, 1.0))
+    model = b.finalize()
+    solver = wc.ImplicitSolver(model)
+    evaluate = type(model.contact).evaluate
+    monkeypatch.setattr(model.contact, "evaluate", lambda poses, **kw: dataclasses.replace(evaluate(model.contact, poses, **kw), value=np.inf))
+    with pytest.raises(wc.SolverError, match=r"objective is not finite at the start pose: the contact potential is inf, though no body pair was found touching, intersecting or unsolved"):
+        solver.step(model.state(), model.state(), None, 0.02)

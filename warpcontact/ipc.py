@@ -129,7 +129,8 @@ class IpcContactModel:
         self._body_of = np.concatenate(body_of)
         F = np.concatenate(faces)
         self._mesh = ipctk.CollisionMesh(self._local, ipctk.edges(F), F)
-        self._mesh.can_collide = ipctk.make_vertex_patches_filter(self._patches(exclude_pairs)[self._body_of])
+        self._patch = self._patches(exclude_pairs)
+        self._mesh.can_collide = ipctk.make_vertex_patches_filter(self._patch[self._body_of])
         self._potential = ipctk.BarrierPotential(self.dhat, 1.0)
         self._ccd = ipctk.TightInclusionCCD(max_iterations=CCD_MAX_ITERATIONS)
         self._world = self._local.copy()
@@ -146,8 +147,16 @@ class IpcContactModel:
 
     def _patches(self, exclude_pairs) -> np.ndarray:
         """Patch id per body: ipctk's filter only separates patches, so bodies joined by
-        excluded pairs share one patch (all contact inside such a group is off)."""
-        return connected_labels(self.num_bodies, exclude_pairs).astype(np.int32)
+        excluded pairs share one patch (all contact inside such a group is off). The static
+        bodies share one too, as they have no contact terms between them in ``ContactModel``
+        (a pedestal standing on the floor made every step's barrier infinite; a probe, stop
+        65), unless a static body's group holds a dynamic body (a fixed robot base jointed to
+        its first link), whose contact with the other static bodies that would switch off."""
+        labels = connected_labels(self.num_bodies, exclude_pairs).astype(np.int32)
+        static_labels = np.unique(labels[self.static])
+        if len(static_labels) > 1 and not np.isin(labels[~self.static], static_labels).any():
+            labels[np.isin(labels, static_labels)] = static_labels[0]
+        return labels
 
     def _world_vertices(self, poses: np.ndarray) -> np.ndarray:
         R = quat_to_matrix(poses[:, 3:])
@@ -175,6 +184,10 @@ class IpcContactModel:
         n = self.num_bodies
         if ipctk.has_intersections(self._mesh, V):
             pairs = [(self.names[a], self.names[b]) for a, b in self.body_pairs if self._pair_intersects(V, a, b)]
+            if not pairs:
+                # Two static bodies ipctk's filter could not keep apart (_patches): unnamed before.
+                static = np.flatnonzero(self.static)
+                pairs = [(self.names[a], self.names[b]) for i, a in enumerate(static) for b in static[i + 1 :] if self._patch[a] != self._patch[b] and self._pair_intersects(V, a, b)]
             m = 6 * len(self.hessian_bodies)
             return ContactEvaluation(np.inf, np.zeros((n, 6)), np.zeros((m, m)), 0, 0, 0, pairs, [], 0.0, np.zeros(len(self.body_pairs)))
         value, g, H, collisions = self._vertex_terms(V)

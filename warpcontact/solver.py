@@ -1164,6 +1164,13 @@ class ImplicitSolver:
             if contact.unsolved_pairs:
                 pairs = ", ".join(f"{a} and {b}" for a, b in contact.unsolved_pairs)
                 raise SolverError(f"objective is not finite at the start pose: {pairs}: {UNSOLVED_HINT}")
+            if not np.isfinite(contact.value):
+                # Blamed on inertia, gravity and PD terms (a probe, stop 65: the ipc model's
+                # potential between two touching static bodies, before it dropped those terms).
+                raise SolverError(
+                    f"objective is not finite at the start pose: the contact potential is {contact.value}, though no body pair was found "
+                    f"touching, intersecting or unsolved; bodies may be pressed closer than float64 resolves, or the contact stiffness (mu {mu:g}) overflows it"
+                )
             # Every contact term is finite: it was blamed on the leaf searches of no pair.
             raise SolverError(
                 f"objective is not finite at the start pose, though its contact terms are: the bodies' inertia (over dt={dt}), "
