@@ -1204,3 +1204,43 @@ def test_a_reader_that_closes_the_pipe_early_loses_nothing(tmp_path):
     assert process.returncode == 0, errors.decode()
     assert (tmp_path / "sim" / "trajectory.usda").is_file() and json.loads((tmp_path / "sim" / "summary.json").read_text())["frames"] == 30
     assert b"Broken pipe" not in errors
+
+
+def test_a_set_of_results_is_replaced_whole_when_a_rename_fails(tmp_path, monkeypatch):
+    """A rename that failed part way (a trajectory.usda that had become a folder) left the new
+    metrics.json beside no trajectory, which the --resume the error advised then refused as an
+    earlier run's results (a probe, stop 65)."""
+    from warpcontact import _files
+
+    names = ("metrics.json", "trajectory.usda", "convergence.png")
+    for name in names[:2]:
+        (tmp_path / name).write_text(f"earlier {name}")
+    real_replace = os.replace
+
+    def failing_replace(source, target):
+        if Path(target).name == "trajectory.usda" and Path(source).parent.name.startswith(".warpcontact-tmp"):
+            raise OSError(28, "No space left on device")
+        return real_replace(source, target)
+
+    monkeypatch.setattr(_files.os, "replace", failing_replace)
+    with pytest.raises(OSError, match="No space left"):
+        with _files.replace_files(tmp_path, names) as staged:
+            for name in names:
+                (staged / name).write_text(f"new {name}")
+    monkeypatch.undo()
+    assert {p.name: p.read_text() for p in tmp_path.iterdir()} == {name: f"earlier {name}" for name in names[:2]}
+    # A folder where a result goes is refused before anything moves, and kept whole.
+    (tmp_path / "trajectory.usda").unlink()
+    (tmp_path / "trajectory.usda").mkdir()
+    (tmp_path / "trajectory.usda" / "keep").write_text("kept")
+    with pytest.raises(IsADirectoryError, match=r"trajectory.usda: a folder where a result file goes; remove or rename it, or choose another --out"):
+        with _files.replace_files(tmp_path, names) as staged:
+            for name in names:
+                (staged / name).write_text(f"new {name}")
+    assert (tmp_path / "metrics.json").read_text() == "earlier metrics.json" and (tmp_path / "trajectory.usda" / "keep").read_text() == "kept"
+    (tmp_path / "trajectory.usda" / "keep").unlink()
+    (tmp_path / "trajectory.usda").rmdir()
+    # Replaced: a name the block did not write is left without a file.
+    with _files.replace_files(tmp_path, names) as staged:
+        (staged / "metrics.json").write_text("new metrics.json")
+    assert {p.name: p.read_text() for p in tmp_path.iterdir()} == {"metrics.json": "new metrics.json"}

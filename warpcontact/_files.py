@@ -1,6 +1,7 @@
 """Output files written whole: a failed or interrupted write leaves the earlier file."""
 
 import contextlib
+import errno
 import json
 import os
 import shutil
@@ -113,20 +114,42 @@ def replace_file(path, write) -> None:
 @contextlib.contextmanager
 def replace_files(folder, names):
     """Replace a command's results in ``folder`` as one set: yields a hidden folder inside it
-    to write the files ``names`` in; once the block finishes, each is renamed into ``folder``,
-    and an earlier file of a name the block did not write is removed. A block that fails or
-    is interrupted changes nothing in ``folder`` (only the renames that follow it, one short
-    loop, can be cut between two files): written one by one, a failed trajectory left a new
-    metrics.json beside an earlier run's trajectory.usda."""
+    to write the files ``names`` in; once the block finishes, each earlier file of those names
+    is moved aside, each written file renamed into ``folder``, and the earlier files then
+    dropped (a name the block did not write is left without a file). A block that fails or is
+    interrupted changes nothing in ``folder``, and neither does a rename that fails: the files
+    already moved are put back (written one by one, a failed trajectory left a new
+    metrics.json beside an earlier run's trajectory.usda; renamed one by one, a trajectory.usda
+    that had become a folder left the new metrics.json beside no trajectory, which the next
+    command then took for an earlier run's results; a probe, stop 65). A folder where a result
+    file goes is refused before anything moves."""
     folder = Path(folder)
     staged = Path(tempfile.mkdtemp(prefix=_TEMPORARY_PREFIX, dir=folder))
     try:
         yield staged
         for name in names:
-            if (staged / name).exists():
-                os.replace(staged / name, folder / name)
-            else:
-                (folder / name).unlink(missing_ok=True)
+            target = folder / name
+            if target.exists() and not (target.is_file() or target.is_symlink()):
+                # Moved aside, it would have been deleted with the staging folder.
+                raise IsADirectoryError(errno.EISDIR, f"{target}: a folder where a result file goes; remove or rename it, or choose another --out")
+        earlier = staged / "earlier"
+        earlier.mkdir()
+        moved_aside, moved_in = [], []
+        try:
+            for name in names:
+                if (folder / name).exists() or (folder / name).is_symlink():
+                    os.replace(folder / name, earlier / name)
+                    moved_aside.append(name)
+            for name in names:
+                if (staged / name).exists():
+                    os.replace(staged / name, folder / name)
+                    moved_in.append(name)
+        except BaseException:
+            for name in moved_in:
+                os.replace(folder / name, staged / name)
+            for name in moved_aside:
+                os.replace(earlier / name, folder / name)
+            raise
     finally:
         shutil.rmtree(staged, ignore_errors=True)
 
