@@ -730,11 +730,17 @@ def test_a_partial_quick_preset_says_what_a_preset_is(tmp_path):
         TaskSettings.from_task(scene, quick=True, receding_stride=1000)
 
 
-def test_iterations_are_capped_with_a_clear_error():
+def test_iterations_are_capped_with_a_clear_error(capsys):
     """gb's sigma schedule holds one number per iteration: --iters 1e12 died in a 7.3 TiB
     MemoryError traceback."""
-    with pytest.raises(ValueError, match=r"--iters must be a whole number from 1 to 10,000,000, got 1000000000000"):
+    with pytest.raises(ValueError, match=r"iterations \(--iters\) must be a whole number from 1 to 10,000,000, got 1000000000000"):
         TaskSettings.from_task(space_billiards(), iterations=10**12)
+    # The command line's bound is the same (it was 2,147,483,647 there; a probe, stop 65).
+    from warpcontact.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["run", "push", "--iters", "20000000"])
+    assert "--iters: must be a whole number from 1 to 10,000,000, got 20000000" in capsys.readouterr().err
 
 
 def test_cli_compare_skips_ipc_without_ipctk_and_keeps_the_other_models(tmp_path, capsys, monkeypatch):
@@ -1588,7 +1594,9 @@ def _rewritten(path, **changes):
     ("damage", "message"),
     [
         ("truncated", r"not a readable checkpoint \(File is not a zip file\)"),
-        ("empty", "not a readable checkpoint"),
+        ("empty", r"not a readable checkpoint \(not an .npz archive\)"),
+        # numpy's message advised loading the file as a pickle, unsafely (a probe, stop 65).
+        ("text", r"not a readable checkpoint \(not an .npz archive\)"),
         ("single array", r"not a readable checkpoint \(a single array, not an .npz archive\)"),
         ("meta a list", r"not a readable checkpoint \(its meta is not a JSON object\)"),
         ("meta without a fingerprint", r"not a complete checkpoint \(missing fingerprint\)"),
@@ -1625,6 +1633,8 @@ def test_a_damaged_checkpoint_is_refused_naming_the_file(tmp_path, damage, messa
         checkpoint.write_bytes(checkpoint.read_bytes()[:500])
     elif damage == "empty":
         checkpoint.write_bytes(b"")
+    elif damage == "text":
+        checkpoint.write_text("hello")
     elif damage == "encryption flag":
         # One flipped bit: the first central-directory entry's "strong encryption" flag.
         data = bytearray(checkpoint.read_bytes())

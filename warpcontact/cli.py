@@ -19,7 +19,7 @@ from ._validate import MAX_BARRIER_SUPPORT, MAX_COUNT, MAX_FRAMES, check_barrier
 from .builder import contact_setting_problem
 from .contact import CENTRED_WEIGHTS
 from .leaf import LEAF_PRECISIONS
-from .tasks import IPC_TASK_STIFFNESS, MODELS
+from .tasks import IPC_TASK_STIFFNESS, MAX_ITERATIONS, MODELS
 
 __all__ = ["main"]
 
@@ -782,6 +782,8 @@ _seed = _whole_number(0, None)  # numpy takes any whole number >= 0
 # kept 1e11 frames' poses (a task's horizon has the same bound).
 _frame_count = _whole_number(1, MAX_FRAMES)
 _pair_count = _whole_number(1, 10_000_000)
+# The task settings' own bound (it was 2,147,483,647 here and 10,000,000 there; a probe, stop 65).
+_iteration_count = _whole_number(1, MAX_ITERATIONS)
 _points_per_ball = _whole_number(4, 100_000)
 
 
@@ -859,7 +861,7 @@ def _model_list(text: str) -> list:
 
 def _add_task_arguments(parser):
     parser.add_argument("task", help="a shipped scene's name (warpcontact list) or a .usda with task metadata")
-    parser.add_argument("--iters", type=_positive_int, default=None, help="optimiser iterations (per window)")
+    parser.add_argument("--iters", type=_iteration_count, default=None, help="optimiser iterations (per window)")
     parser.add_argument(
         "--stride",
         type=_positive_int,

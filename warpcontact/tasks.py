@@ -168,7 +168,7 @@ class TaskSettings:
                 settings.receding_stride = min(settings.receding_stride, settings.window)
         iterations_name = f"warpcontact:{prefix}iterations"
         if iterations is not None:
-            settings.iterations, iterations_name = iterations, "--iters"
+            settings.iterations, iterations_name = iterations, "iterations (--iters)"
         stride_name = f"warpcontact:{prefix}recedingStride"
         if receding_stride is not None:
             if not settings.receding:
@@ -518,9 +518,15 @@ class TaskCheckpoint:
         if not self.exists():
             raise ValueError(f"{self.path}: no checkpoint to resume")
         try:
-            data = np.load(self.path, allow_pickle=False)
-            if not isinstance(data, np.lib.npyio.NpzFile):
+            with open(self.path, "rb") as file:
+                magic = file.read(6)
+            if magic == b"\x93NUMPY":
                 raise ValueError("a single array, not an .npz archive")
+            if magic[:4] != b"PK\x03\x04":
+                # numpy read other bytes as a pickle it refused, and advised loading it
+                # unsafely (a probe, stop 65).
+                raise ValueError("not an .npz archive")
+            data = np.load(self.path, allow_pickle=False)
             with data:
                 state = json.loads(str(data["meta"]))
                 if not isinstance(state, dict):
