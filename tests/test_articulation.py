@@ -1530,3 +1530,34 @@ def test_a_ball_joint_stalled_on_its_cone_is_not_blamed_on_a_contact():
     with pytest.raises(wc.SolverError, match=r"a barrier pressed this close \(a joint's limit or cone, or a contact\)") as raised:
         wc.ImplicitSolver(model, max_iterations=300).step(state, model.state(requires_grad=False), control, 0.01)
     assert "farther apart" not in str(raised.value)
+
+
+def test_a_joint_pressed_against_its_limit_is_not_converged_there():
+    """Beside a limit's barrier Newton's step is about the gap, however unbalanced the force:
+    a slider 1e-11 m from its limit, driven away from it, "converged" at every step and never
+    moved, and a ball joint hit onto its cone (margin 1e-4) stayed on the rim against its drive
+    (a probe, stop 65)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    slider = b.add_box((0.2, 0.2, 0.2), density=500.0, pose=(0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 1.0))
+    b.add_joint("prismatic", child=slider, anchor=(0.0, 0.0, 2.0), axis=(0.0, 0.0, 1.0), limits=[(-1e-11, 1.0)], kp=100.0, kd=10.0, target=0.5, name="slide")
+    model = b.finalize()
+    solver = wc.ImplicitSolver(model)
+    states = [model.state(requires_grad=False) for _ in range(2)]
+    for t in range(100):
+        solver.step(states[t % 2], states[(t + 1) % 2], model.control(), 0.01)
+    assert states[0].joint_q.numpy()[0] > 0.4  # 0.5228 (the same drive 1e-9 m from the limit: 0.5228)
+
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    rod = b.add_box((1.0, 0.05, 0.05), density=500.0, pose=(0.5, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
+    b.add_joint("ball", child=rod, anchor=(0.0, 0.0, 1.0), axis=(1.0, 0.0, 0.0), cone_limit=0.4, kp=30.0, kd=3.0, limit_margin=1e-4)
+    model = b.finalize()
+    state, nxt = model.state(requires_grad=False), model.state(requires_grad=False)
+    wc.set_body_velocity(state, wp.array([[0.0, 10.0, 0.0]], dtype=wp.vec3d), wp.array([[0.0, 0.0, 20.0]], dtype=wp.vec3d), 0.01)
+    solver = wc.ImplicitSolver(model)
+    cone = model.articulation.cones[0]
+    swings = []
+    for _ in range(100):
+        solver.step(state, nxt, model.control(), 0.01)
+        swings.append(model.articulation._cone_angle(cone, nxt.body_q.numpy())[0])
+        state, nxt = nxt, state
+    assert max(swings) > 0.4 - 1e-9 and swings[-1] < 0.05  # hit the rim, then driven back (0.0107 at step 100)

@@ -673,6 +673,34 @@ class ArticulationModel:
             hess[np.ix_(d, d)] += e_hess[0] * np.outer(dbeta, dbeta) + e_grad[0] * d2beta
         return value, grad, hess
 
+    def pressed_limit(self, poses: np.ndarray, coords: np.ndarray, direction: np.ndarray, fraction: float) -> bool:
+        """Whether the step ``direction`` (reduced DOFs) moves a coordinate inside its limit
+        barrier's margin by more than ``fraction`` of its distance to the nearer limit, or turns
+        a swing inside its cone's margin by more than ``fraction`` of its room to the cone (to
+        first order), beyond 16 roundings of the values: beside a barrier Newton's step is about
+        the gap, however unbalanced the force, so such a step is no convergence (a slider
+        1e-11 m from its limit, driven away from it at 100 N/m, "converged" there at every step
+        and never moved; a probe, stop 65). ``ImplicitSolver._pressed`` is the rule for contacts."""
+        rounding = 16.0 * np.finfo(np.float64).eps
+        if self.has_limits:
+            room = np.minimum(coords - self.lower, self.upper - coords)
+            near = room < self.limit_margins()
+            if near.any():
+                scale = np.maximum.reduce([np.abs(coords), np.where(np.isfinite(self.lower), np.abs(self.lower), 0.0), np.where(np.isfinite(self.upper), np.abs(self.upper), 0.0)])
+                delta = np.abs(direction[self.coordinate_dof])
+                if np.any(near & (delta > np.maximum(fraction * room, rounding * scale))):
+                    return True
+        for cone in self.cones:
+            swing, a_p, a_c = self._cone_angle(cone, poses)
+            room = cone["limit"] - swing
+            if room >= cone["margin"]:
+                continue
+            # d swing / d w = -(a_c x a_p) / sin(swing): the swing is near the limit, far from 0.
+            turn = abs(float(cross(a_c, a_p) @ direction[cone["dofs"]])) / max(np.sin(swing), 1e-300)
+            if turn > max(fraction * room, rounding * cone["limit"]):
+                return True
+        return False
+
     def cone_step_limit(self, poses: np.ndarray, direction: np.ndarray, fraction: float) -> float:
         """Largest step fraction whose rotation opens no swing by more than ``fraction`` of its
         room to its cone limit, anywhere along the turn.
