@@ -1511,6 +1511,30 @@ def test_ant_position_is_checked(position):
         add_ant(b, position=position)
 
 
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"name": 5}, r"name: expected a non-empty string to prefix the ant's links and joints, got 5"),
+    ({"name": ""}, r"name: expected a non-empty string"),
+    ({"spec": None}, r"ant: spec must be an AntSpec, got NoneType"),
+    ({"spec": {"gap": 0.02}}, r"ant: spec must be an AntSpec, got dict"),
+])
+def test_ant_name_and_spec_are_checked_before_anything_is_built(kwargs, message):
+    """A TypeError or AttributeError from inside, with the ant's bodies already in the builder (a probe, stop 65)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, -9.81))
+    with pytest.raises(ValueError, match=message):
+        add_ant(b, **kwargs)
+    b.add_box((1.0, 1.0, 1.0), density=1.0, pose=(0.0, 0.0, 5.0, 0.0, 0.0, 0.0, 1.0), name="only")
+    assert b.finalize().body_names == ["only"]
+
+
+def test_base_joint_dofs_given_as_a_set_are_refused():
+    """Gains, targets and limits follow dofs' order, which a set's changes with PYTHONHASHSEED (a probe, stop 65)."""
+    b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    box = b.add_box((0.2, 0.2, 0.2), density=500.0, pose=(0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 1.0), name="box")
+    with pytest.raises(ValueError, match=r"dofs must be a sequence \(a list or tuple, in the order of the per-coordinate values\), got the set \['x', 'z'\]"):
+        b.add_joint("base", child=box, dofs={"x", "z"}, kp=[10.0, 1000.0], kd=[1.0, 50.0], target=[0.5, -0.2])
+    b.add_joint("base", child=box, dofs=["x", "z"], kp=[10.0, 1000.0], kd=[1.0, 50.0], target=[0.5, -0.2])
+
+
 def test_a_ball_joint_stalled_on_its_cone_is_not_blamed_on_a_contact():
     """A stiff drive holding a ball joint on its cone's rim (a twist in its target) stalls
     Newton (docs/architecture.md, "Measured"); the error blamed a pressed contact, with one

@@ -65,6 +65,11 @@ def ant_description(*, position=(0.0, 0.0), yaw: float = 0.0, ground_height: flo
     (name, kind, parent, child (link names; parent None for the world), anchor (world point
     at these poses), axis (world), dofs, limits, kp, kd) in ``ModelBuilder.add_joint`` terms.
     """
+    # A bad name or spec failed in the middle of add_ant, its bodies already in the builder.
+    if not (isinstance(name, str) and name):
+        raise ValueError(f"name: expected a non-empty string to prefix the ant's links and joints, got {name!r}")
+    if not isinstance(spec, AntSpec):
+        raise ValueError(f"{name}: spec must be an AntSpec, got {type(spec).__name__}")
     s = spec
     where = finite_vector(position, 2)
     if where is None:  # a 3-vector's z was dropped, a scalar failed in indexing
