@@ -188,6 +188,10 @@ def test_bench_frame_writes_results_and_plot(tmp_path):
         assert len(r["direction"]) == 3 and np.linalg.norm(r["direction"]) == pytest.approx(1.0)  # documented, never written (a probe, stop 61)
     assert rows[2]["contact_stiffness"] == 1e3 and rows[0]["contact_stiffness"] == rows[1]["contact_stiffness"] != 1e3
     assert rows[2]["friction"] == 0.0 and rows[0]["eps"] == 0.5 and rows[1]["eps"] is None
+    # Which file and which centred terms a row measured (two push.usda files' rows were told
+    # apart by nothing; a probe, stop 65).
+    assert {r["source"] for r in rows} == {str((tmp_path / "tiny.usda").resolve())}
+    assert [r["centred_weight"] for r in rows] == ["paper", None, None]
     assert _csv_rows(tmp_path / "frame.csv") == 3
     assert (tmp_path / "frame.png").stat().st_size > 1000
 
@@ -301,6 +305,12 @@ def test_the_strike_is_set_up_across_the_stage_up_axis():
     alone.body("box").static = True
     with pytest.raises(ValueError, match="no dynamic body besides the striker 'rod' to strike"):
         bench.strike_setup(alone, gap=0.02, speed=1.0)
+    # Placed as a free body, a jointed striker left its joint's axis, refused only when its
+    # model was built, after the scenes before it were timed (a probe, stop 65).
+    jointed = scenes.build_scene("push")
+    jointed.joints = [io.JointSpec("slider", "/World/slider", "prismatic", None, "rod", np.array([0.0, 0.0, 0.33, 0.0, 0.0, 0.0, 1.0]), np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]), np.array([[1.0, 0.0, 0.0]]))]
+    with pytest.raises(ValueError, match="the striker 'rod' is held by joint 'slider'; the strike places it as a free body"):
+        bench.strike_setup(jointed, gap=0.02, speed=1.0)
 
 
 def test_bench_frame_times_brute_contact_only_above_the_cap(tmp_path):

@@ -640,7 +640,7 @@ def strike_setup(scene, *, gap: float, speed: float) -> dict:
 
     Returns a description (striker, struck body, gap, speed, direction) and sets
     ``control_target`` (prim-frame translation of the striker's PD target, or None).
-    ValueError when the striker is static, when no other dynamic body is there to strike, or
+    ValueError when the striker is static or held by a joint, when no other dynamic body is there to strike, or
     when the striker stands straight above or below that body (no horizontal direction to
     strike along).
     """
@@ -654,6 +654,11 @@ def strike_setup(scene, *, gap: float, speed: float) -> dict:
         # Given a velocity it never had, it stood still while the results recorded a strike
         # at the speed asked for (a probe, stop 65).
         raise ValueError(f"{where}: the striker {striker_name!r} is static (a collider without a rigid body): it cannot strike")
+    jointed = [j.name for j in scene.joints if striker_name in (j.parent, j.child)]
+    if jointed:
+        # Moved beside the struck body as a free body, it left its joint's axis, and the model
+        # was refused only when built, after the scenes before it were timed (a probe, stop 65).
+        raise ValueError(f"{where}: the striker {striker_name!r} is held by joint {jointed[0]!r}; the strike places it as a free body")
     others = [b for b in scene.bodies if not b.static and b is not striker]
     if not others:
         # min() of no bodies: "min() arg is an empty sequence" (a probe, stop 65).
@@ -927,6 +932,8 @@ def run_frame_benchmark(
 
     # Every scene is read before any is timed: a bad name or a missing peer-mesh folder used
     # to end the default run after hours of the scenes before it.
+    from .io import USD_READ_SUFFIXES
+
     scenes = _distinct(scenes)  # a scene named twice was timed twice, as models no longer are
     built = {spec: frame_scene(spec, scene_dir=scene_dir, peer_meshes=peer_meshes) for spec in scenes}
     # and set up for its strike, once (a scene without a striker failed after the others' timing)
@@ -942,14 +949,21 @@ def run_frame_benchmark(
                 scene = copy.deepcopy(built[spec])  # each model sets its own contact settings
                 setup = setups[spec]
                 dynamic, total = _scene_triangles(scene)
+                from_file = Path(spec).suffix.lower() in (".pkl", *USD_READ_SUFFIXES)
                 base = {
-                    "scene": Path(spec).stem if spec.endswith((".pkl", ".usda")) else spec,
+                    # Labelled by the file's name, its path kept: rows of two push.usda files
+                    # were told apart by nothing, and a .usdc row was labelled by its whole path
+                    # (a probe, stop 65).
+                    "scene": Path(spec).stem if from_file else spec,
+                    "source": str(Path(spec).resolve()) if from_file else None,
                     "triangles": dynamic,
                     "all_triangles": total,
                     "bodies": len(scene.bodies),
                     "time_step": scene.settings.time_step,
                     # A skipped ipc row said the scene's mu, which ipc never runs with.
                     "contact_stiffness": ipc_stiffness if mode == "ipc" else scene.settings.contact_stiffness,
+                    # Only the hierarchy has centred terms (the pair-weighted ones change the potential several-fold).
+                    "centred_weight": scene.settings.centred_weight if mode == "bsh" else None,
                     "setup": f"{setup['striker']} {gap:g} m (bounding circles) from {setup['struck']} at {speed:g} m/s",
                     "direction": setup["direction"],
                 }
