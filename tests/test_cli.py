@@ -561,6 +561,10 @@ def test_bench_accuracy_errors_are_named_and_failed_rows_shown(tmp_path, capsys,
     base = ["bench", "accuracy", "--points", "8", "--frames", "1", "--eps", "0.5", "--tolerances", "1e-6", "--precisions", "float64", "--out", str(tmp_path)]
     assert main([*base, "--balls", "16"]) == 2
     assert "error: balls: the rack has 15 balls besides the cue, got 16" in capsys.readouterr().err
+    # A reference looser than the rows it judges was accepted (a probe, stop 65).
+    assert main([*base, "--balls", "1", "--reference-tolerance", "1e-3"]) == 2
+    assert "error: reference_tolerance: 0.001 is looser than the tightest tolerance measured (1e-10, of 1e-10 .. 1e-06); the reference must be at least as tight" in capsys.readouterr().err
+    assert not (tmp_path / "accuracy.json").exists()
     run = bench._accuracy_run
 
     def failing(scene, controls, *, tolerance, **kwargs):

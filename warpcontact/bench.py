@@ -1129,6 +1129,12 @@ def run_accuracy_benchmark(
 
     eps_values, tolerances, precisions = _distinct(eps_values), _distinct(tolerances), _distinct(precisions)
     _check_settings(eps_values=(*eps_values, eps))
+    loosest = max((default_tolerance, *tolerances))
+    tightest = min((default_tolerance, *tolerances))
+    if not reference_tolerance <= tightest:
+        # A reference looser than the rows it judged was accepted: a 1e-10 row's deviation was
+        # measured against a 1e-3 "reference" (a probe, stop 65).
+        raise ValueError(f"reference_tolerance: {reference_tolerance:g} is looser than the tightest tolerance measured ({tightest:g}, of {tightest:g} .. {loosest:g}); the reference must be at least as tight")
     dev = resolve_device(device)
     accuracy_scene(balls=balls, points_per_ball=points_per_ball, gap=gap, speed=speed)  # its errors before any work
     module_seconds = _load_kernel_modules(dev)  # so the first configuration's times exclude compilation
