@@ -673,15 +673,14 @@ class ArticulationModel:
             hess[np.ix_(d, d)] += e_hess[0] * np.outer(dbeta, dbeta) + e_grad[0] * d2beta
         return value, grad, hess
 
-    def pressed_limit(self, poses: np.ndarray, coords: np.ndarray, direction: np.ndarray, fraction: float) -> bool:
+    def pressed_limit(self, poses: np.ndarray, coords: np.ndarray, direction: np.ndarray, *, fraction: float, rounding: float) -> bool:
         """Whether the step ``direction`` (reduced DOFs) moves a coordinate inside its limit
         barrier's margin by more than ``fraction`` of its distance to the nearer limit, or turns
         a swing inside its cone's margin by more than ``fraction`` of its room to the cone (to
-        first order), beyond 16 roundings of the values: beside a barrier Newton's step is about
+        first order), beyond ``rounding`` (relative) of the values: beside a barrier Newton's step is about
         the gap, however unbalanced the force, so such a step is no convergence (a slider
         1e-11 m from its limit, driven away from it at 100 N/m, "converged" there at every step
         and never moved; a probe, stop 65). ``ImplicitSolver._pressed`` is the rule for contacts."""
-        rounding = 16.0 * np.finfo(np.float64).eps
         if self.has_limits:
             room = np.minimum(coords - self.lower, self.upper - coords)
             near = room < self.limit_margins()

@@ -1225,7 +1225,7 @@ class ImplicitSolver:
             # m, pressed by 2e17 N, and stayed there. So no body's step may exceed a fraction
             # of its closest pair's separation (its own: one pressed pair held every body of a
             # scene to its gap).
-            if np.all(travel <= converged_length) and not self._pressed(travel, contact, rounding_length) and not (art is not None and art.pressed_limit(q, coords, direction, _CONVERGED_GAP_FRACTION)):
+            if np.all(travel <= converged_length) and not self._pressed(travel, contact, rounding_length) and not (art is not None and art.pressed_limit(q, coords, direction, fraction=_CONVERGED_GAP_FRACTION, rounding=_ROUNDING)):
                 if np.any(hidden_travel > converged_length):
                     raise SolverError(self._diagnostics("no convergence", iterations, step_length, value, travel, q_start, dt, unsolved, hess, contact, hidden=hidden, converged_length=converged_length))
                 converged = True
