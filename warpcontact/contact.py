@@ -92,6 +92,9 @@ class ContactEvaluation:
         hessian: (6 m, 6 m) second derivatives in the same coordinates of the m non-static
             bodies (``ContactModel.hessian_bodies``, in index order): static bodies have no
             rows, so a scene of many static bodies costs no (6 nbodies)^2 matrix.
+            Where ``value`` is +inf the potential has no derivative: ``grad`` and ``hessian``
+            then hold the sums over the other, finite terms only (each touching or unsolved
+            triangle pair adds zero), no force of the scene; check ``ok`` or ``value`` first.
         num_far, num_blend, num_leaf: term counts (centred-only, blend records, leaf solves);
             in ``"sdrs"`` mode num_far counts the pruned cluster pairs (no potential).
         contact_pairs: (name_a, name_b) of body pairs with a touching or intersecting
