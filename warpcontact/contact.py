@@ -79,6 +79,11 @@ _TERM_COSTS = (18.0, 1.0, 2.0)
 _ROUND_SLOT = int(traversal_kernels.COUNTER_ROUND_TASKS)
 
 
+# Dynamic bodies whose mean position lies this far out (m, per axis) are evaluated about a
+# nearby whole-metre origin instead of the caller's (``ContactModel._local_poses``).
+_FAR_ORIGIN = 1024.0
+
+
 @dataclass(frozen=True)
 class ContactEvaluation:
     """Scene contact potential at one configuration.
@@ -535,6 +540,9 @@ class ContactModel:
         # an evaluation waits for the device once (and a CUDA graph holds the copies).
         self._pose_host = host_buffer(self.num_bodies, wp.transformd, self.device)
         self._friction_pose_host = host_buffer(self.num_bodies, wp.transformd, self.device)
+        # Where the kernels' world frame sits in the caller's (m, per axis): set by the first
+        # poses given (``_local_poses``).
+        self._origin: np.ndarray | None = None
         self._step_host = host_buffer(self.num_bodies, rigid_kernels.vec6d, self.device)
         self._readback = HostReadback(self.device)
         self._launches = LaunchCache(self.device)
@@ -659,9 +667,27 @@ class ContactModel:
     def _validated_poses(self, poses, *, normalize: bool = True) -> np.ndarray:
         return validated_poses(poses, self.names, normalize=normalize)
 
+    def _local_poses(self, poses: np.ndarray) -> np.ndarray:
+        """``poses`` with their positions in the kernels' world frame: the caller's, moved to
+        whole metres near the dynamic bodies' mean position on each axis where that mean is
+        ``_FAR_ORIGIN`` m or more out (fixed by the first poses given), else the caller's, as
+        given. The kernels build world vertices as R v + p: 2e4 m out, their rounding (ulp
+        3.6e-12 m) made the step's Newton directions jitter at ~2e-8 m between two colliding
+        cubes, and the step failed to converge (a probe, stop 65); p minus a nearby whole
+        number is exact, and the potential depends on relative positions only."""
+        if self._origin is None:
+            dynamic = ~self.static if (~self.static).any() else np.ones(self.num_bodies, dtype=bool)
+            centre = poses[dynamic, :3].mean(axis=0)
+            self._origin = np.where(np.abs(centre) >= _FAR_ORIGIN, np.round(centre), 0.0)
+        if not self._origin.any():
+            return poses
+        local = poses.copy()
+        local[:, :3] -= self._origin
+        return local
+
     def _set_poses(self, poses: np.ndarray):
         """Stages ``poses`` for the next ``_launch_evaluation`` (which uploads them)."""
-        self._pose_host.numpy()[:] = poses
+        self._pose_host.numpy()[:] = self._local_poses(poses)
 
     def _launch_transforms(self, site: str, pose_host: wp.array, pose: wp.array, rotation_out: wp.array, position_out: wp.array):
         """Uploads staged poses and computes the bodies' rotations and positions from them."""
@@ -1134,7 +1160,7 @@ class ContactModel:
         if not queued:
             if at_poses:
                 # The solver's retracted poses as given, to the last bit (their norms are 1 within rounding).
-                self._friction_pose_host.numpy()[:] = self._validated_poses(poses, normalize=False)
+                self._friction_pose_host.numpy()[:] = self._local_poses(self._validated_poses(poses, normalize=False))
             self._queue_friction_terms(lagged, at_poses)
             self._readback.wait()
         read = self._readback.read
@@ -1211,8 +1237,8 @@ class ContactModel:
             pos_next = wp.zeros(n, dtype=wp.vec3d)
             rot_now = wp.zeros(n, dtype=wp.mat33d)
             pos_now = wp.zeros(n, dtype=wp.vec3d)
-            wp.launch(rigid_kernels.body_transforms_kernel, dim=n, inputs=[wp.array(q_next, dtype=wp.transformd)], outputs=[rot_next, pos_next])
-            wp.launch(rigid_kernels.body_transforms_kernel, dim=n, inputs=[wp.array(q_now, dtype=wp.transformd)], outputs=[rot_now, pos_now])
+            wp.launch(rigid_kernels.body_transforms_kernel, dim=n, inputs=[wp.array(self._local_poses(q_next), dtype=wp.transformd)], outputs=[rot_next, pos_next])
+            wp.launch(rigid_kernels.body_transforms_kernel, dim=n, inputs=[wp.array(self._local_poses(q_now), dtype=wp.transformd)], outputs=[rot_now, pos_now])
             adj_q = wp.zeros((chunks, n, 6), dtype=wp.float64)
             adj_friction = wp.zeros((chunks, 1), dtype=wp.float64)
             adj_mu = wp.zeros((chunks, 1), dtype=wp.float64)
@@ -1263,8 +1289,16 @@ class ContactModel:
 
     @property
     def body_position(self) -> wp.array:
-        """(nbodies,) vec3d positions of the last evaluated poses (device array, do not modify)."""
+        """(nbodies,) vec3d positions of the last evaluated poses (device array, do not modify),
+        less ``origin``."""
         return self._position
+
+    @property
+    def origin(self) -> np.ndarray:
+        """(3,) where the kernels' world frame sits in the poses' frame (m): zeros unless the
+        first poses given put the dynamic bodies' mean position ``_FAR_ORIGIN`` m or more out
+        on an axis (``_local_poses``)."""
+        return np.zeros(3) if self._origin is None else self._origin.copy()
 
     def leaf_items(self) -> wp.array:
         """A device copy of the leaf term list of the last evaluation, (L,) vec4i rows
