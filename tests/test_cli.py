@@ -1247,13 +1247,39 @@ def test_a_set_of_results_is_replaced_whole_when_a_rename_fails(tmp_path, monkey
     (tmp_path / "trajectory.usda").unlink()
     (tmp_path / "trajectory.usda").mkdir()
     (tmp_path / "trajectory.usda" / "keep").write_text("kept")
-    with pytest.raises(IsADirectoryError, match=r"trajectory.usda: a folder where a result file goes; remove or rename it, or choose another --out"):
+    with pytest.raises(IsADirectoryError, match=r"trajectory.usda: not a file \(a folder, or another kind of entry\) where a result file goes; remove or rename it, or choose another --out"):
         with _files.replace_files(tmp_path, names) as staged:
             for name in names:
                 (staged / name).write_text(f"new {name}")
     assert (tmp_path / "metrics.json").read_text() == "earlier metrics.json" and (tmp_path / "trajectory.usda" / "keep").read_text() == "kept"
     (tmp_path / "trajectory.usda" / "keep").unlink()
     (tmp_path / "trajectory.usda").rmdir()
+    # A rollback that fails too keeps the earlier files where they were moved aside, and says
+    # where (deleted with the staging folder, they were lost; a review, stop 65).
+    (tmp_path / "trajectory.usda").write_text("earlier trajectory.usda")
+    failed = []
+
+    def failing_twice(source, target):
+        if Path(target).name == "trajectory.usda" and not failed:
+            failed.append("move in")
+            raise OSError(28, "No space left on device")
+        if Path(source).parent.name == ".earlier" and len(failed) == 1:
+            failed.append("restore")
+            raise OSError(5, "Input/output error")
+        return real_replace(source, target)
+
+    monkeypatch.setattr(_files.os, "replace", failing_twice)
+    with pytest.raises(OSError, match=r"replacing the results failed \(\[Errno 28\] No space left on device\), and so did putting back metrics.json: the earlier files are kept in .*\.earlier") as failure:
+        with _files.replace_files(tmp_path, names) as staged:
+            for name in names:
+                (staged / name).write_text(f"new {name}")
+    monkeypatch.undo()
+    kept = Path(str(failure.value).rsplit("kept in ", 1)[1])
+    assert (kept / "metrics.json").read_text() == "earlier metrics.json" and (tmp_path / "trajectory.usda").read_text() == "earlier trajectory.usda"
+    import shutil
+
+    shutil.rmtree(kept.parent)
+    (tmp_path / "metrics.json").write_text("earlier metrics.json")
     # Replaced: a name the block did not write is left without a file.
     with _files.replace_files(tmp_path, names) as staged:
         (staged / "metrics.json").write_text("new metrics.json")

@@ -2893,17 +2893,20 @@ def test_free_bodies_collide_alike_far_from_the_origin():
     """Two cubes colliding 2e4 m out failed to converge: world vertices rounded there (ulp
     3.6e-12 m) made Newton's directions jitter at ~2e-8 m (a probe, stop 65). The contact
     model now evaluates such scenes about a nearby whole-metre origin."""
-    def run(x):
+    def run(x, parked=None):
         b = wc.ModelBuilder(gravity=(0.0, 0.0, 0.0))
         b.add_box((0.3, 0.3, 0.3), mass=1.0, pose=(x, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), name="a")
         b.add_box((0.3, 0.3, 0.3), mass=1.0, pose=(x + 0.5, 0.1, 0.0, 0.0, 0.0, 0.0, 1.0), name="b")
+        if parked is not None:
+            b.add_box((0.3, 0.3, 0.3), mass=1.0, pose=(parked, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0), name="parked")
         model = b.finalize()
         states = [model.state(requires_grad=False) for _ in range(2)]
-        wc.set_body_velocity(states[0], wp.array([[2.0, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=wp.vec3d), wp.zeros(2, dtype=wp.vec3d), 0.01)
+        still = [[0.0, 0.0, 0.0]] * (model.num_bodies - 1)
+        wc.set_body_velocity(states[0], wp.array([[2.0, 0.0, 0.0], *still], dtype=wp.vec3d), wp.zeros(model.num_bodies, dtype=wp.vec3d), 0.01)
         solver = wc.ImplicitSolver(model)
         for t in range(14):  # contact begins at step 9
             solver.step(states[t % 2], states[(t + 1) % 2], None, 0.01)
-        q = states[0].body_q.numpy()
+        q = states[0].body_q.numpy()[:2]
         return model.contact.origin, q[:, :3] - [x, 0.0, 0.0], q[:, 3:]
 
     origin_here, near, turn_near = run(0.0)
@@ -2911,3 +2914,8 @@ def test_free_bodies_collide_alike_far_from_the_origin():
     assert not origin_here.any() and origin_far.tolist() == [20000.0, 0.0, 0.0]
     np.testing.assert_allclose(far, near, rtol=0.0, atol=1e-8)
     np.testing.assert_allclose(turn_far, turn_near, rtol=0.0, atol=1e-8)
+    # A body parked far away does not move the origin of a collision at the caller's: it
+    # moved it 25 km off, where the collision failed (a review, stop 65).
+    origin_parked, parked, turn_parked = run(0.0, parked=7.5e4)
+    assert not origin_parked.any()
+    np.testing.assert_allclose(parked, near, rtol=0.0, atol=1e-8)

@@ -125,14 +125,16 @@ def replace_files(folder, names):
     file goes is refused before anything moves."""
     folder = Path(folder)
     staged = Path(tempfile.mkdtemp(prefix=_TEMPORARY_PREFIX, dir=folder))
+    keep_staged = False
     try:
         yield staged
         for name in names:
             target = folder / name
             if target.exists() and not (target.is_file() or target.is_symlink()):
                 # Moved aside, it would have been deleted with the staging folder.
-                raise IsADirectoryError(errno.EISDIR, f"{target}: a folder where a result file goes; remove or rename it, or choose another --out")
-        earlier = staged / "earlier"
+                raise IsADirectoryError(errno.EISDIR, f"{target}: not a file (a folder, or another kind of entry) where a result file goes; remove or rename it, or choose another --out")
+        # Dot-named, so that no result's name can be this folder's.
+        earlier = staged / ".earlier"
         earlier.mkdir()
         moved_aside, moved_in = [], []
         try:
@@ -144,14 +146,22 @@ def replace_files(folder, names):
                 if (staged / name).exists():
                     os.replace(staged / name, folder / name)
                     moved_in.append(name)
-        except BaseException:
-            for name in moved_in:
-                os.replace(folder / name, staged / name)
-            for name in moved_aside:
-                os.replace(earlier / name, folder / name)
+        except BaseException as failure:
+            unrestored = []
+            for source, target in [(folder / name, staged / name) for name in moved_in] + [(earlier / name, folder / name) for name in moved_aside]:
+                try:
+                    os.replace(source, target)
+                except OSError:
+                    unrestored.append(target.name)
+            if unrestored:
+                # The earlier files are then kept where they were moved aside, not deleted with
+                # the staging folder (a review, stop 65).
+                keep_staged = True
+                raise OSError(errno.EIO, f"{folder}: replacing the results failed ({failure}), and so did putting back {', '.join(unrestored)}: the earlier files are kept in {earlier}") from failure
             raise
     finally:
-        shutil.rmtree(staged, ignore_errors=True)
+        if not keep_staged:
+            shutil.rmtree(staged, ignore_errors=True)
 
 
 def replace_text(path, text: str) -> None:

@@ -79,8 +79,8 @@ _TERM_COSTS = (18.0, 1.0, 2.0)
 _ROUND_SLOT = int(traversal_kernels.COUNTER_ROUND_TASKS)
 
 
-# Dynamic bodies whose mean position lies this far out (m, per axis) are evaluated about a
-# nearby whole-metre origin instead of the caller's (``ContactModel._local_poses``).
+# Bodies clustered this far out (m, per axis) are evaluated about a nearby whole-metre origin
+# instead of the caller's (``ContactModel._local_poses``).
 _FAR_ORIGIN = 1024.0
 
 
@@ -668,17 +668,21 @@ class ContactModel:
         return validated_poses(poses, self.names, normalize=normalize)
 
     def _local_poses(self, poses: np.ndarray) -> np.ndarray:
-        """``poses`` with their positions in the kernels' world frame: the caller's, moved to
-        whole metres near the dynamic bodies' mean position on each axis where that mean is
-        ``_FAR_ORIGIN`` m or more out (fixed by the first poses given), else the caller's, as
-        given. The kernels build world vertices as R v + p: 2e4 m out, their rounding (ulp
-        3.6e-12 m) made the step's Newton directions jitter at ~2e-8 m between two colliding
-        cubes, and the step failed to converge (a probe, stop 65); p minus a nearby whole
-        number is exact, and the potential depends on relative positions only."""
+        """``poses`` with their positions in the kernels' world frame: the caller's, moved on
+        each axis where every body of the first poses given lies ``_FAR_ORIGIN`` m or more
+        out, all within a quarter of their distance from the caller's origin, to the whole
+        metre nearest their mean (fixed from then on); else the caller's, as given. The
+        kernels build world vertices as R v + p: 2e4 m out, their rounding (ulp 3.6e-12 m)
+        made the step's Newton directions jitter at ~2e-8 m between two colliding cubes, and
+        the step failed to converge (a probe, stop 65); p minus a nearby whole number is
+        exact, and the potential depends on relative positions only. Bodies nearer the
+        caller's origin than the cluster keep it: one body parked 75 km out moved two cubes'
+        collision at the origin 25 km off, where it failed (a review, stop 65)."""
         if self._origin is None:
-            dynamic = ~self.static if (~self.static).any() else np.ones(self.num_bodies, dtype=bool)
-            centre = poses[dynamic, :3].mean(axis=0)
-            self._origin = np.where(np.abs(centre) >= _FAR_ORIGIN, np.round(centre), 0.0)
+            positions = poses[:, :3]
+            centre = np.round(positions.mean(axis=0))
+            clustered = np.all(np.abs(positions - centre) <= 0.25 * np.abs(positions), axis=0)
+            self._origin = np.where(clustered & (np.abs(centre) >= _FAR_ORIGIN), centre, 0.0)
         if not self._origin.any():
             return poses
         local = poses.copy()
@@ -1296,8 +1300,7 @@ class ContactModel:
     @property
     def origin(self) -> np.ndarray:
         """(3,) where the kernels' world frame sits in the poses' frame (m): zeros unless the
-        first poses given put the dynamic bodies' mean position ``_FAR_ORIGIN`` m or more out
-        on an axis (``_local_poses``)."""
+        first poses given put every body far out on an axis, close together (``_local_poses``)."""
         return np.zeros(3) if self._origin is None else self._origin.copy()
 
     def leaf_items(self) -> wp.array:

@@ -147,15 +147,16 @@ class IpcContactModel:
 
     def _patches(self, exclude_pairs) -> np.ndarray:
         """Patch id per body: ipctk's filter only separates patches, so bodies joined by
-        excluded pairs share one patch (all contact inside such a group is off). The static
-        bodies share one too, as they have no contact terms between them in ``ContactModel``
-        (a pedestal standing on the floor made every step's barrier infinite; a probe, stop
-        65), unless a static body's group holds a dynamic body (a fixed robot base jointed to
-        its first link), whose contact with the other static bodies that would switch off."""
+        excluded pairs share one patch (all contact inside such a group is off). The groups of
+        static bodies alone share one too, as static bodies have no contact terms between them
+        in ``ContactModel`` (a pedestal standing on the floor made every step's barrier
+        infinite; a probe, stop 65); a group that holds a dynamic body (a fixed robot base
+        jointed to its first link) keeps its own, since that body's contact with the other
+        static bodies would switch off with it."""
         labels = connected_labels(self.num_bodies, exclude_pairs).astype(np.int32)
-        static_labels = np.unique(labels[self.static])
-        if len(static_labels) > 1 and not np.isin(labels[~self.static], static_labels).any():
-            labels[np.isin(labels, static_labels)] = static_labels[0]
+        static_only = np.setdiff1d(labels[self.static], labels[~self.static])
+        if len(static_only) > 1:
+            labels[np.isin(labels, static_only)] = static_only[0]
         return labels
 
     def _world_vertices(self, poses: np.ndarray) -> np.ndarray:

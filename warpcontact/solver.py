@@ -43,6 +43,7 @@ from .articulation import MIN_LIMIT_MARGIN, connected_labels, joint_limit_energy
 from .builder import STEEP_BLEND_EPS, contact_setting_problem, gravity_problem, steep_blend, winding_numbers
 from .contact import PRESSED_GAP_HINT, UNSOLVED_HINT, ContactModel, LaggedFriction
 from .rotation import cross, normalized_poses, quat_from_matrix, quat_norm, quat_from_rotation_vector, quat_mul, quat_to_matrix, rigid_step_between, rigid_step_travel
+from .sphere_tree import welded_face_indices
 from .types import Control, Model, State, shares_memory
 
 __all__ = ["ImplicitSolver", "SolverError", "StepInfo"]
@@ -162,12 +163,11 @@ def _is_closed(vertices: np.ndarray, faces: np.ndarray) -> bool:
     """Whether a mesh is closed once coincident vertices are merged: every edge is used as
     often in each direction. An open mesh has no inside: a tray without a lid winds 5/6 about
     its centre, which lies in the air above its floor."""
-    points, index = np.unique(np.asarray(vertices, dtype=np.float64), axis=0, return_inverse=True)
-    faces = index.reshape(-1)[np.asarray(faces)]
+    faces = welded_face_indices(vertices, faces)
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
     # Each directed edge as one integer key, compared as sorted multisets (vectorised: a
     # Counter of tuples took 1 s for an 81,920-face ball at every solver's construction).
-    count = len(points)
+    count = len(vertices)
     return bool(np.array_equal(np.sort(edges[:, 0] * count + edges[:, 1]), np.sort(edges[:, 1] * count + edges[:, 0])))
 
 

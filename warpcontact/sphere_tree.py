@@ -19,7 +19,7 @@ import numpy as np
 
 from ._validate import check_coordinates, extent_problem, real_dtype
 
-__all__ = ["SphereTree", "build_sphere_tree", "tree_of_validated_mesh", "validated_mesh"]
+__all__ = ["SphereTree", "build_sphere_tree", "tree_of_validated_mesh", "validated_mesh", "welded_face_indices"]
 
 
 @dataclass(frozen=True)
@@ -37,7 +37,7 @@ class SphereTree:
         parent: (M,) int32 parent, -1 at the root.
         triangle: (M,) int32 face index at leaves, -1 at internal nodes.
         depth: (M,) int32 depth, root 0.
-        vertex_count: (M,) int32 number of unique vertex indices under the node.
+        vertex_count: (M,) int32 number of unique vertex positions under the node.
         triangle_count: (M,) int32 number of triangles (leaves) under the node.
     """
 
@@ -100,7 +100,7 @@ def tree_of_validated_mesh(positions: np.ndarray, face_indices: np.ndarray) -> S
     # Unique vertices are unique positions: a mesh whose faces each listed their own copies
     # of shared corners counted each corner once per face, which moved the centres and splits
     # (the hierarchy's value 11% off the welded mesh's 3 m away; a probe, stop 65).
-    welded = _welded_face_indices(positions, face_indices)
+    welded = welded_face_indices(positions, face_indices)
     # Leaf centres double as the split keys, so both follow the unique-vertex definition.
     triangle_centroids, triangle_vertex_counts = _unique_vertex_means(
         positions, welded, every_face, every_face, num_triangles
@@ -211,13 +211,11 @@ def _farthest_vertex_distance(triangle_vertices: np.ndarray, centers: np.ndarray
     return _distance(triangle_vertices, centers[:, None, :]).max(axis=1)
 
 
-def _welded_face_indices(positions: np.ndarray, face_indices: np.ndarray) -> np.ndarray:
+def welded_face_indices(positions: np.ndarray, face_indices: np.ndarray) -> np.ndarray:
     """``face_indices`` with each vertex index replaced by the lowest index holding the same
-    position (unchanged where no two vertices coincide)."""
-    _, row = np.unique(positions, axis=0, return_inverse=True)
-    first = np.full(row.max(initial=-1) + 1, positions.shape[0], dtype=np.int64)
-    np.minimum.at(first, row.ravel(), np.arange(positions.shape[0]))
-    return first[row.ravel()][face_indices]
+    position (unchanged where no two vertices coincide; -0.0 and 0.0 coincide)."""
+    _, first, row = np.unique(np.asarray(positions, dtype=np.float64), axis=0, return_index=True, return_inverse=True)
+    return first[row.ravel()][np.asarray(face_indices)]
 
 
 def _unique_vertex_means(
