@@ -1269,16 +1269,17 @@ def test_a_set_of_results_is_replaced_whole_when_a_rename_fails(tmp_path, monkey
         return real_replace(source, target)
 
     monkeypatch.setattr(_files.os, "replace", failing_twice)
-    with pytest.raises(OSError, match=r"replacing the results failed \(\[Errno 28\] No space left on device\), and so did putting back metrics.json: the earlier files are kept in .*\.earlier") as failure:
+    with pytest.raises(OSError, match=r"replacing the results failed \(OSError\(28, 'No space left on device'\)\), and so did putting back metrics.json: the earlier files are kept in .*warpcontact-earlier-results-\d+$") as failure:
         with _files.replace_files(tmp_path, names) as staged:
             for name in names:
                 (staged / name).write_text(f"new {name}")
     monkeypatch.undo()
     kept = Path(str(failure.value).rsplit("kept in ", 1)[1])
     assert (kept / "metrics.json").read_text() == "earlier metrics.json" and (tmp_path / "trajectory.usda").read_text() == "earlier trajectory.usda"
+    assert kept.parent == tmp_path and not list(tmp_path.glob(".warpcontact-tmp*"))
     import shutil
 
-    shutil.rmtree(kept.parent)
+    shutil.rmtree(kept)
     (tmp_path / "metrics.json").write_text("earlier metrics.json")
     # Replaced: a name the block did not write is left without a file.
     with _files.replace_files(tmp_path, names) as staged:

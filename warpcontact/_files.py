@@ -125,7 +125,6 @@ def replace_files(folder, names):
     file goes is refused before anything moves."""
     folder = Path(folder)
     staged = Path(tempfile.mkdtemp(prefix=_TEMPORARY_PREFIX, dir=folder))
-    keep_staged = False
     try:
         yield staged
         for name in names:
@@ -147,21 +146,23 @@ def replace_files(folder, names):
                     os.replace(staged / name, folder / name)
                     moved_in.append(name)
         except BaseException as failure:
+            # Every file is put back, whatever interrupts one of them (a second Ctrl-C
+            # stopped the loop, and the staging folder went with the files not yet back).
             unrestored = []
             for source, target in [(folder / name, staged / name) for name in moved_in] + [(earlier / name, folder / name) for name in moved_aside]:
                 try:
                     os.replace(source, target)
-                except OSError:
+                except BaseException:
                     unrestored.append(target.name)
             if unrestored:
-                # The earlier files are then kept where they were moved aside, not deleted with
-                # the staging folder (a review, stop 65).
-                keep_staged = True
-                raise OSError(errno.EIO, f"{folder}: replacing the results failed ({failure}), and so did putting back {', '.join(unrestored)}: the earlier files are kept in {earlier}") from failure
+                # The earlier files are then kept where they were moved aside, under a name no
+                # later command takes for its own leftovers (a review, stop 65).
+                kept = folder / f"warpcontact-earlier-results-{os.getpid()}"
+                os.replace(earlier, kept)
+                raise OSError(errno.EIO, f"{folder}: replacing the results failed ({failure!r}), and so did putting back {', '.join(unrestored)}: the earlier files are kept in {kept}") from failure
             raise
     finally:
-        if not keep_staged:
-            shutil.rmtree(staged, ignore_errors=True)
+        shutil.rmtree(staged, ignore_errors=True)
 
 
 def replace_text(path, text: str) -> None:

@@ -892,7 +892,7 @@ class ModelBuilder:
             if isinstance(dofs, (set, frozenset)):
                 # The per-coordinate gains, targets and limits follow dofs' order, which a set's
                 # iteration changes with PYTHONHASHSEED (a probe, stop 65).
-                raise ValueError(f"{where}: dofs must be a sequence (a list or tuple, in the order of the per-coordinate values), got the set {sorted(dofs)!r}")
+                raise ValueError(f"{where}: dofs must be a sequence (a list or tuple, in the order of the per-coordinate values), got the set {sorted(map(str, dofs))!r}")
             dofs = tuple(dofs or ())
             unknown = [d for d in dofs if d not in BASE_DOFS]
             if unknown or len(set(dofs)) != len(dofs) or not dofs:

@@ -1300,7 +1300,8 @@ class ContactModel:
     @property
     def origin(self) -> np.ndarray:
         """(3,) where the kernels' world frame sits in the poses' frame (m): zeros unless the
-        first poses given put every body far out on an axis, close together (``_local_poses``)."""
+        first poses given put every body far out on an axis, close together (``_local_poses``).
+        Fixed from then on: a model moved far from its first placement keeps it."""
         return np.zeros(3) if self._origin is None else self._origin.copy()
 
     def leaf_items(self) -> wp.array:
