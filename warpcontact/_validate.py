@@ -80,6 +80,14 @@ def is_positive_finite(value) -> bool:
     return is_real(value) and bool(np.isfinite(value)) and value > 0
 
 
+def is_gain(values) -> bool:
+    """Whether PD gains (a float scalar or array) are all finite and >= 0: one rule for the
+    builder's arguments, the USD attributes and a task's controlled axes, each of which names
+    the value in its caller's terms."""
+    values = np.asarray(values, dtype=np.float64)
+    return bool(np.isfinite(values).all() and (values >= 0.0).all())
+
+
 # Magnitudes of the positive scales a step multiplies, divides and squares (dt, quaternion
 # norms, the contact settings, gravity): the square and inverse of anything in this range, and
 # the product of two such, are finite normal float64 numbers. Beyond it a step overflowed or

@@ -10,7 +10,7 @@ import trimesh
 import warp as wp
 
 from ._runtime import resolve_device
-from ._validate import QUATERNION_TOLERANCE, SCALE_RANGE, blend_eps_problem, check_barrier_support, check_coordinates, checked_flag, is_positive_finite, is_real, is_whole, real_array, scale_problem, shown, unit_inertia_problem
+from ._validate import QUATERNION_TOLERANCE, SCALE_RANGE, blend_eps_problem, check_barrier_support, check_coordinates, checked_flag, is_gain, is_positive_finite, is_real, is_whole, real_array, scale_problem, shown, unit_inertia_problem
 from .articulation import BASE_DOFS, JOINT_AXES, JOINT_KINDS, ArticulationModel, Joint, connected_labels, default_limit_margins, effective_limit_margins, frame_in_body, limit_margin_problem
 from .contact import CENTRED_WEIGHTS, CONTACT_MODES, PRESSED_GAP, ContactModel
 from .leaf import float32_search
@@ -775,7 +775,7 @@ class ModelBuilder:
                 gain = np.broadcast_to(gain, (count,)).copy()
             else:
                 gain = None
-            if gain is None or not np.isfinite(gain).all() or (gain < 0).any():
+            if gain is None or not is_gain(gain):
                 wanted = "1 or 3 numbers, each >= 0 and finite" if count == 3 else "a number >= 0 and finite"
                 raise ValueError(f"body {name!r}: {label} must be {wanted}, got {value!r}")
             gains[label] = gain

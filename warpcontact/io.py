@@ -98,7 +98,7 @@ import numpy as np
 import trimesh
 
 from ._files import replace_file
-from ._validate import MAX_COORDINATE, MAX_FRAMES, QUATERNION_TOLERANCE, checked_flag, is_positive_finite, is_real, real_array, shown, time_step_problem
+from ._validate import MAX_COORDINATE, MAX_FRAMES, QUATERNION_TOLERANCE, checked_flag, is_gain, is_positive_finite, is_real, real_array, shown, time_step_problem
 from .articulation import frame_in_body
 from .builder import MODEL_CONTACT_MODES, ModelBuilder, _per_coordinate, contact_setting_problem, coordinate_limits, flat_twice_area, float32_values
 from .contact import CENTRED_WEIGHTS, UNSOLVED_HINT
@@ -2376,7 +2376,7 @@ def _read_warpcontact_body(prim, body: BodySpec, meters: float, source: str):
         if not attr_name.startswith("pd:"):
             continue
         gain = np.asarray(getattr(body, field_name), dtype=np.float64)
-        if not (np.isfinite(gain).all() and (gain >= 0.0).all()):
+        if not is_gain(gain):
             raise ValueError(f"{source}: prim {prim.GetPath()}: warpcontact:{attr_name} must be finite and >= 0 (a PD gain), got {gain.tolist()}")
 
 

@@ -48,7 +48,7 @@ import numpy as np
 import warp as wp
 
 from ._files import replace_file
-from ._validate import MAX_COORDINATE, MAX_FRAMES, beyond_coordinates, check_finite_poses, checked_flag, is_positive_finite, is_real, is_whole, real_array
+from ._validate import MAX_COORDINATE, MAX_FRAMES, beyond_coordinates, check_finite_poses, checked_flag, is_gain, is_positive_finite, is_real, is_whole, real_array
 from .builder import check_contact_setting
 from .bundle import BundleSettings, bundled_gradient
 from .io import TASK_ATTRIBUTES, TaskSpec, check_scene_type, target_problem
@@ -708,7 +708,7 @@ def _check_control_dofs(body, control: str, source: str, up_axis: str = "Z"):
         raise ValueError(f"{where}: {velocities} are initial velocities, which pd_targets control does not use")
     kp_linear = np.broadcast_to(np.asarray(body.kp_linear, dtype=np.float64), (3,))
     stiffness = {d: float(body.kp_angular if d in _ROTATION_DOFS else kp_linear[_POSITION_DOFS.index(d)]) for d in dofs}
-    invalid = {d: kp for d, kp in stiffness.items() if not (np.isfinite(kp) and kp >= 0.0)}
+    invalid = {d: kp for d, kp in stiffness.items() if not is_gain(kp)}
     if invalid:
         # It was reported as moving nothing "without a positive PD stiffness" (a probe, stop 64).
         raise ValueError(f"{where}: a PD stiffness must be finite and >= 0 (warpcontact:pd:kpLinear / kpAngular), got {invalid}")
