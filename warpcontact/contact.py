@@ -330,13 +330,13 @@ def checked_adjoint_arguments(q_next, q_now, multiplier, names) -> tuple[np.ndar
     return q_next, q_now, multiplier
 
 
-def check_friction_arguments(mu, friction, slip_smoothing, coefficient=None) -> None:
-    """ValueError naming the argument unless ``mu`` (the contact stiffness) and
-    ``slip_smoothing`` (the step's slip length, friction smoothing x dt, m) are positive and
-    finite and ``friction`` is the model's one-value float64 array holding a coefficient >= 0
-    (``coefficient``, its value where the caller has it; ``friction_frame``: NaN gave NaN
-    friction, mu = -1 a negative energy, a float a Warp error from inside a kernel launch).
-    Their ranges are the model settings' (``ImplicitSolver``)."""
+def check_friction_arguments(mu, friction, slip_smoothing, coefficient=None) -> float:
+    """The friction coefficient, after a ValueError naming the argument unless ``mu`` (the
+    contact stiffness) and ``slip_smoothing`` (the step's slip length, friction smoothing x
+    dt, m) are positive and finite and ``friction`` is the model's one-value float64 array
+    holding a coefficient >= 0 (``coefficient``, its value where the caller has it;
+    ``friction_frame``: NaN gave NaN friction, mu = -1 a negative energy, a float a Warp error
+    from inside a kernel launch). Their ranges are the model settings' (``ImplicitSolver``)."""
     for label, value in (("mu", mu), ("slip_smoothing", slip_smoothing)):
         if not is_positive_finite(value):
             raise ValueError(f"{label}: must be a positive finite number, got {value!r}")
@@ -347,6 +347,7 @@ def check_friction_arguments(mu, friction, slip_smoothing, coefficient=None) -> 
     value = float(friction.numpy()[0]) if coefficient is None else coefficient
     if not (is_real(value) and np.isfinite(value) and value >= 0.0):
         raise ValueError(f"friction: the friction coefficient must be >= 0 and finite, got {value!r}")
+    return float(value)
 
 
 class ContactModel:

@@ -282,12 +282,13 @@ class IpcContactModel:
         """IPC's lagged friction at the last evaluated configuration (a step's q^t): ipctk's
         tangential collisions of the collisions active there (module docstring);
         ``coefficient`` as ``ContactModel.friction_frame``'s."""
-        check_friction_arguments(mu, friction, slip_smoothing, coefficient)
+        coefficient = check_friction_arguments(mu, friction, slip_smoothing, coefficient)
         self._require_evaluation("friction_frame")
         ipctk = self._ipctk
         normal_potential = ipctk.BarrierPotential(self.dhat, float(mu))
         collisions = ipctk.TangentialCollisions()
-        collisions.build(self._mesh, self._world, self._collisions, normal_potential, float(friction.numpy()[0]))
+        # The coefficient as checked (the array was read a second time here).
+        collisions.build(self._mesh, self._world, self._collisions, normal_potential, coefficient)
         data = _IpcLaggedFriction(collisions, self._world.copy(), normal_potential, ipctk.FrictionPotential(float(slip_smoothing)))
         return LaggedFriction(pairs=len(collisions), mu=float(mu), friction=friction, slip_smoothing=float(slip_smoothing), data=data, model_id=id(self))
 
